@@ -1,0 +1,92 @@
+"""Config validation, result-file round trips and rigid-motion conventions."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from deeptissue.config import ConfigError, validate_config
+from deeptissue.contours import Contours, load_contours, save_contours
+from deeptissue.pose import Pose, load_pose, save_pose
+from deeptissue.rigid import apply_rigid, euler_xyz_deg, rotation_matrix
+
+ROOT = Path(__file__).resolve().parents[1]
+SCHEMA = ROOT / "workflow" / "schemas" / "config.schema.yaml"
+
+
+def _demo():
+    return yaml.safe_load((ROOT / "config" / "config.yaml").read_text())
+
+
+def test_demo_config_is_valid_and_gets_defaults():
+    cfg = validate_config(_demo(), SCHEMA, base_dir=ROOT)
+    assert cfg["segmentation"]["n_points"] == 100
+    assert set(cfg["animals"]) == {"rat01", "rat02", "rat03"}
+
+
+@pytest.mark.parametrize(
+    "mutate, match",
+    [
+        (lambda c: c["animals"]["rat01"]["phantom"].update(depht_mm=2), r"animals\.rat01\.phantom: unknown key\(s\) \['depht_mm'\]"),
+        (lambda c: c["animals"]["rat01"]["phantom"].update(snr="high"), r"animals\.rat01\.phantom\.snr"),
+        (lambda c: c.update(segmentaton={}), r"unknown key\(s\) \['segmentaton'\]"),
+        (lambda c: c["animals"].update(rat09={"pre": "nowhere/pre.nii.gz"}), r"animals\.rat09\.pre: file not found"),
+    ],
+)
+def test_bad_config_names_the_key(mutate, match):
+    cfg = _demo()
+    mutate(cfg)
+    with pytest.raises(ConfigError, match=match) as info:
+        validate_config(cfg, SCHEMA, base_dir=ROOT)
+    assert "\n" not in str(info.value)
+
+
+def test_contours_round_trip(tmp_path):
+    rng = np.random.default_rng(0)
+    c = Contours(skin=rng.normal(size=(4, 10, 3)), bone=rng.normal(size=(4, 10, 3)))
+    save_contours(tmp_path / "c.npz", c)
+    back = load_contours(tmp_path / "c.npz")
+    np.testing.assert_array_equal(back.skin, c.skin)
+    np.testing.assert_array_equal(back.bone, c.bone)
+
+
+def test_contours_reject_mismatched_slices():
+    with pytest.raises(ValueError, match="skin has 4 slices but bone has 3"):
+        Contours(skin=np.zeros((4, 10, 3)), bone=np.zeros((3, 10, 3)))
+
+
+def test_pose_round_trip_and_validation(tmp_path):
+    p = Pose(
+        indenter_axis=[0, -1, 0], tip_start_mm=[0, 6, 10], tip_end_mm=[0, 3, 10], depth_mm=2.0,
+        bone_com_mm=[1, -1, 10], bone_rotation_deg=[1, 0, 0], bone_translation_mm=[0, 0.1, 0],
+        extra={"residual_mm": 0.01},
+    )
+    save_pose(tmp_path / "pose.json", p)
+    back = load_pose(tmp_path / "pose.json")
+    np.testing.assert_allclose(back.tip_end_mm, [0, 3, 10])
+    assert back.extra == {"residual_mm": 0.01}
+    assert back.travel_mm == pytest.approx(3.0)
+    with pytest.raises(ValueError, match="indenter_axis: not a unit vector"):
+        Pose(indenter_axis=[0, -2, 0], tip_start_mm=[0, 0, 0], tip_end_mm=[0, 0, 0], depth_mm=0,
+             bone_com_mm=[0, 0, 0], bone_rotation_deg=[0, 0, 0], bone_translation_mm=[0, 0, 0])
+
+
+def test_rigid_motion_keeps_centre_and_distances():
+    rng = np.random.default_rng(1)
+    pts = rng.normal(size=(20, 3))
+    c = np.array([1.0, 2.0, 3.0])
+    moved = apply_rigid(pts, rotation_deg=[10, -20, 5], centre_mm=c, translation_mm=[0.5, 0, 0])
+    d0 = np.linalg.norm(pts[:, None] - pts[None], axis=-1)
+    d1 = np.linalg.norm(moved[:, None] - moved[None], axis=-1)
+    np.testing.assert_allclose(d0, d1, atol=1e-12)
+    np.testing.assert_allclose(apply_rigid(c, rotation_deg=[10, -20, 5], centre_mm=c, translation_mm=[0, 0, 0]), c)
+
+
+def test_euler_steps_compose_to_the_rotation():
+    rv = [12.0, -7.0, 30.0]
+    a, b, c = np.radians(euler_xyz_deg(rv))
+    Rx = rotation_matrix([np.degrees(a), 0, 0])
+    Ry = rotation_matrix([0, np.degrees(b), 0])
+    Rz = rotation_matrix([0, 0, np.degrees(c)])
+    np.testing.assert_allclose(Rz @ Ry @ Rx, rotation_matrix(rv), atol=1e-12)

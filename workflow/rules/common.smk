@@ -1,0 +1,44 @@
+# Configuration validation, input functions and wildcard constraints shared by all rules.
+from pathlib import Path
+
+from deeptissue.config import validate_config
+
+config = validate_config(config, workflow.source_path("../schemas/config.schema.yaml"), base_dir=Path(workflow.basedir))
+
+ANIMALS = list(config["animals"])
+STATES = ["pre", "during"]
+
+
+wildcard_constraints:
+    animal="|".join(ANIMALS) if ANIMALS else "NO_ANIMAL",
+    state="pre|during",
+
+
+def animal_cfg(animal):
+    return config["animals"][animal]
+
+
+def is_phantom(animal):
+    return "phantom" in animal_cfg(animal)
+
+
+def has_during(animal):
+    return is_phantom(animal) or "during" in animal_cfg(animal)
+
+
+def animal_states(animal):
+    return STATES if has_during(animal) else ["pre"]
+
+
+def mri_input(wildcards):
+    """The NIfTI of one animal and state: the phantom's output or the configured file."""
+    cfg = animal_cfg(wildcards.animal)
+    if "phantom" in cfg:
+        return f"results/{wildcards.animal}/mri/{wildcards.state}.nii.gz"
+    return cfg[wildcards.state]
+
+
+def get_final_output():
+    """Final targets of the study; each stage adds its outputs here as it lands."""
+    out = []
+    return out
