@@ -12,9 +12,14 @@ report: "workflow/report/workflow.rst"
 
 
 include: "workflow/rules/common.smk"
+include: "workflow/rules/imaging.smk"
+include: "workflow/rules/pose.smk"
+include: "workflow/rules/model.smk"
+include: "workflow/rules/fem.smk"
+include: "workflow/rules/study.smk"
 
 
 rule all:
     input:
-        get_final_output(),
+        FINAL_OUTPUTS,
     default_target: True

@@ -38,7 +38,5 @@ def mri_input(wildcards):
     return cfg[wildcards.state]
 
 
-def get_final_output():
-    """Final targets of the study; each stage adds its outputs here as it lands."""
-    out = []
-    return out
+# Final targets of the study: each stage's rule file extends this list with its outputs.
+FINAL_OUTPUTS = []
