@@ -15,6 +15,7 @@ include: "workflow/rules/common.smk"
 include: "workflow/rules/imaging.smk"
 include: "workflow/rules/pose.smk"
 include: "workflow/rules/model.smk"
+include: "workflow/rules/material.smk"
 include: "workflow/rules/fem.smk"
 include: "workflow/rules/study.smk"
 

@@ -90,3 +90,17 @@ def test_euler_steps_compose_to_the_rotation():
     Ry = rotation_matrix([0, np.degrees(b), 0])
     Rz = rotation_matrix([0, 0, np.degrees(c)])
     np.testing.assert_allclose(Rz @ Ry @ Rx, rotation_matrix(rv), atol=1e-12)
+
+
+def test_variant_names():
+    from deeptissue.variants import parse_variant, variant_travel
+
+    v = parse_variant("sphere_rx+15")
+    assert (v.indenter, v.turn_axis, v.turn_deg) == ("sphere", "x", 15.0)
+    assert parse_variant("bar").turn_axis is None
+    with pytest.raises(ValueError, match="variant 'cube'"):
+        parse_variant("cube")
+    axis, start, end = variant_travel(v, axis=[0, -1, 0], tip_start_mm=[0, 5, 0], tip_end_mm=[0, 2, 0])
+    # turning -y by +15 deg about x tilts it toward -z; the travel length is kept
+    np.testing.assert_allclose(axis, [0, -np.cos(np.radians(15)), -np.sin(np.radians(15))], atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(end - start), 3.0)

@@ -1,0 +1,57 @@
+"""Study variants by name: indenter shape and orientation relative to the MRI estimate.
+
+``sphere`` and ``bar`` use the estimated axis; a suffix ``_rx+15`` / ``_rz-15`` (any number of
+degrees) turns the axis about the world X or Z axis through the final tip, keeping the travel.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+import numpy as np
+
+from .rigid import rotation_matrix
+
+_NAME = re.compile(r"^(?P<shape>sphere|bar)(?:_r(?P<axis>[xyz])(?P<angle>[+-]\d+(?:\.\d+)?))?$")
+
+
+@dataclass(frozen=True)
+class Variant:
+    name: str
+    indenter: str  # "sphere" or "bar"
+    turn_axis: str | None = None  # "x", "y" or "z": world axis the indenter axis is turned about
+    turn_deg: float = 0.0
+
+    def rotation(self) -> np.ndarray:
+        """3x3 rotation applied to the estimated indenter axis (identity for no turn)."""
+        if self.turn_axis is None:
+            return np.eye(3)
+        v = np.zeros(3)
+        v["xyz".index(self.turn_axis)] = self.turn_deg
+        return rotation_matrix(v)
+
+
+def parse_variant(name: str) -> Variant:
+    """``'sphere_rx+15'`` -> Variant(indenter='sphere', turn_axis='x', turn_deg=15.0)."""
+    m = _NAME.match(name)
+    if not m:
+        raise ValueError(
+            f"variant {name!r}: expected 'sphere' or 'bar', optionally followed by _rx/_ry/_rz and a signed angle in degrees, e.g. 'sphere_rx+15'"
+        )
+    angle = float(m["angle"]) if m["angle"] else 0.0
+    return Variant(name=name, indenter=m["shape"], turn_axis=m["axis"] if m["angle"] else None, turn_deg=angle)
+
+
+def variant_travel(variant: Variant, *, axis, tip_start_mm, tip_end_mm):
+    """Indenter axis and start/end tip positions of a variant (world mm).
+
+    The axis is turned about the world axis through the final tip; the travel length stays the same,
+    so the start point is the final tip moved back along the turned axis by the travel.
+    """
+    axis = np.asarray(axis, float)
+    end = np.asarray(tip_end_mm, float)
+    travel = float(np.linalg.norm(end - np.asarray(tip_start_mm, float)))
+    new_axis = variant.rotation() @ axis
+    new_axis /= np.linalg.norm(new_axis)
+    return new_axis, end - travel * new_axis, end
