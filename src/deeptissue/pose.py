@@ -74,3 +74,831 @@ def load_pose(path: str | Path) -> Pose:
         return Pose.from_dict(read_json(path))
     except ValueError as exc:
         raise ValueError(f"{path}: {exc}") from exc
+
+
+# ----------------------------------------------------------------------------------------------
+# Estimation of the pose from the MRI (rule ``pose``).
+#
+# Pure functions on arrays: a volume ``(I, J, K)`` with its 4x4 affine (voxel index -> world mm,
+# axial slices = constant K), and contour stacks ``(n_slices, n_points, 3)`` in world mm.
+# ----------------------------------------------------------------------------------------------
+
+from .rigid import rotation_matrix  # noqa: E402
+
+
+class PoseError(ValueError):
+    """The pose cannot be read from the scan; the message names the animal and the reason."""
+
+
+@dataclass(frozen=True)
+class FluidComponent:
+    """The connected component of contrast fluid inside the indenter.
+
+    ``points_mm`` (n, 3) voxel centres [mm]; ``com_mm`` (3,) centre of mass [mm]; ``axis`` (3,) unit
+    principal axis (smallest moment of inertia, sign not yet fixed); ``moments_mm2`` (3,) principal
+    moments of inertia per unit mass [mm^2], ascending; ``volume_mm3``; ``candidate_volumes_mm3``
+    volumes of all candidate components, largest first; ``threshold`` the intensity threshold used.
+    """
+
+    points_mm: np.ndarray
+    com_mm: np.ndarray
+    axis: np.ndarray
+    moments_mm2: np.ndarray
+    volume_mm3: float
+    candidate_volumes_mm3: tuple
+    threshold: float
+
+
+@dataclass(frozen=True)
+class BoneMotion:
+    """Rigid motion of the tibia, pre -> during: ``x -> R (x - com_mm) + com_mm + translation_mm``.
+
+    ``com_mm`` (3,) pre-state centroid of the bone in the slab [mm]; ``rotation_deg`` (3,) rotation
+    vector [deg]; ``translation_mm`` (3,); ``com_shift_mm`` (3,) raw centroid difference (the initial
+    guess); ``rms_initial_mm`` / ``rms_com_mm`` / ``rms_final_mm``: RMS point-to-surface distance of the
+    during bone vertices to the pre bone surface before any motion, after the centroid shift, after the fit.
+    """
+
+    com_mm: np.ndarray
+    rotation_deg: np.ndarray
+    translation_mm: np.ndarray
+    com_shift_mm: np.ndarray
+    rms_initial_mm: float
+    rms_com_mm: float
+    rms_final_mm: float
+    method: str
+    dof: int
+    n_evaluations: int
+
+
+def _where(animal: str) -> str:
+    return f"animal {animal}: " if animal else ""
+
+
+def voxel_centres_mm(affine: np.ndarray, ijk: np.ndarray) -> np.ndarray:
+    """World coordinates [mm] (n, 3) of voxel indices ``ijk`` (n, 3) through the 4x4 ``affine``."""
+    ijk = np.asarray(ijk, dtype=float)
+    return ijk @ np.asarray(affine, float)[:3, :3].T + np.asarray(affine, float)[:3, 3]
+
+
+def inside_skin_mask(shape: tuple, affine: np.ndarray, skin_mm: np.ndarray) -> np.ndarray:
+    """Boolean mask (I, J, K): voxel centre inside the skin contour of its axial slice.
+
+    ``skin_mm`` (n_slices, n_points, 3) world mm; each contour is assigned to the volume slice K
+    nearest its mean z. Slices without a contour are all False.
+    """
+    from matplotlib.path import Path as MplPath
+
+    affine = np.asarray(affine, float)
+    inv = np.linalg.inv(affine)
+    mask = np.zeros(shape, dtype=bool)
+    ii, jj = np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij")
+    for contour in np.asarray(skin_mm, float):
+        ijk = contour @ inv[:3, :3].T + inv[:3, 3]
+        k = int(round(float(ijk[:, 2].mean())))
+        if not 0 <= k < shape[2]:
+            continue
+        # voxel centres of slice k in world mm, tested against the contour in world x, y
+        centres = voxel_centres_mm(affine, np.column_stack([ii.ravel(), jj.ravel(), np.full(ii.size, k)]))
+        inside = MplPath(contour[:, :2]).contains_points(centres[:, :2])
+        mask[:, :, k] = inside.reshape(ii.shape)
+    return mask
+
+
+def fluid_threshold(volume: np.ndarray, inside_mask: np.ndarray, *, ratio: float) -> float:
+    """Automatic contrast-fluid threshold: ``ratio`` x the median intensity of the leg (voxels inside the skin)."""
+    leg = np.asarray(volume, float)[inside_mask]
+    if leg.size == 0:
+        raise PoseError("no voxel inside the skin contours: cannot set the fluid threshold")
+    return float(ratio * np.median(leg))
+
+
+def inertia_axis(points_mm: np.ndarray, *, voxel_edges_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Centre of mass, principal axis and principal moments of a set of equal voxels.
+
+    ``points_mm`` (n, 3) voxel centres [mm]; ``voxel_edges_mm`` (3, 3) the voxel's edge vectors as
+    columns (the affine's 3x3 block), so that each voxel counts as a solid parallelepiped (its own
+    inertia J J^T / 12 is added; this matters with 1 mm slices and 0.1 mm pixels).
+    Returns ``com_mm`` (3,), ``axis`` (3,) the eigenvector of the smallest moment of inertia (the long
+    axis), ``moments_mm2`` (3,) ascending moments per unit mass [mm^2].
+    """
+    p = np.asarray(points_mm, float)
+    J = np.asarray(voxel_edges_mm, float)
+    com = p.mean(axis=0)
+    d = p - com
+    cov = d.T @ d / len(p) + J @ J.T / 12.0
+    inertia = np.trace(cov) * np.eye(3) - cov
+    moments, vecs = np.linalg.eigh(inertia)
+    return com, vecs[:, 0] / np.linalg.norm(vecs[:, 0]), moments
+
+
+def find_fluid_component(
+    volume: np.ndarray,
+    affine: np.ndarray,
+    *,
+    threshold: float,
+    exclude_mask: np.ndarray | None = None,
+    min_volume_mm3: float = 1.0,
+    ambiguity_ratio: float = 0.5,
+    animal: str = "",
+) -> FluidComponent:
+    """The connected component of contrast fluid: voxels above ``threshold`` (26-connected).
+
+    ``volume`` (I, J, K) intensities; ``affine`` 4x4; ``exclude_mask`` (I, J, K) voxels that cannot be
+    fluid (inside the deformed skin: bright tissue). Components smaller than ``min_volume_mm3`` are
+    noise. The largest remaining one is the indenter's fluid unless the runner-up reaches
+    ``ambiguity_ratio`` of its volume (then :class:`PoseError`: several similar candidates).
+    """
+    from scipy import ndimage
+
+    vol = np.asarray(volume, float)
+    if vol.ndim != 3:
+        raise PoseError(f"{_where(animal)}during volume is not 3D (shape {vol.shape})")
+    affine = np.asarray(affine, float)
+    bright = vol > threshold
+    if exclude_mask is not None:
+        bright &= ~exclude_mask
+    labels, n = ndimage.label(bright, structure=np.ones((3, 3, 3), bool))
+    voxel_mm3 = abs(float(np.linalg.det(affine[:3, :3])))
+    counts = np.bincount(labels.ravel(), minlength=n + 1)[1:]
+    volumes = counts * voxel_mm3
+    order = np.argsort(volumes)[::-1]
+    cands = [int(i) for i in order if volumes[i] >= min_volume_mm3]
+    if not cands:
+        biggest = f"{volumes.max():.3g} mm^3" if n else "none"
+        raise PoseError(
+            f"{_where(animal)}no contrast fluid found in the during scan: no bright component outside the skin "
+            f">= {min_volume_mm3} mm^3 above threshold {threshold:.4g} (largest: {biggest}); "
+            "give pose_override.indenter_axis and tip_end_mm to proceed by hand"
+        )
+    cand_vols = tuple(float(volumes[i]) for i in cands)
+    if len(cands) > 1 and cand_vols[1] >= ambiguity_ratio * cand_vols[0]:
+        raise PoseError(
+            f"{_where(animal)}several candidate contrast-fluid components of similar size "
+            f"({', '.join(f'{v:.3g}' for v in cand_vols[:4])} mm^3): cannot tell which is the indenter; "
+            "give pose_override.indenter_axis and tip_end_mm, or adjust pose.fluid_threshold"
+        )
+    ijk = np.argwhere(labels == cands[0] + 1)
+    pts = voxel_centres_mm(affine, ijk)
+    com, axis, moments = inertia_axis(pts, voxel_edges_mm=affine[:3, :3])
+    # The fluid column usually leaves the field of view: the border cuts it obliquely, which tilts
+    # the inertia axis (~0.5 deg for a 12 deg obliquity). Cut it instead by a plane perpendicular to
+    # the axis just inside the border voxels, and iterate.
+    shape = np.array(vol.shape)
+    at_border = np.any((ijk[:, :2] == 0) | (ijk[:, :2] == shape[:2] - 1), axis=1)
+    if at_border.any():
+        for _ in range(4):
+            s = (pts - com) @ axis
+            head_side = np.sign(np.mean(s[~at_border])) if (~at_border).any() else 1.0
+            sb = s[at_border] * head_side
+            keep = s * head_side > sb.max() + 0.5
+            if keep.sum() < 0.3 * len(pts):
+                break
+            com, new_axis, moments = inertia_axis(pts[keep], voxel_edges_mm=affine[:3, :3])
+            new_axis = new_axis if new_axis @ axis >= 0 else -new_axis
+            done = np.degrees(np.arccos(min(1.0, abs(float(new_axis @ axis))))) < 1e-3
+            axis = new_axis
+            if done:
+                break
+        pts_used = pts[keep] if keep.sum() >= 0.3 * len(pts) else pts
+    else:
+        pts_used = pts
+    return FluidComponent(
+        points_mm=pts_used, com_mm=com, axis=axis, moments_mm2=moments, volume_mm3=cand_vols[0],
+        candidate_volumes_mm3=cand_vols, threshold=float(threshold),
+    )
+
+
+def orient_axis(axis: np.ndarray, *, from_mm: np.ndarray, toward_mm: np.ndarray) -> np.ndarray:
+    """``axis`` (3,) normalised and signed to point from ``from_mm`` toward ``toward_mm`` (e.g. the leg)."""
+    a = np.asarray(axis, float)
+    a = a / np.linalg.norm(a)
+    return a if np.dot(a, np.asarray(toward_mm, float) - np.asarray(from_mm, float)) >= 0 else -a
+
+
+def _perpendicular_basis(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    a = axis / np.linalg.norm(axis)
+    helper = np.array([0.0, 0.0, 1.0]) if abs(a[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    u = np.cross(a, helper)
+    u /= np.linalg.norm(u)
+    return u, np.cross(a, u)
+
+
+def tip_end_mm(
+    skin_during_mm: np.ndarray,
+    *,
+    axis: np.ndarray,
+    com_mm: np.ndarray,
+    front_mm: float,
+    roi_diameter_mm: float = 5.0,
+    reach_mm: float = 1.5,
+    head_radius_mm: float = 1.5,
+    cap_radius_mm: float = 1.2,
+    method: str = "sphere",
+    animal: str = "",
+) -> tuple[np.ndarray, dict]:
+    """Final tip position [mm] (3,) from the deformed skin.
+
+    ``skin_during_mm`` (n_slices, n_points, 3); ``axis`` (3,) unit, into the leg; ``com_mm`` (3,) the
+    fluid's centre of mass; ``front_mm`` the fluid's farthest extent along the axis from the COM.
+    The region of interest (ROI) is a cylinder of ``roi_diameter_mm`` about the axis, from the COM to
+    ``reach_mm`` beyond the fluid front: it holds the skin under the head, not the far side of the leg.
+
+    ``method='vertex'``: the deepest ROI vertex along the axis, projected on the axis through the COM
+    (the paper's method; it fails when the axis is oblique to the skin and the depth small: the
+    undeformed skin at the ROI rim then lies deeper along the axis than the tip).
+    ``method='sphere'`` (default): the first crossing of the axis with the deformed skin surface
+    (within the ROI length) seeds the cap of skin vertices within ``cap_radius_mm``; where the skin
+    conforms to the indenter head they lie on a sphere of ``head_radius_mm``, which is fitted to them
+    (robustly, centre only; vertices where the skin leaves the head are dropped); the tip is its
+    centre + radius * axis. This interpolates between the 1 mm slices and does not inherit the
+    slice-quantisation offset of the fluid COM across the slices (up to ~0.2 mm). Falls back to the
+    axis crossing (or the deepest vertex) if fewer than 8 cap vertices fit. Returns the tip and a
+    dict of diagnostics.
+    """
+    from scipy.optimize import least_squares
+
+    if method not in ("sphere", "vertex"):
+        raise ValueError(f"tip_end_mm: method must be 'sphere' or 'vertex', got {method!r}")
+    a = np.asarray(axis, float)
+    a = a / np.linalg.norm(a)
+    c = np.asarray(com_mm, float)
+    v = np.asarray(skin_during_mm, float).reshape(-1, 3)
+    d = v - c
+    s = d @ a
+    r = np.linalg.norm(d - s[:, None] * a, axis=1)
+    roi = (r <= roi_diameter_mm / 2) & (s >= 0) & (s <= front_mm + reach_mm)
+    if not roi.any():
+        raise PoseError(
+            f"{_where(animal)}the indenter axis does not meet the deformed skin: no skin vertex within "
+            f"{roi_diameter_mm / 2:g} mm of the axis up to {reach_mm:g} mm beyond the fluid; "
+            "give pose_override.indenter_axis / tip_end_mm"
+        )
+    s_deep = float(s[roi].max())
+    tip_vertex = c + s_deep * a
+    info = {"tip_roi_vertices": int(roi.sum()), "tip_method": "deepest_vertex",
+            "tip_deepest_vertex_mm": tip_vertex.tolist()}
+    if method == "vertex":
+        return tip_vertex, info
+    t_hit = line_triangle_hits(c, a, skin_triangles(skin_during_mm))
+    t_hit = t_hit[(t_hit >= 0) & (t_hit <= front_mm + reach_mm)]
+    seed = c + t_hit[0] * a if t_hit.size else tip_vertex
+    if t_hit.size:
+        info.update(tip_method="axis_skin_crossing", tip_axis_crossing_mm=seed.tolist())
+    cap = np.linalg.norm(v - seed, axis=1) <= cap_radius_mm
+    if cap.sum() < 8:
+        return seed, info
+    pts = v[cap]
+    centre0 = seed - head_radius_mm * a
+    keep = np.ones(len(pts), bool)
+    for _ in range(4):  # fit, drop vertices off the head (skin leaving the indenter), refit
+        fit = least_squares(lambda x: np.linalg.norm(pts[keep] - x, axis=1) - head_radius_mm, centre0)
+        resid = np.abs(np.linalg.norm(pts - fit.x, axis=1) - head_radius_mm)
+        new_keep = resid <= max(0.05, 3 * np.median(resid))
+        if new_keep.sum() < 8 or np.array_equal(new_keep, keep):
+            break
+        keep = new_keep
+        centre0 = fit.x
+    tip = fit.x + head_radius_mm * a
+    if keep.sum() < 8 or np.linalg.norm(tip - seed) > 0.5:
+        return seed, info
+    info.update(tip_method="head_sphere_fit", tip_fit_vertices=int(keep.sum()),
+                tip_fit_rms_mm=float(np.sqrt(np.mean(fit.fun**2))))
+    return tip, info
+
+
+def skin_triangles(skin_mm: np.ndarray) -> np.ndarray:
+    """Triangles (T, 3, 3) [mm] of the surface through a contour stack (n_slices, n_points, 3).
+
+    Point j of slice k is joined to point j of slice k+1 (the contours share start angle and
+    direction), each quad split in two; the ends are left open.
+    """
+    s = np.asarray(skin_mm, float)
+    a, b = s[:-1], s[1:]
+    a1, b1 = np.roll(a, -1, axis=1), np.roll(b, -1, axis=1)
+    t1 = np.stack([a, a1, b1], axis=2).reshape(-1, 3, 3)
+    t2 = np.stack([a, b1, b], axis=2).reshape(-1, 3, 3)
+    return np.concatenate([t1, t2])
+
+
+def line_triangle_hits(point_mm: np.ndarray, direction: np.ndarray, triangles_mm: np.ndarray) -> np.ndarray:
+    """Parameters t of the points ``point + t * direction`` where the line crosses the triangles (T, 3, 3).
+
+    Möller–Trumbore, vectorised; returns a sorted 1D array (empty if the line misses).
+    """
+    o = np.asarray(point_mm, float)
+    dvec = np.asarray(direction, float)
+    v0, v1, v2 = triangles_mm[:, 0], triangles_mm[:, 1], triangles_mm[:, 2]
+    e1, e2 = v1 - v0, v2 - v0
+    p = np.cross(dvec, e2)
+    det = np.einsum("ij,ij->i", e1, p)
+    ok = np.abs(det) > 1e-12
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    tv = o - v0
+    u = np.einsum("ij,ij->i", tv, p) * inv
+    q = np.cross(tv, e1)
+    w = (q @ dvec) * inv
+    t = np.einsum("ij,ij->i", e2, q) * inv
+    hit = ok & (u >= 0) & (w >= 0) & (u + w <= 1)
+    return np.sort(t[hit])
+
+
+def skin_entry_mm(
+    skin_pre_mm: np.ndarray, *, axis: np.ndarray, point_mm: np.ndarray, animal: str = ""
+) -> np.ndarray:
+    """Where the line through ``point_mm`` along ``axis`` meets the undeformed skin, nearest ``point_mm``.
+
+    ``skin_pre_mm`` (n_slices, n_points, 3). Raises :class:`PoseError` if the line misses the skin.
+    """
+    a = np.asarray(axis, float)
+    t = line_triangle_hits(point_mm, a, skin_triangles(skin_pre_mm))
+    if t.size == 0:
+        raise PoseError(
+            f"{_where(animal)}the indenter axis does not meet the undeformed (pre) skin surface; "
+            "give pose_override.tip_start_mm or indenter_axis"
+        )
+    return np.asarray(point_mm, float) + t[np.argmin(np.abs(t))] * a
+
+
+def bone_centroid_mm(bone_mm: np.ndarray) -> np.ndarray:
+    """Centroid [mm] (3,) of the bone in the slab: area-weighted centroids of the slice polygons.
+
+    ``bone_mm`` (n_slices, n_points, 3); every slice is an equally thick slab.
+    """
+    b = np.asarray(bone_mm, float)
+    x, y = b[..., 0], b[..., 1]
+    x1, y1 = np.roll(x, -1, axis=1), np.roll(y, -1, axis=1)
+    cross = x * y1 - x1 * y
+    area = cross.sum(axis=1) / 2
+    cx = ((x + x1) * cross).sum(axis=1) / (6 * area)
+    cy = ((y + y1) * cross).sum(axis=1) / (6 * area)
+    cz = b[..., 2].mean(axis=1)
+    w = np.abs(area)
+    return np.array([np.sum(w * cx), np.sum(w * cy), np.sum(w * cz)]) / w.sum()
+
+
+def dense_surface(contours_mm: np.ndarray, *, step_mm: float = 0.05, extend_mm: float = 0.5,
+                  upsample: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """A dense point cloud on the surface through a contour stack, with unit normals.
+
+    ``contours_mm`` (n_slices, n_points, 3), slices at increasing or decreasing z. Each contour is
+    upsampled ``upsample`` times around (periodic cubic spline over the point index) and every point
+    track is interpolated across the slices with a cubic spline in z every ``step_mm``, extrapolated
+    ``extend_mm`` beyond the end slices (the moved bone reaches slightly outside the slab).
+    Returns ``points_mm`` (N, 3) and ``normals`` (N, 3).
+    """
+    from scipy.interpolate import CubicSpline
+
+    c = np.asarray(contours_mm, float)
+    n_s, n_p, _ = c.shape
+    if upsample > 1:
+        idx = np.arange(n_p + 1)
+        closed = np.concatenate([c, c[:, :1]], axis=1)
+        spl = CubicSpline(idx, closed, axis=1, bc_type="periodic")
+        c = spl(np.arange(n_p * upsample) / upsample)
+    z = c[..., 2].mean(axis=1)
+    order = np.argsort(z)
+    z, c = z[order], c[order]
+    if n_s >= 2:
+        zf = np.arange(z[0] - extend_mm, z[-1] + extend_mm + step_mm / 2, step_mm)
+        spl_z = CubicSpline(z, c[..., :2], axis=0, bc_type="natural")
+        xy = spl_z(zf)
+        dxy_dz = spl_z(zf, 1)
+    else:
+        zf = z
+        xy = c[..., :2]
+        dxy_dz = np.zeros_like(xy)
+    pts = np.concatenate([xy, np.broadcast_to(zf[:, None, None], xy.shape[:2] + (1,))], axis=2)
+    t_z = np.concatenate([dxy_dz, np.ones(xy.shape[:2] + (1,))], axis=2)
+    t_c = np.roll(pts, -1, axis=1) - np.roll(pts, 1, axis=1)
+    nrm = np.cross(t_c, t_z)
+    nrm /= np.linalg.norm(nrm, axis=2, keepdims=True)
+    return pts.reshape(-1, 3), nrm.reshape(-1, 3)
+
+
+def fit_bone_motion(
+    bone_pre_mm: np.ndarray,
+    bone_during_mm: np.ndarray,
+    *,
+    method: str = "surface",
+    dof: int = 6,
+    surface_step_mm: float = 0.05,
+    animal: str = "",
+) -> BoneMotion:
+    """Rigid motion of the tibia from the pre and during bone contour stacks (n_slices, n_points, 3).
+
+    Translation: the shift of the bone centroid (initial guess). Rotation (and, with ``dof=6``, a
+    translation correction): Levenberg–Marquardt (``scipy.optimize.least_squares(method='lm')``) on
+    the distances of every during bone vertex, mapped back to the pre state, to the pre bone:
+    ``method='vertex'`` the distance to the nearest pre vertex (KD-tree) on the original slices;
+    ``method='surface'`` the point-to-plane distance to the nearest point of a dense cubic
+    interpolation of the pre surface between slices. The latter removes the bias that through-plane
+    motion gives nearest-vertex distances between stacks sampled at the same 1 mm z planes.
+    """
+    from scipy.optimize import least_squares
+    from scipy.spatial import cKDTree
+
+    pre = np.asarray(bone_pre_mm, float)
+    dur = np.asarray(bone_during_mm, float)
+    if pre.ndim != 3 or dur.ndim != 3 or pre.shape[0] != dur.shape[0]:
+        raise PoseError(
+            f"{_where(animal)}during bone contours cannot be matched to the pre bone: "
+            f"{dur.shape[0] if dur.ndim == 3 else dur.shape} slices during vs "
+            f"{pre.shape[0] if pre.ndim == 3 else pre.shape} pre"
+        )
+    dz = np.abs(np.sort(pre[..., 2].mean(axis=1)) - np.sort(dur[..., 2].mean(axis=1)))
+    if dz.max() > 1e-3:
+        raise PoseError(
+            f"{_where(animal)}during bone contours cannot be matched to the pre bone: slice planes differ "
+            f"by up to {dz.max():.3g} mm"
+        )
+    if method not in ("surface", "vertex"):
+        raise ValueError(f"fit_bone_motion: method must be 'surface' or 'vertex', got {method!r}")
+    if dof not in (3, 6):
+        raise ValueError(f"fit_bone_motion: dof must be 3 or 6, got {dof!r}")
+    com_pre = bone_centroid_mm(pre)
+    shift = bone_centroid_mm(dur) - com_pre
+    q = dur.reshape(-1, 3)
+    if method == "surface":
+        ref, nrm = dense_surface(pre, step_mm=surface_step_mm)
+    else:
+        ref, nrm = pre.reshape(-1, 3), None
+    tree = cKDTree(ref)
+
+    def residuals_for(rot_deg, trans):
+        R = rotation_matrix(rot_deg)
+        p = (q - com_pre - trans) @ R + com_pre  # R^T (q - c - t) + c, row vectors
+        _, j = tree.query(p)
+        if nrm is None:
+            return np.linalg.norm(p - ref[j], axis=1)
+        return np.einsum("ij,ij->i", p - ref[j], nrm[j])
+
+    def rms(r):
+        return float(np.sqrt(np.mean(r**2)))
+
+    rms0 = rms(residuals_for(np.zeros(3), np.zeros(3)))
+    rms_com = rms(residuals_for(np.zeros(3), shift))
+    if dof == 6:
+        fun = lambda x: residuals_for(x[:3], shift + x[3:])  # noqa: E731
+        x0 = np.zeros(6)
+    else:
+        fun = lambda x: residuals_for(x, shift)  # noqa: E731
+        x0 = np.zeros(3)
+    res = least_squares(fun, x0, method="lm", x_scale=np.ones_like(x0), diff_step=1e-4 if method == "surface" else None)
+    rot = res.x[:3]
+    trans = shift + (res.x[3:] if dof == 6 else 0.0)
+    return BoneMotion(
+        com_mm=com_pre, rotation_deg=rot, translation_mm=np.asarray(trans, float), com_shift_mm=shift,
+        rms_initial_mm=rms0, rms_com_mm=rms_com, rms_final_mm=rms(res.fun), method=method, dof=dof,
+        n_evaluations=int(res.nfev),
+    )
+
+
+@dataclass(frozen=True)
+class PoseOptions:
+    """Settings of :func:`estimate_pose` (config section ``pose``); see the schema for each key."""
+
+    fluid_threshold: float | None = None
+    fluid_threshold_ratio: float = 1.6
+    min_component_mm3: float = 1.0
+    ambiguity_ratio: float = 0.5
+    roi_diameter_mm: float = 5.0
+    roi_reach_mm: float = 1.5
+    head_radius_mm: float = 1.5
+    tip_method: str = "sphere"
+    start_backoff_mm: float = 1.0
+    bone_method: str = "surface"
+    bone_dof: int = 6
+    bone_surface_step_mm: float = 0.05
+
+    @classmethod
+    def from_config(cls, section: dict | None) -> "PoseOptions":
+        known = {f for f in cls.__dataclass_fields__}
+        return cls(**{k: v for k, v in (section or {}).items() if k in known})
+
+
+_OVERRIDE_KEYS = ("indenter_axis", "tip_end_mm", "tip_start_mm", "bone_rotation_deg", "bone_translation_mm")
+
+
+def estimate_pose(
+    during: np.ndarray,
+    affine: np.ndarray,
+    pre: "Contours",
+    during_contours: "Contours",
+    *,
+    options: PoseOptions = PoseOptions(),
+    override: dict | None = None,
+    animal: str = "",
+) -> tuple[Pose, dict]:
+    """Indenter pose, depth and tibia motion of one animal.
+
+    ``during`` (I, J, K) intensities of the during scan with its 4x4 ``affine`` (voxel -> world mm);
+    ``pre`` / ``during_contours``: :class:`~deeptissue.contours.Contours` of both states.
+    ``override``: any of ``indenter_axis``, ``tip_end_mm``, ``tip_start_mm``, ``bone_rotation_deg``,
+    ``bone_translation_mm`` given by hand; these replace the automatic quantities, and the ones that
+    depend on them are computed from them (start from the hand axis and tip, etc.). With both
+    ``indenter_axis`` and ``tip_end_mm`` given the fluid is not needed at all.
+    Returns the :class:`Pose` (fit diagnostics in ``extra``) and a dict of intermediate arrays for
+    the QC figures (fluid points, ROI, bone motions).
+    Raises :class:`PoseError` naming the animal and the reason when the scan cannot be read.
+    """
+    override = {k: np.asarray(v, float) for k, v in (override or {}).items() if v is not None}
+    unknown = set(override) - set(_OVERRIDE_KEYS)
+    if unknown:
+        raise ValueError(f"{_where(animal)}unknown pose_override key(s) {sorted(unknown)}")
+    extra: dict = {"overrides": sorted(override)}
+    qc: dict = {}
+    leg_centre = during_contours.skin.reshape(-1, 3).mean(axis=0)
+    affine = np.asarray(affine, float)
+
+    fluid = None
+    if not ("indenter_axis" in override and "tip_end_mm" in override):
+        mask = inside_skin_mask(np.shape(during), affine, during_contours.skin)
+        thr = options.fluid_threshold
+        if thr is None:
+            thr = fluid_threshold(during, mask, ratio=options.fluid_threshold_ratio)
+        fluid = find_fluid_component(
+            during, affine, threshold=thr, exclude_mask=mask, min_volume_mm3=options.min_component_mm3,
+            ambiguity_ratio=options.ambiguity_ratio, animal=animal,
+        )
+        m = fluid.moments_mm2
+        extra.update(fluid_threshold=fluid.threshold, fluid_volume_mm3=fluid.volume_mm3,
+                     fluid_candidate_volumes_mm3=list(fluid.candidate_volumes_mm3[:5]),
+                     fluid_elongation=float(np.sqrt(m[2] / max(m[0], 1e-12))))
+        qc["fluid_points_mm"] = fluid.points_mm
+
+    if "indenter_axis" in override:
+        axis = override["indenter_axis"] / np.linalg.norm(override["indenter_axis"])
+    else:
+        axis = orient_axis(fluid.axis, from_mm=fluid.com_mm, toward_mm=leg_centre)
+    com = fluid.com_mm if fluid is not None else None
+
+    if "tip_end_mm" in override:
+        tip_end = override["tip_end_mm"]
+    else:
+        front = float(np.max((fluid.points_mm - com) @ axis))
+        tip_end, info = tip_end_mm(
+            during_contours.skin, axis=axis, com_mm=com, front_mm=front, roi_diameter_mm=options.roi_diameter_mm,
+            reach_mm=options.roi_reach_mm, head_radius_mm=options.head_radius_mm, method=options.tip_method,
+            animal=animal,
+        )
+        extra.update(info)
+        qc["roi_front_mm"] = front
+
+    if "tip_start_mm" in override:
+        tip_start = override["tip_start_mm"]
+        surface = tip_start + options.start_backoff_mm * axis
+    else:
+        # the line of travel: through the final tip along the axis; the skin crossing nearest the
+        # indenter (the fluid COM, or the tip when the fluid was not used)
+        ref = com if com is not None else tip_end - 5.0 * axis
+        t_hits = line_triangle_hits(tip_end, axis, skin_triangles(pre.skin))
+        if t_hits.size == 0:
+            raise PoseError(
+                f"{_where(animal)}the indenter axis does not meet the undeformed (pre) skin surface; "
+                "give pose_override.tip_start_mm or indenter_axis"
+            )
+        hits = tip_end + t_hits[:, None] * axis
+        surface = hits[np.argmin(np.linalg.norm(hits - ref, axis=1))]
+        tip_start = surface - options.start_backoff_mm * axis
+    depth = float((tip_end - surface) @ axis)
+    extra["skin_entry_mm"] = surface
+
+    if "bone_rotation_deg" in override and "bone_translation_mm" in override:
+        com_pre = bone_centroid_mm(pre.bone)
+        rot, trans = override["bone_rotation_deg"], override["bone_translation_mm"]
+    else:
+        motion = fit_bone_motion(
+            pre.bone, during_contours.bone, method=options.bone_method, dof=options.bone_dof,
+            surface_step_mm=options.bone_surface_step_mm, animal=animal,
+        )
+        com_pre = motion.com_mm
+        rot = override.get("bone_rotation_deg", motion.rotation_deg)
+        trans = override.get("bone_translation_mm", motion.translation_mm)
+        extra.update(bone_method=motion.method, bone_dof=motion.dof, bone_com_shift_mm=motion.com_shift_mm,
+                     bone_rms_initial_mm=motion.rms_initial_mm, bone_rms_com_mm=motion.rms_com_mm,
+                     bone_rms_final_mm=motion.rms_final_mm, bone_fit_evaluations=motion.n_evaluations)
+        qc["bone_com_shift_mm"] = motion.com_shift_mm
+
+    pose = Pose(
+        indenter_axis=axis, tip_start_mm=tip_start, tip_end_mm=tip_end, depth_mm=depth, bone_com_mm=com_pre,
+        bone_rotation_deg=rot, bone_translation_mm=trans, indenter_com_mm=com, extra=extra,
+    )
+    return pose, qc
+
+
+# tolerances of issue 3 (phantoms: tilt <= 25 deg, depth 1-3 mm, bone rotation <= 3 deg, snr >= 12)
+ACCURACY_TOLERANCES = {
+    "axis_error_deg": 1.0,
+    "tip_end_error_mm": 0.1,
+    "depth_error_mm": 0.1,
+    "bone_rotation_error_deg": 0.3,
+    "bone_translation_error_mm": 0.03,
+}
+
+
+def pose_errors(estimate: Pose, truth: Pose) -> dict:
+    """Errors of a pose against the truth (phantom ``truth.json``).
+
+    ``axis_error_deg`` angle between the axes; ``tip_end_error_mm`` / ``tip_start_error_mm`` distances;
+    ``depth_error_mm`` |difference|; ``bone_rotation_error_deg`` angle of R_est R_true^T;
+    ``bone_translation_error_mm``: the estimated motion re-expressed about the truth's centre
+    (t' = t + (R - I)(c_true - c_est), the same motion) minus the true translation.
+    """
+    from scipy.spatial.transform import Rotation
+
+    cos = float(np.clip(estimate.indenter_axis @ truth.indenter_axis, -1.0, 1.0))
+    R_est = rotation_matrix(estimate.bone_rotation_deg)
+    R_true = rotation_matrix(truth.bone_rotation_deg)
+    rel = Rotation.from_matrix(R_est @ R_true.T).magnitude()
+    t_about_truth = estimate.bone_translation_mm + (R_est - np.eye(3)) @ (truth.bone_com_mm - estimate.bone_com_mm)
+    return {
+        "axis_error_deg": float(np.degrees(np.arccos(cos))),
+        "tip_end_error_mm": float(np.linalg.norm(estimate.tip_end_mm - truth.tip_end_mm)),
+        "tip_start_error_mm": float(np.linalg.norm(estimate.tip_start_mm - truth.tip_start_mm)),
+        "depth_error_mm": abs(estimate.depth_mm - truth.depth_mm),
+        "bone_rotation_error_deg": float(np.degrees(rel)),
+        "bone_translation_error_mm": float(np.linalg.norm(t_about_truth - truth.bone_translation_mm)),
+        "bone_com_error_mm": float(np.linalg.norm(estimate.bone_com_mm - truth.bone_com_mm)),
+    }
+
+
+def accuracy_table(estimate: Pose, truth: Pose) -> list[dict]:
+    """Rows ``quantity, error, tolerance, within_tolerance`` of :func:`pose_errors` (CSV-ready)."""
+    rows = []
+    for k, v in pose_errors(estimate, truth).items():
+        tol = ACCURACY_TOLERANCES.get(k)
+        rows.append({"quantity": k, "error": v, "tolerance": tol if tol is not None else "",
+                     "within_tolerance": "" if tol is None else bool(v <= tol)})
+    return rows
+
+
+# ---------------------------------------------------------------------------------------------- QC
+
+def plot_axis_qc(path, during: np.ndarray, affine: np.ndarray, pose: Pose, qc: dict, *, title: str = "") -> None:
+    """Axial and sagittal cross-sections through the indenter COM with the fluid voxels and the axis."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .io import atomic_path
+
+    affine = np.asarray(affine, float)
+    centre = pose.indenter_com_mm if pose.indenter_com_mm is not None else pose.tip_end_mm
+    ijk = np.linalg.solve(affine[:3, :3], centre - affine[:3, 3])
+    i, k = (int(np.clip(round(ijk[n]), 0, np.shape(during)[n] - 1)) for n in (0, 2))
+    sx, sy, sz = np.abs(np.diag(affine[:3, :3]))
+    x0, y0, z0 = affine[:3, 3]
+    nx, ny, nz = np.shape(during)
+    xs = np.sort([x0, x0 + (nx - 1) * affine[0, 0]])
+    ys = np.sort([y0, y0 + (ny - 1) * affine[1, 1]])
+    zs = np.sort([z0, z0 + (nz - 1) * affine[2, 2]])
+    fig, axs = plt.subplots(1, 2, figsize=(11, 5))
+    line = centre[None] + np.linspace(-8, 8, 2)[:, None] * pose.indenter_axis
+    pts = qc.get("fluid_points_mm")
+    axs[0].imshow(np.asarray(during)[:, :, k].T, origin="lower", cmap="gray",
+                  extent=[xs[0] - sx / 2, xs[1] + sx / 2, ys[0] - sy / 2, ys[1] + sy / 2])
+    axs[1].imshow(np.asarray(during)[i, :, :].T, origin="lower", cmap="gray", aspect="auto",
+                  extent=[ys[0] - sy / 2, ys[1] + sy / 2, zs[0] - sz / 2, zs[1] + sz / 2])
+    if pts is not None:
+        sel = np.abs(pts[:, 2] - affine[2, 3] - k * affine[2, 2]) < sz / 2
+        axs[0].plot(pts[sel, 0], pts[sel, 1], ",", color="tab:cyan", alpha=0.5)
+        sel = np.abs(pts[:, 0] - affine[0, 3] - i * affine[0, 0]) < sx / 2
+        axs[1].plot(pts[sel, 1], pts[sel, 2], "s", ms=2, color="tab:cyan", alpha=0.5)
+    for ax, (a, b) in zip(axs, [(0, 1), (1, 2)]):
+        ax.plot(line[:, a], line[:, b], "r-", lw=1, label="axis")
+        ax.plot(*pose.tip_end_mm[[a, b]], "y+", ms=12, mew=2, label="tip end")
+        ax.plot(*pose.tip_start_mm[[a, b]], "gx", ms=10, mew=2, label="tip start")
+    axs[0].set(title=f"axial z = {zs[0] + k * sz:.1f} mm", xlabel="x [mm]", ylabel="y [mm]")
+    axs[1].set(title=f"sagittal x = {xs[0] + i * sx:.2f} mm", xlabel="y [mm]", ylabel="z [mm]")
+    axs[0].legend(loc="lower left", fontsize=8)
+    fig.suptitle(title + " — contrast fluid (cyan) and indenter axis")
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+
+
+def plot_tip_qc(path, pre: "Contours", during_contours: "Contours", pose: Pose, *, roi_diameter_mm: float = 5.0,
+                title: str = "") -> None:
+    """The skin ROI around the axis with the start and end points: depth along vs distance from the axis."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .io import atomic_path
+
+    a = pose.indenter_axis
+    ref = pose.tip_start_mm
+    fig, axs = plt.subplots(1, 2, figsize=(11, 5))
+    for c, lab, col in [(pre.skin, "pre skin", "tab:blue"), (during_contours.skin, "during skin", "tab:orange")]:
+        v = c.reshape(-1, 3)
+        d = v - ref
+        s = d @ a
+        r = np.linalg.norm(d - s[:, None] * a, axis=1)
+        sel = r <= roi_diameter_mm / 2
+        axs[0].plot(r[sel], s[sel], ".", ms=3, color=col, label=f"{lab} in ROI")
+    axs[0].axhline(0, color="g", lw=1, label="tip start")
+    axs[0].axhline(float((pose.tip_end_mm - ref) @ a), color="r", lw=1, label="tip end")
+    axs[0].invert_yaxis()
+    axs[0].set(xlabel="distance from axis [mm]", ylabel="depth along axis from tip start [mm]",
+               title=f"ROI (⌀ {roi_diameter_mm:g} mm), depth = {pose.depth_mm:.3f} mm")
+    axs[0].legend(fontsize=8)
+    k = int(np.argmin(np.abs(during_contours.z_mm - pose.tip_end_mm[2])))
+    for c, lab, col in [(pre.skin, "pre", "tab:blue"), (during_contours.skin, "during", "tab:orange")]:
+        axs[1].plot(*np.vstack([c[k], c[k][:1]])[:, :2].T, "-", color=col, lw=1, label=f"{lab} skin")
+    line = pose.tip_end_mm[None] + np.linspace(-6, 2, 2)[:, None] * a
+    axs[1].plot(line[:, 0], line[:, 1], "r-", lw=0.8)
+    axs[1].plot(*pose.tip_start_mm[:2], "gx", ms=10, mew=2, label="tip start")
+    axs[1].plot(*pose.tip_end_mm[:2], "r+", ms=12, mew=2, label="tip end")
+    axs[1].set(aspect="equal", xlabel="x [mm]", ylabel="y [mm]", title=f"slice z = {during_contours.z_mm[k]:.1f} mm")
+    axs[1].legend(fontsize=8)
+    fig.suptitle(title + " — skin region of interest, start and end of travel")
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+
+
+def plot_bone_qc(path, pre: "Contours", during_contours: "Contours", pose: Pose, *, title: str = "") -> None:
+    """Bone contours before, after centroid alignment, and after the full rigid fit (x-y and y-z views)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .io import atomic_path
+
+    c = pose.bone_com_mm
+    dur = during_contours.bone
+    shift = np.asarray(pose.extra.get("bone_com_shift_mm", pose.bone_translation_mm), float)
+    R = rotation_matrix(pose.bone_rotation_deg)
+    back = [dur, dur - shift, (dur - c - pose.bone_translation_mm) @ R + c]
+    names = ["as imaged", "after centroid alignment", "after rigid fit"]
+    fig, axs = plt.subplots(2, 3, figsize=(13, 8))
+    for j, (b, name) in enumerate(zip(back, names)):
+        for row, (p, q) in enumerate([(0, 1), (1, 2)]):
+            ax = axs[row, j]
+            ax.plot(pre.bone[..., p].ravel(), pre.bone[..., q].ravel(), ".", ms=1, color="tab:blue", label="pre")
+            ax.plot(b[..., p].ravel(), b[..., q].ravel(), ".", ms=1, color="tab:red", label="during, mapped back")
+            ax.set(xlabel="xyz"[p] + " [mm]", ylabel="xyz"[q] + " [mm]")
+            if row == 0:
+                ax.set(aspect="equal", title=name)
+    axs[0, 0].legend(fontsize=8, markerscale=6)
+    e = pose.extra
+    fig.suptitle(
+        f"{title} — tibia: rotation {np.round(pose.bone_rotation_deg, 3)} deg, translation "
+        f"{np.round(pose.bone_translation_mm, 3)} mm; RMS distance {e.get('bone_rms_initial_mm', np.nan):.3f} → "
+        f"{e.get('bone_rms_com_mm', np.nan):.3f} → {e.get('bone_rms_final_mm', np.nan):.3f} mm"
+    )
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+
+
+def run_pose(
+    *,
+    during_nifti,
+    pre_contours,
+    during_contours,
+    pose_json,
+    axis_png,
+    tip_png,
+    bone_png,
+    options: dict | None = None,
+    override: dict | None = None,
+    animal: str = "",
+) -> Pose:
+    """Rule ``pose``: read the during NIfTI and both contour files, write ``pose.json`` and the QC figures."""
+    import nibabel as nib
+
+    from .contours import load_contours
+
+    img = nib.load(str(during_nifti))
+    data = np.asanyarray(img.dataobj, dtype=float)
+    if data.ndim != 3:
+        raise PoseError(f"{_where(animal)}{during_nifti}: not a 3D volume (shape {data.shape})")
+    pre = load_contours(pre_contours)
+    dur = load_contours(during_contours)
+    opts = PoseOptions.from_config(options)
+    pose, qc = estimate_pose(data, img.affine, pre, dur, options=opts, override=override, animal=animal)
+    plot_axis_qc(axis_png, data, img.affine, pose, qc, title=animal)
+    plot_tip_qc(tip_png, pre, dur, pose, roi_diameter_mm=opts.roi_diameter_mm, title=animal)
+    plot_bone_qc(bone_png, pre, dur, pose, title=animal)
+    save_pose(pose_json, pose)
+    return pose
+
+
+def run_pose_accuracy(*, pose_json, truth_json, csv_path) -> list[dict]:
+    """Rule ``pose_accuracy``: errors of ``pose.json`` against the phantom ``truth.json`` as CSV."""
+    import csv
+
+    from .io import atomic_path
+
+    rows = accuracy_table(load_pose(pose_json), load_pose(truth_json))
+    with atomic_path(csv_path) as tmp:
+        with open(tmp, "w", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+    return rows
