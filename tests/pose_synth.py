@@ -68,10 +68,10 @@ def indenter_volume(*, head_mm, axis, inner_radius_mm=1.2, leg_radius_mm=5.0, fl
 
 
 def leg_skin(*, leg_radius_mm=5.0, n_points=100, head_mm=None, axis=None, outer_radius_mm=1.5,
-             drho=0.0005):
+             drho=0.001):
     """Skin contours (20, n_points, 3): circles, pushed in where the indenter capsule occupies them."""
     th = np.radians(90.0) + 2 * np.pi * np.arange(n_points) / n_points
-    rho = np.arange(0.0, leg_radius_mm + drho / 2, drho)
+    rho = np.arange(leg_radius_mm - 4.0, leg_radius_mm + drho / 2, drho)  # dimples are < 4 mm deep
     out = np.empty((len(SLICE_Z), n_points, 3))
     for k, z in enumerate(SLICE_Z):
         r = np.full(n_points, leg_radius_mm)
