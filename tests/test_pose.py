@@ -88,7 +88,7 @@ def test_inertia_axis_respects_voxel_size():
 
 
 def test_fluid_found_among_noise_blobs_and_bright_tissue():
-    blobs = [((-9.0, -9.0, 3.0), 0.5, 3.0), ((9.0, 8.0, -4.0), 0.6, 3.0),  # noise outside the leg
+    blobs = [((-9.0, -9.0, 3.0), 0.5, 3.0), ((9.0, 8.0, -4.0), 1.0, 3.0),  # noise outside the leg
              ((1.0, -1.5, 0.0), 2.0, 3.5)]  # bright tissue inside the leg, bigger than the fluid column
     vol, A, pre, dur, truth = _scene((10, 5), 2.0, blobs=blobs)
     pose, _ = estimate_pose(vol, A, pre, dur, animal="rat09")
