@@ -854,8 +854,10 @@ def plot_axis_qc(path, during: np.ndarray, affine: np.ndarray, pose: Pose, qc: d
         ax.plot(line[:, a], line[:, b], "r-", lw=1, label="axis")
         ax.plot(*pose.tip_end_mm[[a, b]], "y+", ms=12, mew=2, label="tip end")
         ax.plot(*pose.tip_start_mm[[a, b]], "gx", ms=10, mew=2, label="tip start")
-    axs[0].set(title=f"axial z = {zs[0] + k * sz:.1f} mm", xlabel="x [mm]", ylabel="y [mm]")
-    axs[1].set(title=f"sagittal x = {xs[0] + i * sx:.2f} mm", xlabel="y [mm]", ylabel="z [mm]")
+    axs[0].set(title=f"axial z = {zs[0] + k * sz:.1f} mm", xlabel="x [mm]", ylabel="y [mm]",
+               xlim=(xs[0] - sx / 2, xs[1] + sx / 2), ylim=(ys[0] - sy / 2, ys[1] + sy / 2))
+    axs[1].set(title=f"sagittal x = {xs[0] + i * sx:.2f} mm", xlabel="y [mm]", ylabel="z [mm]",
+               xlim=(ys[0] - sy / 2, ys[1] + sy / 2), ylim=(zs[0] - sz / 2, zs[1] + sz / 2))
     axs[0].legend(loc="lower left", fontsize=8)
     fig.suptitle(title + " — contrast fluid (cyan) and indenter axis")
     with atomic_path(path) as tmp:
@@ -885,7 +887,8 @@ def plot_tip_qc(path, pre: "Contours", during_contours: "Contours", pose: Pose, 
         axs[0].plot(r[sel], s[sel], ".", ms=3, color=col, label=f"{lab} in ROI")
     axs[0].axhline(0, color="g", lw=1, label="tip start")
     axs[0].axhline(float((pose.tip_end_mm - ref) @ a), color="r", lw=1, label="tip end")
-    axs[0].invert_yaxis()
+    s_end = float((pose.tip_end_mm - ref) @ a)
+    axs[0].set_ylim(s_end + 2.0, -1.0)  # the far side of the leg is outside the ROI's reach
     axs[0].set(xlabel="distance from axis [mm]", ylabel="depth along axis from tip start [mm]",
                title=f"ROI (⌀ {roi_diameter_mm:g} mm), depth = {pose.depth_mm:.3f} mm")
     axs[0].legend(fontsize=8)
