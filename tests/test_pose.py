@@ -33,13 +33,17 @@ ROOT = Path(__file__).resolve().parents[1]
 SCHEMA = ROOT / "workflow" / "schemas" / "config.schema.yaml"
 
 
-def _scene(tilt, depth, *, blobs=(), rotation=(0, 0, 0), translation=(0, 0, 0), aim=(0.3, 0.0, 0.2), fluid=3.0):
+def _scene(tilt, depth, *, blobs=(), rotation=(0, 0, 0), translation=(0, 0, 0), aim=(0.3, 0.0, 0.2), fluid=3.0,
+           snr=None):
     """Synthetic during volume, pre/during contours and the true pose."""
     a = ps.axis_from_tilt(*tilt)
     entry = ps.circle_entry(a, aim_mm=aim)
     tip = entry + depth * a
     head = tip - 1.5 * a
     vol, A = ps.indenter_volume(head_mm=head, axis=a, blobs=blobs, fluid=fluid, subsamples=3)
+    if snr:  # Rician noise, sigma = tissue intensity / snr
+        rng = np.random.default_rng(12)
+        vol = np.hypot(vol + rng.normal(0, 1 / snr, vol.shape), rng.normal(0, 1 / snr, vol.shape))
     bone_pre = ps.bone_stack()
     c = bone_centroid_mm(bone_pre)
     bone_dur = ps.bone_stack(rotation_deg=rotation, centre_mm=c, translation_mm=translation)
@@ -51,9 +55,10 @@ def _scene(tilt, depth, *, blobs=(), rotation=(0, 0, 0), translation=(0, 0, 0), 
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("tilt, depth", [((0, 0), 1.0), ((25, 0), 1.0), ((0, 25), 3.0), ((18, -18), 2.0), ((12, 4), 1.5)])
-def test_pose_of_synthetic_indenter_within_tolerance(tilt, depth):
-    vol, A, pre, dur, truth = _scene(tilt, depth, rotation=(1.0, -0.5, 0.8), translation=(0.05, -0.10, 0.02))
+@pytest.mark.parametrize("tilt, depth, snr", [((0, 0), 1.0, None), ((25, 0), 1.0, None), ((0, 25), 3.0, 12),
+                                             ((18, -18), 2.0, None), ((12, 4), 1.5, 12)])
+def test_pose_of_synthetic_indenter_within_tolerance(tilt, depth, snr):
+    vol, A, pre, dur, truth = _scene(tilt, depth, rotation=(1.0, -0.5, 0.8), translation=(0.05, -0.10, 0.02), snr=snr)
     pose, _ = estimate_pose(vol, A, pre, dur, animal="synth")
     err = pose_errors(pose, truth)
     assert err["axis_error_deg"] <= 1.0
