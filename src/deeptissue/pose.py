@@ -270,9 +270,10 @@ def find_fluid_component(
     axis_inertia = axis
     if refine_axis:
         background = np.median(vol[~bright & ~exclude_mask]) if exclude_mask is not None else np.median(vol[~bright])
-        level = 0.5 * (float(np.median(vol[labels == cands[0] + 1])) + float(background))
+        fluid_level = float(np.median(vol[labels == cands[0] + 1]))
+        level = 0.5 * (fluid_level + float(background))
         axis = refine_axis_cylinder(vol, affine, pts_used, com_mm=com, axis=axis, level=level,
-                                    exclude_mask=exclude_mask)
+                                    exclude_mask=exclude_mask, fluid_level=fluid_level)
     return FluidComponent(
         points_mm=pts_used, com_mm=com, axis=axis, moments_mm2=moments, volume_mm3=cand_vols[0],
         candidate_volumes_mm3=cand_vols, threshold=float(threshold), axis_inertia=axis_inertia,
@@ -282,7 +283,7 @@ def find_fluid_component(
 def refine_axis_cylinder(
     volume: np.ndarray, affine: np.ndarray, points_mm: np.ndarray, *, com_mm: np.ndarray, axis: np.ndarray,
     level: float, exclude_mask: np.ndarray | None = None, exclude_margin_mm: float = 0.5,
-    end_margin_mm: float = 1.5, max_change_deg: float = 5.0,
+    end_margin_mm: float = 1.5, max_change_deg: float = 5.0, fluid_level: float | None = None,
 ) -> np.ndarray:
     """Axis (3,) of the fluid column refined by a cylinder fit to its in-plane edges.
 
@@ -295,6 +296,8 @@ def refine_axis_cylinder(
     fitted by a cylinder (axis direction,
     position, radius; robust soft-L1 loss). The fitted direction is returned if it is within
     ``max_change_deg`` of ``axis``, else ``axis`` unchanged (the sign of ``axis`` is kept).
+    Slices that only graze the column (95th-percentile intensity below 90 % of ``fluid_level``, the
+    fluid's intensity; partial volume) are left out: their edges depend on the slice profile.
     """
     from scipy import ndimage
     from scipy.optimize import least_squares
@@ -310,6 +313,8 @@ def refine_axis_cylinder(
     if hi - lo < 2.0:
         return a0
     inv = np.linalg.inv(affine)
+    if fluid_level is None:
+        fluid_level = 2.0 * level  # background ~ 0
     ks = np.unique(np.round((pts @ inv[:3, :3].T + inv[:3, 3])[:, 2]).astype(int))
     edge = []
     for k in ks:
@@ -317,6 +322,11 @@ def refine_axis_cylinder(
             continue
         in_k = pts[np.abs((pts @ inv[:3, :3].T + inv[:3, 3])[:, 2] - k) < 0.5]
         if len(in_k) < 3:
+            continue
+        ijk_k = np.round(in_k @ inv[:3, :3].T + inv[:3, 3]).astype(int)
+        peak = float(np.percentile(volume[ijk_k[:, 0], ijk_k[:, 1], k], 95))
+        background = 2.0 * level - fluid_level
+        if peak < background + 0.9 * (fluid_level - background):  # the slice only grazes the column
             continue
         tree = cKDTree(in_k)
         near_leg = None
