@@ -51,3 +51,23 @@ def box_tet10(xs, ys, zs) -> TetMesh:
 
 def centroids(mesh: TetMesh) -> np.ndarray:
     return mesh.nodes_mm[mesh.tets[:, :4]].mean(axis=1)
+
+
+# gmsh Triangle6 faces of a Tetrahedron10 (local nodes: 3 corners, then mid-edges (0,1), (1,2), (2,0))
+_TET_FACES6 = [
+    (0, 2, 1, 6, 5, 4),
+    (0, 1, 3, 4, 9, 7),
+    (0, 3, 2, 7, 8, 6),
+    (1, 2, 3, 5, 8, 9),
+]
+
+
+def boundary_tri6(mesh: TetMesh, keep) -> np.ndarray:
+    """6-node triangles (outward normal) of the boundary faces whose three corners all satisfy
+    ``keep(points (k, 3)) -> bool (k,)``."""
+    faces = np.concatenate([mesh.tets[:, list(f)] for f in _TET_FACES6])
+    key = np.sort(faces[:, :3], axis=1)
+    _, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    boundary = counts[inv.ravel()] == 1
+    ok = np.all(keep(mesh.nodes_mm[faces[:, :3]].reshape(-1, 3)).reshape(-1, 3), axis=1)
+    return faces[boundary & ok]
