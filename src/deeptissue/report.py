@@ -358,6 +358,14 @@ def plot_sections(
     from matplotlib.colors import Normalize
 
     names = list(sections)
+    if not names:
+        fig, ax = plt.subplots(figsize=(5, 2))
+        ax.axis("off")
+        ax.text(0.5, 0.5, "no variant of this kind is configured", ha="center", va="center")
+        if title:
+            fig.suptitle(title, fontsize=9)
+        _save(fig, path)
+        return
     first = next((s for s in sections.values() if isinstance(s, Sections)), None)
     n_total = first.values.shape[0] if first is not None else 7
     cols = list(range(n_total)) if columns is None else list(columns)
