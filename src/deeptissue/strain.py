@@ -104,7 +104,7 @@ def element_volumes_mm3(mesh: TetMesh, *, order: int = 3) -> np.ndarray:
     pts, w = tet_quadrature(order)
     dN = tet10_shape_gradients(pts)  # (q, 10, 3)
     X = mesh.nodes_mm[mesh.tets]  # (m, 10, 3)
-    J = np.einsum("eai,qaj->eqij", X, dN)  # dX_i/dξ_j
+    J = np.tensordot(X, dN, axes=([1], [1])).transpose(0, 2, 1, 3)  # (m, q, 3, 3): dX_i/dξ_j
     return np.linalg.det(J) @ w
 
 
@@ -113,13 +113,13 @@ def deformation_gradient_at_centroids(mesh: TetMesh, displacement_mm) -> np.ndar
     u = _check_mesh_and_u(mesh, displacement_mm)
     dN = tet10_shape_gradients(np.full((1, 3), 0.25))[0]  # (10, 3)
     X = mesh.nodes_mm[mesh.tets]
-    J = np.einsum("eai,aj->eij", X, dN)
+    J = np.swapaxes(X, 1, 2) @ dN  # (m, 3, 3): dX_i/dξ_j
     det = np.linalg.det(J)
     if np.any(det <= 0):
         bad = np.flatnonzero(det <= 0)
         raise StrainError(f"mesh: {len(bad)} element(s) with non-positive Jacobian in the reference configuration, first {bad[0]}")
-    dN_dX = np.einsum("aj,eji->eai", dN, np.linalg.inv(J))  # dN_a/dX_i
-    grad_u = np.einsum("eak,eai->eki", u[mesh.tets], dN_dX)
+    dN_dX = dN[None] @ np.linalg.inv(J)  # (m, 10, 3): dN_a/dX_i
+    grad_u = np.swapaxes(u[mesh.tets], 1, 2) @ dN_dX  # (m, 3, 3): du_k/dX_i
     return np.eye(3) + grad_u
 
 
