@@ -51,12 +51,17 @@ def test_tables_flag_the_whole_animal_when_one_variant_fails(tmp_path):
                 "bins_percent.0.3-0.4", "bins_percent.>1.0"]:
         assert col in voi.columns, col
     assert voi.loc[0, "bins_percent.0.3-0.4"] == 60.0 and voi.loc[0, "bins_percent.>1.0"] == 40.0
+    assert "bins_percent" not in voi.columns and np.isnan(b["bins_percent.0.3-0.4"].iloc[1])
     assert len(bins) == 2 * 3 * len(LABELS)
     assert list(bins.columns) == ["animal", "variant", "bin", "percent", "excluded"]
     failed = bins[(bins["animal"] == "ratB") & (bins["variant"] == "bar")]
     assert list(failed["bin"]) == LABELS and failed["percent"].isna().all()
     a_sphere = bins[(bins["animal"] == "ratA") & (bins["variant"] == "sphere")].set_index("bin")["percent"]
     assert a_sphere["0.3-0.4"] == 60.0 and a_sphere.sum() == pytest.approx(100.0)
+
+    all_failed = [failed_summary(animal="ratC", variant="sphere", reason="diverged")]
+    _, b2 = summary_tables(all_failed, animals=["ratC"], variants=["sphere"], bin_edges=(0.3, 0.5))
+    assert list(b2["bin"]) == ["0.3-0.5", ">0.5"] and b2["percent"].isna().all()
 
     with pytest.raises(ValueError, match="no summary for ratC/sphere"):
         summary_tables(_study(), animals=["ratA", "ratC"], variants=["sphere"])

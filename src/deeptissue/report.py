@@ -23,6 +23,7 @@ from scipy.spatial import cKDTree
 
 from .io import atomic_path
 from .mesh import TetMesh
+from .strain import DEFAULT_BIN_EDGES, bin_labels
 from .summary import Summary
 
 EXCLUDED_COLOUR = "0.75"
@@ -40,9 +41,14 @@ def exclusions(summaries: Sequence[Summary]) -> dict[str, str]:
     return {a: "not converged: " + "; ".join(r) for a, r in out.items()}
 
 
+_DICT_FIELDS = ("bins_percent", "voi_by_measure_mm3", "peak_gamma_by_measure")
+
+
 def _flatten(d: dict) -> dict:
     flat = {}
     for k, v in d.items():
+        if v is None and k in _DICT_FIELDS:
+            continue  # a failed run: its sub-columns stay empty
         if isinstance(v, dict):
             for kk, vv in v.items():
                 flat[f"{k}.{kk}"] = vv
@@ -51,9 +57,11 @@ def _flatten(d: dict) -> dict:
     return flat
 
 
-def summary_tables(summaries: Sequence[Summary], *, animals: Sequence[str], variants: Sequence[str]) -> tuple[pd.DataFrame, pd.DataFrame]:
+def summary_tables(summaries: Sequence[Summary], *, animals: Sequence[str], variants: Sequence[str],
+                   bin_edges: Sequence[float] | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:
     """``voi`` (one row per animal × variant, every summary field, dicts flattened as ``key.sub``) and
-    ``bins`` (long: animal, variant, bin, percent, excluded), in the configured order.
+    ``bins`` (long: animal, variant, bin, percent, excluded), in the configured order. Bin labels come
+    from the summaries, or from ``bin_edges`` when no run converged.
 
     Raises ValueError naming any animal × variant without a summary.
     """
@@ -71,7 +79,7 @@ def summary_tables(summaries: Sequence[Summary], *, animals: Sequence[str], vari
             d.pop("animal"), d.pop("variant")
             row.update(_flatten(d))
             rows.append(row)
-            labels = list(s.bins_percent or {}) or _labels_from_any(summaries)
+            labels = list(s.bins_percent or {}) or _labels_from_any(summaries) or (bin_labels(bin_edges) if bin_edges else [])
             for label in labels:
                 pct = (s.bins_percent or {}).get(label, np.nan) if s.converged else np.nan
                 bins.append({"animal": a, "variant": v, "bin": label, "percent": pct, "excluded": a in excl})
@@ -452,6 +460,7 @@ def aggregate_study(
     pose_path: str | Path,
     strain_measure: str = "green_lagrange",
     threshold: float = 0.3,
+    bin_edges: Sequence[float] = DEFAULT_BIN_EDGES,
     reference: str = "sphere",
 ) -> None:
     """Read every summary, write the tables and the figures of the study.
@@ -465,7 +474,7 @@ def aggregate_study(
     from .variants import parse_variant
 
     summaries = [read_summary(p) for p in summary_paths]
-    voi, bins = summary_tables(summaries, animals=animals, variants=variants)
+    voi, bins = summary_tables(summaries, animals=animals, variants=variants, bin_edges=bin_edges)
     write_csv(outputs["voi_csv"], voi)
     write_csv(outputs["bins_csv"], bins)
     label = MEASURE_LABELS[strain_measure]

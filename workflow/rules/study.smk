@@ -75,6 +75,7 @@ rule aggregate:
         figure_animal=FIGURE_ANIMAL,
         strain_measure=STUDY["strain_measure"],
         threshold=STUDY["threshold"],
+        bin_edges=STUDY["bin_edges"],
     log:
         "results/summary/aggregate.log",
     conda:

@@ -17,4 +17,5 @@ with open(snakemake.log[0], "w") as log, contextlib.redirect_stderr(log):
         pose_path=snakemake.input.pose,
         strain_measure=snakemake.params.strain_measure,
         threshold=snakemake.params.threshold,
+        bin_edges=snakemake.params.bin_edges,
     )
