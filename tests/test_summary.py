@@ -85,6 +85,12 @@ def test_skin_agreement_on_a_deformed_p2_face():
     mean, p95 = skin_agreement_mm(pts.reshape(3, 100, 3), V, T)
     assert mean == pytest.approx(np.abs(delta).mean(), abs=1e-12)
     assert p95 == pytest.approx(np.percentile(np.abs(delta), 95), abs=1e-12)
+    # contour points beyond the model's ends (z outside [0.2, 2.2]) do not count
+    beyond = np.array([[2.3, 1.0, 5.0], [2.3, 1.0, -3.0]])
+    assert skin_agreement_mm(np.vstack([pts, beyond]), V, T) == pytest.approx((mean, p95), abs=1e-12)
+    assert skin_agreement_mm(np.vstack([pts, beyond]), V, T, clip_to_surface_z=False)[0] > mean
+    with pytest.raises(ValueError, match="no contour points"):
+        skin_agreement_mm(beyond, V, T)
     with pytest.raises(ValueError, match="no facet set 'cast'"):
         deformed_surface(m, u, facet="cast")
 

@@ -280,9 +280,18 @@ def surface_distance_mm(points_mm, vertices_mm, triangles) -> np.ndarray:
     return np.minimum(out, d0)
 
 
-def skin_agreement_mm(contour_points_mm, vertices_mm, triangles) -> tuple[float, float]:
-    """(mean, 95th percentile) distance [mm] from skin contour points (..., 3) to the surface."""
-    d = surface_distance_mm(contour_points_mm, vertices_mm, triangles)
+def skin_agreement_mm(contour_points_mm, vertices_mm, triangles, *, clip_to_surface_z: bool = True) -> tuple[float, float]:
+    """(mean, 95th percentile) distance [mm] from skin contour points (..., 3) to the surface.
+
+    With ``clip_to_surface_z`` only contour points whose z (leg axis) lies within the z range of the
+    surface's triangles count: scan slices beyond the model's ends would otherwise measure the
+    distance to the open rim rather than to the skin.
+    """
+    P = np.asarray(contour_points_mm, float).reshape(-1, 3)
+    if clip_to_surface_z:
+        z = np.asarray(vertices_mm, float)[np.unique(np.asarray(triangles))][:, 2]
+        P = P[(P[:, 2] >= z.min()) & (P[:, 2] <= z.max())]
+    d = surface_distance_mm(P, vertices_mm, triangles)
     if d.size == 0:
-        raise ValueError("skin agreement: no contour points")
+        raise ValueError("skin agreement: no contour points within the model's z range")
     return float(d.mean()), float(np.percentile(d, 95))
