@@ -88,3 +88,15 @@ def test_rule_aggregate_runs_on_hand_made_summaries(tmp_path):
     voi = pd.read_csv(tmp_path / "results" / "summary" / "voi.csv")
     assert voi["excluded"].all()
     assert voi["exclusion_reason"].iloc[0] == "not converged: bar: no convergence at 85% depth"
+
+
+@pytest.mark.slow
+def test_inconsistent_study_config_is_a_one_line_error(tmp_path):
+    cfg = yaml.safe_load((ROOT / "config" / "test.yaml").read_text())
+    cfg["study"]["threshold"] = 0.25
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump(cfg))
+    env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
+    r = subprocess.run([sys.executable, "-m", "snakemake", "-n", "-s", str(ROOT / "Snakefile"), "--directory", str(tmp_path),
+                        "--configfile", str(tmp_path / "bad.yaml")], env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode != 0
+    assert "config key study.bin_edges: must start at study.threshold (0.25), got 0.3" in r.stderr + r.stdout

@@ -120,6 +120,18 @@ def test_summarize_solution_and_json_round_trip(tmp_path):
     assert s.n_elements == m.n_tets and s.newton_iterations == 17
     assert s.extra == {"contact_nodes": 12}
 
+    # skin agreement inside summarize_solution: the x = 1 face, sheared into x = 1 + u_x(y)
+    skin = boundary_tri6(m, lambda p: np.isclose(p[:, 0], 1.0))
+    ms = TetMesh(nodes_mm=m.nodes_mm, tets=m.tets, facets={"skin": skin})
+    pts = []
+    for y0, k, f0 in [(0.5, 0.5, 0.25), (1.5, 0.7, 0.5 + 0.35)]:  # u_x at y0 = f0, slope k
+        for z0 in (0.3, 0.6):
+            pts.append([1.0 + f0 + 0.1, y0, z0])
+    s_skin, _ = summarize_solution(ms, u, animal="rat01", variant="sphere", skin_contours_mm=np.array(pts))
+    d = np.repeat(0.1 / np.sqrt(1 + ks**2), 2)
+    assert s_skin.skin_mean_mm == pytest.approx(d.mean(), rel=1e-12)
+    assert s_skin.skin_p95_mm == pytest.approx(np.percentile(d, 95), rel=1e-12)
+
     s_log, _ = summarize_solution(m, u, animal="rat01", variant="sphere", strain_measure="log", threshold=0.25,
                                   bin_edges=(0.25, 0.3, 0.5))
     assert s_log.voi_mm3 == pytest.approx(1.0)  # only the k = 0.7 layer has γ_log > 0.25
