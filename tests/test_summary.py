@@ -170,6 +170,14 @@ def test_failed_run_is_recorded_not_lost(tmp_path):
     back = read_summary(tmp_path / "s.json")
     assert back.converged is False and back.reason.startswith("increment cut")
     assert back.voi_mm3 is None and back.n_elements == 5000 and back.extra == {"last_residual": 3e-2}
+    # a summary written without animal/variant keys takes them from its path
+    (tmp_path / "ratZ" / "bar").mkdir(parents=True)
+    (tmp_path / "ratZ" / "bar" / "summary.json").write_text('{"converged": true, "voi_mm3": 1.5}')
+    z = read_summary(tmp_path / "ratZ" / "bar" / "summary.json")
+    assert (z.animal, z.variant, z.voi_mm3) == ("ratZ", "bar", 1.5)
+    (tmp_path / "ratZ" / "bar" / "summary.json").write_text('{"converged": "yes"}')
+    with pytest.raises(ValueError, match="ratZ/bar/summary.json.*converged must be true or false"):
+        read_summary(tmp_path / "ratZ" / "bar" / "summary.json")
     with pytest.raises(ValueError, match="needs a reason"):
         Summary(animal="a", variant="sphere", converged=False)
     with pytest.raises(ValueError, match="missing key"):

@@ -85,7 +85,12 @@ def write_summary(path: str | Path, summary: Summary) -> None:
 
 
 def read_summary(path: str | Path) -> Summary:
-    return Summary.from_dict(read_json(path), source=str(path))
+    """Read ``results/{animal}/{variant}/summary.json``; ``animal``/``variant`` default to the path's."""
+    path = Path(path)
+    d = read_json(path)
+    d.setdefault("variant", path.parent.name)
+    d.setdefault("animal", path.parent.parent.name)
+    return Summary.from_dict(d, source=str(path))
 
 
 def failed_summary(*, animal: str, variant: str, reason: str, strain_measure: str = "green_lagrange",
