@@ -62,11 +62,15 @@ def _snakemake(workdir, *targets_then_options):
 
 @pytest.mark.slow
 def test_rule_aggregate_runs_on_hand_made_summaries(tmp_path):
+    """sphere converged, bar failed (its summary says why): the animal is excluded, the study completes,
+    and a second run has nothing to do."""
     m = box_tet10(np.linspace(-3, 3, 7), np.linspace(0, 5, 6), np.linspace(-3, 3, 7))
     y = m.nodes_mm[:, 1]
     for variant, k in [("sphere", 0.9), ("bar", 1.3)]:
         u = np.column_stack([k * y**2 / 10, 0 * y, 0 * y])
         s, strain = summarize_solution(m, u, animal="rat01", variant=variant, indenter_force_N=0.1)
+        if variant == "bar":
+            s = failed_summary(animal="rat01", variant="bar", reason="no convergence at 85% depth", increments=9)
         write_summary(tmp_path / "results" / "rat01" / variant / "summary.json", s)
         write_result_vtu(tmp_path / "results" / "rat01" / variant / "result.vtu", m, u, strain)
     save_pose(tmp_path / "results" / "rat01" / "pose.json",
@@ -76,18 +80,15 @@ def test_rule_aggregate_runs_on_hand_made_summaries(tmp_path):
     r = _snakemake(tmp_path, *targets, "--cores", "1", "--allowed-rules", "aggregate")
     assert r.returncode == 0, r.stderr[-3000:]
     voi = pd.read_csv(tmp_path / "results" / "summary" / "voi.csv")
-    assert list(voi["variant"]) == ["sphere", "bar"] and not voi["excluded"].any()
-    bins = pd.read_csv(tmp_path / "results" / "summary" / "bins.csv")
-    assert bins.groupby("variant")["percent"].sum().round(9).tolist() == [100.0, 100.0]
-
-    # a failed variant is recorded, the animal is excluded, and the study still completes
-    write_summary(tmp_path / "results" / "rat01" / "bar" / "summary.json",
-                  failed_summary(animal="rat01", variant="bar", reason="no convergence at 85% depth"))
-    r = _snakemake(tmp_path, *targets, "--cores", "1", "--allowed-rules", "aggregate")
-    assert r.returncode == 0, r.stderr[-3000:]
-    voi = pd.read_csv(tmp_path / "results" / "summary" / "voi.csv")
+    assert list(voi["variant"]) == ["sphere", "bar"] and voi["converged"].tolist() == [True, False]
     assert voi["excluded"].all()
     assert voi["exclusion_reason"].iloc[0] == "not converged: bar: no convergence at 85% depth"
+    bins = pd.read_csv(tmp_path / "results" / "summary" / "bins.csv").groupby("variant", sort=False)["percent"]
+    assert bins.sum(min_count=1).round(9).tolist()[0] == 100.0 and bins.count().tolist() == [8, 0]
+    for name in ["bins.csv", "voi.png", "bins.png", "voi_change.png", "sections.png", "orientations.png"]:
+        assert (tmp_path / "results" / "summary" / name).stat().st_size > 0
+    r = _snakemake(tmp_path, *targets, "-n", "--allowed-rules", "aggregate")
+    assert r.returncode == 0 and "Nothing to be done" in r.stdout + r.stderr
 
 
 @pytest.mark.slow
