@@ -10,7 +10,7 @@ import yaml
 
 from deeptissue.config import validate_config
 from deeptissue.fem import analytic
-from deeptissue.fem.material import Ogden, ogden_energy, ogden_stress, ogden_stress_tangent
+from deeptissue.fem.material import Ogden, ogden_energy, ogden_stress, ogden_stress_tangent, sym_eig3
 from deeptissue.fem.material_checks import (
     FD_STEP_SECOND,
     FD_STEP_STRESS,
@@ -140,6 +140,37 @@ def test_batch_shapes_and_inverted_points():
     W1, P1, A1 = ogden_stress_tangent(F[0, 1], MAT)
     np.testing.assert_allclose(P1, P[0, 1], rtol=0, atol=1e-15)
     np.testing.assert_allclose(A1, A[0, 1], rtol=0, atol=1e-15)
+
+
+@pytest.mark.parametrize("spectrum", [[1.7, 0.9, 0.4], [1.0, 1.0, 1.0], [2.0, 2.0, 0.5], [1.0, 1.0 + 1e-9, 1.0 - 1e-9], [9.0, 0.09, 0.09 + 1e-12]])
+def test_jacobi_eigensolver_is_backward_stable(spectrum):
+    """C V = V diag(c), V^T V = I to rounding; eigenvalues equal to the constructed spectrum."""
+    R = random_rotations(200, np.random.default_rng(4))
+    C = np.einsum("nia,a,nja->nij", R, np.array(spectrum), R)
+    c, V = sym_eig3(C)
+    scale = max(spectrum)
+    assert np.abs(C @ V - V * c[:, None, :]).max() <= 1e-14 * scale
+    assert np.abs(np.swapaxes(V, 1, 2) @ V - np.eye(3)).max() <= 1e-14
+    np.testing.assert_allclose(np.sort(c, axis=1), np.broadcast_to(np.sort(spectrum), c.shape), rtol=0, atol=1e-14 * scale)
+    np.testing.assert_array_equal(sym_eig3(C, vectors=False), c)
+
+
+def test_chunked_evaluation_matches_pointwise():
+    """Batches larger than the internal chunk give the same numbers as single points."""
+    from deeptissue.fem import material as mat
+
+    rng = np.random.default_rng(8)
+    n = 2 * mat._CHUNK + 17
+    F = np.eye(3) + 0.2 * rng.standard_normal((n, 3, 3))
+    F[mat._CHUNK + 3] = -np.eye(3)  # an inverted point inside the second chunk
+    W, P, A = ogden_stress_tangent(F, MAT)
+    for i in (0, mat._CHUNK - 1, mat._CHUNK, mat._CHUNK + 4, n - 1):
+        Wi, Pi, Ai = ogden_stress_tangent(F[i], MAT)
+        assert Wi == pytest.approx(W[i], rel=1e-14)
+        np.testing.assert_allclose(Pi, P[i], rtol=0, atol=1e-15)
+        np.testing.assert_allclose(Ai, A[i], rtol=0, atol=1e-15)
+    assert np.isposinf(W[mat._CHUNK + 3]) and np.isnan(A[mat._CHUNK + 3]).all()
+    assert np.isfinite(A[mat._CHUNK + 2]).all() and np.isfinite(A[mat._CHUNK + 4]).all()
 
 
 # ---- the analytical truth itself ---------------------------------------------------------------
