@@ -35,7 +35,8 @@ coalescent stretches too. No stretch is perturbed.
 
 Points are processed in chunks of a few thousand, in structure-of-arrays layout (the point index
 last, so that every numpy operation runs over a long contiguous vector and the temporaries stay in
-cache); the tangent's final contraction is one batched 9x9 matrix product per point.
+cache). The tangent is assembled as A_iJkL = sum_ab n_ia n_kb Z_aJbL: a material-frame tensor Z
+built from the coefficients above, rotated by n on its two spatial indices.
 
 Inverted or degenerate points (det F <= 0) get W = +inf and P = A = nan: the solver treats them as
 inverted elements and cuts the increment.
@@ -261,21 +262,24 @@ class _Chunk:
             phi = np.where(small, beta * (1.0 + 0.5 * (beta - 1.0) * s), np.expm1(beta * s_safe) / np.expm1(s_safe))
             g1[a, b] = pre * np.exp((al - 2.0) * lmax) * phi
             g2[a, b] = g1[a, b] - (Wa[a] + Wa[b]) / (lam[a] + lam[b])
-        # basis dyads E_ab = n_a (x) N_b: Eip[i, J, a, b] and Epi[a, b, i, J] (point index last)
+        # A_iJkL = sum_ab n_ia n_kb Z[a, J, b, L] with the material part
+        #   Z[a, :, b, :] = W_ab N_a (x) N_b + g2_ab N_b (x) N_a                  (a != b)
+        #   Z[a, :, a, :] = W_aa N_a (x) N_a + sum_{c != a} g1_ac N_c (x) N_c
         n, N = self.n, self.N
-        Eip = n[:, None, :, None, :] * N[None, :, None, :, :]
-        nT, NT = n.transpose(1, 0, 2), N.transpose(1, 0, 2)
-        Epi = nT[:, None, :, None, :] * NT[None, :, None, :, :]
-        # U = E^T K (K symmetric, sparse), then A = U E
-        U = np.empty((3, 3, 3, 3, m))
+        NT = N.transpose(1, 0, 2)  # NT[a, J] = N_Ja
+        NN = NT[:, None, :, None, :] * NT[None, :, None, :, :]  # NN[a, b, J, L] = N_Ja N_Lb
+        Z = np.empty((3, 3, 3, 3, m))
         for a in range(3):
-            U[:, :, a, a] = Wab[a][0] * Eip[:, :, 0, 0] + Wab[a][1] * Eip[:, :, 1, 1] + Wab[a][2] * Eip[:, :, 2, 2]
+            Z[a, :, a, :] = Wab[a][a] * NN[a, a]
         for a, b in _PAIRS:
-            U[:, :, a, b] = g1[a, b] * Eip[:, :, a, b] + g2[a, b] * Eip[:, :, b, a]
-            U[:, :, b, a] = g1[a, b] * Eip[:, :, b, a] + g2[a, b] * Eip[:, :, a, b]
-        U_aos = np.ascontiguousarray(U.reshape(81, m).T).reshape(m, 9, 9)
-        E_aos = np.ascontiguousarray(Epi.reshape(81, m).T).reshape(m, 9, 9)
-        np.matmul(U_aos, E_aos, out=out)
+            Z[a, :, b, :] = Wab[a][b] * NN[a, b] + g2[a, b] * NN[b, a]
+            Z[b, :, a, :] = Wab[a][b] * NN[b, a] + g2[a, b] * NN[a, b]
+            Z[a, :, a, :] += g1[a, b] * NN[b, b]
+            Z[b, :, b, :] += g1[a, b] * NN[a, a]
+        # rotate the two spatial indices: Y[i, (J b L)] = sum_a n_ia Z[a, (J b L)], then over b
+        Y = np.einsum("iam,aXm->iXm", n, Z.reshape(3, 27, m))
+        A = np.einsum("kbm,xbLm->xkLm", n, Y.reshape(9, 3, 3, m))  # A[(i J), k, L]
+        out[...] = A.reshape(81, m).T.reshape(m, 9, 9)
 
 
 def _evaluate(F, material: Ogden, *, stress: bool, tangent: bool):
