@@ -173,6 +173,24 @@ def test_chunked_evaluation_matches_pointwise():
     assert np.isfinite(A[mat._CHUNK + 2]).all() and np.isfinite(A[mat._CHUNK + 4]).all()
 
 
+def test_lapack_fallback_for_unconverged_jacobi_gives_the_same_result(monkeypatch):
+    """With one Jacobi sweep allowed, (almost) every point falls back to LAPACK eigh."""
+    from deeptissue.fem import material as mat
+
+    F = CASES["random F"]
+    W, P, A = ogden_stress_tangent(F, MAT)
+    c, V = sym_eig3(np.swapaxes(F, 1, 2) @ F)
+    monkeypatch.setattr(mat, "_JACOBI_MAX_SWEEPS", 1)
+    W1, P1, A1 = ogden_stress_tangent(F, MAT)
+    C = np.swapaxes(F, 1, 2) @ F
+    c1, V1 = sym_eig3(C)
+    assert mat._jacobi(C[:, 0, 0], C[:, 1, 1], C[:, 2, 2], C[:, 0, 1], C[:, 0, 2], C[:, 1, 2], vectors=False)[2].all()
+    np.testing.assert_allclose(W1, W, rtol=1e-13)
+    np.testing.assert_allclose(P1, P, rtol=0, atol=1e-13 * np.abs(P).max())
+    np.testing.assert_allclose(A1, A, rtol=0, atol=1e-13 * np.abs(A).max())
+    np.testing.assert_allclose(np.sort(c1, axis=1), np.sort(c, axis=1), rtol=1e-13)
+
+
 # ---- the analytical truth itself ---------------------------------------------------------------
 
 
