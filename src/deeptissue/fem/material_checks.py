@@ -299,7 +299,7 @@ def time_material(material: Ogden, *, n_points: int = 100_000, repeats: int = 3,
 
 def _write_csv(df: pd.DataFrame, path) -> None:
     with atomic_path(path) as tmp:
-        df.to_csv(tmp, index=False, float_format="%.6g")
+        df.to_csv(tmp, index=False, float_format="%.10g")
 
 
 def run_material_verification(material: Ogden, *, point_csv, homogeneous_csv, figure_png, speed_csv) -> pd.DataFrame:
