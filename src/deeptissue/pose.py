@@ -272,8 +272,8 @@ def find_fluid_component(
         background = np.median(vol[~bright & ~exclude_mask]) if exclude_mask is not None else np.median(vol[~bright])
         fluid_level = float(np.median(vol[labels == cands[0] + 1]))
         level = 0.5 * (fluid_level + float(background))
-        axis = refine_axis_cylinder(vol, affine, pts_used, com_mm=com, axis=axis, level=level,
-                                    exclude_mask=exclude_mask, fluid_level=fluid_level)
+        axis, com = refine_axis_cylinder(vol, affine, pts_used, com_mm=com, axis=axis, level=level,
+                                         exclude_mask=exclude_mask, fluid_level=fluid_level)
     return FluidComponent(
         points_mm=pts_used, com_mm=com, axis=axis, moments_mm2=moments, volume_mm3=cand_vols[0],
         candidate_volumes_mm3=cand_vols, threshold=float(threshold), axis_inertia=axis_inertia,
@@ -284,8 +284,9 @@ def refine_axis_cylinder(
     volume: np.ndarray, affine: np.ndarray, points_mm: np.ndarray, *, com_mm: np.ndarray, axis: np.ndarray,
     level: float, exclude_mask: np.ndarray | None = None, exclude_margin_mm: float = 0.5,
     end_margin_mm: float = 1.5, max_change_deg: float = 5.0, fluid_level: float | None = None,
-) -> np.ndarray:
-    """Axis (3,) of the fluid column refined by a cylinder fit to its in-plane edges.
+) -> tuple[np.ndarray, np.ndarray]:
+    """Axis (3,) of the fluid column refined by a cylinder fit to its in-plane edges, and the COM (3,)
+    moved onto the fitted axis line.
 
     The inertia axis of voxels 1 mm thick is off by up to ~2 deg (the slices quantise the column
     across z). Within each axial slice the column's edge is known to a fraction of the 0.1 mm pixel:
@@ -295,7 +296,9 @@ def refine_axis_cylinder(
     from ``exclude_mask`` (I, J, K) (the leg: there the edge is against tissue, not background) are
     fitted by a cylinder (axis direction,
     position, radius; robust soft-L1 loss). The fitted direction is returned if it is within
-    ``max_change_deg`` of ``axis``, else ``axis`` unchanged (the sign of ``axis`` is kept).
+    ``max_change_deg`` of ``axis``, else ``axis`` and ``com_mm`` unchanged (the sign of ``axis`` is
+    kept). The voxel COM is off the axis by up to ~0.2 mm across the slices (quantisation); its
+    projection on the fitted line is returned instead.
     Slices that only graze the column (95th-percentile intensity below 90 % of ``fluid_level``, the
     fluid's intensity; partial volume) are left out: their edges depend on the slice profile.
     """
@@ -311,7 +314,7 @@ def refine_axis_cylinder(
     s = (pts - c0) @ a0
     lo, hi = s.min() + end_margin_mm, s.max() - end_margin_mm
     if hi - lo < 2.0:
-        return a0
+        return a0, c0
     inv = np.linalg.inv(affine)
     if fluid_level is None:
         fluid_level = 2.0 * level  # background ~ 0
@@ -345,7 +348,7 @@ def refine_axis_cylinder(
             edge.append(w[ok])
     edge = np.concatenate(edge) if edge else np.zeros((0, 3))
     if len(edge) < 20:
-        return a0
+        return a0, c0
     e1, e2 = _perpendicular_basis(a0)
     r0 = float(np.median(np.linalg.norm((edge - c0) - np.outer((edge - c0) @ a0, a0), axis=1)))
 
@@ -359,8 +362,9 @@ def refine_axis_cylinder(
     a = a0 + fit.x[0] * e1 + fit.x[1] * e2
     a /= np.linalg.norm(a)
     if np.degrees(np.arccos(min(1.0, float(a @ a0)))) > max_change_deg:
-        return a0
-    return a
+        return a0, c0
+    p = c0 + fit.x[2] * e1 + fit.x[3] * e2
+    return a, p + ((c0 - p) @ a) * a
 
 
 def orient_axis(axis: np.ndarray, *, from_mm: np.ndarray, toward_mm: np.ndarray) -> np.ndarray:
@@ -388,6 +392,7 @@ def tip_end_mm(
     reach_mm: float = 1.5,
     head_radius_mm: float = 1.5,
     cap_radius_mm: float = 1.2,
+    max_fit_rms_mm: float = 0.03,
     method: str = "sphere",
     animal: str = "",
 ) -> tuple[np.ndarray, dict]:
@@ -405,10 +410,11 @@ def tip_end_mm(
     (within the ROI length) seeds the cap of skin vertices within ``cap_radius_mm``; where the skin
     conforms to the indenter head they lie on a sphere of ``head_radius_mm``, which is fitted to them
     (robustly, centre only; vertices where the skin leaves the head are dropped); the tip is its
-    centre + radius * axis. This interpolates between the 1 mm slices and does not inherit the
-    slice-quantisation offset of the fluid COM across the slices (up to ~0.2 mm). Falls back to the
-    axis crossing (or the deepest vertex) if fewer than 8 cap vertices fit. Returns the tip and a
-    dict of diagnostics.
+    centre + radius * axis. This interpolates between the 1 mm slices and does not inherit an offset
+    of the axis line across the slices. The crossing is kept (or the deepest vertex, if the axis
+    misses the skin surface) if fewer than 8 cap vertices lie on the head, or the fit's RMS exceeds
+    ``max_fit_rms_mm``, or it moves the tip more than 0.5 mm (shallow contact: too little of the skin
+    touches the head). Returns the tip and a dict of diagnostics.
     """
     from scipy.optimize import least_squares
 
@@ -444,17 +450,21 @@ def tip_end_mm(
         return seed, info
     pts = v[cap]
     centre0 = seed - head_radius_mm * a
-    keep = np.ones(len(pts), bool)
+    keep = np.abs(np.linalg.norm(pts - centre0, axis=1) - head_radius_mm) <= 0.25  # near the head's sphere
+    if keep.sum() < 8:
+        return seed, info
     for _ in range(4):  # fit, drop vertices off the head (skin leaving the indenter), refit
         fit = least_squares(lambda x: np.linalg.norm(pts[keep] - x, axis=1) - head_radius_mm, centre0)
         resid = np.abs(np.linalg.norm(pts - fit.x, axis=1) - head_radius_mm)
-        new_keep = resid <= max(0.05, 3 * np.median(resid))
+        new_keep = resid <= max_fit_rms_mm
         if new_keep.sum() < 8 or np.array_equal(new_keep, keep):
             break
         keep = new_keep
         centre0 = fit.x
     tip = fit.x + head_radius_mm * a
-    if keep.sum() < 8 or np.linalg.norm(tip - seed) > 0.5:
+    rms_fit = float(np.sqrt(np.mean(fit.fun**2)))
+    if keep.sum() < 8 or rms_fit > max_fit_rms_mm or np.linalg.norm(tip - seed) > 0.5:
+        info["tip_sphere_fit_rejected_rms_mm"] = rms_fit
         return seed, info
     info.update(tip_method="head_sphere_fit", tip_fit_vertices=int(keep.sum()),
                 tip_fit_rms_mm=float(np.sqrt(np.mean(fit.fun**2))))
