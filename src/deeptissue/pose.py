@@ -130,6 +130,7 @@ class BoneMotion:
     method: str
     dof: int
     n_evaluations: int
+    parameter_sd: np.ndarray | None = None  # (dof,) standard errors: rotation [deg], then translation [mm]
 
 
 def _where(animal: str) -> str:
@@ -585,19 +586,22 @@ def fit_bone_motion(
     bone_during_mm: np.ndarray,
     *,
     method: str = "surface",
-    dof: int = 6,
+    dof: int = 5,
     surface_step_mm: float = 0.05,
     animal: str = "",
 ) -> BoneMotion:
     """Rigid motion of the tibia from the pre and during bone contour stacks (n_slices, n_points, 3).
 
-    Translation: the shift of the bone centroid (initial guess). Rotation (and, with ``dof=6``, a
-    translation correction): Levenberg–Marquardt (``scipy.optimize.least_squares(method='lm')``) on
+    Translation: the shift of the bone centroid (initial guess). Rotation, and a translation
+    correction (``dof=6``: all three components; ``dof=5``: across the leg only, the shift along z
+    stays the centroid's; ``dof=3``: none), by Levenberg–Marquardt (``scipy.optimize.least_squares(method='lm')``) on
     the distances of every during bone vertex, mapped back to the pre state, to the pre bone:
     ``method='vertex'`` the distance to the nearest pre vertex (KD-tree) on the original slices;
     ``method='surface'`` the point-to-plane distance to the nearest point of a dense cubic
     interpolation of the pre surface between slices. The latter removes the bias that through-plane
     motion gives nearest-vertex distances between stacks sampled at the same 1 mm z planes.
+    A bone that is (nearly) a prism along z cannot show a shift along z: its 6-DOF fit then drifts
+    along z with the segmentation noise (check ``parameter_sd``); ``dof=5`` is the remedy.
     """
     from scipy.optimize import least_squares
     from scipy.spatial import cKDTree
@@ -618,8 +622,8 @@ def fit_bone_motion(
         )
     if method not in ("surface", "vertex"):
         raise ValueError(f"fit_bone_motion: method must be 'surface' or 'vertex', got {method!r}")
-    if dof not in (3, 6):
-        raise ValueError(f"fit_bone_motion: dof must be 3 or 6, got {dof!r}")
+    if dof not in (3, 5, 6):
+        raise ValueError(f"fit_bone_motion: dof must be 3, 5 or 6, got {dof!r}")
     com_pre = bone_centroid_mm(pre)
     shift = bone_centroid_mm(dur) - com_pre
     q = dur.reshape(-1, 3)
@@ -642,19 +646,24 @@ def fit_bone_motion(
 
     rms0 = rms(residuals_for(np.zeros(3), np.zeros(3)))
     rms_com = rms(residuals_for(np.zeros(3), shift))
-    if dof == 6:
-        fun = lambda x: residuals_for(x[:3], shift + x[3:])  # noqa: E731
-        x0 = np.zeros(6)
-    else:
-        fun = lambda x: residuals_for(x, shift)  # noqa: E731
-        x0 = np.zeros(3)
+    def correction(x):  # translation correction (mm) added to the centroid shift
+        return np.array([x[3], x[4], x[5] if dof == 6 else 0.0]) if dof > 3 else np.zeros(3)
+
+    fun = lambda x: residuals_for(x[:3], shift + correction(x))  # noqa: E731
+    x0 = np.zeros(dof)
     res = least_squares(fun, x0, method="lm", x_scale=np.ones_like(x0), diff_step=1e-4 if method == "surface" else None)
     rot = res.x[:3]
-    trans = shift + (res.x[3:] if dof == 6 else 0.0)
+    trans = shift + correction(res.x)
+    # standard errors of the parameters from the Jacobian (residual variance x (J^T J)^-1)
+    try:
+        cov = np.linalg.inv(res.jac.T @ res.jac) * np.mean(res.fun**2) * len(res.fun) / max(len(res.fun) - dof, 1)
+        sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+    except np.linalg.LinAlgError:
+        sd = np.full(dof, np.inf)
     return BoneMotion(
         com_mm=com_pre, rotation_deg=rot, translation_mm=np.asarray(trans, float), com_shift_mm=shift,
         rms_initial_mm=rms0, rms_com_mm=rms_com, rms_final_mm=rms(res.fun), method=method, dof=dof,
-        n_evaluations=int(res.nfev),
+        n_evaluations=int(res.nfev), parameter_sd=sd,
     )
 
 
@@ -672,7 +681,7 @@ class PoseOptions:
     tip_method: str = "sphere"
     start_backoff_mm: float = 1.0
     bone_method: str = "surface"
-    bone_dof: int = 6
+    bone_dof: int = 5
     bone_surface_step_mm: float = 0.05
 
     @classmethod
@@ -781,7 +790,8 @@ def estimate_pose(
         trans = override.get("bone_translation_mm", motion.translation_mm)
         extra.update(bone_method=motion.method, bone_dof=motion.dof, bone_com_shift_mm=motion.com_shift_mm,
                      bone_rms_initial_mm=motion.rms_initial_mm, bone_rms_com_mm=motion.rms_com_mm,
-                     bone_rms_final_mm=motion.rms_final_mm, bone_fit_evaluations=motion.n_evaluations)
+                     bone_rms_final_mm=motion.rms_final_mm, bone_fit_evaluations=motion.n_evaluations,
+                     bone_fit_sd=motion.parameter_sd)
         qc["bone_com_shift_mm"] = motion.com_shift_mm
 
     pose = Pose(
