@@ -17,6 +17,8 @@ rule phantom:
         start_angle_deg=config["segmentation"]["start_angle_deg"],
     log:
         "results/{animal}/logs/phantom.log",
+    conda:
+        "../envs/deeptissue.yaml"
     script:
         "../scripts/phantom.py"
 
