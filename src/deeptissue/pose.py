@@ -83,7 +83,12 @@ def load_pose(path: str | Path) -> Pose:
 # axial slices = constant K), and contour stacks ``(n_slices, n_points, 3)`` in world mm.
 # ----------------------------------------------------------------------------------------------
 
+from typing import TYPE_CHECKING  # noqa: E402
+
 from .rigid import rotation_matrix  # noqa: E402
+
+if TYPE_CHECKING:
+    from .contours import Contours
 
 
 class PoseError(ValueError):
@@ -700,8 +705,8 @@ _OVERRIDE_KEYS = ("indenter_axis", "tip_end_mm", "tip_start_mm", "bone_rotation_
 def estimate_pose(
     during: np.ndarray,
     affine: np.ndarray,
-    pre: "Contours",
-    during_contours: "Contours",
+    pre: Contours,
+    during_contours: Contours,
     *,
     options: PoseOptions = PoseOptions(),
     override: dict | None = None,
@@ -899,7 +904,7 @@ def plot_axis_qc(path, during: np.ndarray, affine: np.ndarray, pose: Pose, qc: d
     plt.close(fig)
 
 
-def plot_tip_qc(path, pre: "Contours", during_contours: "Contours", pose: Pose, *, roi_diameter_mm: float = 5.0,
+def plot_tip_qc(path, pre: Contours, during_contours: Contours, pose: Pose, *, roi_diameter_mm: float = 5.0,
                 title: str = "") -> None:
     """The skin ROI around the axis with the start and end points: depth along vs distance from the axis."""
     import matplotlib
@@ -941,7 +946,7 @@ def plot_tip_qc(path, pre: "Contours", during_contours: "Contours", pose: Pose, 
     plt.close(fig)
 
 
-def plot_bone_qc(path, pre: "Contours", during_contours: "Contours", pose: Pose, *, title: str = "") -> None:
+def plot_bone_qc(path, pre: Contours, during_contours: Contours, pose: Pose, *, title: str = "") -> None:
     """Bone contours before, after centroid alignment, and after the full rigid fit (x-y and y-z views)."""
     import matplotlib
 
