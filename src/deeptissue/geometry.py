@@ -304,11 +304,12 @@ def select_patch(centroids: np.ndarray, normals: np.ndarray, *, point_mm, axis, 
 # --------------------------------------------------------------------------- cast with hole
 
 
-def _clip_surface(vertices: np.ndarray, triangles: np.ndarray, f: np.ndarray, active: np.ndarray):
+def _clip_surface(vertices: np.ndarray, triangles: np.ndarray, f: np.ndarray, active: np.ndarray, root=None):
     """Remove the part of a triangle surface where ``f < 0`` on ``active`` triangles, cut along f = 0.
 
-    Straddling triangles are split on their edges at the linear zero of f (points shared between
-    neighbours, so the cut edge is watertight). Returns new vertices and triangles.
+    Straddling triangles are split on their edges at the zero of f: ``root(pa, pb)`` gives the edge
+    parameter in [0, 1] (default: the linear zero of f). Points are shared between neighbours, so the
+    cut edge is watertight. Returns new vertices and triangles.
     """
     fv = f[triangles]
     neg = fv < 0
@@ -324,9 +325,12 @@ def _clip_surface(vertices: np.ndarray, triangles: np.ndarray, f: np.ndarray, ac
     def cut(a, b):
         key = (a, b) if a < b else (b, a)
         if key not in edge_index:
-            t = f[a] / (f[a] - f[b])
-            new_pts.append(vertices[a] + t * (vertices[b] - vertices[a]))
-            edge_index[key] = n_v + len(new_pts) - 1
+            t = f[a] / (f[a] - f[b]) if root is None else root(vertices[a], vertices[b])
+            if t <= 1e-9 or t >= 1 - 1e-9:  # the cut passes through a vertex: reuse it (no duplicate)
+                edge_index[key] = a if t <= 1e-9 else b
+            else:
+                new_pts.append(vertices[a] + t * (vertices[b] - vertices[a]))
+                edge_index[key] = n_v + len(new_pts) - 1
         return edge_index[key]
 
     extra = []
@@ -410,7 +414,24 @@ def build_cast(
     snap = np.abs(f) < 0.02 * min(edge, dz_mm)
     if np.any(snap & facing_v):
         msgs.append(f"cast: hole: {int(np.sum(snap & facing_v))} vertex(es) within {0.02 * min(edge, dz_mm):.4f} mm of the hole circle snapped onto it (no sliver triangles)")
+        rel = verts[snap] - point
+        perp = rel - (rel @ axis)[:, None] * axis
+        verts = verts.copy()
+        verts[snap] += (radius / np.linalg.norm(perp, axis=1) - 1.0)[:, None] * perp
         f = np.where(snap, 0.0, f)
+
+    def on_circle(pa, pb):
+        """Edge parameter where the edge pa-pb meets the cylinder of the hole (exact quadratic root)."""
+        u = pa - point
+        u = u - (u @ axis) * axis
+        w = pb - pa
+        w = w - (w @ axis) * axis
+        qa, qb, qc = w @ w, 2 * (u @ w), u @ u - radius**2
+        disc = max(qb * qb - 4 * qa * qc, 0.0)
+        roots = [(-qb - np.sqrt(disc)) / (2 * qa), (-qb + np.sqrt(disc)) / (2 * qa)] if qa > 0 else [0.5]
+        inside = [t for t in roots if -1e-9 <= t <= 1 + 1e-9]
+        return float(np.clip(inside[0] if inside else roots[0], 0.0, 1.0))
+
     # triangles to cut: facing and touching the cylinder; keep only the sheet nearest the indenter
     cand = facing_t & np.any(f[tris] < 0, axis=1)
     comp = _components(tris, cand, len(verts))
@@ -435,7 +456,7 @@ def build_cast(
     if np.any(cut_v[end_rows] & (f[end_rows] < 0)):
         which = "proximal" if np.any(cut_v[end_rows[n_cols:]] & (f[end_rows[n_cols:]] < 0)) else "distal"
         msgs.append(f"cast: hole: the projected circle reaches past the {which} end of the cast; the hole opens into that end (a notch)")
-    v2, t2 = _clip_surface(verts, tris, f, cand)
+    v2, t2 = _clip_surface(verts, tris, f, cand, root=on_circle)
     area = triangle_areas(v2, t2)
     t2 = t2[area > 1e-12]
     v2, t2 = _compact(v2, t2)

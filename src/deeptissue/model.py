@@ -353,3 +353,41 @@ def plot_model_qc(path, model: AnimalModel, pose: Pose) -> None:
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110)
     plt.close(fig)
+
+
+# --------------------------------------------------------------------------- rule entry points
+
+
+def run_cast(*, contours_npz, pose_json, cast_npz, settings: dict | None = None, animal: str = "?") -> Cast:
+    """Rule ``cast``: read the pre contours and the pose, write ``cast.npz``."""
+    from .contours import load_contours
+    from .pose import load_pose
+
+    cast = build_cast(load_contours(contours_npz), load_pose(pose_json), settings=settings, animal=animal)
+    save_cast(cast_npz, cast)
+    return cast
+
+
+def run_mesh(
+    *,
+    contours_npz,
+    pose_json,
+    cast_npz,
+    mesh_npz,
+    mesh_msh,
+    mesh_vtu,
+    model_json,
+    qc_png,
+    variants,
+    settings: dict | None = None,
+    animal: str = "?",
+) -> AnimalModel:
+    """Rule ``mesh``: read pre contours, pose and cast; write the mesh files, model.json and the QC figure."""
+    from .contours import load_contours
+    from .pose import load_pose
+
+    pose = load_pose(pose_json)
+    model = build_model(load_contours(contours_npz), pose, variants=variants, settings=settings, animal=animal, cast=load_cast(cast_npz))
+    write_model(model, mesh_npz=mesh_npz, mesh_msh=mesh_msh, mesh_vtu=mesh_vtu, model_json=model_json)
+    plot_model_qc(qc_png, model, pose)
+    return model
