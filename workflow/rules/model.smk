@@ -36,6 +36,8 @@ rule mesh:
         ),
     log:
         "results/{animal}/logs/mesh.log",
+    benchmark:
+        "results/{animal}/benchmarks/mesh.tsv"
     params:
         settings=dict(config["model"], bar_length_mm=float(config.get("fem", {}).get("bar_length_mm", 0.0))),
         variants=config["study"]["variants"],
