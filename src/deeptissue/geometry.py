@@ -146,8 +146,27 @@ def check_contours(skin: np.ndarray, bone: np.ndarray, *, animal: str = "?", min
 # --------------------------------------------------------------------------- loft (spline in z)
 
 
-def loft_rings(rings: np.ndarray, *, dz_mm: float = 0.25) -> np.ndarray:
-    """Resample a contour stack finely along z: a cubic spline in z through corresponding points.
+def resample_arclength(rings: np.ndarray, n_points: int | None = None) -> np.ndarray:
+    """Contours (..., n, 3) resampled to ``n_points`` points equidistant in arc length along each closed
+    polygon, starting at its first point (so lofts joining points by index join them by arc length,
+    as OpenCASCADE's chord-length splines do)."""
+    rings = np.asarray(rings, float)
+    n = rings.shape[-2]
+    m = int(n_points or n)
+    flat = rings.reshape(-1, n, 3)
+    out = np.empty((len(flat), m, 3))
+    for i, r in enumerate(flat):
+        closed = np.vstack([r, r[:1]])
+        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(closed, axis=0), axis=1))])
+        t = np.linspace(0.0, s[-1], m, endpoint=False)
+        out[i] = np.stack([np.interp(t, s, closed[:, c]) for c in range(3)], axis=1)
+    return out.reshape(*rings.shape[:-2], m, 3)
+
+
+
+def loft_rings(rings: np.ndarray, *, dz_mm: float = 0.25, ruled: bool = False) -> np.ndarray:
+    """Resample a contour stack finely along z: corresponding points joined by a cubic spline in z, or
+    by straight lines (``ruled``).
 
     rings (n_slices, n_points, 3) -> (n_out, n_points, 3), with the input slices kept and about
     ``dz_mm`` between output rows. Two slices give straight lines.
@@ -155,7 +174,7 @@ def loft_rings(rings: np.ndarray, *, dz_mm: float = 0.25) -> np.ndarray:
     z = rings[:, :, 2].mean(axis=1)
     n_sub = np.maximum(1, np.ceil(np.diff(z) / dz_mm).astype(int))
     zs = np.concatenate([np.linspace(z[k], z[k + 1], n_sub[k], endpoint=False) for k in range(len(z) - 1)] + [z[-1:]])
-    if len(z) < 3:
+    if len(z) < 3 or ruled:
         xy = np.stack([np.interp(zs, z, rings[:, j, c]) for j in range(rings.shape[1]) for c in range(2)], axis=1)
         xy = xy.reshape(len(zs), rings.shape[1], 2)
     else:
@@ -371,11 +390,17 @@ def build_cast(
     hole_diameter_mm: float = 6.0,
     offset_direction: str = "normal",
     dz_mm: float = 0.25,
+    surface: tuple | None = None,
+    ruled: bool = False,
     animal: str = "?",
 ) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """The rigid cast around the pre skin: offset, extended, lofted, with the indenter hole.
 
-    skin (n_slices, n_points, 3) world mm; ``axis`` unit vector from the indenter into the leg,
+    skin (n_slices, n_points, 3) world mm; ``surface``: optionally the lofted skin surface sampled as a
+    grid ``(points (n_rows, n_cols, 3), outward unit normals (n_rows, n_cols, 3))``, rows from the first
+    to the last contour (:func:`deeptissue.mesh.sample_lofted_surface`, the surface the mesh lies on):
+    then that grid is offset (along the 3D normal, or radially about each row's centroid) instead of
+    the contours lofted here (by a cubic spline in z, or by straight lines if ``ruled``). ``axis`` unit vector from the indenter into the leg,
     ``point_mm`` a point on it (the final tip). Returns ``vertices_mm`` (V, 3), ``triangles`` (T, 3)
     with normals pointing toward the leg, and log messages saying how the hole was cut.
 
@@ -390,9 +415,25 @@ def build_cast(
     msgs: list[str] = []
     axis = np.asarray(axis, float)
     point = np.asarray(point_mm, float)
-    off, m = offset_rings(np.asarray(skin, float), offset_mm, direction=offset_direction, animal=animal)
-    msgs += m
-    rings = loft_rings(extend_rings(off, extension_mm), dz_mm=dz_mm)
+    if surface is None:
+        off, m = offset_rings(np.asarray(skin, float), offset_mm, direction=offset_direction, animal=animal)
+        msgs += m
+        rings = loft_rings(extend_rings(off, extension_mm), dz_mm=dz_mm, ruled=ruled)
+    else:
+        grid, normals = (np.asarray(a, float) for a in surface)
+        rings = grid + offset_mm * normals
+        if offset_direction == "radial":
+            for k in range(len(grid)):
+                if is_star_shaped(grid[k]):
+                    r = grid[k, :, :2] - grid[k, :, :2].mean(axis=0)
+                    rings[k] = grid[k]
+                    rings[k, :, :2] += offset_mm * r / np.linalg.norm(r, axis=1, keepdims=True)
+                elif not any("not star-shaped" in m for m in msgs):
+                    msgs.append(f"cast: the skin is not star-shaped about its centroid at z = {grid[k, :, 2].mean():.2f} mm (and maybe elsewhere): offset along the normal there instead of radially")
+        for k in range(len(rings)):
+            if _segments_intersect(rings[k]):
+                raise ModelInputError(f"animal {animal}: the cast offset by {offset_mm} mm crosses itself at z = {rings[k, :, 2].mean():.2f} mm (a concavity of the skin tighter than the offset)")
+        rings = extend_rings(rings, extension_mm)
     n_rows, n_cols = rings.shape[:2]
     verts = rings.reshape(-1, 3)
     tris = grid_triangles(n_rows, n_cols, inward=True)

@@ -142,19 +142,83 @@ class PatchSpec:
     long_dir: np.ndarray | None = None
 
 
-def _occ_loft(occ, rings: np.ndarray, n_spline: int) -> int:
-    """Solid through closed splines of every ring (n_slices, n_points, 3); returns the volume tag."""
+def _occ_loft(occ, rings: np.ndarray, n_spline: int, ruled: bool = False) -> int:
+    """Solid through closed splines of every ring (n_slices, n_points, 3); returns the volume tag.
+
+    ``ruled``: straight rulings between consecutive rings (one face per slice gap); else one smooth
+    OpenCASCADE surface through all rings (which can bulge between noisy slices, see README)."""
     step = max(1, int(np.ceil(rings.shape[1] / n_spline)))
     wires = []
     for r in rings:
         pts = [occ.addPoint(*q) for q in r[::step]]
         curve = occ.addSpline(pts + [pts[0]])
         wires.append(occ.addWire([curve]))
-    out = occ.addThruSections(wires, makeSolid=True, makeRuled=False)
+    out = occ.addThruSections(wires, makeSolid=True, makeRuled=ruled)
     vols = [t for d, t in out if d == 3]
     if len(vols) != 1:
         raise RuntimeError(f"loft gave {len(vols)} volumes")
     return vols[0]
+
+
+def sample_lofted_surface(rings: np.ndarray, *, spline_points: int = 50, n_cols: int | None = None, dz_mm: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
+    """Sample the lateral surface of the loft through a contour stack, exactly as :func:`mesh_limb` builds it.
+
+    rings (n_slices, n_points, 3) CCW contours -> grid points (n_rows, n_cols, 3) and unit outward
+    normals (n_rows, n_cols, 3): rows run from the first to the last contour (about ``dz_mm`` apart in
+    parameter, first and last rows being the end contours), columns counter-clockwise seen from +z.
+    Used for the cast, so that the cast is offset from the very surface the mesh lies on.
+    """
+    import gmsh
+
+    rings = np.asarray(rings, float)
+    n_cols = int(n_cols or max(rings.shape[1], 100))
+    length = float(rings[-1, :, 2].mean() - rings[0, :, 2].mean())
+    n_rows = max(2, int(np.ceil(length / dz_mm)) + 1)
+    own_init = not gmsh.isInitialized()
+    if own_init:
+        gmsh.initialize(interruptible=False)
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.add("loft_sample")
+        vol = _occ_loft(gmsh.model.occ, rings, spline_points)
+        gmsh.model.occ.synchronize()
+        lateral = [t for _, t in gmsh.model.getBoundary([(3, vol)], oriented=False) if (lambda b: b[5] - b[2])(gmsh.model.getBoundingBox(2, t)) > 1e-6]
+        if len(lateral) != 1:
+            raise RuntimeError(f"loft has {len(lateral)} lateral faces (expected 1)")
+        face = lateral[0]
+        lo, hi = (np.asarray(b, float) for b in gmsh.model.getParametrizationBounds(2, face))
+        # which parameter runs along the leg? the one that changes z
+        probe = np.asarray(gmsh.model.getValue(2, face, [lo[0], lo[1], lo[0], hi[1], hi[0], lo[1]]), float).reshape(3, 3)
+        along_v = abs(probe[1, 2] - probe[0, 2]) > abs(probe[2, 2] - probe[0, 2])
+        a = lo[0] + (hi[0] - lo[0]) * np.arange(n_cols) / n_cols  # around (periodic: last column != first)
+        b = np.linspace(lo[1], hi[1], n_rows)  # along
+        if not along_v:
+            a = lo[1] + (hi[1] - lo[1]) * np.arange(n_cols) / n_cols
+            b = np.linspace(lo[0], hi[0], n_rows)
+        A, B = np.meshgrid(a, b)  # (n_rows, n_cols)
+        uv = np.stack([A, B], -1) if along_v else np.stack([B, A], -1)
+        flat = uv.reshape(-1, 2).ravel()
+        pts = np.asarray(gmsh.model.getValue(2, face, flat), float).reshape(n_rows, n_cols, 3)
+        nrm = np.asarray(gmsh.model.getNormal(face, flat), float).reshape(n_rows, n_cols, 3)
+    finally:
+        if own_init:
+            gmsh.finalize()
+        else:
+            gmsh.model.remove()
+    if pts[-1, :, 2].mean() < pts[0, :, 2].mean():
+        pts, nrm = pts[::-1], nrm[::-1]
+    from .geometry import polygon_area_mm2
+
+    if polygon_area_mm2(pts[0]) < 0:
+        pts, nrm = pts[:, ::-1], nrm[:, ::-1]
+    # outward: away from each row's centroid
+    out = np.einsum("rck,rck->", nrm[..., :2], pts[..., :2] - pts[..., :2].mean(axis=1, keepdims=True))
+    if out < 0:
+        nrm = -nrm
+    # start each row at the same place as the contours (nearest sample to the contour's first point)
+    j0 = int(np.argmin(np.linalg.norm(pts[0] - rings[0, 0], axis=1)))
+    pts, nrm = np.roll(pts, -j0, axis=1), np.roll(nrm, -j0, axis=1)
+    return pts, nrm / np.linalg.norm(nrm, axis=2, keepdims=True)
 
 
 def _midpoint_params(pa: np.ndarray, pb: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -217,8 +281,25 @@ def _curve_mid_nodes(g, entities_dim_tag, corner_params: dict, max_shift_ratio: 
         m_tags, first = np.unique(np.array(m_tags), return_index=True)
         a_idx, b_idx = np.array(a_idx)[first], np.array(b_idx)[first]
         pm = _midpoint_params(par[a_idx], par[b_idx], lo, hi)
-        x = np.asarray(g.model.getValue(dim, tag, pm.ravel()), float).reshape(-1, 3)
         straight = 0.5 * (xyz[a_idx] + xyz[b_idx])
+        # project the straight midpoint onto the entity: Gauss-Newton from the parametric midpoint
+        # (gmsh's reparametrisation of boundary nodes can be off on faces whose edges have their own
+        # parametrisation, e.g. ruled strips; the projection does not depend on it)
+        for _ in range(6):
+            x = np.asarray(g.model.getValue(dim, tag, pm.ravel()), float).reshape(-1, 3)
+            J = np.asarray(g.model.getDerivative(dim, tag, pm.ravel()), float).reshape(-1, dim, 3)  # (m, dim, 3)
+            JtJ = np.einsum("mik,mjk->mij", J, J)
+            rhs = np.einsum("mik,mk->mi", J, straight - x)
+            try:
+                step = np.linalg.solve(JtJ + 1e-12 * np.eye(dim), rhs[..., None])[..., 0]
+            except np.linalg.LinAlgError:
+                break
+            pm = pm + step
+            if dim == 2:  # the along-leg parameter stays inside the face; the periodic one may wrap
+                pm = np.where(np.isfinite(pm), pm, 0.0)
+            if np.max(np.abs(step)) < 1e-10:
+                break
+        x = np.asarray(g.model.getValue(dim, tag, pm.ravel()), float).reshape(-1, 3)
         edge = np.linalg.norm(xyz[a_idx] - xyz[b_idx], axis=1)
         ok = np.linalg.norm(x - straight, axis=1) <= max_shift_ratio * edge
         n_straight += int(np.count_nonzero(~ok))
@@ -293,6 +374,7 @@ def mesh_limb(
     patches: dict | None = None,
     patch_union: str | None = "patch",
     spline_points: int = 50,
+    loft: str = "ruled",
     curved: bool = True,
     min_scaled_jacobian: float = 0.05,
     min_dihedral_deg: float = 2.0,
@@ -305,7 +387,8 @@ def mesh_limb(
 
     skin, bone (n_slices, n_points, 3) world mm (checked by :func:`deeptissue.geometry.check_contours`).
     Skin and tibia are lofted (OpenCASCADE ``addThruSections`` through closed splines of at most
-    ``spline_points`` points per contour) and the tibia is cut out; the ends are the planes of the
+    ``spline_points`` points per contour; ``loft="ruled"``: straight between slices, the surface whose
+    volume is the prismatoid sum; ``"smooth"``: one smooth surface) and the tibia is cut out; the ends are the planes of the
     first (``distal``, lowest z) and last (``proximal``) slice. Element size ``element_size_mm``,
     refined to ``refine_size_mm`` within ``refine_radius_mm`` of each refine segment, growing back over
     ``refine_transition_mm``. Second order: with ``curved`` the boundary mid-edge nodes are placed on
@@ -329,6 +412,8 @@ def mesh_limb(
     from .io import atomic_path
 
     t_start = time.perf_counter()
+    if loft not in ("ruled", "smooth"):
+        raise ValueError(f"animal {animal}: loft {loft!r}: expected 'ruled' or 'smooth'")
     stats: dict = {}
     own_init = not gmsh.isInitialized()
     if own_init:
@@ -337,8 +422,8 @@ def mesh_limb(
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.model.add(f"limb_{animal}")
         occ = gmsh.model.occ
-        vs = _occ_loft(occ, np.asarray(skin, float), spline_points)
-        vb = _occ_loft(occ, np.asarray(bone, float), spline_points)
+        vs = _occ_loft(occ, np.asarray(skin, float), spline_points, ruled=loft == "ruled")
+        vb = _occ_loft(occ, np.asarray(bone, float), spline_points, ruled=loft == "ruled")
         out, _ = occ.cut([(3, vs)], [(3, vb)])
         occ.synchronize()
         vols = [t for d, t in out if d == 3]

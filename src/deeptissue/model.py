@@ -19,7 +19,7 @@ import numpy as np
 from . import geometry as geo
 from .contours import Contours
 from .io import atomic_path, save_npz, write_json
-from .mesh import MeshQualityError, PatchSpec, RefineSegment, TetMesh, mesh_limb, save_tetmesh
+from .mesh import MeshQualityError, PatchSpec, RefineSegment, TetMesh, mesh_limb, sample_lofted_surface, save_tetmesh
 from .pose import Pose
 from .variants import parse_variant, variant_travel
 
@@ -45,6 +45,7 @@ class ModelSettings:
     patch_diameter_mm: float = 6.0
     bar_length_mm: float = 0.0
     spline_points: int = 50
+    loft: str = "ruled"
     curved: bool = True
     algorithm_3d: str = "hxt"
     min_scaled_jacobian: float = 0.05
@@ -87,10 +88,23 @@ class AnimalModel:
 # --------------------------------------------------------------------------- cast
 
 
+def _equidistant(contours: Contours) -> Contours:
+    """The contours with points equidistant in arc length (segmentation already delivers them so;
+    this makes the model independent of how the points were spaced)."""
+    return Contours(skin=geo.resample_arclength(contours.skin), bone=geo.resample_arclength(contours.bone))
+
+
+
 def build_cast(contours: Contours, pose: Pose, *, settings: ModelSettings | dict | None = None, animal: str = "?") -> Cast:
     """Rigid cast around the pre skin contours with the hole where the indenter axis passes."""
     s = settings if isinstance(settings, ModelSettings) else ModelSettings.from_dict(settings)
     geo.check_contours(contours.skin, contours.bone, animal=animal, min_gap_mm=s.min_gap_mm)
+    contours = _equidistant(contours)
+    if s.loft not in ("ruled", "smooth"):
+        raise ValueError(f"animal {animal}: model.loft {s.loft!r}: expected 'ruled' or 'smooth'")
+    # the cast is offset from the surface the mesh lies on: the ruled loft is rebuilt here exactly
+    # (straight lines between the offset contours); the smooth one is sampled from OpenCASCADE
+    surface = sample_lofted_surface(contours.skin, spline_points=s.spline_points, dz_mm=s.cast_dz_mm) if s.loft == "smooth" else None
     v, t, msgs = geo.build_cast(
         contours.skin,
         axis=pose.indenter_axis,
@@ -100,6 +114,8 @@ def build_cast(contours: Contours, pose: Pose, *, settings: ModelSettings | dict
         hole_diameter_mm=s.hole_diameter_mm,
         offset_direction=s.cast_offset_direction,
         dz_mm=s.cast_dz_mm,
+        surface=surface,
+        ruled=s.loft == "ruled",
         animal=animal,
     )
     for m in msgs:
@@ -184,6 +200,7 @@ def build_model(
     if not variants:
         raise ValueError(f"animal {animal}: no variants given")
     facts = geo.check_contours(contours.skin, contours.bone, animal=animal, min_gap_mm=s.min_gap_mm)
+    contours = _equidistant(contours)
     msgs: list[str] = []
     if cast is None:
         cast = build_cast(contours, pose, settings=s, animal=animal)
@@ -206,6 +223,7 @@ def build_model(
         refine_segments=tuple(segs),
         patches=specs,
         spline_points=s.spline_points,
+        loft=s.loft,
         curved=s.curved,
         min_scaled_jacobian=s.min_scaled_jacobian,
         min_dihedral_deg=s.min_dihedral_deg,
