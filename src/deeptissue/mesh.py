@@ -568,6 +568,10 @@ def mesh_limb(
         if msh_path is not None:
             with atomic_path(msh_path) as tmp:
                 gmsh.write(str(tmp))
+    except (MeshQualityError, ValueError):
+        raise
+    except Exception as exc:  # OpenCASCADE / gmsh failures come as bare Exceptions
+        raise MeshQualityError(f"animal {animal}: gmsh could not build or mesh the limb: {exc}") from exc
     finally:
         if own_init:
             gmsh.finalize()
