@@ -179,16 +179,30 @@ def test_cast_is_0p2_mm_from_the_skin_except_at_the_hole(leg):
     d = geo.surface_distance_mm(x, cast.vertices_mm, cast.triangles)
     r = line_distance(x, p.tip_end_mm, p.indenter_axis)
     near_side = (x - p.tip_end_mm) @ p.indenter_axis < 0
-    away = (r > 4.0) | ~near_side
+    # the hole is the union of the variants' outlines: the 10 mm bar's reaches 3.5 + 3 mm along the leg
+    zc = p.tip_end_mm[2]
+    in_bar = np.abs(x[:, 2] - zc) < 3.5 + 3.0 + 1.5
+    away = ((r > 4.0) & ~in_bar) | ~near_side
     assert np.all(np.abs(d[away] - 0.2) < 0.015), (d[away].min(), d[away].max())
     # at the hole: the nearest cast is outside the 3 mm circle, at least 3 - r from a skin point at r
     hole = (r < 2.9) & near_side
     # (less the sagitta, < 0.01 mm, of the rim's straight chords between points on the circle)
     assert hole.sum() > 20 and np.all(d[hole] >= 3.0 - r[hole] - 0.01)
-    # rim exactly on the 3 mm circle, cast 1 mm longer than the leg at both ends
+    # rim exactly on the outline: 3 mm from the nearest variant footprint (axis, or the bar's segment)
     rim = np.unique(cast_hole_boundary(cast))
     assert len(rim) > 20
-    np.testing.assert_allclose(line_distance(cast.vertices_mm[rim], p.tip_end_mm, p.indenter_axis), 3.0, atol=1e-6)
+    dist = []
+    for v in VARIANTS:
+        info = model.info["patches"][v]
+        axis, end = np.array(info["axis"]), np.array(info["tip_end_mm"])
+        q = cast.vertices_mm[rim] - end
+        q = q - (q @ axis)[:, None] * axis
+        if v == "bar":
+            b = geo.bar_direction(axis)
+            q = q - np.clip(q @ b, -3.5, 3.5)[:, None] * b
+        dist.append(np.linalg.norm(q, axis=1))
+    np.testing.assert_allclose(np.min(dist, axis=0), 3.0, atol=1e-6)
+    assert np.ptp(cast.vertices_mm[rim][:, 2]) > 12.0  # the bar's outline: 2 x (3.5 + 3) mm along the leg
     # a consistently oriented manifold: every directed edge once, every undirected edge once or twice
     t = cast.triangles
     directed = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])

@@ -344,6 +344,9 @@ def _clip_surface(vertices: np.ndarray, triangles: np.ndarray, f: np.ndarray, ac
     def cut(a, b):
         key = (a, b) if a < b else (b, a)
         if key not in edge_index:
+            if f[a] == 0 or f[b] == 0:  # the outline passes through a (snapped) vertex: reuse it
+                edge_index[key] = a if f[a] == 0 else b
+                return edge_index[key]
             t = f[a] / (f[a] - f[b]) if root is None else root(vertices[a], vertices[b])
             if t <= 1e-9 or t >= 1 - 1e-9:  # the cut passes through a vertex: reuse it (no duplicate)
                 edge_index[key] = a if t <= 1e-9 else b
@@ -392,6 +395,7 @@ def build_cast(
     dz_mm: float = 0.25,
     surface: tuple | None = None,
     ruled: bool = False,
+    footprints: list | None = None,
     animal: str = "?",
 ) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """The rigid cast around the pre skin: offset, extended, lofted, with the indenter hole.
@@ -406,7 +410,9 @@ def build_cast(
 
     The hole is the circle of ``hole_diameter_mm`` about the axis projected along the axis onto the
     side of the cast that faces the indenter (outward normal . axis < 0): cast triangles are clipped
-    exactly on the projected circle. Where the projection cannot cut cleanly it is resolved, and
+    exactly on the projected circle. ``footprints``: optionally several indenter footprints
+    ``(point_mm, axis, half_length_mm, long_dir)`` (see :func:`footprint_distance_mm`); the hole is
+    then the union of the circles about each, projected along its own axis (a bar's swept along it). Where the projection cannot cut cleanly it is resolved, and
     logged: a cut vertex almost on the circle is snapped onto it (no slivers); a circle wider than the
     facing side of the cast stops at the silhouette (the far side is never cut); a circle reaching
     past an end of the cast opens the hole into that end; of several facing sheets hit (a fold) only
@@ -442,36 +448,67 @@ def build_cast(
     if radius <= 0:
         return verts, tris, msgs + ["cast: no hole (hole_diameter_mm = 0)"]
 
-    r = axis_distance_mm(verts, point_mm=point, axis=axis)
-    f = r - radius
+    if footprints is None:
+        footprints = [(point, axis, 0.0, None)]
+    fps = [(np.asarray(p_, float), np.asarray(a_, float) / np.linalg.norm(a_), float(h_), None if d_ is None else np.asarray(d_, float)) for p_, a_, h_, d_ in footprints]
+
+    def hole_level(x):
+        """Signed distance-like level (m,) of points (m, 3): < 0 inside the hole's projected outline, and
+        the in-plane vector (m, 3) from the nearest footprint point (for snapping onto the outline)."""
+        best = np.full(len(x), np.inf)
+        vec = np.zeros((len(x), 3))
+        for p_, a_, h_, d_ in fps:
+            r_ = x - p_
+            r_ = r_ - (r_ @ a_)[:, None] * a_
+            if h_ > 0:
+                s_ = np.clip(r_ @ d_, -h_, h_)
+                r_ = r_ - s_[:, None] * d_
+            d = np.linalg.norm(r_, axis=1)
+            take = d < best
+            best = np.where(take, d, best)
+            vec[take] = r_[take]
+        return best - radius, vec
+
+    f, _ = hole_level(verts)
     facing_v = vnorm_out @ axis < 0
     tri_out = -triangle_normals(verts, tris)  # outward normals
     facing_t = tri_out @ axis < 0
     in_cyl = np.any(f[tris] < 0, axis=1)
     if not np.any(in_cyl & facing_t):
         raise ModelInputError(f"animal {animal}: the indenter axis does not meet the cast (no cast surface within {radius} mm of the axis facing the indenter)")
-    # snap near-circle vertices (closer than 2% of the local edge length) onto the circle
+    # snap near-outline vertices (closer than 2% of the local edge length) onto the outline
     edge = np.linalg.norm(rings[:, 1:2] - rings[:, 0:1], axis=2).mean() if n_cols > 1 else 1.0
     snap = np.abs(f) < 0.02 * min(edge, dz_mm)
     if np.any(snap & facing_v):
-        msgs.append(f"cast: hole: {int(np.sum(snap & facing_v))} vertex(es) within {0.02 * min(edge, dz_mm):.4f} mm of the hole circle snapped onto it (no sliver triangles)")
-        rel = verts[snap] - point
-        perp = rel - (rel @ axis)[:, None] * axis
+        msgs.append(f"cast: hole: {int(np.sum(snap & facing_v))} vertex(es) within {0.02 * min(edge, dz_mm):.4f} mm of the hole outline snapped onto it (no sliver triangles)")
+        _, vec = hole_level(verts[snap])
         verts = verts.copy()
-        verts[snap] += (radius / np.linalg.norm(perp, axis=1) - 1.0)[:, None] * perp
+        verts[snap] += (radius / np.linalg.norm(vec, axis=1) - 1.0)[:, None] * vec
         f = np.where(snap, 0.0, f)
 
     def on_circle(pa, pb):
-        """Edge parameter where the edge pa-pb meets the cylinder of the hole (exact quadratic root)."""
-        u = pa - point
-        u = u - (u @ axis) * axis
-        w = pb - pa
-        w = w - (w @ axis) * axis
-        qa, qb, qc = w @ w, 2 * (u @ w), u @ u - radius**2
-        disc = max(qb * qb - 4 * qa * qc, 0.0)
-        roots = [(-qb - np.sqrt(disc)) / (2 * qa), (-qb + np.sqrt(disc)) / (2 * qa)] if qa > 0 else [0.5]
-        inside = [t for t in roots if -1e-9 <= t <= 1 + 1e-9]
-        return float(np.clip(inside[0] if inside else roots[0], 0.0, 1.0))
+        """Edge parameter where the edge pa-pb meets the hole outline (exact quadratic root for one
+        circle, bisection to 1e-12 otherwise)."""
+        if len(fps) == 1 and fps[0][2] == 0:
+            u = pa - fps[0][0]
+            u = u - (u @ fps[0][1]) * fps[0][1]
+            w = pb - pa
+            w = w - (w @ fps[0][1]) * fps[0][1]
+            qa, qb, qc = w @ w, 2 * (u @ w), u @ u - radius**2
+            disc = max(qb * qb - 4 * qa * qc, 0.0)
+            roots = [(-qb - np.sqrt(disc)) / (2 * qa), (-qb + np.sqrt(disc)) / (2 * qa)] if qa > 0 else [0.5]
+            inside = [t for t in roots if -1e-9 <= t <= 1 + 1e-9]
+            return float(np.clip(inside[0] if inside else roots[0], 0.0, 1.0))
+        lo_t, hi_t = 0.0, 1.0
+        fa = hole_level(pa[None])[0][0]
+        for _ in range(45):
+            mid = 0.5 * (lo_t + hi_t)
+            fm = hole_level((pa + mid * (pb - pa))[None])[0][0]
+            if (fm < 0) == (fa < 0):
+                lo_t, fa = mid, fm
+            else:
+                hi_t = mid
+        return 0.5 * (lo_t + hi_t)
 
     # triangles to cut: facing and touching the cylinder; keep only the sheet nearest the indenter
     cand = facing_t & np.any(f[tris] < 0, axis=1)
@@ -501,7 +538,8 @@ def build_cast(
     area = triangle_areas(v2, t2)
     t2 = t2[area > 1e-12]
     v2, t2 = _compact(v2, t2)
-    msgs.append(f"cast: hole of {hole_diameter_mm} mm cut on the facing side ({int(cand.sum())} triangles clipped or removed)")
+    what = f"union of {len(fps)} variants' {hole_diameter_mm} mm outlines" if len(fps) > 1 else f"{hole_diameter_mm} mm circle"
+    msgs.append(f"cast: hole ({what}) cut on the facing side ({int(cand.sum())} triangles clipped or removed)")
     return v2, t2, msgs
 
 

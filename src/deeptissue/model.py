@@ -42,8 +42,9 @@ class ModelSettings:
     cast_extension_mm: float = 1.0
     cast_dz_mm: float = 0.25
     hole_diameter_mm: float = 6.0
+    hole_for_variants: bool = True
     patch_diameter_mm: float = 6.0
-    bar_length_mm: float = 0.0
+    bar_length_mm: float = 10.0  # the FE core's default (fem.bar_length_mm is passed in by the rules)
     spline_points: int = 50
     loft: str = "ruled"
     curved: bool = True
@@ -95,8 +96,12 @@ def _equidistant(contours: Contours) -> Contours:
 
 
 
-def build_cast(contours: Contours, pose: Pose, *, settings: ModelSettings | dict | None = None, animal: str = "?") -> Cast:
-    """Rigid cast around the pre skin contours with the hole where the indenter axis passes."""
+def build_cast(contours: Contours, pose: Pose, *, variants=("sphere",), settings: ModelSettings | dict | None = None, animal: str = "?") -> Cast:
+    """Rigid cast around the pre skin contours with the hole where the indenter axis passes.
+
+    With ``settings.hole_for_variants`` the hole is the union of the variants' circles (each
+    projected along its own axis, a bar's swept along the bar), so no variant's indenter presses
+    the skin against the cast; otherwise the circle about the estimated axis only."""
     s = settings if isinstance(settings, ModelSettings) else ModelSettings.from_dict(settings)
     geo.check_contours(contours.skin, contours.bone, animal=animal, min_gap_mm=s.min_gap_mm)
     contours = _equidistant(contours)
@@ -105,6 +110,9 @@ def build_cast(contours: Contours, pose: Pose, *, settings: ModelSettings | dict
     # the cast is offset from the surface the mesh lies on: the ruled loft is rebuilt here exactly
     # (straight lines between the offset contours); the smooth one is sampled from OpenCASCADE
     surface = sample_lofted_surface(contours.skin, spline_points=s.spline_points, dz_mm=s.cast_dz_mm) if s.loft == "smooth" else None
+    footprints = None
+    if s.hole_for_variants:
+        footprints = [(sp.point_mm, sp.axis, sp.half_length_mm, sp.long_dir) for sp in _patch_specs(pose, list(variants), s).values()]
     v, t, msgs = geo.build_cast(
         contours.skin,
         axis=pose.indenter_axis,
@@ -116,6 +124,7 @@ def build_cast(contours: Contours, pose: Pose, *, settings: ModelSettings | dict
         dz_mm=s.cast_dz_mm,
         surface=surface,
         ruled=s.loft == "ruled",
+        footprints=footprints,
         animal=animal,
     )
     for m in msgs:
@@ -203,7 +212,7 @@ def build_model(
     contours = _equidistant(contours)
     msgs: list[str] = []
     if cast is None:
-        cast = build_cast(contours, pose, settings=s, animal=animal)
+        cast = build_cast(contours, pose, variants=variants, settings=s, animal=animal)
     axes = variant_axes(pose, variants)
     segs, seen = [], []
     for name, (axis, start, end, _) in axes.items():
@@ -376,12 +385,12 @@ def plot_model_qc(path, model: AnimalModel, pose: Pose) -> None:
 # --------------------------------------------------------------------------- rule entry points
 
 
-def run_cast(*, contours_npz, pose_json, cast_npz, settings: dict | None = None, animal: str = "?") -> Cast:
+def run_cast(*, contours_npz, pose_json, cast_npz, variants=("sphere",), settings: dict | None = None, animal: str = "?") -> Cast:
     """Rule ``cast``: read the pre contours and the pose, write ``cast.npz``."""
     from .contours import load_contours
     from .pose import load_pose
 
-    cast = build_cast(load_contours(contours_npz), load_pose(pose_json), settings=settings, animal=animal)
+    cast = build_cast(load_contours(contours_npz), load_pose(pose_json), variants=variants, settings=settings, animal=animal)
     save_cast(cast_npz, cast)
     return cast
 

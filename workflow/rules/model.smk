@@ -11,7 +11,8 @@ rule cast:
     log:
         "results/{animal}/logs/cast.log",
     params:
-        settings=dict(config["model"], bar_length_mm=float(config.get("fem", {}).get("bar_length_mm", 0.0))),
+        settings=dict(config["model"], bar_length_mm=float(config.get("fem", {}).get("bar_length_mm", 10.0))),
+        variants=config["study"]["variants"],
     conda:
         "../envs/deeptissue.yaml"
     script:
@@ -39,7 +40,7 @@ rule mesh:
     benchmark:
         "results/{animal}/benchmarks/mesh.tsv"
     params:
-        settings=dict(config["model"], bar_length_mm=float(config.get("fem", {}).get("bar_length_mm", 0.0))),
+        settings=dict(config["model"], bar_length_mm=float(config.get("fem", {}).get("bar_length_mm", 10.0))),
         variants=config["study"]["variants"],
     conda:
         "../envs/deeptissue.yaml"
