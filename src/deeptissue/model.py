@@ -256,8 +256,10 @@ def build_model(
     skin_nodes = np.unique(mesh.facets["skin"])
     xs = mesh.nodes_mm[skin_nodes]
     gap = geo.surface_distance_mm(xs, cast.vertices_mm, cast.triangles)
-    away = geo.axis_distance_mm(xs, point_mm=pose.tip_end_mm, axis=pose.indenter_axis) > 0.5 * s.hole_diameter_mm + 1.0
-    away |= (xs - pose.tip_end_mm) @ pose.indenter_axis > 0  # far side of the leg
+    hole_fps = list(specs.values()) if s.hole_for_variants else [PatchSpec(point_mm=pose.tip_end_mm, axis=pose.indenter_axis, radius_mm=0.0)]
+    near_hole = np.min([geo.footprint_distance_mm(xs, point_mm=f.point_mm, axis=f.axis, half_length_mm=f.half_length_mm, long_dir=f.long_dir) for f in hole_fps], axis=0)
+    away = near_hole > 0.5 * s.hole_diameter_mm + 1.0
+    away |= (xs - pose.tip_end_mm) @ pose.indenter_axis > 2.0  # far side of the leg (the hole is on the near side)
     tags = {}
     for name in mesh.facets:
         c, a = _facet_geometry(mesh, name)
