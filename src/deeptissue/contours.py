@@ -60,3 +60,107 @@ def load_contours(path: str | Path) -> Contours:
         return Contours(skin=np.asarray(skin, float), bone=np.asarray(bone, float))
     except ValueError as exc:
         raise ValueError(f"{path}: {exc}") from exc
+
+
+# ---------------------------------------------------------------------------------------------
+# Resampling of closed contours (PCHIP over arc length)
+# ---------------------------------------------------------------------------------------------
+
+
+def polygon_area_centroid(xy: np.ndarray) -> tuple[float, np.ndarray]:
+    """Signed area (mm², > 0 if counter-clockwise) and area centroid (2,) of a closed polygon (n, 2)."""
+    x, y = xy[:, 0], xy[:, 1]
+    xn, yn = np.roll(x, -1), np.roll(y, -1)
+    cross = x * yn - xn * y
+    area = 0.5 * cross.sum()
+    if abs(area) < 1e-300:
+        return 0.0, xy.mean(axis=0)
+    cx = ((x + xn) * cross).sum() / (6 * area)
+    cy = ((y + yn) * cross).sum() / (6 * area)
+    return float(area), np.array([cx, cy])
+
+
+def resample_closed(xy, *, n_points: int = 100, start_angle_deg: float = 90.0, oversample: int = 16) -> np.ndarray:
+    """Resample a closed planar curve to ``n_points`` circumferentially equidistant points.
+
+    ``xy`` (m, 2) mm: the curve's vertices in order (either orientation; a repeated closing point
+    is dropped). A shape-preserving piecewise cubic (PCHIP, periodic by wrapping) interpolates
+    x and y over the polyline's arc length; the interpolant is evaluated densely, its arc length
+    recomputed, and ``n_points`` stations equally spaced in that arc length are returned (n_points, 2),
+    counter-clockwise, the first where the ray from the area centroid at polar angle
+    ``start_angle_deg`` (from +x toward +y) crosses the curve (the outermost crossing).
+    """
+    from scipy.interpolate import PchipInterpolator
+
+    p = np.asarray(xy, dtype=float)
+    if p.ndim != 2 or p.shape[1] != 2:
+        raise ValueError(f"resample_closed: expected (m, 2) points, got {p.shape}")
+    if len(p) > 1 and np.allclose(p[0], p[-1]):
+        p = p[:-1]
+    # drop zero-length steps (marching squares may repeat vertices)
+    step = np.linalg.norm(np.diff(p, axis=0, append=p[:1]), axis=1)
+    p = p[step > 1e-12]
+    if len(p) < 4:
+        raise ValueError(f"resample_closed: a closed contour needs at least 4 distinct points, got {len(p)}")
+    area, _ = polygon_area_centroid(p)
+    if area < 0:
+        p = p[::-1]
+    m = len(p)
+    seg = np.linalg.norm(np.roll(p, -1, axis=0) - p, axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    length = s[-1]
+    k = min(4, m)  # wrap a few points on each side so the interpolant is periodic in effect
+    s_ext = np.concatenate([s[m - k : m] - length, s[:m], s[:k] + length])
+    p_ext = np.concatenate([p[m - k :], p, p[:k]])
+    f = PchipInterpolator(s_ext, p_ext, axis=0)
+    n_dense = max(oversample * max(n_points, m), 2000)
+    sd = np.linspace(0.0, length, n_dense, endpoint=False)
+    d = f(sd)
+    # arc length of the dense interpolant
+    dd = np.linalg.norm(np.roll(d, -1, axis=0) - d, axis=1)
+    sa = np.concatenate([[0.0], np.cumsum(dd)])
+    total = sa[-1]
+    dclosed = np.vstack([d, d[:1]])
+    _, c = polygon_area_centroid(d)
+    # start: outermost crossing of the ray from the centroid at the start angle
+    u = np.array([np.cos(np.radians(start_angle_deg)), np.sin(np.radians(start_angle_deg))])
+    v = np.array([-u[1], u[0]])
+    rel = dclosed - c
+    side = rel @ v  # signed distance from the ray's line
+    along = rel @ u
+    cross_i = np.nonzero((side[:-1] <= 0) & (side[1:] > 0) | (side[:-1] < 0) & (side[1:] >= 0))[0]
+    best, s0 = -np.inf, 0.0
+    for i in cross_i:
+        t = side[i] / (side[i] - side[i + 1]) if side[i] != side[i + 1] else 0.0
+        a = along[i] + t * (along[i + 1] - along[i])
+        if a > 0 and a > best:
+            best, s0 = a, sa[i] + t * (sa[i + 1] - sa[i])
+    if not np.isfinite(best):
+        raise ValueError("resample_closed: the start-angle ray from the centroid does not cross the curve")
+    st = (s0 + total * np.arange(n_points) / n_points) % total
+    out = np.column_stack([np.interp(st, sa, dclosed[:, j]) for j in range(2)])
+    return out
+
+
+def resample_contour_3d(points_mm, *, z_mm: float, n_points: int = 100, start_angle_deg: float = 90.0) -> np.ndarray:
+    """:func:`resample_closed` of the x, y of ``points_mm`` (m, 2 or 3), returned as (n_points, 3) at ``z_mm``."""
+    xy = resample_closed(np.asarray(points_mm, float)[:, :2], n_points=n_points, start_angle_deg=start_angle_deg)
+    return np.column_stack([xy, np.full(len(xy), float(z_mm))])
+
+
+def point_to_polygon_distance(points_xy, polygon_xy) -> np.ndarray:
+    """Distance (mm) from each of ``points_xy`` (n, 2) to the closed polygon ``polygon_xy`` (m, 2)."""
+    p = np.asarray(points_xy, float)[:, None, :]
+    a = np.asarray(polygon_xy, float)
+    b = np.roll(a, -1, axis=0)
+    ab = b - a
+    t = np.clip(((p - a) * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-300), 0.0, 1.0)
+    q = a + t[..., None] * ab
+    return np.sqrt(((p - q) ** 2).sum(-1)).min(axis=1)
+
+
+def points_in_polygon(points_xy, polygon_xy) -> np.ndarray:
+    """Boolean (n,): which of ``points_xy`` (n, 2) lie inside the closed polygon (m, 2)."""
+    from matplotlib.path import Path as _MplPath
+
+    return _MplPath(np.asarray(polygon_xy, float)).contains_points(np.asarray(points_xy, float))

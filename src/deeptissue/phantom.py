@@ -1,0 +1,412 @@
+"""Digital phantom of a rat leg in a surface coil, before and during indentation, with exact truth.
+
+The anatomy is analytic, so every boundary is known exactly:
+
+- **leg** (skin surface): a star-shaped cross-section about a slowly drifting centre,
+  ``r(θ, z) = R(z) (1 + e cos 2θ + h3 cos(3θ + φ3) + h4 cos(4θ + φ4))`` with a linear taper
+  ``R(z) = leg_radius_mm + leg_taper * z`` (8–11 mm across with the defaults); a skin and
+  subcutaneous layer ``skin_thickness_mm`` thick lines it.
+- **tibia**: an elliptic cylinder along z (eccentric, drifting slightly with z), a dark cortex
+  ``cortex_thickness_mm`` thick around a darker-than-muscle marrow.
+- **coil**: a surface loop of radius ``coil_radius_mm`` above the anterior (+y) skin; sensitivity
+  ``(a² / (a² + d²))^(3/2)`` with ``d`` the distance below the coil, normalised to 1 in the
+  well-lit muscle 1 mm under the skin where the indenter enters; the posterior side gets about
+  40 % of that.
+- **noise**: Rician (magnitude of the signal plus complex Gaussian noise), ``sigma = 1 / snr``
+  (muscle in the well-lit region has signal 1).
+- **indenter** (during): a hollow cylinder of radius 1.5 mm ending in a hemispherical head
+  (``deeptissue`` CONTRACTS), dark wall ``indenter_wall_mm`` thick, filled with bright contrast
+  fluid. Its axis points nominally along −y (from the coil side into the leg) through the tibia
+  centre at ``indenter_z_mm``, tilted by ``tilt_deg = (about X, about Z)``. The tip travels from
+  1 mm outside the skin to ``depth_mm`` beyond the skin point on the axis. The skin conforms to
+  the head: the tissue is ``max(φ_pre + dimple, −sd_indenter) < 0`` with ``φ_pre`` the radial
+  distance outside the pre skin, ``dimple`` a smooth axisymmetric sag (shallower than the head,
+  so the head defines the surface where it touches) and ``sd_indenter`` the indenter's signed
+  distance; tissue in the indenter's place is displaced, the skin layer follows the surface.
+- **tibia motion** (during): rigid, ``x -> R (x - c) + c + t`` about the pre tibia centre of mass
+  ``c`` (:mod:`deeptissue.rigid`).
+
+Rendering is anti-aliased by ``supersample``² sub-samples per pixel in the slice plane; slices
+are planes of constant z (1 mm apart), so the truth contours are the exact boundaries in those
+planes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import brentq
+
+from .contours import Contours, polygon_area_centroid, resample_closed, save_contours
+from .io import atomic_path, write_json
+from .pose import Pose, save_pose
+from .rigid import rotation_matrix
+
+
+@dataclass(frozen=True)
+class PhantomSpec:
+    """Parameters of a phantom. Lengths in mm, angles in degrees, intensities relative to muscle."""
+
+    seed: int = 0
+    depth_mm: float = 2.0
+    tilt_deg: tuple = (0.0, 0.0)
+    bone_rotation_deg: tuple = (0.0, 0.0, 0.0)
+    bone_translation_mm: tuple = (0.0, 0.0, 0.0)
+    snr: float = 20.0
+    # anatomy
+    leg_radius_mm: float = 4.7
+    leg_taper: float = 0.04  # mm of radius per mm of z
+    leg_ellipticity: float = 0.08
+    skin_thickness_mm: float = 0.4
+    tibia_centre_mm: tuple = (-0.9, 0.3)
+    tibia_semi_axes_mm: tuple = (1.15, 0.95)
+    tibia_angle_deg: float = 25.0
+    cortex_thickness_mm: float = 0.3
+    # coil
+    coil_radius_mm: float = 11.0
+    coil_gap_mm: float = 1.0
+    # intensities (muscle = 1 in the well-lit region)
+    muscle: float = 1.0
+    skin: float = 0.8
+    cortex: float = 0.05
+    marrow: float = 0.35
+    fluid: float = 2.0
+    wall: float = 0.0
+    # indenter
+    indenter_radius_mm: float = 1.5
+    indenter_wall_mm: float = 0.5
+    indenter_z_mm: float = 0.0
+    # image grid
+    n_pixels: int = 256
+    fov_mm: float = 25.0
+    n_slices: int = 20
+    slice_mm: float = 1.0
+    supersample: int = 8
+
+    @classmethod
+    def from_config(cls, cfg: dict) -> "PhantomSpec":
+        """Spec from a config ``phantom`` mapping (unknown keys are an error naming them)."""
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(cfg) - known)
+        if unknown:
+            raise ValueError(f"phantom: unknown key(s) {unknown}")
+        kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in cfg.items()}
+        return cls(**kw)
+
+
+@dataclass(frozen=True)
+class Phantom:
+    """A rendered phantom: volumes (n_pixels, n_pixels, n_slices) float32, RAS affine (4, 4) mm, truth."""
+
+    spec: PhantomSpec
+    pre: np.ndarray
+    during: np.ndarray
+    affine: np.ndarray
+    truth: Pose
+    truth_pre: Contours
+    truth_during: Contours
+    noise_sigma: float
+    dense: dict = field(default_factory=dict)  # (state, structure) -> list of (m, 3) exact boundary polylines per slice
+
+    @property
+    def z_mm(self) -> np.ndarray:
+        return self.affine[2, 2] * np.arange(self.pre.shape[2]) + self.affine[2, 3]
+
+
+class _Anatomy:
+    """The analytic shapes of one phantom (pre state) plus the indenter and bone motion."""
+
+    def __init__(self, spec: PhantomSpec):
+        self.s = spec
+        rng = np.random.default_rng([spec.seed, 7])
+        self.h3, self.h4 = rng.uniform(0.0, 0.025, 2)
+        self.p3, self.p4 = rng.uniform(0, 2 * np.pi, 2)
+        self.leg_c0 = rng.uniform(-0.2, 0.2, 2)
+        self.leg_drift = rng.uniform(-0.01, 0.01, 2)
+        self.tib_c0 = np.asarray(spec.tibia_centre_mm, float) + rng.uniform(-0.15, 0.15, 2)
+        self.tib_drift = np.array([0.015, -0.01]) + rng.uniform(-0.005, 0.005, 2)
+        self.tib_ab = np.asarray(spec.tibia_semi_axes_mm, float) * (1 + rng.uniform(-0.05, 0.05))
+        self.tib_ang = np.radians(spec.tibia_angle_deg)
+
+    # leg ------------------------------------------------------------------------------------
+    def leg_centre(self, z):
+        z = np.asarray(z, float)
+        return self.leg_c0[0] + self.leg_drift[0] * z, self.leg_c0[1] + self.leg_drift[1] * z
+
+    def leg_r(self, theta, z):
+        s = self.s
+        R = s.leg_radius_mm + s.leg_taper * np.asarray(z, float)
+        return R * (1 + s.leg_ellipticity * np.cos(2 * theta) + self.h3 * np.cos(3 * theta + self.p3)
+                    + self.h4 * np.cos(4 * theta + self.p4))
+
+    def phi_pre(self, x, y, z):
+        """Radial distance (mm) outside the pre skin (negative inside)."""
+        cx, cy = self.leg_centre(z)
+        dx, dy = x - cx, y - cy
+        return np.hypot(dx, dy) - self.leg_r(np.arctan2(dy, dx), z)
+
+    # tibia ----------------------------------------------------------------------------------
+    def tib_centre(self, z):
+        z = np.asarray(z, float)
+        return self.tib_c0[0] + self.tib_drift[0] * z, self.tib_c0[1] + self.tib_drift[1] * z
+
+    def tib_axes(self, z):
+        f = 1 - 0.004 * np.asarray(z, float)
+        return self.tib_ab[0] * f, self.tib_ab[1] * f
+
+    def bone_f(self, x, y, z, inset=0.0):
+        """< 0 inside the tibia (``inset`` mm: the marrow); exact zero set is the ellipse."""
+        cx, cy = self.tib_centre(z)
+        a, b = self.tib_axes(z)
+        c, s = np.cos(self.tib_ang), np.sin(self.tib_ang)
+        u = (x - cx) * c + (y - cy) * s
+        v = -(x - cx) * s + (y - cy) * c
+        return np.sqrt((u / (a - inset)) ** 2 + (v / (b - inset)) ** 2) - 1.0
+
+
+def _affine(spec: PhantomSpec) -> np.ndarray:
+    dx = spec.fov_mm / spec.n_pixels
+    A = np.diag([dx, dx, spec.slice_mm, 1.0])
+    A[0, 3] = A[1, 3] = -(spec.n_pixels - 1) / 2 * dx
+    A[2, 3] = -(spec.n_slices - 1) / 2 * spec.slice_mm
+    return A
+
+
+class _Scene:
+    """Anatomy + indenter + motion: level functions of the pre and during states."""
+
+    def __init__(self, spec: PhantomSpec):
+        self.s = spec
+        self.an = _Anatomy(spec)
+        self.affine = _affine(spec)
+        self.z = self.affine[2, 2] * np.arange(spec.n_slices) + self.affine[2, 3]
+        an = self.an
+        # tibia centre of mass over the slices (area-weighted slice centroids; ellipse area π a b)
+        cx, cy = an.tib_centre(self.z)
+        a, b = an.tib_axes(self.z)
+        w = np.pi * a * b
+        self.bone_com = np.array([np.sum(w * cx), np.sum(w * cy), np.sum(w * self.z)]) / w.sum()
+        self.R = rotation_matrix(spec.bone_rotation_deg)
+        self.t = np.asarray(spec.bone_translation_mm, float)
+        # indenter axis: nominal -y through the tibia centre at indenter_z, tilted about X then Z
+        z0 = spec.indenter_z_mm
+        aim = np.array([*an.tib_centre(z0), z0], float)
+        tx, tz = spec.tilt_deg
+        axis = rotation_matrix([0, 0, tz]) @ rotation_matrix([tx, 0, 0]) @ np.array([0.0, -1.0, 0.0])
+        self.axis = axis / np.linalg.norm(axis)
+        f = lambda s_: float(an.phi_pre(*(aim - s_ * self.axis)))
+        s_out = brentq(f, 0.0, 30.0, xtol=1e-12)
+        self.skin_point = aim - s_out * self.axis
+        self.tip_start = self.skin_point - 1.0 * self.axis
+        self.tip_end = self.skin_point + spec.depth_mm * self.axis
+        self.head_centre = self.tip_end - spec.indenter_radius_mm * self.axis
+        # dimple: amplitude and width chosen shallower than the head (see module doc)
+        self.dimple_a = 0.9 * spec.depth_mm
+        self.dimple_w = np.sqrt(0.75 * max(self.dimple_a, 1e-9) * spec.indenter_radius_mm / 1.5)
+        # coil: loop above the anterior skin; normalise to 1 in muscle 1 mm under the entry point
+        th = np.linspace(-np.pi, np.pi, 721)
+        lcx, lcy = an.leg_centre(z0)
+        self.coil_y = float(np.max(lcy + an.leg_r(th, z0) * np.sin(th))) + spec.coil_gap_mm
+        self.coil_x = float(lcx)
+        ref = self.skin_point + np.array([0.0, -1.0, 0.0])
+        self.coil_norm = 1.0 / self._coil_raw(ref[0], ref[1], ref[2])
+        if spec.depth_mm > 0:
+            gap = self.bone_gap()
+            if gap <= 0:
+                raise ValueError(f"phantom: the indenter (depth {spec.depth_mm} mm) reaches the tibia; reduce depth_mm")
+
+    def _coil_raw(self, x, y, z):
+        a = self.s.coil_radius_mm
+        d = np.maximum(self.coil_y - y, 0.0)
+        return (a * a / (a * a + d * d)) ** 1.5 * np.exp(-((x - self.coil_x) ** 2 + z**2) / (2 * 20.0**2))
+
+    def coil(self, x, y, z):
+        return self.coil_norm * self._coil_raw(x, y, z)
+
+    def indenter_sd(self, x, y, z):
+        """Signed distance (mm) to the indenter (negative inside): ray from the head centre backwards."""
+        p = np.stack([x - self.head_centre[0], y - self.head_centre[1], np.broadcast_to(z - self.head_centre[2], np.shape(x))], -1)
+        back = -self.axis
+        t = np.maximum(p @ back, 0.0)
+        q = p - t[..., None] * back
+        return np.sqrt((q**2).sum(-1)) - self.s.indenter_radius_mm
+
+    def dimple(self, x, y, z):
+        p = np.stack([x - self.skin_point[0], y - self.skin_point[1], np.broadcast_to(z - self.skin_point[2], np.shape(x))], -1)
+        s_ax = p @ self.axis
+        d2 = (p**2).sum(-1) - s_ax**2
+        w_ax = np.exp(-np.maximum(s_ax, 0.0) ** 2 / (2 * 2.5**2))
+        return self.dimple_a * np.exp(-d2 / (2 * self.dimple_w**2)) * w_ax
+
+    def phi(self, x, y, z, state):
+        """Level function of the tissue (< 0 inside), mm."""
+        ph = self.an.phi_pre(x, y, z)
+        if state == "pre" or self.s.depth_mm <= 0:
+            return ph
+        return np.maximum(ph + self.dimple(x, y, z), -self.indenter_sd(x, y, z))
+
+    def bone(self, x, y, z, state, inset=0.0):
+        if state == "pre":
+            return self.an.bone_f(x, y, z, inset)
+        # pre-image of the during point: q = R^T (x - c - t) + c
+        p = np.stack([x, y, np.broadcast_to(z, np.shape(x))], -1) - self.bone_com - self.t
+        q = p @ self.R + self.bone_com
+        return self.an.bone_f(q[..., 0], q[..., 1], q[..., 2], inset)
+
+    def bone_gap(self) -> float:
+        """Smallest distance (mm) from the tibia surface (during) to the indenter, sampled."""
+        zs = np.linspace(self.z[0], self.z[-1], 41)
+        best = np.inf
+        th = np.linspace(0, 2 * np.pi, 180, endpoint=False)
+        for z in zs:
+            cx, cy = self.an.tib_centre(z)
+            a, b = self.an.tib_axes(z)
+            c, s = np.cos(self.an.tib_ang), np.sin(self.an.tib_ang)
+            u, v = a * np.cos(th), b * np.sin(th)
+            pts = np.column_stack([cx + u * c - v * s, cy + u * s + v * c, np.full_like(th, z)])
+            pts = (pts - self.bone_com) @ self.R.T + self.bone_com + self.t
+            best = min(best, float(self.indenter_sd(pts[:, 0], pts[:, 1], pts[:, 2]).min()))
+        return best
+
+    # rendering -------------------------------------------------------------------------------
+    def _values(self, X, Y, z, state):
+        """Intensity without coil (same shape as X) and a distance-like margin (mm) to the nearest boundary."""
+        s = self.s
+        val = np.zeros_like(X)
+        phi = self.phi(X, Y, z, state)
+        tissue = phi < 0
+        val[tissue] = s.muscle
+        val[tissue & (phi > -s.skin_thickness_mm)] = s.skin
+        scale = min(self.an.tib_ab) - s.cortex_thickness_mm
+        fb = self.bone(X, Y, z, state) * scale
+        fm = self.bone(X, Y, z, state, inset=s.cortex_thickness_mm) * (scale - s.cortex_thickness_mm)
+        bone = tissue & (fb < 0)
+        val[bone] = s.cortex
+        val[bone & (fm < 0)] = s.marrow
+        margin = np.minimum.reduce([np.abs(phi), np.abs(phi + s.skin_thickness_mm), np.abs(fb), np.abs(fm)])
+        if state == "during" and s.depth_mm > 0:
+            sd = self.indenter_sd(X, Y, z)
+            val[sd < 0] = s.wall
+            val[sd < -s.indenter_wall_mm] = s.fluid
+            margin = np.minimum.reduce([margin, np.abs(sd), np.abs(sd + s.indenter_wall_mm)])
+        return val, margin
+
+    def render_slice(self, k: int, state: str) -> np.ndarray:
+        """Noise-free magnitude of slice k (n_pixels, n_pixels): sub-sampled where a boundary is near."""
+        s = self.s
+        n, S = s.n_pixels, s.supersample
+        dx = self.affine[0, 0]
+        x0 = self.affine[0, 3]
+        z = float(self.z[k])
+        xc = x0 + np.arange(n) * dx
+        XC, YC = np.meshgrid(xc, xc, indexing="ij")  # [i, j] -> x, y
+        img, margin = self._values(XC, YC, z, state)
+        near = np.nonzero(margin < 1.5 * dx)
+        if len(near[0]):
+            off = ((np.arange(S) + 0.5) / S - 0.5) * dx
+            ox, oy = np.meshgrid(off, off, indexing="ij")
+            Xs = XC[near][:, None] + ox.ravel()[None, :]
+            Ys = YC[near][:, None] + oy.ravel()[None, :]
+            v, _ = self._values(Xs, Ys, z, state)
+            img[near] = v.mean(axis=1)
+        return img * self.coil(XC, YC, z)
+
+    # truth contours --------------------------------------------------------------------------
+    def truth_polyline(self, k: int, state: str, structure: str, *, h_mm: float = 0.01) -> np.ndarray:
+        """Exact boundary (m, 2) in slice k: marching squares of the level function on a fine grid."""
+        from skimage.measure import find_contours
+
+        z = float(self.z[k])
+        if structure == "skin" and (state == "pre" or self.s.depth_mm <= 0):
+            th = np.linspace(-np.pi, np.pi, 4000, endpoint=False)
+            cx, cy = self.an.leg_centre(z)
+            r = self.an.leg_r(th, z)
+            return np.column_stack([cx + r * np.cos(th), cy + r * np.sin(th)])
+        if structure == "skin":
+            cx, cy = self.an.leg_centre(z)
+            half = self.s.leg_radius_mm * 1.4 + 1.0
+            fn = lambda X, Y: self.phi(X, Y, z, state)
+            h = 3 * h_mm
+        else:
+            cx, cy = self.an.tib_centre(z)
+            if state == "during":
+                p = (np.array([cx, cy, z]) - self.bone_com) @ self.R.T + self.bone_com + self.t
+                cx, cy = p[0], p[1]
+            half = max(self.an.tib_ab) * 1.3 + 0.5
+            fn = lambda X, Y: self.bone(X, Y, z, state)
+            h = h_mm
+        g = np.arange(-half, half + h / 2, h)
+        X, Y = np.meshgrid(cx + g, cy + g, indexing="ij")
+        F = fn(X, Y)
+        cs = [c for c in find_contours(F, 0.0) if np.allclose(c[0], c[-1])]
+        if not cs:
+            raise RuntimeError(f"phantom: no closed {structure} boundary in slice {k} ({state})")
+        c = max(cs, key=lambda c: abs(polygon_area_centroid(c)[0]))
+        return np.column_stack([cx - half + c[:, 0] * h, cy - half + c[:, 1] * h])
+
+
+def make_phantom(spec: PhantomSpec, *, n_points: int = 100, start_angle_deg: float = 90.0) -> Phantom:
+    """Render the pre and during volumes of ``spec`` and their exact truth.
+
+    Returns a :class:`Phantom`: ``pre``/``during`` (n_pixels, n_pixels, n_slices) float32 magnitude
+    images (muscle in the well-lit region = 1, Rician noise sigma = 1/snr), ``affine`` (4, 4) RAS mm,
+    ``truth`` (:class:`~deeptissue.pose.Pose`; bone_com_mm is the area-weighted mean of the pre
+    tibia's slice centroids), ``truth_pre``/``truth_during`` (:class:`~deeptissue.contours.Contours`
+    resampled to ``n_points`` as the segmentation does) and ``dense`` exact boundaries per slice.
+    """
+    scene = _Scene(spec)
+    rng = np.random.default_rng([spec.seed, 11])
+    sigma = 1.0 / spec.snr
+    vols, contours, dense = {}, {}, {}
+    for state in ("pre", "during"):
+        img = np.empty((spec.n_pixels, spec.n_pixels, spec.n_slices), np.float32)
+        for k in range(spec.n_slices):
+            clean = scene.render_slice(k, state)
+            noisy = np.hypot(clean + sigma * rng.standard_normal(clean.shape), sigma * rng.standard_normal(clean.shape))
+            img[:, :, k] = noisy
+        vols[state] = img
+        out = {}
+        for structure in ("skin", "bone"):
+            polys, res = [], []
+            for k in range(spec.n_slices):
+                poly = scene.truth_polyline(k, state, structure)
+                polys.append(np.column_stack([poly, np.full(len(poly), scene.z[k])]))
+                xy = resample_closed(poly, n_points=n_points, start_angle_deg=start_angle_deg)
+                res.append(np.column_stack([xy, np.full(n_points, scene.z[k])]))
+            dense[(state, structure)] = polys
+            out[structure] = np.stack(res)
+        contours[state] = Contours(skin=out["skin"], bone=out["bone"])
+    truth = Pose(
+        indenter_axis=scene.axis,
+        tip_start_mm=scene.tip_start,
+        tip_end_mm=scene.tip_end,
+        depth_mm=spec.depth_mm,
+        bone_com_mm=scene.bone_com,
+        bone_rotation_deg=np.asarray(spec.bone_rotation_deg, float),
+        bone_translation_mm=np.asarray(spec.bone_translation_mm, float),
+        extra={
+            "skin_point_mm": scene.skin_point.tolist(),
+            "indenter_radius_mm": spec.indenter_radius_mm,
+            "indenter_wall_mm": spec.indenter_wall_mm,
+            "noise_sigma": sigma,
+            "bone_indenter_gap_mm": scene.bone_gap() if spec.depth_mm > 0 else None,
+        },
+    )
+    return Phantom(spec=spec, pre=vols["pre"], during=vols["during"], affine=scene.affine, truth=truth,
+                   truth_pre=contours["pre"], truth_during=contours["during"], noise_sigma=sigma, dense=dense)
+
+
+def write_phantom(spec: PhantomSpec, *, pre_path, during_path, truth_path, truth_pre_path, truth_during_path,
+                  n_points: int = 100, start_angle_deg: float = 90.0) -> Phantom:
+    """Make the phantom and write its files (NIfTI volumes, truth.json, truth contours), each atomically."""
+    from .imaging import write_nifti
+
+    ph = make_phantom(spec, n_points=n_points, start_angle_deg=start_angle_deg)
+    write_nifti(pre_path, ph.pre, ph.affine)
+    write_nifti(during_path, ph.during, ph.affine)
+    save_pose(truth_path, ph.truth)
+    save_contours(truth_pre_path, ph.truth_pre)
+    save_contours(truth_during_path, ph.truth_during)
+    return ph

@@ -1,0 +1,111 @@
+"""Phantom truth sanity: grid and affine, indenter travel, tip on the indenter and the skin, bone motion."""
+
+import numpy as np
+import pytest
+
+from deeptissue.contours import points_in_polygon, polygon_area_centroid
+from deeptissue.phantom import PhantomSpec, _Scene, make_phantom
+from deeptissue.rigid import apply_rigid
+
+SPEC = PhantomSpec(seed=1, depth_mm=2.0, tilt_deg=(5.0, -3.0), bone_rotation_deg=(1.0, -0.5, 0.8),
+                   bone_translation_mm=(0.05, -0.10, 0.02), snr=20)
+
+
+@pytest.fixture(scope="module")
+def ph():
+    return make_phantom(SPEC)
+
+
+def test_grid_and_affine(ph):
+    assert ph.pre.shape == ph.during.shape == (256, 256, 20)
+    assert ph.pre.dtype == np.float32
+    np.testing.assert_allclose(np.diag(ph.affine)[:3], [25 / 256, 25 / 256, 1.0])
+    # voxel centres span the 25 mm field of view symmetrically about 0
+    corner0 = ph.affine @ [0, 0, 0, 1]
+    corner1 = ph.affine @ [255, 255, 19, 1]
+    np.testing.assert_allclose(corner0[:2] + corner1[:2], 0, atol=1e-12)
+    np.testing.assert_allclose(corner1[:2] - corner0[:2], 25 - 25 / 256)
+    np.testing.assert_allclose(np.diff(ph.z_mm), 1.0)
+
+
+def test_leg_size_and_taper(ph):
+    for k in range(20):
+        xy = ph.truth_pre.skin[k, :, :2]
+        across = np.linalg.norm(xy[:, None] - xy[None], axis=-1).max()
+        assert 8.0 <= across <= 11.0
+    areas = [polygon_area_centroid(ph.truth_pre.skin[k, :, :2])[0] for k in range(20)]
+    assert areas[-1] > areas[0] * 1.1  # tapers distally (z grows proximally)
+
+
+def test_indenter_truth(ph):
+    t = ph.truth
+    assert np.linalg.norm(t.indenter_axis) == pytest.approx(1.0)
+    assert t.indenter_axis[1] < -0.9  # from the anterior coil side into the leg
+    # travel: 1 mm approach plus the depth
+    assert t.travel_mm == pytest.approx(SPEC.depth_mm + 1.0, abs=1e-9)
+    np.testing.assert_allclose((t.tip_end_mm - t.tip_start_mm) / t.travel_mm, t.indenter_axis, atol=1e-12)
+    # the skin point is on the pre skin (independently: the truth contour of its slice, interpolated in z)
+    sc = _Scene(SPEC)
+    skin_pt = np.array(t.extra["skin_point_mm"])
+    assert abs(sc.an.phi_pre(*skin_pt)) < 1e-9
+    # the final tip is on the indenter surface and on the deformed skin (the skin conforms to the head)
+    tip = t.tip_end_mm
+    assert abs(sc.indenter_sd(*tip)) < 1e-9
+    assert abs(sc.phi(*tip, "during")) < 1e-9
+    # the head centre is 1.5 mm behind the tip along the axis
+    np.testing.assert_allclose(sc.head_centre, tip - 1.5 * t.indenter_axis)
+    # the indenter is aimed at the tibia: the axis line passes through the tibia centre at indenter_z
+    c = np.array([*sc.an.tib_centre(0.0), 0.0])
+    d = np.linalg.norm(np.cross(c - tip, t.indenter_axis))
+    assert d < 1e-9
+    # the head does not reach the bone
+    assert t.extra["bone_indenter_gap_mm"] > 0.3
+
+
+def test_bone_motion_and_com(ph):
+    t = ph.truth
+    # COM from the truth contours (area-weighted slice centroids) agrees with the analytic one
+    A, C = [], []
+    for k in range(20):
+        a, c = polygon_area_centroid(ph.truth_pre.bone[k, :, :2])
+        A.append(a)
+        C.append([*c, ph.z_mm[k]])
+    com = (np.array(A)[:, None] * np.array(C)).sum(0) / np.sum(A)
+    np.testing.assert_allclose(com, t.bone_com_mm, atol=2e-4)
+    # a during-bone boundary point maps back onto the pre bone surface
+    sc = _Scene(SPEC)
+    k = 10
+    pts = ph.dense[("during", "bone")][k][::50]
+    back = apply_rigid(pts - t.bone_com_mm - t.bone_translation_mm + t.bone_com_mm, rotation_deg=-np.asarray(t.bone_rotation_deg), centre_mm=t.bone_com_mm, translation_mm=[0, 0, 0])
+    f = sc.an.bone_f(back[:, 0], back[:, 1], back[:, 2])
+    assert np.abs(f).max() < 2e-3
+    # and the centroid of the during bone moved roughly by the translation (rotation is small)
+    a, c_during = polygon_area_centroid(ph.truth_during.bone[k, :, :2])
+    a, c_pre = polygon_area_centroid(ph.truth_pre.bone[k, :, :2])
+    assert np.linalg.norm(c_during - c_pre) < 0.5
+
+
+def test_coil_falloff_and_noise(ph):
+    # posterior side has poor signal: muscle near the posterior skin well below the anterior
+    img = ph.pre[:, :, 10]
+    xy = ph.truth_pre.skin[10, :, :2]
+    top, bottom = xy[:, 1].max(), xy[:, 1].min()
+    j_top = int(round((top - 1.0 - ph.affine[1, 3]) / ph.affine[1, 1]))
+    j_bot = int(round((bottom + 1.0 - ph.affine[1, 3]) / ph.affine[1, 1]))
+    i_c = 128
+    ant = img[i_c - 3 : i_c + 4, j_top - 3 : j_top + 4].mean()
+    post = img[i_c - 3 : i_c + 4, j_bot - 3 : j_bot + 4].mean()
+    assert post < 0.6 * ant
+    # Rician background: mean = sigma sqrt(pi / 2)
+    bg = ph.pre[:20, :20, :]
+    assert bg.mean() == pytest.approx(ph.noise_sigma * np.sqrt(np.pi / 2), rel=0.05)
+
+
+def test_during_skin_excludes_indenter(ph):
+    sc = _Scene(SPEC)
+    for k in range(20):
+        pts = ph.dense[("during", "skin")][k]
+        sd = sc.indenter_sd(pts[:, 0], pts[:, 1], pts[:, 2])
+        assert sd.min() > -0.02
+        # bone inside skin
+        assert points_in_polygon(ph.truth_during.bone[k, :, :2], ph.truth_during.skin[k, :, :2]).all()
