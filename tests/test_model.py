@@ -380,3 +380,25 @@ def test_run_mesh_writes_every_output(tmp_path):
     assert all(f.stat().st_size > 0 for f in outs.values())
     info = json.loads(outs["model_json"].read_text())
     assert 0.18 < info["cast"]["skin_gap_mm"]["min"] <= info["cast"]["skin_gap_mm"]["max"] < 0.22
+
+
+@pytest.mark.slow
+def test_demo_phantom_meshes_without_manual_input():
+    """rat01 of the demo config: the phantom's exact pre contours and truth pose, all default variants."""
+    from pathlib import Path
+
+    import yaml
+
+    from deeptissue.phantom import PhantomSpec, make_phantom
+
+    root = Path(__file__).resolve().parents[1]
+    animal = yaml.safe_load((root / "config/config.yaml").read_text())["animals"]["rat01"]
+    ph = make_phantom(PhantomSpec.from_config(animal["phantom"]))
+    model = build_model(ph.truth_pre, ph.truth, variants=VARIANTS, animal="rat01")
+    prism = geo.limb_volume_mm3(ph.truth_pre.skin, ph.truth_pre.bone)
+    assert abs(model.mesh.volumes_mm3().sum() - prism) / prism < 0.01
+    assert np.all(tet10_min_det_jacobian(model.mesh) > 0)
+    for v in VARIANTS:
+        n = outward_facet_normals(model.mesh, f"patch_{v}")
+        assert len(n) > 20 and np.all(n @ np.array(model.info["patches"][v]["axis"]) < 0)
+    assert 0.19 < model.info["cast"]["skin_gap_mm"]["min"] <= model.info["cast"]["skin_gap_mm"]["max"] < 0.21
