@@ -323,57 +323,69 @@ def select_patch(centroids: np.ndarray, normals: np.ndarray, *, point_mm, axis, 
 # --------------------------------------------------------------------------- cast with hole
 
 
-def _clip_surface(vertices: np.ndarray, triangles: np.ndarray, f: np.ndarray, active: np.ndarray, root=None):
+def _clip_surface(vertices: np.ndarray, triangles: np.ndarray, f: np.ndarray, active: np.ndarray, level=None):
     """Remove the part of a triangle surface where ``f < 0`` on ``active`` triangles, cut along f = 0.
 
-    Straddling triangles are split on their edges at the zero of f: ``root(pa, pb)`` gives the edge
-    parameter in [0, 1] (default: the linear zero of f). Points are shared between neighbours, so the
-    cut edge is watertight. Returns new vertices and triangles.
+    Straddling triangles are split on their edges at the zero of the level function ``level(points
+    (m, 3)) -> (m,)`` found by bisection (default: the linear zero of the vertex values f). A vertex
+    with f == 0 is on the cut and reused. Cut points are shared between neighbours, so the cut edge
+    is watertight. Returns new vertices and triangles.
     """
     fv = f[triangles]
     neg = fv < 0
     nneg = neg.sum(axis=1)
     keep_whole = ~active | (nneg == 0)
     straddle = active & (nneg > 0) & (nneg < 3)
-    out_tris = [triangles[keep_whole]]
-    verts = [vertices]
+    # every edge of a straddling triangle that crosses f = 0 between two non-zero values
+    st = triangles[straddle]
+    e = np.concatenate([st[:, [0, 1]], st[:, [1, 2]], st[:, [2, 0]]])
+    e = np.unique(np.sort(e, axis=1), axis=0)
+    e = e[((f[e[:, 0]] < 0) != (f[e[:, 1]] < 0)) & (f[e[:, 0]] != 0) & (f[e[:, 1]] != 0)]
+    pa, pb = vertices[e[:, 0]], vertices[e[:, 1]]
+    if level is None:
+        t = f[e[:, 0]] / (f[e[:, 0]] - f[e[:, 1]])
+    else:
+        lo, hi = np.zeros(len(e)), np.ones(len(e))
+        neg_a = f[e[:, 0]] < 0
+        for _ in range(45):
+            mid = 0.5 * (lo + hi)
+            same = (level(pa + mid[:, None] * (pb - pa)) < 0) == neg_a
+            lo = np.where(same, mid, lo)
+            hi = np.where(same, hi, mid)
+        t = 0.5 * (lo + hi)
     n_v = len(vertices)
     edge_index: dict[tuple[int, int], int] = {}
     new_pts = []
+    for (a, b), tk in zip(e.tolist(), t):
+        if tk <= 1e-9 or tk >= 1 - 1e-9:  # the cut passes through a vertex: reuse it (no duplicate)
+            edge_index[(a, b)] = a if tk <= 1e-9 else b
+        else:
+            new_pts.append(vertices[a] + tk * (vertices[b] - vertices[a]))
+            edge_index[(a, b)] = n_v + len(new_pts) - 1
 
     def cut(a, b):
-        key = (a, b) if a < b else (b, a)
-        if key not in edge_index:
-            if f[a] == 0 or f[b] == 0:  # the outline passes through a (snapped) vertex: reuse it
-                edge_index[key] = a if f[a] == 0 else b
-                return edge_index[key]
-            t = f[a] / (f[a] - f[b]) if root is None else root(vertices[a], vertices[b])
-            if t <= 1e-9 or t >= 1 - 1e-9:  # the cut passes through a vertex: reuse it (no duplicate)
-                edge_index[key] = a if t <= 1e-9 else b
-            else:
-                new_pts.append(vertices[a] + t * (vertices[b] - vertices[a]))
-                edge_index[key] = n_v + len(new_pts) - 1
-        return edge_index[key]
+        if f[a] == 0 or f[b] == 0:  # the outline passes through a (snapped) vertex: reuse it
+            return a if f[a] == 0 else b
+        return edge_index[(a, b) if a < b else (b, a)]
 
     extra = []
-    for tri, ng in zip(triangles[straddle], neg[straddle]):
+    for tri, ng in zip(st, neg[straddle]):
         # rotate so the pattern starts at a fixed place, preserving orientation
         for r in range(3):
-            t = np.roll(tri, -r)
+            tr = np.roll(tri, -r)
             m = np.roll(ng, -r)
             if ng.sum() == 1 and m[0]:
                 # t0 removed, t1 t2 kept: quad p01, t1, t2, p20
-                p01, p20 = cut(t[0], t[1]), cut(t[2], t[0])
-                extra += [(p01, t[1], t[2]), (p01, t[2], p20)]
+                p01, p20 = cut(tr[0], tr[1]), cut(tr[2], tr[0])
+                extra += [(p01, tr[1], tr[2]), (p01, tr[2], p20)]
                 break
             if ng.sum() == 2 and not m[0]:
                 # t0 kept, t1 t2 removed
-                extra.append((t[0], cut(t[0], t[1]), cut(t[2], t[0])))
+                extra.append((tr[0], cut(tr[0], tr[1]), cut(tr[2], tr[0])))
                 break
-    if new_pts:
-        verts.append(np.array(new_pts))
-    tris = np.concatenate([*out_tris, np.array(extra, dtype=np.int64).reshape(-1, 3)]) if extra else out_tris[0]
-    return np.concatenate(verts), tris
+    verts = np.concatenate([vertices, np.array(new_pts).reshape(-1, 3)])
+    tris = np.concatenate([triangles[keep_whole], np.array(extra, dtype=np.int64).reshape(-1, 3)])
+    return verts, tris
 
 
 def _compact(vertices: np.ndarray, triangles: np.ndarray):
@@ -486,30 +498,6 @@ def build_cast(
         verts[snap] += (radius / np.linalg.norm(vec, axis=1) - 1.0)[:, None] * vec
         f = np.where(snap, 0.0, f)
 
-    def on_circle(pa, pb):
-        """Edge parameter where the edge pa-pb meets the hole outline (exact quadratic root for one
-        circle, bisection to 1e-12 otherwise)."""
-        if len(fps) == 1 and fps[0][2] == 0:
-            u = pa - fps[0][0]
-            u = u - (u @ fps[0][1]) * fps[0][1]
-            w = pb - pa
-            w = w - (w @ fps[0][1]) * fps[0][1]
-            qa, qb, qc = w @ w, 2 * (u @ w), u @ u - radius**2
-            disc = max(qb * qb - 4 * qa * qc, 0.0)
-            roots = [(-qb - np.sqrt(disc)) / (2 * qa), (-qb + np.sqrt(disc)) / (2 * qa)] if qa > 0 else [0.5]
-            inside = [t for t in roots if -1e-9 <= t <= 1 + 1e-9]
-            return float(np.clip(inside[0] if inside else roots[0], 0.0, 1.0))
-        lo_t, hi_t = 0.0, 1.0
-        fa = hole_level(pa[None])[0][0]
-        for _ in range(45):
-            mid = 0.5 * (lo_t + hi_t)
-            fm = hole_level((pa + mid * (pb - pa))[None])[0][0]
-            if (fm < 0) == (fa < 0):
-                lo_t, fa = mid, fm
-            else:
-                hi_t = mid
-        return 0.5 * (lo_t + hi_t)
-
     # triangles to cut: facing and touching the cylinder; keep only the sheet nearest the indenter
     cand = facing_t & np.any(f[tris] < 0, axis=1)
     comp = _components(tris, cand, len(verts))
@@ -534,7 +522,7 @@ def build_cast(
     if np.any(cut_v[end_rows] & (f[end_rows] < 0)):
         which = "proximal" if np.any(cut_v[end_rows[n_cols:]] & (f[end_rows[n_cols:]] < 0)) else "distal"
         msgs.append(f"cast: hole: the projected circle reaches past the {which} end of the cast; the hole opens into that end (a notch)")
-    v2, t2 = _clip_surface(verts, tris, f, cand, root=on_circle)
+    v2, t2 = _clip_surface(verts, tris, f, cand, level=lambda x: hole_level(x)[0])
     area = triangle_areas(v2, t2)
     t2 = t2[area > 1e-12]
     v2, t2 = _compact(v2, t2)
