@@ -160,7 +160,7 @@ def _occ_loft(occ, rings: np.ndarray, n_spline: int, ruled: bool = False) -> int
     return vols[0]
 
 
-def sample_lofted_surface(rings: np.ndarray, *, spline_points: int = 50, n_cols: int | None = None, dz_mm: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
+def sample_lofted_surface(rings: np.ndarray, *, spline_points: int = 100, n_cols: int | None = None, dz_mm: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
     """Sample the lateral surface of the loft through a contour stack, exactly as :func:`mesh_limb` builds it.
 
     rings (n_slices, n_points, 3) CCW contours -> grid points (n_rows, n_cols, 3) and unit outward
@@ -396,7 +396,7 @@ def mesh_limb(
     refine_segments: tuple = (),
     patches: dict | None = None,
     patch_union: str | None = "patch",
-    spline_points: int = 50,
+    spline_points: int = 100,
     loft: str = "ruled",
     curved: bool = True,
     min_scaled_jacobian: float = 0.05,

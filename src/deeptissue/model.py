@@ -45,7 +45,7 @@ class ModelSettings:
     hole_for_variants: bool = True
     patch_diameter_mm: float = 6.0
     bar_length_mm: float = 10.0  # the FE core's default (fem.bar_length_mm is passed in by the rules)
-    spline_points: int = 50
+    spline_points: int = 100
     loft: str = "ruled"
     curved: bool = True
     algorithm_3d: str = "hxt"
