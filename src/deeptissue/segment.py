@@ -45,6 +45,8 @@ from .contours import Contours, point_to_polygon_distance, points_in_polygon, po
 from .imaging import ImagingError, Volume
 
 STRUCTURES = ("skin", "bone")
+# the skin plateau is read in a band starting this far inside the rough (low-threshold) tissue edge
+_BAND_SIGMAS, _BAND_PX = 2.0, 0.5
 
 
 class SegmentationError(ValueError):
@@ -69,7 +71,7 @@ class SegmentationSettings:
 
     @classmethod
     def from_config(cls, *dicts: dict | None) -> "SegmentationSettings":
-        """Merge config mappings (later ones win; None values in later ones do not erase earlier)."""
+        """Merge config mappings (later ones win, a null included: null levels mean automatic)."""
         known = {f.name for f in fields(cls)}
         kw: dict = {}
         for d in dicts:
@@ -193,7 +195,7 @@ def _segment_slice(img, *, bg, noise, px_mm, settings: SegmentationSettings, whe
     else:
         dist = ndimage.distance_transform_edt(rough)
         sig_px = s.smooth_mm / px_mm
-        d1 = 2 * sig_px + 1.0
+        d1 = _BAND_SIGMAS * sig_px + _BAND_PX
         band = rough & (dist >= d1) & (dist < d1 + 1.5) & (Ns > 0)
         if band.sum() < 5:
             band = rough & (Ns > 0)

@@ -23,21 +23,6 @@ rule phantom:
         "../scripts/phantom.py"
 
 
-def segment_inputs(wildcards):
-    """The image of the state, the pre image it must match, overrides and truth where they exist."""
-    cfg = animal_cfg(wildcards.animal)
-    inputs = {"image": mri_input(wildcards)}
-    if wildcards.state == "during":
-        inputs["reference"] = (
-            f"results/{wildcards.animal}/mri/pre.nii.gz" if is_phantom(wildcards.animal) else cfg["pre"]
-        )
-    if "overrides" in cfg:
-        inputs["overrides"] = cfg["overrides"]
-    if is_phantom(wildcards.animal):
-        inputs["truth"] = f"results/{wildcards.animal}/mri/truth_{wildcards.state}.npz"
-    return inputs
-
-
 rule segment:
     """Skin and tibia contours of every slice of one state, and a QC figure."""
     input:
