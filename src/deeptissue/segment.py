@@ -140,10 +140,11 @@ def _bias_field(img_minus_bg, mask, fit_mask, degree):
     return np.exp(_poly_terms((I - ci) / sc, (J - cj) / sc, degree) @ coef)
 
 
-def _closed_contours(img, level):
+def _closed_contours(img, level, fully_connected="low"):
     from skimage.measure import find_contours
 
-    return [c for c in find_contours(img, level) if len(c) >= 5 and np.allclose(c[0], c[-1])]
+    cs = find_contours(img, level, fully_connected=fully_connected)
+    return [c for c in cs if len(c) >= 5 and np.allclose(c[0], c[-1])]
 
 
 def _contour_mean(img, c):
@@ -200,7 +201,9 @@ def _segment_slice(img, *, bg, noise, px_mm, settings: SegmentationSettings, whe
         if band.sum() < 5:
             band = rough & (Ns > 0)
         skin_level = 0.5 * float(np.median(Ns[band]))
-    cs = _closed_contours(Ns, skin_level)
+    # tissue (above the level) is 8-connected, background only 4-connected: single-pixel gaps that
+    # touch the outside only diagonally do not cut channels into the skin
+    cs = _closed_contours(Ns, skin_level, fully_connected="high")
     if not cs:
         raise SegmentationError(f"{where}: no closed skin contour at level {skin_level:.3g} (does the leg touch the image/crop border?)")
     skin = max(cs, key=lambda c: abs(polygon_area_centroid(c)[0]))
