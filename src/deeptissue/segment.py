@@ -342,8 +342,8 @@ def segment_files(image, *, contours_out, qc_out, animal: str, state: str, setti
     log = logging.getLogger(__name__)
     log.info("%s %s: background %.4g, noise %.4g", animal, state, info["background"], info["noise"])
     for row in info["slices"]:
-        log.info("slice %(slice)d z %(z_mm).2f mm: skin level %(skin_level)s (%(skin_source)s), "
-                 "bone level %(bone_level)s (%(bone_source)s)", row)
+        log.info("slice %(slice)d z %(z_mm).2f mm: skin %(skin_source)s (level %(skin_level)s), "
+                 "bone %(bone_source)s (level %(bone_level)s)", row)
     true = load_contours(truth) if truth else None
     rows = contour_accuracy(contours, true) if true is not None else None
     save_contours(contours_out, contours)
