@@ -242,3 +242,16 @@ def test_crop_keeps_world_coordinates(ph):
     np.testing.assert_allclose(c.world([0, 0, 0]), vol.world(c.index_offset))
     with pytest.raises(ImagingError, match="contains no voxel"):
         crop_volume(vol, [[100, 101], [0, 1], [0, 1]])
+
+
+@pytest.mark.slow
+def test_accuracy_holds_at_high_snr():
+    # "snr >= 12" includes nearly noise-free images: the automatic skin level must not drift with noise
+    ph = make_phantom(PhantomSpec(seed=5, depth_mm=2.0, tilt_deg=(4.0, -4.0), snr=80, n_slices=6, indenter_z_mm=-2.5))
+    for state in ("pre", "during"):
+        seg, _ = segment_volume(Volume(data=getattr(ph, state), affine=ph.affine), state=state)
+        for structure in ("skin", "bone"):
+            rows = contour_accuracy(seg, {s: ph.dense[(state, s)] for s in ("skin", "bone")})
+            d_mean = np.mean([r["mean_mm"] for r in rows if r["structure"] == structure])
+            d_max = max(r["max_mm"] for r in rows if r["structure"] == structure)
+            assert d_mean <= 0.05 and d_max <= 0.25, (state, structure, d_mean, d_max)

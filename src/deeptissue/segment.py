@@ -18,8 +18,9 @@ Per slice (arrays indexed [i, j] as in the NIfTI, converted to world mm by the a
    tissue) and a ``fluid_guard_mm`` margin around them are set to 0 before the skin is traced,
    so the fluid cannot join the skin contour even where the indenter wall is thin.
 5. **Skin**: ``find_contours(N, skin_level)`` (marching squares, sub-pixel), the largest closed
-   contour. Automatic level: half the median of ``N`` in a band just inside the rough mask's
-   edge (the skin/subcutaneous plateau).
+   contour, tissue 8-connected. Automatic level: half the skin/subcutaneous plateau, the median
+   of ``N`` in a one-pixel band 1.5 blur widths inside the edge — first the rough mask's edge,
+   then twice more inside the traced contour itself, so the band does not move with the noise.
 6. **Tibia**: closed contours of ``find_contours(N, bone_level)`` around dark regions inside the
    skin; the largest (``bone_select: largest``) or the most anterior of those at least half as
    large as the largest (``anterior``). Automatic level: half the median muscle value of ``N``
@@ -45,8 +46,8 @@ from .contours import Contours, point_to_polygon_distance, points_in_polygon, po
 from .imaging import ImagingError, Volume
 
 STRUCTURES = ("skin", "bone")
-# the skin plateau is read in a band starting this far inside the rough (low-threshold) tissue edge
-_BAND_SIGMAS, _BAND_PX = 2.0, 0.5
+# the skin plateau is read in a 1-pixel band starting this many blur widths (+ pixels) inside the edge
+_BAND_SIGMAS, _BAND_PX = 1.5, 0.0
 
 
 class SegmentationError(ValueError):
@@ -191,22 +192,39 @@ def _segment_slice(img, *, bg, noise, px_mm, settings: SegmentationSettings, whe
             fluid = ndimage.binary_dilation(fluid, iterations=guard)
             Ns = N.copy()
             Ns[fluid] = 0.0
+    def trace(level):
+        # tissue (above the level) is 8-connected, background only 4-connected: single-pixel gaps
+        # that touch the outside only diagonally do not cut channels into the skin
+        cs = _closed_contours(Ns, level, fully_connected="high")
+        if not cs:
+            raise SegmentationError(f"{where}: no closed skin contour at level {level:.3g} (does the leg touch the image/crop border?)")
+        return max(cs, key=lambda c: abs(polygon_area_centroid(c)[0]))
+
+    def plateau(inside, d1):
+        dist = ndimage.distance_transform_edt(inside)
+        band = inside & (dist >= d1) & (dist < d1 + 1.0) & (Ns > 0.3 * muscle)
+        if band.sum() < 5:
+            band = inside & (Ns > 0)
+        return float(np.median(Ns[band]))
+
     if s.skin_level is not None:
         skin_level = float(s.skin_level)
+        skin = trace(skin_level)
     else:
-        dist = ndimage.distance_transform_edt(rough)
-        sig_px = s.smooth_mm / px_mm
-        d1 = _BAND_SIGMAS * sig_px + _BAND_PX
-        band = rough & (dist >= d1) & (dist < d1 + 1.5) & (Ns > 0)
-        if band.sum() < 5:
-            band = rough & (Ns > 0)
-        skin_level = 0.5 * float(np.median(Ns[band]))
-    # tissue (above the level) is 8-connected, background only 4-connected: single-pixel gaps that
-    # touch the outside only diagonally do not cut channels into the skin
-    cs = _closed_contours(Ns, skin_level, fully_connected="high")
-    if not cs:
-        raise SegmentationError(f"{where}: no closed skin contour at level {skin_level:.3g} (does the leg touch the image/crop border?)")
-    skin = max(cs, key=lambda c: abs(polygon_area_centroid(c)[0]))
+        # the skin plateau is read in a band starting _BAND_SIGMAS blur widths inside the edge:
+        # first inside the rough (noise-threshold) edge, then, independent of the noise level,
+        # inside the traced contour itself
+        from skimage.draw import polygon as _raster
+
+        d1 = max(_BAND_SIGMAS * s.smooth_mm / px_mm, 1.0) + _BAND_PX
+        skin_level = 0.5 * plateau(rough, d1)
+        for _ in range(2):
+            skin = trace(skin_level)
+            inside = np.zeros_like(rough)
+            rr, cc = _raster(skin[:, 0], skin[:, 1], shape=inside.shape)
+            inside[rr, cc] = True
+            skin_level = 0.5 * plateau(inside, d1)
+        skin = trace(skin_level)
     bone_level = float(s.bone_level) if s.bone_level is not None else 0.5 * muscle
     bone = None
     if need_bone:
