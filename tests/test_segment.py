@@ -255,3 +255,37 @@ def test_accuracy_holds_at_high_snr():
             d_mean = np.mean([r["mean_mm"] for r in rows if r["structure"] == structure])
             d_max = max(r["max_mm"] for r in rows if r["structure"] == structure)
             assert d_mean <= 0.05 and d_max <= 0.25, (state, structure, d_mean, d_max)
+
+
+def test_rule_functions_write_whole_outputs(tmp_path):
+    """The phantom and segment rules' package functions: files, round trips, accuracy CSV."""
+    import pandas as pd
+
+    from deeptissue.contours import load_contours
+    from deeptissue.phantom import write_phantom
+    from deeptissue.pose import load_pose
+    from deeptissue.segment import write_accuracy
+
+    spec = PhantomSpec(seed=6, snr=15, n_slices=4, indenter_z_mm=0.0)
+    m = tmp_path / "mri"
+    ph = write_phantom(spec, pre_path=m / "pre.nii.gz", during_path=m / "during.nii.gz", truth_path=m / "truth.json",
+                       truth_pre_path=m / "truth_pre.npz", truth_during_path=m / "truth_during.npz", n_points=64)
+    vol = load_nifti(m / "during.nii.gz", animal="ratW")
+    np.testing.assert_allclose(vol.affine, ph.affine, atol=1e-6)
+    np.testing.assert_allclose(vol.data, ph.during, atol=1e-6)
+    np.testing.assert_allclose(load_pose(m / "truth.json").tip_end_mm, ph.truth.tip_end_mm)
+    ov = tmp_path / "ov.yaml"
+    ov.write_text(yaml.safe_dump({"during": {"bone": {2: ph.truth_during.bone[2, :, :2].tolist()}}}))
+    out = tmp_path / "contours" / "during.npz"
+    segment_files(m / "during.nii.gz", contours_out=out, qc_out=tmp_path / "qc" / "seg.png", animal="ratW",
+                  state="during", settings={"n_points": 64}, reference=m / "pre.nii.gz", overrides=ov,
+                  truth=m / "truth_during.npz")
+    c = load_contours(out)
+    assert c.skin.shape == (4, 64, 3)
+    assert (tmp_path / "qc" / "seg.png").stat().st_size > 10_000
+    # the overridden slice carries the hand-drawn (here: true) bone contour
+    np.testing.assert_allclose(c.bone[2], ph.truth_during.bone[2], atol=1e-3)
+    rows = write_accuracy(out, m / "truth_during.npz", tmp_path / "qc" / "acc.csv")
+    df = pd.read_csv(tmp_path / "qc" / "acc.csv")
+    assert len(df) == 8 and df["mean_mm"].max() <= 0.05 and df["max_mm"].max() <= 0.25
+    assert len(rows) == 8
