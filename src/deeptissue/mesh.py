@@ -107,3 +107,539 @@ def load_tetmesh(path: str | Path) -> TetMesh:
         return TetMesh(nodes_mm=nodes.astype(float), tets=tets.astype(np.int64), facets={k: v.astype(np.int64) for k, v in facets.items()})
     except ValueError as exc:
         raise ValueError(f"{path}: {exc}") from exc
+
+
+# =========================================================================== limb meshing (model stage)
+# The functions below build the limb solid in gmsh (OpenCASCADE), mesh it with quadratic tetrahedra,
+# curve the boundary mid-edge nodes onto the geometry, check quality, and tag patches.
+
+GMSH_LINE3 = 8
+_ALGORITHMS_3D = {"delaunay": 1, "hxt": 10}
+
+
+class MeshQualityError(ValueError):
+    """The mesh has inverted or degenerate elements; the message names the animal."""
+
+
+@dataclass(frozen=True)
+class RefineSegment:
+    """A segment of indenter travel around which the mesh is refined (world mm)."""
+
+    start_mm: np.ndarray  # (3,)
+    end_mm: np.ndarray  # (3,)
+
+
+@dataclass(frozen=True)
+class PatchSpec:
+    """A contact patch: skin facets whose centroid projected along ``axis`` lies within ``radius_mm``
+    of the footprint (axis line, or the bar strip of half length ``half_length_mm`` along ``long_dir``)
+    and whose outward normal faces the indenter."""
+
+    point_mm: np.ndarray  # (3,) a point on the axis (final tip)
+    axis: np.ndarray  # (3,) unit, from the indenter into the leg
+    radius_mm: float
+    half_length_mm: float = 0.0
+    long_dir: np.ndarray | None = None
+
+
+def _occ_loft(occ, rings: np.ndarray, n_spline: int, ruled: bool = False) -> int:
+    """Solid through closed splines of every ring (n_slices, n_points, 3); returns the volume tag.
+
+    ``ruled``: straight rulings between consecutive rings (one face per slice gap); else one smooth
+    OpenCASCADE surface through all rings (which can bulge between noisy slices, see README)."""
+    step = max(1, int(np.ceil(rings.shape[1] / n_spline)))
+    wires = []
+    for r in rings:
+        pts = [occ.addPoint(*q) for q in r[::step]]
+        curve = occ.addSpline(pts + [pts[0]])
+        wires.append(occ.addWire([curve]))
+    out = occ.addThruSections(wires, makeSolid=True, makeRuled=ruled)
+    vols = [t for d, t in out if d == 3]
+    if len(vols) != 1:
+        raise RuntimeError(f"loft gave {len(vols)} volumes")
+    return vols[0]
+
+
+def sample_lofted_surface(rings: np.ndarray, *, spline_points: int = 100, n_cols: int | None = None, dz_mm: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
+    """Sample the lateral surface of the loft through a contour stack, exactly as :func:`mesh_limb` builds it.
+
+    rings (n_slices, n_points, 3) CCW contours -> grid points (n_rows, n_cols, 3) and unit outward
+    normals (n_rows, n_cols, 3): rows run from the first to the last contour (about ``dz_mm`` apart in
+    parameter, first and last rows being the end contours), columns counter-clockwise seen from +z.
+    Used for the cast, so that the cast is offset from the very surface the mesh lies on.
+    """
+    import gmsh
+
+    rings = np.asarray(rings, float)
+    n_cols = int(n_cols or max(rings.shape[1], 100))
+    length = float(rings[-1, :, 2].mean() - rings[0, :, 2].mean())
+    n_rows = max(2, int(np.ceil(length / dz_mm)) + 1)
+    own_init = not gmsh.isInitialized()
+    if own_init:
+        gmsh.initialize(interruptible=False)
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.add("loft_sample")
+        vol = _occ_loft(gmsh.model.occ, rings, spline_points)
+        gmsh.model.occ.synchronize()
+        lateral = [t for _, t in gmsh.model.getBoundary([(3, vol)], oriented=False) if (lambda b: b[5] - b[2])(gmsh.model.getBoundingBox(2, t)) > 1e-6]
+        if len(lateral) != 1:
+            raise RuntimeError(f"loft has {len(lateral)} lateral faces (expected 1)")
+        face = lateral[0]
+        lo, hi = (np.asarray(b, float) for b in gmsh.model.getParametrizationBounds(2, face))
+        # which parameter runs along the leg? the one that changes z
+        probe = np.asarray(gmsh.model.getValue(2, face, [lo[0], lo[1], lo[0], hi[1], hi[0], lo[1]]), float).reshape(3, 3)
+        along_v = abs(probe[1, 2] - probe[0, 2]) > abs(probe[2, 2] - probe[0, 2])
+        a = lo[0] + (hi[0] - lo[0]) * np.arange(n_cols) / n_cols  # around (periodic: last column != first)
+        b = np.linspace(lo[1], hi[1], n_rows)  # along
+        if not along_v:
+            a = lo[1] + (hi[1] - lo[1]) * np.arange(n_cols) / n_cols
+            b = np.linspace(lo[0], hi[0], n_rows)
+        A, B = np.meshgrid(a, b)  # (n_rows, n_cols)
+        uv = np.stack([A, B], -1) if along_v else np.stack([B, A], -1)
+        flat = uv.reshape(-1, 2).ravel()
+        pts = np.asarray(gmsh.model.getValue(2, face, flat), float).reshape(n_rows, n_cols, 3)
+        nrm = np.asarray(gmsh.model.getNormal(face, flat), float).reshape(n_rows, n_cols, 3)
+    finally:
+        if own_init:
+            gmsh.finalize()
+        else:
+            gmsh.model.remove()
+    if pts[-1, :, 2].mean() < pts[0, :, 2].mean():
+        pts, nrm = pts[::-1], nrm[::-1]
+    from .geometry import polygon_area_mm2
+
+    if polygon_area_mm2(pts[0]) < 0:
+        pts, nrm = pts[:, ::-1], nrm[:, ::-1]
+    # outward: away from each row's centroid
+    out = np.einsum("rck,rck->", nrm[..., :2], pts[..., :2] - pts[..., :2].mean(axis=1, keepdims=True))
+    if out < 0:
+        nrm = -nrm
+    # start each row at the same place as the contours (nearest sample to the contour's first point)
+    j0 = int(np.argmin(np.linalg.norm(pts[0] - rings[0, 0], axis=1)))
+    pts, nrm = np.roll(pts, -j0, axis=1), np.roll(nrm, -j0, axis=1)
+    return pts, nrm / np.linalg.norm(nrm, axis=2, keepdims=True)
+
+
+def _occ_limb(occ, skin: np.ndarray, bone: np.ndarray, n_spline: int, ruled: bool) -> int:
+    """The limb solid: lofted skin and tibia faces closed by the two annular end faces and sewn into
+    one volume (much faster than lofting two solids and cutting one from the other). Returns its tag."""
+
+    def wires(rings):
+        step = max(1, int(np.ceil(rings.shape[1] / n_spline)))
+        ws, cs = [], []
+        for r in rings:
+            pts = [occ.addPoint(*q) for q in r[::step]]
+            cu = occ.addSpline(pts + [pts[0]])
+            cs.append(cu)
+            ws.append(occ.addWire([cu]))
+        return ws, cs
+
+    ws, cs = wires(np.asarray(skin, float))
+    wb, cb = wires(np.asarray(bone, float))
+    faces = [t for _, t in occ.addThruSections(ws, makeSolid=False, makeRuled=ruled)]
+    faces += [t for _, t in occ.addThruSections(wb, makeSolid=False, makeRuled=ruled)]
+    for i in (0, -1):
+        faces.append(occ.addPlaneSurface([occ.addCurveLoop([cs[i]]), occ.addCurveLoop([cb[i]])]))
+    return occ.addVolume([occ.addSurfaceLoop(faces, sewing=True)])
+
+
+def _midpoint_params(pa: np.ndarray, pb: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Parametric midpoints (m, k) of edges with end params pa, pb, wrapping across a periodic seam."""
+    span = hi - lo
+    d = pb - pa
+    wrap = np.abs(d) > 0.5 * span
+    pb = np.where(wrap & (d > 0), pb - span, np.where(wrap & (d < 0), pb + span, pb))
+    m = 0.5 * (pa + pb)
+    return np.where(m < lo, m + span, np.where(m > hi, m - span, m))
+
+
+def _corner_params(g, entities_dim_tag) -> dict:
+    """Parametric coordinates of the (first-order) mesh nodes of each entity, boundary included:
+    {(dim, tag): (coordinates (n, 3), params (n, dim))}. Call before ``setOrder(2)`` (which renumbers
+    nodes, hence the match by coordinates afterwards)."""
+    out = {}
+    for dim, tag in entities_dim_tag:
+        ntags, xyz, npar = g.model.mesh.getNodes(dim, tag, includeBoundary=True, returnParametricCoord=True)
+        if len(npar) == len(ntags) * dim:
+            out[(dim, tag)] = (np.asarray(xyz, float).reshape(-1, 3), np.asarray(npar, float).reshape(-1, dim))
+    return out
+
+
+def _curve_mid_nodes(g, entities_dim_tag, corner_params: dict, max_shift_ratio: float = 0.3) -> tuple[dict, int]:
+    """New positions of mid-edge nodes on curves and surfaces, evaluated on the geometry at the
+    parametric midpoint of the edge (fast: no projection). Returns {node tag: (xyz, param)} and the
+    number of edges left straight because the evaluated point moved implausibly far."""
+    moved = {}
+    n_straight = 0
+    for dim, tag in entities_dim_tag:
+        etype, k_pairs = (GMSH_LINE3, [(0, 1, 2)]) if dim == 1 else (GMSH_TRI6, [(0, 1, 3), (1, 2, 4), (2, 0, 5)])
+        _, enodes = g.model.mesh.getElementsByType(etype, tag)
+        if len(enodes) == 0:
+            continue
+        enodes = np.asarray(enodes, np.int64).reshape(-1, 3 if dim == 1 else 6)
+        if (dim, tag) not in corner_params:
+            continue
+        from scipy.spatial import cKDTree
+
+        xyz, par = corner_params[(dim, tag)]
+        ntags, ncoord, _ = g.model.mesh.getNodes(dim, tag, includeBoundary=True)
+        ncoord = np.asarray(ncoord, float).reshape(-1, 3)
+        dist, idx = cKDTree(xyz).query(ncoord)
+        pos = {int(t): int(i) for t, i, d in zip(ntags, idx, dist) if d < 1e-9}
+        if not all(int(row[i]) in pos for row in enodes for i in range(3 if dim == 2 else 2)):
+            continue  # a corner without parametric coordinates: leave this entity straight
+        own, _, _ = g.model.mesh.getNodes(dim, tag, includeBoundary=False)
+        own = set(np.asarray(own, np.int64).tolist())
+        lo, hi = (np.asarray(b, float) for b in g.model.getParametrizationBounds(dim, tag))
+        a_idx, b_idx, m_tags = [], [], []
+        for ia, ib, im in k_pairs:
+            for row in enodes:
+                if row[im] in own and row[im] not in moved:
+                    a_idx.append(pos[int(row[ia])])
+                    b_idx.append(pos[int(row[ib])])
+                    m_tags.append(row[im])
+        if not m_tags:
+            continue
+        m_tags, first = np.unique(np.array(m_tags), return_index=True)
+        a_idx, b_idx = np.array(a_idx)[first], np.array(b_idx)[first]
+        pm = _midpoint_params(par[a_idx], par[b_idx], lo, hi)
+        straight = 0.5 * (xyz[a_idx] + xyz[b_idx])
+        # project the straight midpoint onto the entity: Gauss-Newton from the parametric midpoint
+        # (gmsh's reparametrisation of boundary nodes can be off on faces whose edges have their own
+        # parametrisation, e.g. ruled strips; the projection does not depend on it)
+        for _ in range(6):
+            x = np.asarray(g.model.getValue(dim, tag, pm.ravel()), float).reshape(-1, 3)
+            J = np.asarray(g.model.getDerivative(dim, tag, pm.ravel()), float).reshape(-1, dim, 3)  # (m, dim, 3)
+            JtJ = np.einsum("mik,mjk->mij", J, J)
+            rhs = np.einsum("mik,mk->mi", J, straight - x)
+            try:
+                step = np.linalg.solve(JtJ + 1e-12 * np.eye(dim), rhs[..., None])[..., 0]
+            except np.linalg.LinAlgError:
+                break
+            pm = pm + step
+            if dim == 2:  # the along-leg parameter stays inside the face; the periodic one may wrap
+                pm = np.where(np.isfinite(pm), pm, 0.0)
+            if np.max(np.abs(step)) < 1e-10:
+                break
+        x = np.asarray(g.model.getValue(dim, tag, pm.ravel()), float).reshape(-1, 3)
+        edge = np.linalg.norm(xyz[a_idx] - xyz[b_idx], axis=1)
+        ok = np.linalg.norm(x - straight, axis=1) <= max_shift_ratio * edge
+        n_straight += int(np.count_nonzero(~ok))
+        for t, xi, pi, o in zip(m_tags, x, pm, ok):
+            if o:
+                moved[int(t)] = (xi, pi)
+    return moved, n_straight
+
+
+def _tet10_shape_gradients(u: float, v: float, w: float) -> np.ndarray:
+    """Gradients (10, 3) of the gmsh-ordered 10-node tet shape functions at reference point (u, v, w)."""
+    lam = np.array([1 - u - v - w, u, v, w])
+    dl = np.array([[-1, -1, -1], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
+    g = np.zeros((10, 3))
+    for i in range(4):
+        g[i] = (4 * lam[i] - 1) * dl[i]
+    for k, (a, b) in enumerate([(0, 1), (1, 2), (0, 2), (0, 3), (2, 3), (1, 3)]):
+        g[4 + k] = 4 * (lam[a] * dl[b] + lam[b] * dl[a])
+    return g
+
+
+def _tet_dihedral_deg(p: np.ndarray) -> np.ndarray:
+    """Dihedral angles (n, 6) [deg] of straight tetrahedra with corners p (n, 4, 3)."""
+    faces = [(1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1)]  # face opposite corner i, outward for positive tets
+    n = []
+    for a, b, c in faces:
+        v = np.cross(p[:, b] - p[:, a], p[:, c] - p[:, a])
+        n.append(v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-300))
+    pairs = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
+    cosang = np.stack([-np.einsum("ij,ij->i", n[i], n[j]) for i, j in pairs], axis=1)
+    return np.degrees(np.arccos(np.clip(cosang, -1, 1)))
+
+
+def tet_scaled_jacobian(p: np.ndarray) -> np.ndarray:
+    """Scaled Jacobian (n,) of straight tetrahedra with corners p (n, 4, 3): the smallest over the four
+    corners of det(e1, e2, e3) / (|e1| |e2| |e3|), times sqrt(2) so the regular tet scores 1; <= 0 means
+    inverted or flat (the Verdict library's definition)."""
+    worst = np.full(len(p), np.inf)
+    for i in range(4):
+        # the three edges leaving corner i, ordered to keep the orientation of (1, 2, 3) from 0
+        j, k, l = [(1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1)][i]
+        e = p[:, [j, k, l]] - p[:, [i]]
+        det = np.linalg.det(e)
+        worst = np.minimum(worst, det / np.prod(np.linalg.norm(e, axis=2), axis=1))
+    return np.sqrt(2.0) * worst
+
+
+def tet10_min_det_jacobian(mesh: TetMesh) -> np.ndarray:
+    """Smallest Jacobian determinant (n_tets,) [mm^3] of each 10-node tet, sampled at its 10 nodes,
+    its centroid and its 4 face centroids (an independent check of gmsh's quality measure)."""
+    ref = np.array(
+        [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0.5, 0, 0], [0.5, 0.5, 0], [0, 0.5, 0], [0, 0, 0.5], [0, 0.5, 0.5], [0.5, 0, 0.5],
+         [0.25, 0.25, 0.25], [1 / 3, 1 / 3, 0], [1 / 3, 0, 1 / 3], [0, 1 / 3, 1 / 3], [1 / 3, 1 / 3, 1 / 3]]
+    )
+    x = mesh.nodes_mm[mesh.tets]  # (n, 10, 3)
+    dets = []
+    for u, v, w in ref:
+        J = np.einsum("nic,ij->ncj", x, _tet10_shape_gradients(u, v, w))
+        dets.append(np.linalg.det(J))
+    return np.min(np.stack(dets, axis=1), axis=1) / 6.0
+
+
+def mesh_limb(
+    skin: np.ndarray,
+    bone: np.ndarray,
+    *,
+    element_size_mm: float = 1.0,
+    refine_size_mm: float = 0.5,
+    refine_radius_mm: float = 4.0,
+    refine_transition_mm: float = 2.0,
+    refine_segments: tuple = (),
+    patches: dict | None = None,
+    patch_union: str | None = "patch",
+    spline_points: int = 100,
+    loft: str = "ruled",
+    curved: bool = True,
+    min_scaled_jacobian: float = 0.05,
+    min_dihedral_deg: float = 2.0,
+    min_curved_ratio: float = 0.2,
+    algorithm_3d: str = "hxt",
+    animal: str = "?",
+    msh_path=None,
+) -> tuple[TetMesh, dict]:
+    """Quadratic tetrahedral mesh of the limb between a skin and a bone contour stack.
+
+    skin, bone (n_slices, n_points, 3) world mm (checked by :func:`deeptissue.geometry.check_contours`).
+    Skin and tibia are lofted (OpenCASCADE ``addThruSections`` through closed splines of at most
+    ``spline_points`` points per contour; ``loft="ruled"``: straight between slices, the surface whose
+    volume is the prismatoid sum; ``"smooth"``: one smooth surface) and closed into the limb by the
+    two annular end faces; the ends are the planes of the
+    first (``distal``, lowest z) and last (``proximal``) slice. Element size ``element_size_mm``,
+    refined to ``refine_size_mm`` within ``refine_radius_mm`` of each refine segment, growing back over
+    ``refine_transition_mm``. Second order: with ``curved`` the boundary mid-edge nodes are placed on
+    the geometry (parametric midpoint), and straightened again in any element where that would make
+    the scaled Jacobian fall below ``min_scaled_jacobian``.
+
+    Facet sets: ``bone``, ``skin``, ``proximal``, ``distal``, and for each ``patches`` entry
+    (name -> :class:`PatchSpec`) the skin facets of that patch, and their union as ``patch_union``. Raises :class:`MeshQualityError`
+    (naming the animal) if an element is inverted or degenerate: a Jacobian determinant <= 0 anywhere
+    sampled in a curved element, a corner-tet scaled Jacobian below ``min_scaled_jacobian``, a
+    dihedral angle below ``min_dihedral_deg``, or gmsh's curved-element Jacobian ratio (minSJ, 1 for
+    straight elements) below ``min_curved_ratio``. ``algorithm_3d``: "hxt" (fast) or "delaunay".
+    Returns the mesh and statistics (element count, quality, volumes, timings). Writes the gmsh
+    ``.msh`` (with physical groups, patches included) to ``msh_path`` if given.
+    """
+    import time
+
+    import gmsh
+
+    from .geometry import select_patch
+    from .io import atomic_path
+
+    t_start = time.perf_counter()
+    if loft not in ("ruled", "smooth"):
+        raise ValueError(f"animal {animal}: loft {loft!r}: expected 'ruled' or 'smooth'")
+    stats: dict = {}
+    own_init = not gmsh.isInitialized()
+    if own_init:
+        gmsh.initialize(interruptible=False)
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.add(f"limb_{animal}")
+        occ = gmsh.model.occ
+        vol = _occ_limb(occ, skin, bone, spline_points, ruled=loft == "ruled")
+        occ.synchronize()
+        if len(gmsh.model.getEntities(3)) != 1 or occ.getMass(3, vol) <= 0:
+            raise MeshQualityError(f"animal {animal}: the lofted limb is not one closed volume")
+        stats["occ_volume_mm3"] = float(occ.getMass(3, vol))
+        stats["occ_s"] = time.perf_counter() - t_start
+        z_lo, z_hi = float(np.mean(skin[0, :, 2])), float(np.mean(skin[-1, :, 2]))
+        groups = {"skin": [], "bone": [], "distal": [], "proximal": []}
+        skin_pts = np.asarray(skin, float).reshape(-1, 3)
+        bone_pts = np.asarray(bone, float).reshape(-1, 3)
+        for _, s in gmsh.model.getBoundary([(3, vol)], oriented=False):
+            bb = gmsh.model.getBoundingBox(2, s)
+            if bb[5] - bb[2] < 1e-6:
+                groups["distal" if abs(bb[2] - z_lo) < abs(bb[2] - z_hi) else "proximal"].append(s)
+                continue
+            lo, hi = gmsh.model.getParametrizationBounds(2, s)
+            x = np.asarray(gmsh.model.getValue(2, s, 0.5 * (np.asarray(lo) + np.asarray(hi))))
+            ds = np.min(np.linalg.norm(skin_pts - x, axis=1))
+            db = np.min(np.linalg.norm(bone_pts - x, axis=1))
+            groups["skin" if ds < db else "bone"].append(s)
+        for name, ents in groups.items():
+            if not ents:
+                raise MeshQualityError(f"animal {animal}: the limb solid has no {name} surface")
+        gmsh.model.addPhysicalGroup(3, [vol], name="limb")
+        for name, ents in groups.items():
+            gmsh.model.addPhysicalGroup(2, ents, name=name)
+
+        # mesh size: global, refined around the indenter travel
+        gmsh.option.setNumber("Mesh.MeshSizeMax", element_size_mm)
+        gmsh.option.setNumber("Mesh.MeshSizeMin", min(refine_size_mm, element_size_mm) * 0.5)
+        gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
+        gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)
+        gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
+        gmsh.option.setNumber("Mesh.Algorithm", 6)
+        if algorithm_3d not in _ALGORITHMS_3D:
+            raise ValueError(f"animal {animal}: algorithm_3d {algorithm_3d!r}: expected one of {sorted(_ALGORITHMS_3D)}")
+        gmsh.option.setNumber("Mesh.Algorithm3D", _ALGORITHMS_3D[algorithm_3d])
+        gmsh.option.setNumber("General.NumThreads", 1)
+        gmsh.option.setNumber("Mesh.OptimizeNetgen", 1)
+        gmsh.option.setNumber("Mesh.ElementOrder", 1)
+        gmsh.option.setNumber("Mesh.SecondOrderLinear", 1)
+        h, hr = float(element_size_mm), float(min(refine_size_mm, element_size_mm))
+        if refine_segments and hr < h:
+            # distance to points every refine_size/4 along each segment (free geometry points, not meshed
+            # into the limb), then a linear ramp from refine_size to element_size
+            pts = []
+            for seg in refine_segments:
+                a, b = np.asarray(seg.start_mm, float), np.asarray(seg.end_mm, float)
+                n = max(2, int(np.ceil(np.linalg.norm(b - a) / (0.25 * hr))) + 1)
+                pts += [occ.addPoint(*(a + t * (b - a))) for t in np.linspace(0, 1, n)]
+            occ.synchronize()
+            fd = gmsh.model.mesh.field.add("Distance")
+            gmsh.model.mesh.field.setNumbers(fd, "PointsList", pts)
+            ft = gmsh.model.mesh.field.add("Threshold")
+            gmsh.model.mesh.field.setNumber(ft, "InField", fd)
+            gmsh.model.mesh.field.setNumber(ft, "SizeMin", hr)
+            gmsh.model.mesh.field.setNumber(ft, "SizeMax", h)
+            gmsh.model.mesh.field.setNumber(ft, "DistMin", refine_radius_mm)
+            gmsh.model.mesh.field.setNumber(ft, "DistMax", refine_radius_mm + refine_transition_mm)
+            gmsh.model.mesh.field.setAsBackgroundMesh(ft)
+        t0 = time.perf_counter()
+        gmsh.model.mesh.generate(3)
+        stats["generate_s"] = time.perf_counter() - t0
+        ents = sorted(set((1, t) for d, t in gmsh.model.getEntities(1))) + [(2, s) for e2 in groups.values() for s in e2]
+        corner_params = _corner_params(gmsh, ents) if curved else {}
+        gmsh.model.mesh.setOrder(2)
+        stats["order2_s"] = time.perf_counter() - t0 - stats["generate_s"]
+        t0 = time.perf_counter()
+
+        # curve boundary mid-edge nodes onto the geometry
+        tet_tags, tet_nodes = gmsh.model.mesh.getElementsByType(GMSH_TET10, vol)
+        tet_nodes = np.asarray(tet_nodes, np.int64).reshape(-1, 10)
+        n_curved = n_straightened = 0
+        if curved:
+            moved, n_bad = _curve_mid_nodes(gmsh, ents, corner_params)
+            straight = {}
+            for t in moved:
+                x, _, _, _ = gmsh.model.mesh.getNode(t)
+                straight[t] = np.asarray(x, float)
+            for t, (x, p) in moved.items():
+                gmsh.model.mesh.setNode(t, list(x), list(p))
+            n_curved = len(moved)
+            stats["mid_nodes_left_straight_implausible"] = n_bad
+            # straighten where curving spoils an element
+            for _ in range(5):
+                q = np.asarray(gmsh.model.mesh.getElementQualities(tet_tags, "minSJ"), float)
+                bad = q < min_curved_ratio
+                if not bad.any():
+                    break
+                fix = [t for t in np.unique(tet_nodes[bad][:, 4:]) if int(t) in straight and int(t) in moved]
+                if not fix:
+                    break
+                for t in fix:
+                    gmsh.model.mesh.setNode(int(t), list(straight[int(t)]), [])
+                    moved.pop(int(t))
+                n_straightened += len(fix)
+        stats["mid_nodes_curved"] = n_curved - n_straightened
+        stats["mid_nodes_straightened_for_quality"] = n_straightened
+        q = np.asarray(gmsh.model.mesh.getElementQualities(tet_tags, "minSJ"), float)
+        stats["curve_s"] = time.perf_counter() - t0
+
+        # patches: copies of the selected skin triangles as discrete surfaces with their own group
+        if patches:
+            sk_el, sk_nodes = [], []
+            for s in groups["skin"]:
+                et_, en_ = gmsh.model.mesh.getElementsByType(GMSH_TRI6, s)
+                sk_el.append(np.asarray(et_, np.int64))
+                sk_nodes.append(np.asarray(en_, np.int64).reshape(-1, 6))
+            sk_nodes = np.concatenate(sk_nodes)
+            ntags, ncoord, _ = gmsh.model.mesh.getNodes()
+            coords = np.zeros((int(np.max(ntags)) + 1, 3))
+            coords[np.asarray(ntags, np.int64)] = np.asarray(ncoord, float).reshape(-1, 3)
+            p = coords[sk_nodes[:, :3]]
+            cen = p.mean(axis=1)
+            nrm = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+            nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+            # make the normals point out of the limb: skin faces are outward if they point away from the bone axis
+            bone_c = np.asarray(bone, float).mean(axis=1)
+            zc = cen[:, 2]
+            bc = np.stack([np.interp(zc, bone_c[:, 2], bone_c[:, 0]), np.interp(zc, bone_c[:, 2], bone_c[:, 1])], axis=1)
+            outward = np.einsum("ij,ij->i", nrm[:, :2], cen[:, :2] - bc)
+            if np.median(np.sign(outward)) < 0:
+                nrm = -nrm
+            next_el = int(gmsh.model.mesh.getMaxElementTag()) + 1
+            sels = {}
+            for name, spec in patches.items():
+                sels[name] = select_patch(cen, nrm, point_mm=spec.point_mm, axis=spec.axis, radius_mm=spec.radius_mm,
+                                          half_length_mm=spec.half_length_mm, long_dir=spec.long_dir)
+                if not sels[name].any():
+                    raise MeshQualityError(f"animal {animal}: patch {name!r} is empty: no skin facet within {spec.radius_mm} mm of the axis faces the indenter")
+            if patch_union and patch_union not in sels:
+                sels[patch_union] = np.any(list(sels.values()), axis=0)
+            for name, sel in sels.items():
+                ent = gmsh.model.addDiscreteEntity(2)
+                tags = np.arange(next_el, next_el + int(sel.sum()))
+                next_el += len(tags)
+                gmsh.model.mesh.addElementsByType(ent, GMSH_TRI6, tags.tolist(), sk_nodes[sel].ravel().tolist())
+                gmsh.model.addPhysicalGroup(2, [ent], name=name)
+        mesh = extract_tet10(gmsh)
+        if msh_path is not None:
+            with atomic_path(msh_path) as tmp:
+                gmsh.write(str(tmp))
+    except (MeshQualityError, ValueError):
+        raise
+    except Exception as exc:  # OpenCASCADE / gmsh failures come as bare Exceptions
+        raise MeshQualityError(f"animal {animal}: gmsh could not build or mesh the limb: {exc}") from exc
+    finally:
+        if own_init:
+            gmsh.finalize()
+        else:
+            gmsh.model.remove()
+
+    # quality gate (independent numpy checks too)
+    corners = mesh.nodes_mm[mesh.tets[:, :4]]
+    dih = _tet_dihedral_deg(corners)
+    sj = tet_scaled_jacobian(corners)
+    detj = tet10_min_det_jacobian(mesh)
+    stats.update(
+        n_tets=int(mesh.n_tets),
+        n_nodes=int(len(mesh.nodes_mm)),
+        min_scaled_jacobian=float(sj.min()),
+        scaled_jacobian_p01=float(np.percentile(sj, 1)),
+        min_dihedral_deg=float(dih.min()),
+        max_dihedral_deg=float(dih.max()),
+        min_curved_ratio=float(q.min()),
+        min_det_jacobian_mm3=float(detj.min()),
+        mesh_volume_mm3=float(tet10_volume_mm3(mesh)),
+        facet_counts={k: int(len(v)) for k, v in mesh.facets.items()},
+        algorithm_3d=algorithm_3d,
+        wall_s=time.perf_counter() - t_start,
+    )
+    problems = []
+    if detj.min() <= 0:
+        problems.append(f"{int(np.sum(detj <= 0))} inverted element(s) (min det J {detj.min():.3g} mm^3)")
+    if sj.min() < min_scaled_jacobian:
+        problems.append(f"{int(np.sum(sj < min_scaled_jacobian))} element(s) with scaled Jacobian below {min_scaled_jacobian} (min {sj.min():.3g})")
+    if dih.min() < min_dihedral_deg:
+        problems.append(f"{int(np.sum(dih.min(axis=1) < min_dihedral_deg))} degenerate element(s) with a dihedral angle below {min_dihedral_deg} deg (min {dih.min():.3g})")
+    if q.min() < min_curved_ratio:
+        problems.append(f"{int(np.sum(q < min_curved_ratio))} curved element(s) with a Jacobian ratio below {min_curved_ratio} (min {q.min():.3g})")
+    if problems:
+        raise MeshQualityError(f"animal {animal}: mesh refused: " + "; ".join(problems))
+    return mesh, stats
+
+
+def tet10_volume_mm3(mesh: TetMesh) -> float:
+    """Volume of a quadratic tet mesh [mm^3], exact for curved 10-node tets: the Jacobian determinant
+    is a cubic polynomial, integrated exactly by the degree-3 Keast rule (5 points)."""
+    # degree-3 exact rule on the reference tet (Keast, 5 points, one negative weight)
+    pts = np.array([[0.25, 0.25, 0.25], [1 / 6, 1 / 6, 1 / 6], [0.5, 1 / 6, 1 / 6], [1 / 6, 0.5, 1 / 6], [1 / 6, 1 / 6, 0.5]])
+    w = np.array([-4 / 5, 9 / 20, 9 / 20, 9 / 20, 9 / 20]) / 6.0
+    x = mesh.nodes_mm[mesh.tets]
+    total = 0.0
+    for (u, v, s), wk in zip(pts, w):
+        g = _tet10_shape_gradients(u, v, s)
+        total += wk * np.linalg.det(np.einsum("nic,ij->ncj", x, g)).sum()
+    return float(total)

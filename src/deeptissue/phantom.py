@@ -60,7 +60,7 @@ class PhantomSpec:
     leg_taper: float = 0.04  # mm of radius per mm of z
     leg_ellipticity: float = 0.08
     skin_thickness_mm: float = 0.4
-    tibia_centre_mm: tuple = (-0.9, 0.3)
+    tibia_centre_mm: tuple = (-0.9, -0.3)
     tibia_semi_axes_mm: tuple = (1.15, 0.95)
     tibia_angle_deg: float = 25.0
     cortex_thickness_mm: float = 0.3

@@ -38,5 +38,20 @@ def mri_input(wildcards):
     return cfg[wildcards.state]
 
 
+def segment_inputs(wildcards):
+    """The image of the state, the pre image it must match, overrides and truth where they exist."""
+    cfg = animal_cfg(wildcards.animal)
+    inputs = {"image": mri_input(wildcards)}
+    if wildcards.state == "during":
+        inputs["reference"] = (
+            f"results/{wildcards.animal}/mri/pre.nii.gz" if is_phantom(wildcards.animal) else cfg["pre"]
+        )
+    if "overrides" in cfg:
+        inputs["overrides"] = cfg["overrides"]
+    if is_phantom(wildcards.animal):
+        inputs["truth"] = f"results/{wildcards.animal}/mri/truth_{wildcards.state}.npz"
+    return inputs
+
+
 # Final targets of the study: each stage's rule file extends this list with its outputs.
 FINAL_OUTPUTS = []

@@ -23,4 +23,50 @@ rule phantom:
         "../scripts/phantom.py"
 
 
+rule segment:
+    """Skin and tibia contours of every slice of one state, and a QC figure."""
+    input:
+        unpack(segment_inputs),
+    output:
+        contours="results/{animal}/contours/{state}.npz",
+        qc=report(
+            "results/{animal}/qc/segmentation_{state}.png",
+            caption="../report/segmentation.rst",
+            category="Stage 1: segmentation",
+            subcategory="{animal}",
+        ),
+    params:
+        settings=lambda wc: {**config["segmentation"], **animal_cfg(wc.animal).get("segmentation", {})},
+        crop_mm=lambda wc: animal_cfg(wc.animal).get("crop_mm"),
+    log:
+        "results/{animal}/logs/segment_{state}.log",
+    conda:
+        "../envs/deeptissue.yaml"
+    script:
+        "../scripts/segment.py"
+
+
+rule segmentation_accuracy:
+    """Distance of the segmented contours to the phantom's true contours, per slice and structure."""
+    input:
+        contours="results/{animal}/contours/{state}.npz",
+        truth="results/{animal}/mri/truth_{state}.npz",
+    output:
+        csv="results/{animal}/qc/segmentation_accuracy_{state}.csv",
+    log:
+        "results/{animal}/logs/segmentation_accuracy_{state}.log",
+    conda:
+        "../envs/deeptissue.yaml"
+    script:
+        "../scripts/segmentation_accuracy.py"
+
+
 FINAL_OUTPUTS.extend(expand("results/{animal}/mri/truth.json", animal=PHANTOMS))
+for _a in ANIMALS:
+    FINAL_OUTPUTS.extend(
+        expand("results/{animal}/qc/segmentation_{state}.png", animal=_a, state=animal_states(_a))
+    )
+    FINAL_OUTPUTS.extend(expand("results/{animal}/contours/{state}.npz", animal=_a, state=animal_states(_a)))
+FINAL_OUTPUTS.extend(
+    expand("results/{animal}/qc/segmentation_accuracy_{state}.csv", animal=PHANTOMS, state=STATES)
+)

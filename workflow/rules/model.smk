@@ -1,1 +1,59 @@
-# Rules of the model stage.
+# Rules of the model stage: rigid cast, limb mesh with contact patches (issue 5).
+# The model settings get the FE section's bar length (if set) for the bar's contact patch.
+
+
+rule cast:
+    input:
+        contours="results/{animal}/contours/pre.npz",
+        pose="results/{animal}/pose.json",
+    output:
+        cast="results/{animal}/model/cast.npz",
+    log:
+        "results/{animal}/logs/cast.log",
+    params:
+        settings=dict(config["model"], bar_length_mm=float(config.get("fem", {}).get("bar_length_mm", 10.0))),
+        variants=config["study"]["variants"],
+    conda:
+        "../envs/deeptissue.yaml"
+    script:
+        "../scripts/cast.py"
+
+
+rule mesh:
+    input:
+        contours="results/{animal}/contours/pre.npz",
+        pose="results/{animal}/pose.json",
+        cast="results/{animal}/model/cast.npz",
+    output:
+        mesh="results/{animal}/model/mesh.npz",
+        msh="results/{animal}/model/mesh.msh",
+        vtu="results/{animal}/model/mesh.vtu",
+        model="results/{animal}/model/model.json",
+        qc=report(
+            "results/{animal}/qc/model.png",
+            caption="../report/model.rst",
+            category="model",
+            subcategory="{animal}",
+        ),
+    log:
+        "results/{animal}/logs/mesh.log",
+    benchmark:
+        "results/{animal}/benchmarks/mesh.tsv"
+    params:
+        settings=dict(config["model"], bar_length_mm=float(config.get("fem", {}).get("bar_length_mm", 10.0))),
+        variants=config["study"]["variants"],
+    conda:
+        "../envs/deeptissue.yaml"
+    script:
+        "../scripts/mesh.py"
+
+
+# Final targets (animals with a during scan, i.e. a pose), once the rules making the inputs exist.
+if {"segment", "pose"} <= {r.name for r in workflow.rules}:
+    FINAL_OUTPUTS.extend(
+        f"results/{a}/model/{f}"
+        for a in ANIMALS
+        if has_during(a)
+        for f in ("mesh.npz", "mesh.msh", "mesh.vtu", "cast.npz", "model.json")
+    )
+    FINAL_OUTPUTS.extend(f"results/{a}/qc/model.png" for a in ANIMALS if has_during(a))

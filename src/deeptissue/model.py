@@ -1,0 +1,422 @@
+"""The animal model: limb mesh, rigid cast and contact patches from pre contours and pose.
+
+:func:`build_cast` and :func:`build_model` are the two entry points used by the rules ``cast`` and
+``mesh``; :func:`save_cast` / :func:`load_cast` and :func:`write_model` write the files of
+``results/{animal}/model/`` (see CONTRACTS: ``mesh.npz``, ``mesh.msh``, ``mesh.vtu``, ``cast.npz``,
+``model.json``); :func:`plot_model_qc` draws the QC figure.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from . import geometry as geo
+from .contours import Contours
+from .io import atomic_path, save_npz, write_json
+from .mesh import MeshQualityError, PatchSpec, RefineSegment, TetMesh, mesh_limb, sample_lofted_surface, save_tetmesh
+from .pose import Pose
+from .variants import parse_variant, variant_travel
+
+log = logging.getLogger(__name__)
+
+SPHERE_RADIUS_MM = 1.5  # indenter head and bar radius (CONTRACTS: indenters)
+
+
+@dataclass(frozen=True)
+class ModelSettings:
+    """Settings of the model stage (config section ``model``; see the schema for descriptions)."""
+
+    element_size_mm: float = 1.0
+    refine_size_mm: float = 0.5
+    refine_radius_mm: float = 4.0
+    refine_transition_mm: float = 2.0
+    refine_depth_mm: float = 4.0
+    cast_offset_mm: float = 0.2
+    cast_offset_direction: str = "normal"
+    cast_extension_mm: float = 1.0
+    cast_dz_mm: float = 0.25
+    hole_diameter_mm: float = 6.0
+    hole_for_variants: bool = True
+    patch_diameter_mm: float = 6.0
+    bar_length_mm: float = 10.0  # the FE core's default (fem.bar_length_mm is passed in by the rules)
+    spline_points: int = 100
+    loft: str = "ruled"
+    curved: bool = True
+    algorithm_3d: str = "hxt"
+    min_scaled_jacobian: float = 0.05
+    min_dihedral_deg: float = 2.0
+    min_curved_ratio: float = 0.2
+    min_gap_mm: float = 0.05
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> "ModelSettings":
+        d = dict(d or {})
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(d) - names)
+        if unknown:
+            raise ValueError(f"model settings: unknown key(s) {unknown}; allowed: {sorted(names)}")
+        return cls(**d)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+@dataclass(frozen=True)
+class Cast:
+    """The rigid cast: a triangle surface with normals toward the leg, open at both ends, with the hole."""
+
+    vertices_mm: np.ndarray  # (V, 3) world mm
+    triangles: np.ndarray  # (T, 3) int
+    log: tuple = ()  # what was done to offset and cut the hole
+
+
+@dataclass(frozen=True)
+class AnimalModel:
+    animal: str
+    mesh: TetMesh
+    cast: Cast
+    info: dict  # the content of model.json
+    msh_bytes: bytes = b""
+    log: tuple = field(default_factory=tuple)
+
+
+# --------------------------------------------------------------------------- cast
+
+
+def _equidistant(contours: Contours) -> Contours:
+    """The contours with points equidistant in arc length (segmentation already delivers them so;
+    this makes the model independent of how the points were spaced)."""
+    return Contours(skin=geo.resample_arclength(contours.skin), bone=geo.resample_arclength(contours.bone))
+
+
+
+def build_cast(contours: Contours, pose: Pose, *, variants=("sphere",), settings: ModelSettings | dict | None = None, animal: str = "?") -> Cast:
+    """Rigid cast around the pre skin contours with the hole where the indenter axis passes.
+
+    With ``settings.hole_for_variants`` the hole is the union of the variants' circles (each
+    projected along its own axis, a bar's swept along the bar), so no variant's indenter presses
+    the skin against the cast; otherwise the circle about the estimated axis only."""
+    s = settings if isinstance(settings, ModelSettings) else ModelSettings.from_dict(settings)
+    geo.check_contours(contours.skin, contours.bone, animal=animal, min_gap_mm=s.min_gap_mm)
+    contours = _equidistant(contours)
+    if s.loft not in ("ruled", "smooth"):
+        raise ValueError(f"animal {animal}: model.loft {s.loft!r}: expected 'ruled' or 'smooth'")
+    # the cast is offset from the surface the mesh lies on: the ruled loft is rebuilt here exactly
+    # (straight lines between the offset contours); the smooth one is sampled from OpenCASCADE
+    surface = sample_lofted_surface(contours.skin, spline_points=s.spline_points, dz_mm=s.cast_dz_mm) if s.loft == "smooth" else None
+    footprints = None
+    if s.hole_for_variants:
+        footprints = [(sp.point_mm, sp.axis, sp.half_length_mm, sp.long_dir) for sp in _patch_specs(pose, list(variants), s).values()]
+    v, t, msgs = geo.build_cast(
+        contours.skin,
+        axis=pose.indenter_axis,
+        point_mm=pose.tip_end_mm,
+        offset_mm=s.cast_offset_mm,
+        extension_mm=s.cast_extension_mm,
+        hole_diameter_mm=s.hole_diameter_mm,
+        offset_direction=s.cast_offset_direction,
+        dz_mm=s.cast_dz_mm,
+        surface=surface,
+        ruled=s.loft == "ruled",
+        footprints=footprints,
+        animal=animal,
+    )
+    for m in msgs:
+        log.info("animal %s: %s", animal, m)
+    return Cast(vertices_mm=v, triangles=t, log=tuple(msgs))
+
+
+def save_cast(path: str | Path, cast: Cast) -> None:
+    save_npz(path, vertices_mm=cast.vertices_mm, triangles=cast.triangles, log=np.array(cast.log, dtype=str))
+
+
+def load_cast(path: str | Path) -> Cast:
+    try:
+        with np.load(path) as d:
+            return Cast(vertices_mm=d["vertices_mm"].astype(float), triangles=d["triangles"].astype(np.int64), log=tuple(d["log"].tolist()) if "log" in d.files else ())
+    except (KeyError, OSError, ValueError) as exc:
+        raise ValueError(f"{path}: not a cast file ({exc})") from exc
+
+
+def cast_hole_boundary(cast: Cast) -> np.ndarray:
+    """Edges (E, 2) of the cast boundary that are not on its two open ends (the hole rim)."""
+    e = np.sort(np.concatenate([cast.triangles[:, [0, 1]], cast.triangles[:, [1, 2]], cast.triangles[:, [2, 0]]]), axis=1)
+    u, c = np.unique(e, axis=0, return_counts=True)
+    b = u[c == 1]
+    z = cast.vertices_mm[:, 2]
+    zlo, zhi = z.min(), z.max()
+    at_end = np.all(np.isclose(z[b], zlo, atol=1e-9), axis=1) | np.all(np.isclose(z[b], zhi, atol=1e-9), axis=1)
+    return b[~at_end]
+
+
+# --------------------------------------------------------------------------- model
+
+
+def variant_axes(pose: Pose, variants) -> dict:
+    """{variant name: (axis, tip_start_mm, tip_end_mm, Variant)} for the configured variants."""
+    out = {}
+    for name in variants:
+        v = parse_variant(name)
+        axis, start, end = variant_travel(v, axis=pose.indenter_axis, tip_start_mm=pose.tip_start_mm, tip_end_mm=pose.tip_end_mm)
+        out[name] = (axis, start, end, v)
+    return out
+
+
+def _patch_specs(pose: Pose, variants, s: ModelSettings) -> dict:
+    specs = {}
+    for name, (axis, _, end, v) in variant_axes(pose, variants).items():
+        half, long_dir = 0.0, None
+        if v.indenter == "bar" and s.bar_length_mm > 2 * SPHERE_RADIUS_MM:
+            half = 0.5 * s.bar_length_mm - SPHERE_RADIUS_MM
+            long_dir = geo.bar_direction(axis)
+        specs[f"patch_{name}"] = PatchSpec(point_mm=end, axis=axis, radius_mm=0.5 * s.patch_diameter_mm, half_length_mm=half, long_dir=long_dir)
+    return specs
+
+
+def _facet_geometry(mesh: TetMesh, name: str):
+    p = mesh.nodes_mm[mesh.facets[name][:, :3]]
+    n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    return p.mean(axis=1), 0.5 * np.linalg.norm(n, axis=1)
+
+
+def build_model(
+    contours: Contours,
+    pose: Pose,
+    *,
+    variants=("sphere",),
+    settings: ModelSettings | dict | None = None,
+    animal: str = "?",
+    cast: Cast | None = None,
+) -> AnimalModel:
+    """Limb mesh with bone/skin/proximal/distal facet sets and contact patches, plus cast and facts.
+
+    contours: pre-state skin and bone stacks (n_slices, n_points, 3) world mm; pose: indenter axis and
+    travel; variants: names (``deeptissue.variants``) whose patches ``patch_<name>`` are tagged on the
+    one shared mesh, with their union ``patch``. The mesh is refined around each variant's travel.
+    The cast is built here unless given. Raises :class:`deeptissue.geometry.ModelInputError` for
+    contours or a pose that cannot make a model and :class:`deeptissue.mesh.MeshQualityError` for a
+    mesh with inverted/degenerate elements (both name the animal).
+    """
+    t0 = time.perf_counter()
+    s = settings if isinstance(settings, ModelSettings) else ModelSettings.from_dict(settings)
+    variants = list(variants)
+    if not variants:
+        raise ValueError(f"animal {animal}: no variants given")
+    facts = geo.check_contours(contours.skin, contours.bone, animal=animal, min_gap_mm=s.min_gap_mm)
+    contours = _equidistant(contours)
+    msgs: list[str] = []
+    if cast is None:
+        cast = build_cast(contours, pose, variants=variants, settings=s, animal=animal)
+    axes = variant_axes(pose, variants)
+    segs, seen = [], []
+    for name, (axis, start, end, _) in axes.items():
+        key = tuple(np.round(np.concatenate([axis, start]), 9))
+        if key in seen:
+            continue
+        seen.append(key)
+        segs.append(RefineSegment(start_mm=start, end_mm=end + s.refine_depth_mm * axis))
+    specs = _patch_specs(pose, variants, s)
+    import tempfile
+
+    kw = dict(
+        element_size_mm=s.element_size_mm,
+        refine_size_mm=s.refine_size_mm,
+        refine_radius_mm=s.refine_radius_mm,
+        refine_transition_mm=s.refine_transition_mm,
+        refine_segments=tuple(segs),
+        patches=specs,
+        spline_points=s.spline_points,
+        loft=s.loft,
+        curved=s.curved,
+        min_scaled_jacobian=s.min_scaled_jacobian,
+        min_dihedral_deg=s.min_dihedral_deg,
+        min_curved_ratio=s.min_curved_ratio,
+        animal=animal,
+    )
+    with tempfile.TemporaryDirectory() as tmp:
+        msh = Path(tmp) / "mesh.msh"
+        try:
+            mesh, stats = mesh_limb(contours.skin, contours.bone, algorithm_3d=s.algorithm_3d, msh_path=msh, **kw)
+        except MeshQualityError as exc:
+            other = "delaunay" if s.algorithm_3d == "hxt" else "hxt"
+            msgs.append(f"mesh: {exc}; retried with the {other} 3D algorithm")
+            log.warning("animal %s: %s", animal, msgs[-1])
+            mesh, stats = mesh_limb(contours.skin, contours.bone, algorithm_3d=other, msh_path=msh, **kw)
+        msh_bytes = msh.read_bytes()
+
+    prism = geo.limb_volume_mm3(contours.skin, contours.bone)
+    vol = stats["mesh_volume_mm3"]
+    # skin-cast gap (QC), over skin nodes away from the hole
+    skin_nodes = np.unique(mesh.facets["skin"])
+    xs = mesh.nodes_mm[skin_nodes]
+    gap = geo.surface_distance_mm(xs, cast.vertices_mm, cast.triangles)
+    hole_fps = list(specs.values()) if s.hole_for_variants else [PatchSpec(point_mm=pose.tip_end_mm, axis=pose.indenter_axis, radius_mm=0.0)]
+    near_hole = np.min([geo.footprint_distance_mm(xs, point_mm=f.point_mm, axis=f.axis, half_length_mm=f.half_length_mm, long_dir=f.long_dir) for f in hole_fps], axis=0)
+    away = near_hole > 0.5 * s.hole_diameter_mm + 1.0
+    away |= (xs - pose.tip_end_mm) @ pose.indenter_axis > 2.0  # far side of the leg (the hole is on the near side)
+    tags = {}
+    for name in mesh.facets:
+        c, a = _facet_geometry(mesh, name)
+        tags[name] = {"n_facets": int(len(mesh.facets[name])), "area_mm2": float(a.sum())}
+    patches = {}
+    for name, (axis, start, end, v) in axes.items():
+        f = mesh.facets[f"patch_{name}"]
+        d = geo.axis_distance_mm(mesh.nodes_mm[f], point_mm=end, axis=axis)
+        patches[name] = {
+            "tag": f"patch_{name}",
+            "indenter": v.indenter,
+            "axis": axis,
+            "tip_start_mm": start,
+            "tip_end_mm": end,
+            "n_facets": int(len(f)),
+            "max_axis_distance_mm": float(d.max()),
+        }
+    info = {
+        "animal": animal,
+        "settings": s.to_dict(),
+        "variants": variants,
+        "tags": tags,
+        "patches": patches,
+        "volumes": {
+            "mesh_mm3": vol,
+            "prismatoid_mm3": prism,
+            "cad_mm3": stats.get("occ_volume_mm3"),
+            "mesh_vs_prismatoid_percent": 100.0 * (vol - prism) / prism,
+        },
+        "mesh": {k: v for k, v in stats.items() if k not in ("facet_counts",)},
+        "cast": {
+            "n_vertices": int(len(cast.vertices_mm)),
+            "n_triangles": int(len(cast.triangles)),
+            "skin_gap_mm": {"min": float(gap[away].min()), "mean": float(gap[away].mean()), "max": float(gap[away].max())},
+            "log": list(cast.log),
+        },
+        "contours": {"n_slices": int(contours.n_slices), "n_points": int(contours.skin.shape[1]), "min_skin_bone_gap_mm": float(facts["min_gap_mm"].min())},
+        "refine_segments_mm": [[seg.start_mm, seg.end_mm] for seg in segs],
+        "log": msgs,
+        "wall_s": time.perf_counter() - t0,
+    }
+    log.info(
+        "animal %s: %d tets, %d nodes, min scaled Jacobian %.3f, min dihedral %.1f deg, volume %.1f mm3 (prismatoid %+.2f %%)",
+        animal, stats["n_tets"], stats["n_nodes"], stats["min_scaled_jacobian"], stats["min_dihedral_deg"], vol, info["volumes"]["mesh_vs_prismatoid_percent"],
+    )
+    return AnimalModel(animal=animal, mesh=mesh, cast=cast, info=info, msh_bytes=msh_bytes, log=tuple(msgs))
+
+
+# --------------------------------------------------------------------------- writers and QC
+
+
+def write_vtu(path: str | Path, mesh: TetMesh) -> None:
+    """ParaView file: the 10-node tets and one block of 6-node triangles per facet set; cell data
+    ``group`` (0 = tets, i = i-th facet set in sorted order, listed in field data)."""
+    import meshio
+
+    names = sorted(mesh.facets)
+    cells = [("tetra10", mesh.tets[:, [0, 1, 2, 3, 4, 5, 6, 7, 9, 8]])]  # VTK orders edges (1,3) before (2,3)
+    groups = [np.zeros(len(mesh.tets), np.int32)]
+    for i, n in enumerate(names, start=1):
+        cells.append(("triangle6", mesh.facets[n]))
+        groups.append(np.full(len(mesh.facets[n]), i, np.int32))
+    m = meshio.Mesh(mesh.nodes_mm, cells, cell_data={"group": groups})
+    with atomic_path(path) as tmp:
+        meshio.write(tmp, m, file_format="vtu")
+
+
+def write_model(model: AnimalModel, *, mesh_npz, mesh_msh, mesh_vtu, model_json) -> None:
+    """Write the model files (each atomically)."""
+    save_tetmesh(mesh_npz, model.mesh)
+    with atomic_path(mesh_msh) as tmp:
+        tmp.write_bytes(model.msh_bytes)
+    write_vtu(mesh_vtu, model.mesh)
+    info = dict(model.info)
+    info["vtu_groups"] = {i: n for i, n in enumerate(["tets", *sorted(model.mesh.facets)])}
+    write_json(model_json, info)
+
+
+def plot_model_qc(path, model: AnimalModel, pose: Pose) -> None:
+    """3D QC figure: skin (grey), patch union (red), cast rings (blue), hole rim (black), axis."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
+
+    mesh, cast = model.mesh, model.cast
+    a = pose.indenter_axis
+    views = [("seen along the indenter axis", a), ("seen from the side", np.cross(a, [0.0, 0.0, 1.0]))]
+    fig = plt.figure(figsize=(11, 5.5))
+    rim = cast_hole_boundary(cast)
+    v = cast.vertices_mm
+    # cast: every 4th row of the lofted grid, as lines
+    ce = np.sort(np.concatenate([cast.triangles[:, [0, 1]], cast.triangles[:, [1, 2]], cast.triangles[:, [2, 0]]]), axis=1)
+    ce = np.unique(ce, axis=0)
+    zrow = np.round(v[:, 2] / max(model.info["settings"]["cast_dz_mm"], 1e-6)).astype(int)
+    ring = ce[(np.abs(v[ce[:, 0], 2] - v[ce[:, 1], 2]) < 1e-9) & (zrow[ce[:, 0]] % 4 == 0)]
+    for k, (title, view) in enumerate(views):
+        ax = fig.add_subplot(1, 2, k + 1, projection="3d")
+        skin = mesh.nodes_mm[mesh.facets["skin"][:, :3]]
+        ax.add_collection3d(Poly3DCollection(skin, facecolor=(0.8, 0.8, 0.8, 0.35), edgecolor=(0.5, 0.5, 0.5, 0.15), linewidth=0.2))
+        ax.add_collection3d(Poly3DCollection(mesh.nodes_mm[mesh.facets["patch"][:, :3]], facecolor=(0.85, 0.1, 0.1, 0.8), edgecolor="none"))
+        ax.add_collection3d(Line3DCollection(v[ring], colors=[(0.1, 0.3, 0.9, 0.35)], linewidths=0.4))
+        ax.add_collection3d(Line3DCollection(v[rim], colors="k", linewidths=1.5))
+        p0, p1 = pose.tip_start_mm - 4 * a, pose.tip_end_mm + 2 * a
+        ax.plot(*np.stack([p0, p1]).T, color="orange", lw=2)
+        lo, hi = v.min(axis=0), v.max(axis=0)
+        c, r = 0.5 * (lo + hi), 0.5 * np.max(hi - lo)
+        ax.set(xlim=(c[0] - r, c[0] + r), ylim=(c[1] - r, c[1] + r), zlim=(c[2] - r, c[2] + r), xlabel="x [mm]", ylabel="y [mm]", zlabel="z [mm]")
+        vv = -np.asarray(view, float)
+        vv /= np.linalg.norm(vv)
+        ax.view_init(elev=float(np.degrees(np.arcsin(np.clip(vv[2], -1, 1)))), azim=float(np.degrees(np.arctan2(vv[1], vv[0]))))
+        ax.set_title(title, fontsize=9)
+    st = model.info["mesh"]
+    fig.suptitle(
+        f"{model.animal}: {st['n_tets']} quadratic tets, min scaled Jacobian {st['min_scaled_jacobian']:.2f}, "
+        f"min dihedral {st['min_dihedral_deg']:.1f} deg; skin grey, contact patch red, cast blue, hole rim black, axis orange",
+        fontsize=9,
+    )
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+
+
+# --------------------------------------------------------------------------- rule entry points
+
+
+def run_cast(*, contours_npz, pose_json, cast_npz, variants=("sphere",), settings: dict | None = None, animal: str = "?") -> Cast:
+    """Rule ``cast``: read the pre contours and the pose, write ``cast.npz``."""
+    from .contours import load_contours
+    from .pose import load_pose
+
+    cast = build_cast(load_contours(contours_npz), load_pose(pose_json), variants=variants, settings=settings, animal=animal)
+    save_cast(cast_npz, cast)
+    return cast
+
+
+def run_mesh(
+    *,
+    contours_npz,
+    pose_json,
+    cast_npz,
+    mesh_npz,
+    mesh_msh,
+    mesh_vtu,
+    model_json,
+    qc_png,
+    variants,
+    settings: dict | None = None,
+    animal: str = "?",
+) -> AnimalModel:
+    """Rule ``mesh``: read pre contours, pose and cast; write the mesh files, model.json and the QC figure."""
+    from .contours import load_contours
+    from .pose import load_pose
+
+    pose = load_pose(pose_json)
+    model = build_model(load_contours(contours_npz), pose, variants=variants, settings=settings, animal=animal, cast=load_cast(cast_npz))
+    write_model(model, mesh_npz=mesh_npz, mesh_msh=mesh_msh, mesh_vtu=mesh_vtu, model_json=model_json)
+    plot_model_qc(qc_png, model, pose)
+    return model
