@@ -78,6 +78,11 @@ class Assembler:
         self.tetmesh = mesh
         self.law = law
         self.sk = skmesh if skmesh is not None else to_skfem(mesh)
+        from .skmesh import reference_jacobians
+
+        bad = np.flatnonzero(np.any(reference_jacobians(mesh, skmesh=self.sk) <= 0, axis=1))
+        if len(bad):
+            raise ValueError(f"mesh: {len(bad)} tetrahedra have a non-positive Jacobian (inverted or too curved), e.g. tet {bad[0]}")
         basis = Basis(self.sk.mesh, ElementTetP2(), intorder=intorder)
         # (E, Q, 10, 3) reference gradients, (E, Q) weights [mm^3]
         self.dN = np.ascontiguousarray(np.stack([basis.basis[a][0].grad for a in range(10)], axis=0).transpose(2, 3, 0, 1))

@@ -102,9 +102,9 @@ def cored_cylinder_mesh(*, length_mm=20.0, radius_mm=5.0, core_radius_mm=1.0, h_
         gmsh.finalize()
 
 
-def distort_interior(mesh: TetMesh, *, amount=0.25, seed=0, keep_sets=None) -> TetMesh:
+def distort_interior(mesh: TetMesh, *, amount=0.25, seed=0, keep_sets=None, curved=True) -> TetMesh:
     """Move interior corner nodes randomly by up to ``amount`` x local edge length, and every
-    mid-node off its straight edge (curved elements); boundary nodes stay. For patch tests."""
+    interior mid-node off its straight edge if ``curved``; boundary nodes stay. For patch tests."""
     rng = np.random.default_rng(seed)
     p = mesh.nodes_mm.copy()
     boundary = np.zeros(len(p), bool)
@@ -126,9 +126,11 @@ def distort_interior(mesh: TetMesh, *, amount=0.25, seed=0, keep_sets=None) -> T
         p[m] = 0.5 * (p[t[:, a]] + p[t[:, b]])
     mids = np.unique(t[:, 4:])
     mids = mids[~boundary[mids]]
-    bump = 0.05 * np.median(edge_len) * rng.uniform(-1, 1, (len(mids), 3))
+    bump = (0.02 if curved else 0.0) * np.median(edge_len) * rng.uniform(-1, 1, (len(mids), 3))
     p[mids] += bump
     out = TetMesh(nodes_mm=p, tets=mesh.tets, facets=mesh.facets)
-    if np.any(out.volumes_mm3() <= 0):
+    from .skmesh import reference_jacobians
+
+    if np.any(out.volumes_mm3() <= 0) or np.any(reference_jacobians(out) <= 0):
         raise ValueError("distort_interior: distortion inverted a tetrahedron; use a smaller amount")
     return out

@@ -106,3 +106,15 @@ def to_skfem(tm: TetMesh) -> SkMesh:
             raise ValueError(f"TetMesh.facets[{name!r}]: {np.count_nonzero(~ok)} facets are not faces of the tetrahedra")
         facets[name] = forder[p]
     return SkMesh(mesh=mesh, tetmesh_node=tetmesh_node, vertex_of_node=vert, facets=facets)
+
+
+def reference_jacobians(tm: TetMesh, *, order: int = 4, skmesh: SkMesh | None = None) -> np.ndarray:
+    """det(dX/dxi) (n_tets, n_points) of the (curved) P2 geometry at the points of a quadrature
+    rule of ``order``: all must be > 0 for a valid mesh."""
+    from skfem.quadrature import get_quadrature
+    from skfem.refdom import RefTet
+
+    sk = skmesh if skmesh is not None else to_skfem(tm)
+    xi, _ = get_quadrature(RefTet, order)
+    corners = np.concatenate([xi, np.eye(3), np.zeros((3, 1))], axis=1)
+    return sk.mesh._mapping().detDF(corners)

@@ -169,6 +169,13 @@ class _Schedule:
     def tip(self, t):
         return None if self.ind is None else self.ind.tip_at(float(np.clip(t - 3.0, 0.0, 1.0)))
 
+    def predict(self, X, x, t0, t1):
+        """Move the whole current configuration x (n, 3) by the bone's rigid increment t0 -> t1."""
+        R = self.rotation(t1) @ self.rotation(t0).T
+        T0 = np.clip(t0 - 3.0, 0.0, 1.0) * self.T
+        T1 = np.clip(t1 - 3.0, 0.0, 1.0) * self.T
+        return (x - self.c - T0) @ R.T + self.c + T1
+
     def active_steps(self):
         steps = [k for k in range(3) if abs(self.ang[k]) > 0]
         return steps + [3]
@@ -225,6 +232,10 @@ class _Prescribed:
 
     def tip(self, t):
         return None
+
+    def predict(self, X, x, t0, t1):
+        s0, s1 = (float(np.clip(t - 3.0, 0.0, 1.0)) for t in (t0, t1))
+        return x + self.fn(X, s1) - self.fn(X, s0)
 
     def active_steps(self):
         return [3]
@@ -451,7 +462,8 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
                     dt = max((gmin + s.first_touch_mm) / travel, s.min_increment)
             t1 = t + dt
             t0c = dict(timers)
-            u_try = u.copy()
+            # predictor: the whole limb follows the bone's rigid increment (exact for rigid motion)
+            u_try = (sched.predict(X, X + u.reshape(-1, 3), t, t1) - X).ravel()
             al_backup = _al_state(pairs)
             target = np.zeros(asm.n_dofs)
             target.reshape(-1, 3)[bone_nodes] = sched.bone(Xb, t1) - Xb
