@@ -83,3 +83,21 @@ def test_cast_signed_distance_toward_the_leg_and_free_ends():
     assert g[1] < 0 and g[1] == pytest.approx(-0.5, abs=3.0 - r_poly + 1e-9)
     assert g[2] > 0
     assert g[3] == np.inf  # beyond the open end: no contact
+
+
+def test_cast_gap_gradient_and_hessian_against_finite_differences():
+    cast = _tube_cast(n=12, m=4)
+    rng = np.random.default_rng(6)
+    th = rng.uniform(0, 2 * np.pi, 300)
+    rad = rng.uniform(2.4, 3.4, 300)
+    x = np.stack([rad * np.cos(th), rad * np.sin(th), rng.uniform(2, 8, 300)], axis=1)
+    g, n, H = cast.gap(x)
+    keep = np.abs(g) > 0.05
+    e = 1e-6
+    for k in range(3):
+        d = np.zeros(3)
+        d[k] = e
+        gp, npl, _ = cast.gap(x + d)
+        gm, nm, _ = cast.gap(x - d)
+        np.testing.assert_allclose(((gp - gm) / (2 * e))[keep], n[keep, k], atol=1e-5)
+        np.testing.assert_allclose(((npl - nm) / (2 * e))[keep], H[keep, :, k], atol=1e-3)

@@ -1,7 +1,8 @@
 """Rigid cast: a triangulated surface (normals toward the leg) the skin may not cross outward.
 
-``Cast.gap(x)`` returns the signed distance of points to the nearest triangle, positive on the
-side the triangle normal points to (the leg), with that triangle's normal as contact normal.
+``Cast.gap(x)`` returns the signed distance of points to the surface, positive on the side the
+triangle normals point to (the leg), its gradient (the contact normal; continuous across triangle
+edges) and the gradient of that normal (nonzero near edges and vertices).
 Points whose nearest surface point lies on a free boundary edge (the open ends, the indenter
 hole) and which are beyond it are given no contact (g = +inf).
 """
@@ -113,8 +114,31 @@ class Cast:
         sel = np.arange(n) * kk + j
         tri = T[sel]
         reg = region[sel]
-        nrm = self.normal[tri]
-        g = np.einsum("ij,ij->i", x - q[sel], nrm)
+        q = q[sel]
+        ntri = self.normal[tri]
+        r = x - q
+        d = np.linalg.norm(r, axis=1)
+        side = np.where(np.einsum("ij,ij->i", r, ntri) >= 0, 1.0, -1.0)
+        # signed distance and its gradient: continuous across triangle edges (C1 off the surface)
+        tiny = d <= 1e-10
+        nrm = np.where(tiny[:, None] | (reg[:, None] == 0), ntri, side[:, None] * r / np.where(tiny, 1.0, d)[:, None])
+        g = np.where(reg == 0, np.einsum("ij,ij->i", r, ntri), side * d)
+        # gradient of the normal: zero on faces, (I - n n - e e) / d at edges, (I - n n) / d at vertices
+        H = np.zeros((n, 3, 3))
+        curved = (reg > 0) & ~tiny
+        if np.any(curved):
+            nn = nrm[curved]
+            P = np.eye(3) - nn[:, :, None] * nn[:, None, :]
+            rc = reg[curved]
+            tv = self.v[self.t[tri[curved]]]  # (m, 3, 3)
+            i0 = np.where(rc == 1, 0, np.where(rc == 2, 1, 2))
+            i1 = np.where(rc == 1, 1, np.where(rc == 2, 2, 0))
+            m_idx = np.arange(len(rc))
+            e = tv[m_idx, i1] - tv[m_idx, i0]
+            e /= np.linalg.norm(e, axis=1)[:, None]
+            edge = (rc <= 3)[:, None, None]
+            P = P - edge * e[:, :, None] * e[:, None, :]
+            H[curved] = side[curved][:, None, None] * P / d[curved][:, None, None]
         # beyond a free edge / vertex: no contact
         on_free = np.zeros(n, bool)
         e = (reg >= 1) & (reg <= 3)
@@ -122,4 +146,4 @@ class Cast:
         vtx = reg >= 4
         on_free[vtx] = self.free_vertex[tri[vtx], reg[vtx] - 4]
         g = np.where(on_free, np.inf, g)
-        return g, nrm, None
+        return g, nrm, H
