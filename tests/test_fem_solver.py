@@ -125,3 +125,20 @@ def test_cast_holds_the_skin_when_the_bone_pushes_outward(limb):
     assert r.cast_force_N[0] < 0  # the cast pushes the tissue back toward -x
     free = solve_indentation(limb, material=LAW, indenter=None, bone_motion=motion)
     assert np.linalg.norm(free.displacement_mm[skin, :2] + limb.nodes_mm[skin, :2], axis=1).max() > 3.45
+
+
+def test_vtu_output_round_trip(limb, tmp_path):
+    import meshio
+
+    from deeptissue.fem.output import write_result_vtu
+
+    motion = BoneMotion(rotation_deg=(0.0, 0.0, 20.0))
+    r = solve_indentation(limb, material=LAW, indenter=None, bone_motion=motion)
+    write_result_vtu(tmp_path / "r.vtu", limb, r, cell_data={"tag": np.arange(len(limb.tets))})
+    back = meshio.read(tmp_path / "r.vtu")
+    np.testing.assert_allclose(back.point_data["displacement_mm"], r.displacement_mm)
+    np.testing.assert_allclose(back.cell_data["J"][0], 1.0, atol=1e-8)
+    # VTK quadratic tet: mid-node 8 is on edge (1, 3), node 9 on edge (2, 3) (curved edges: nearest)
+    p, t = back.points, back.cells_dict["tetra10"]
+    d = lambda k, a, b: np.linalg.norm(p[t[:, k]] - 0.5 * (p[t[:, a]] + p[t[:, b]]), axis=1)
+    assert np.all(d(8, 1, 3) < d(8, 2, 3)) and np.all(d(9, 2, 3) < d(9, 1, 3))
