@@ -1,1 +1,22 @@
-# Rules of the material stage.
+# Rules of the material stage: verification of the Ogden material point (part of `verify`).
+
+
+rule verify_material:
+    output:
+        points="results/verification/material_point.csv",
+        homogeneous="results/verification/homogeneous.csv",
+        figure=report(
+            "results/verification/homogeneous.png",
+            caption="../report/homogeneous.rst",
+            category="Verification",
+            subcategory="material",
+        ),
+        speed="results/verification/material_speed.csv",
+    params:
+        material=config["fem"]["material"],
+    log:
+        "results/logs/verify_material.log",
+    conda:
+        "../envs/deeptissue.yaml"
+    script:
+        "../scripts/verify_material.py"

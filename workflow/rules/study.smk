@@ -1,1 +1,84 @@
-# Rules of the study stage.
+# Rules of the study stage: every animal x variant summary -> tables and figures of the whole study.
+# (The `solve` rule, one job per animal x variant writing results/{animal}/{variant}/summary.json and
+# result.vtu, lives with the FE core.)
+from deeptissue.config import ConfigError
+from deeptissue.variants import parse_variant
+
+STUDY = config["study"]
+VARIANTS = list(STUDY["variants"])
+if abs(STUDY["bin_edges"][0] - STUDY["threshold"]) > 1e-12:
+    raise ConfigError(
+        f"config key study.bin_edges: must start at study.threshold ({STUDY['threshold']}), got {STUDY['bin_edges'][0]}"
+    )
+if any(b <= a for a, b in zip(STUDY["bin_edges"], STUDY["bin_edges"][1:])):
+    raise ConfigError(f"config key study.bin_edges: not strictly increasing: {STUDY['bin_edges']}")
+FIGURE_ANIMAL = STUDY["figure_animal"] or ANIMALS[0]
+if FIGURE_ANIMAL not in ANIMALS:
+    raise ConfigError(f"config key study.figure_animal: {FIGURE_ANIMAL!r} is not a configured animal {ANIMALS}")
+# variants drawn in the section figures: sphere vs bar, and every sphere orientation
+SECTION_VARIANTS = [v for v in VARIANTS if v == "bar" or parse_variant(v).indenter == "sphere"]
+
+
+STUDY_OUTPUTS = [
+    "results/summary/voi.csv",
+    "results/summary/bins.csv",
+    "results/summary/voi.png",
+    "results/summary/bins.png",
+    "results/summary/voi_change.png",
+    "results/summary/sections.png",
+    "results/summary/orientations.png",
+]
+# final targets of the study (tables and figures); the lead adds them to FINAL_OUTPUTS with the solve rule
+study_outputs = lambda: list(STUDY_OUTPUTS)
+
+
+rule aggregate:
+    input:
+        summaries=expand("results/{animal}/{variant}/summary.json", animal=ANIMALS, variant=VARIANTS),
+        results=expand("results/{animal}/{variant}/result.vtu", animal=[FIGURE_ANIMAL], variant=SECTION_VARIANTS),
+        pose=f"results/{FIGURE_ANIMAL}/pose.json",
+    output:
+        voi_csv=report(
+            "results/summary/voi.csv", caption="../report/study_voi_csv.rst", category="Study", subcategory="Tables"
+        ),
+        bins_csv=report(
+            "results/summary/bins.csv", caption="../report/study_bins_csv.rst", category="Study", subcategory="Tables"
+        ),
+        voi_png=report(
+            "results/summary/voi.png", caption="../report/study_voi.rst", category="Study", subcategory="All animals"
+        ),
+        bins_png=report(
+            "results/summary/bins.png", caption="../report/study_bins.rst", category="Study", subcategory="All animals"
+        ),
+        voi_change_png=report(
+            "results/summary/voi_change.png",
+            caption="../report/study_voi_change.rst",
+            category="Study",
+            subcategory="All animals",
+        ),
+        sections_png=report(
+            "results/summary/sections.png",
+            caption="../report/study_sections.rst",
+            category="Study",
+            subcategory="Sections",
+        ),
+        orientations_png=report(
+            "results/summary/orientations.png",
+            caption="../report/study_orientations.rst",
+            category="Study",
+            subcategory="Sections",
+        ),
+    params:
+        animals=ANIMALS,
+        variants=VARIANTS,
+        section_variants=SECTION_VARIANTS,
+        figure_animal=FIGURE_ANIMAL,
+        strain_measure=STUDY["strain_measure"],
+        threshold=STUDY["threshold"],
+        bin_edges=STUDY["bin_edges"],
+    log:
+        "results/summary/aggregate.log",
+    conda:
+        "../envs/deeptissue.yaml"
+    script:
+        "../scripts/aggregate.py"

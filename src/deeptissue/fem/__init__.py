@@ -1,0 +1,1 @@
+"""Nonlinear finite element core: Ogden tissue, rigid indenters and cast, rigid bone, Newton solver."""

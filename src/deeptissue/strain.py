@@ -1,0 +1,270 @@
+"""Strain post-processing of a quadratic-tetrahedral solution: γmax per element, VOI and its bins.
+
+Everything here works on a :class:`deeptissue.mesh.TetMesh` (10-node tetrahedra in gmsh order) and
+a nodal displacement ``(n_nodes, 3)`` in mm; no solver is needed.
+
+Shape functions (gmsh Tetrahedron10). With reference coordinates ``(ξ, η, ζ)`` and barycentric
+coordinates ``L0 = 1 − ξ − η − ζ, L1 = ξ, L2 = η, L3 = ζ`` (corner ``i`` at ``L_i = 1``):
+
+- corner ``i`` (local nodes 0–3): ``N_i = L_i (2 L_i − 1)``, ``∇N_i = (4 L_i − 1) ∇L_i``;
+- mid-edge node of edge ``(a, b)``: ``N = 4 L_a L_b``, ``∇N = 4 (L_b ∇L_a + L_a ∇L_b)``, with the
+  edges in gmsh order ``(0,1), (1,2), (0,2), (0,3), (2,3), (1,3)`` for local nodes 4–9.
+
+At the centroid (all ``L = 1/4``) the corner gradients vanish and each mid-edge gradient is
+``∇L_a + ∇L_b``: the centroid deformation gradient depends on the mid-edge nodes only.
+
+Strain measures (per element, at the centroid of the reference element):
+
+- Green–Lagrange ``E = (FᵀF − I)/2``, principal values ``E1 ≥ E2 ≥ E3``, ``γmax = (E1 − E3)/2``
+  (the paper's measure);
+- logarithmic (Hencky, what Abaqus reports as LE): principal log stretches ``ln λ1 ≥ ln λ2 ≥ ln λ3``
+  with ``λ² `` the eigenvalues of ``C = FᵀF``, ``γmax = (ln λ1 − ln λ3)/2``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from .mesh import TetMesh
+
+# local node pairs of the mid-edge nodes 4..9 (gmsh Tetrahedron10 order)
+GMSH_TET10_EDGES = ((0, 1), (1, 2), (0, 2), (0, 3), (2, 3), (1, 3))
+STRAIN_MEASURES = ("green_lagrange", "log")
+DEFAULT_BIN_EDGES = (0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
+
+# gradients of the barycentric coordinates L0..L3 with respect to (ξ, η, ζ): (4, 3)
+_DL = np.array([[-1.0, -1.0, -1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+
+
+class StrainError(ValueError):
+    """A displacement that has no strain (inverted element, wrong shape)."""
+
+
+def _barycentric(xi: np.ndarray) -> np.ndarray:
+    xi = np.atleast_2d(np.asarray(xi, float))
+    return np.column_stack([1.0 - xi.sum(axis=1), xi])
+
+
+def tet10_shape_functions(xi) -> np.ndarray:
+    """Values of the 10 P2 shape functions (gmsh order) at reference points ``xi`` (n, 3) -> (n, 10)."""
+    L = _barycentric(xi)
+    out = np.empty((len(L), 10))
+    out[:, :4] = L * (2.0 * L - 1.0)
+    for k, (a, b) in enumerate(GMSH_TET10_EDGES):
+        out[:, 4 + k] = 4.0 * L[:, a] * L[:, b]
+    return out
+
+
+def tet10_shape_gradients(xi) -> np.ndarray:
+    """Gradients of the 10 P2 shape functions (gmsh order) w.r.t. (ξ, η, ζ) at ``xi`` (n, 3) -> (n, 10, 3)."""
+    L = _barycentric(xi)
+    out = np.empty((len(L), 10, 3))
+    out[:, :4] = (4.0 * L - 1.0)[:, :, None] * _DL[None]
+    for k, (a, b) in enumerate(GMSH_TET10_EDGES):
+        out[:, 4 + k] = 4.0 * (L[:, b, None] * _DL[a] + L[:, a, None] * _DL[b])
+    return out
+
+
+def tet_quadrature(n: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Collapsed (Duffy) Gauss rule on the reference tetrahedron: points (n³, 3), weights (n³,).
+
+    Maps the unit cube onto the tetrahedron ``ξ, η, ζ ≥ 0, ξ + η + ζ ≤ 1`` (volume 1/6); with ``n``
+    Gauss–Legendre points per direction it integrates polynomials of total degree ``2n − 3`` exactly
+    (``n = 3``: degree 3, enough for det J of a curved 10-node tetrahedron).
+    """
+    g, w = np.polynomial.legendre.leggauss(n)
+    g, w = 0.5 * (g + 1.0), 0.5 * w
+    u, v, t = np.meshgrid(g, g, g, indexing="ij")
+    wu, wv, wt = np.meshgrid(w, w, w, indexing="ij")
+    xi = u
+    eta = v * (1.0 - u)
+    zeta = t * (1.0 - u) * (1.0 - v)
+    weights = wu * wv * wt * (1.0 - u) ** 2 * (1.0 - v)
+    return np.column_stack([xi.ravel(), eta.ravel(), zeta.ravel()]), weights.ravel()
+
+
+def _check_mesh_and_u(mesh: TetMesh, displacement_mm) -> np.ndarray:
+    u = np.asarray(displacement_mm, float)
+    if u.shape != mesh.nodes_mm.shape:
+        raise StrainError(f"displacement: expected shape {mesh.nodes_mm.shape} (one 3-vector per node), got {u.shape}")
+    if not np.all(np.isfinite(u)):
+        raise StrainError("displacement: non-finite values")
+    return u
+
+
+def element_volumes_mm3(mesh: TetMesh, *, order: int = 3) -> np.ndarray:
+    """Reference volumes of the (possibly curved) 10-node tetrahedra (n_tets,) [mm³].
+
+    ``∫ det J dξ`` over the reference element with :func:`tet_quadrature` (exact for the cubic det J
+    of a quadratic tetrahedron with the default ``order=3``).
+    """
+    pts, w = tet_quadrature(order)
+    dN = tet10_shape_gradients(pts)  # (q, 10, 3)
+    X = mesh.nodes_mm[mesh.tets]  # (m, 10, 3)
+    J = np.tensordot(X, dN, axes=([1], [1])).transpose(0, 2, 1, 3)  # (m, q, 3, 3): dX_i/dξ_j
+    return np.linalg.det(J) @ w
+
+
+def deformation_gradient_at_centroids(mesh: TetMesh, displacement_mm) -> np.ndarray:
+    """Deformation gradient ``F = I + ∂u/∂X`` at the reference-element centroids (n_tets, 3, 3)."""
+    u = _check_mesh_and_u(mesh, displacement_mm)
+    dN = tet10_shape_gradients(np.full((1, 3), 0.25))[0]  # (10, 3)
+    X = mesh.nodes_mm[mesh.tets]
+    J = np.swapaxes(X, 1, 2) @ dN  # (m, 3, 3): dX_i/dξ_j
+    det = np.linalg.det(J)
+    if np.any(det <= 0):
+        bad = np.flatnonzero(det <= 0)
+        raise StrainError(f"mesh: {len(bad)} element(s) with non-positive Jacobian in the reference configuration, first {bad[0]}")
+    dN_dX = dN[None] @ np.linalg.inv(J)  # (m, 10, 3): dN_a/dX_i
+    grad_u = np.swapaxes(u[mesh.tets], 1, 2) @ dN_dX  # (m, 3, 3): du_k/dX_i
+    return np.eye(3) + grad_u
+
+
+def green_lagrange(F) -> np.ndarray:
+    """Green–Lagrange strain ``E = (FᵀF − I)/2`` (..., 3, 3) [-]."""
+    F = np.asarray(F, float)
+    return 0.5 * (np.einsum("...ki,...kj->...ij", F, F) - np.eye(3))
+
+
+def principal_values(S) -> np.ndarray:
+    """Eigenvalues of symmetric tensors (..., 3, 3), sorted descending (..., 3)."""
+    S = np.asarray(S, float)
+    return np.linalg.eigvalsh(0.5 * (S + np.swapaxes(S, -1, -2)))[..., ::-1]
+
+
+def max_shear(principal) -> np.ndarray:
+    """``γmax = (p1 − p3)/2`` from descending principal values (..., 3) -> (...)."""
+    p = np.asarray(principal, float)
+    return 0.5 * (p[..., 0] - p[..., 2])
+
+
+def principal_log_stretches(F) -> np.ndarray:
+    """``ln λ1 ≥ ln λ2 ≥ ln λ3`` of ``F`` (..., 3, 3) -> (..., 3); raises for det F <= 0."""
+    F = np.asarray(F, float)
+    det = np.linalg.det(F)
+    if np.any(det <= 0):
+        bad = np.flatnonzero(np.ravel(det) <= 0)
+        raise StrainError(f"deformation gradient: {len(bad)} inverted element(s) (det F <= 0), first {bad[0]}")
+    C = np.einsum("...ki,...kj->...ij", F, F)
+    return 0.5 * np.log(principal_values(C))
+
+
+@dataclass(frozen=True)
+class ElementStrain:
+    """Strain at the element centroids of one solution; arrays over elements (n_tets, ...)."""
+
+    F: np.ndarray  # (n, 3, 3) deformation gradient [-]
+    principal_gl: np.ndarray  # (n, 3) Green–Lagrange E1 >= E2 >= E3 [-]
+    principal_log: np.ndarray  # (n, 3) ln λ1 >= ln λ2 >= ln λ3 [-]
+    volume_mm3: np.ndarray  # (n,) reference element volume [mm^3]
+
+    @property
+    def gamma_gl(self) -> np.ndarray:
+        """Green–Lagrange γmax = (E1 − E3)/2 (n,) [-]."""
+        return max_shear(self.principal_gl)
+
+    @property
+    def gamma_log(self) -> np.ndarray:
+        """Logarithmic γmax = (ln λ1 − ln λ3)/2 (n,) [-]."""
+        return max_shear(self.principal_log)
+
+    def gamma(self, strain_measure: str = "green_lagrange") -> np.ndarray:
+        if strain_measure == "green_lagrange":
+            return self.gamma_gl
+        if strain_measure == "log":
+            return self.gamma_log
+        raise ValueError(f"strain_measure {strain_measure!r}: expected one of {STRAIN_MEASURES}")
+
+
+def element_strain(mesh: TetMesh, displacement_mm) -> ElementStrain:
+    """Deformation gradient, principal Green–Lagrange and log strains at centroids, reference volumes."""
+    F = deformation_gradient_at_centroids(mesh, displacement_mm)
+    return ElementStrain(
+        F=F,
+        principal_gl=principal_values(green_lagrange(F)),
+        principal_log=principal_log_stretches(F),
+        volume_mm3=element_volumes_mm3(mesh),
+    )
+
+
+def _fmt(x: float) -> str:
+    s = f"{float(x):g}"
+    return s if ("." in s or "e" in s or "inf" in s) else s + ".0"
+
+
+def bin_labels(bin_edges: Sequence[float]) -> list[str]:
+    """``(0.3, 0.4, …, 1.0)`` -> ``['0.3-0.4', …, '0.9-1.0', '>1.0']``."""
+    e = list(bin_edges)
+    return [f"{_fmt(a)}-{_fmt(b)}" for a, b in zip(e[:-1], e[1:])] + [f">{_fmt(e[-1])}"]
+
+
+@dataclass(frozen=True)
+class VoiStatistics:
+    """Volume of interest (γmax > threshold) and how it splits over strain bins."""
+
+    threshold: float
+    voi_mm3: float  # reference volume with γmax > threshold
+    total_mm3: float  # reference volume of the whole model
+    bins_percent: dict  # bin label -> % of the VOI volume (all 0 when the VOI is empty)
+    below_threshold_percent: float  # % of the whole model volume with γmax <= threshold
+    peak_gamma: float  # max γmax over elements (reported, not used to compare)
+    strain_energy_mJ: float | None  # Σ W·V over VOI elements, None without an energy density
+
+
+def voi_statistics(
+    gamma,
+    volume_mm3,
+    *,
+    threshold: float = 0.3,
+    bin_edges: Sequence[float] = DEFAULT_BIN_EDGES,
+    energy_density_mpa=None,
+) -> VoiStatistics:
+    """VOI, bin percentages, below-threshold percentage, peak γ and VOI strain energy.
+
+    ``gamma`` (n,) per-element γmax [-]; ``volume_mm3`` (n,) reference element volumes [mm³];
+    ``energy_density_mpa`` (n,) optional strain-energy density per reference volume [MPa = mJ/mm³].
+    The VOI is the elements with ``γ > threshold``. Bins are right-closed: ``'0.3-0.4'`` holds
+    ``0.3 < γ <= 0.4``; the last bin ``'>1.0'`` holds ``γ > 1.0``. ``bin_edges[0]`` must equal
+    ``threshold`` so that the bins partition the VOI (percentages sum to 100).
+    """
+    g = np.asarray(gamma, float).ravel()
+    v = np.asarray(volume_mm3, float).ravel()
+    edges = np.asarray(bin_edges, float).ravel()
+    if g.shape != v.shape:
+        raise ValueError(f"gamma has {g.size} values but volume_mm3 has {v.size}")
+    if g.size == 0:
+        raise ValueError("voi_statistics: no elements")
+    if not (np.all(np.isfinite(g)) and np.all(np.isfinite(v))):
+        raise ValueError("voi_statistics: non-finite gamma or volume")
+    if np.any(v <= 0):
+        raise ValueError(f"voi_statistics: {np.count_nonzero(v <= 0)} element(s) with non-positive volume")
+    if edges.size < 1 or np.any(np.diff(edges) <= 0):
+        raise ValueError(f"bin_edges {list(edges)}: expected strictly increasing numbers")
+    if not np.isclose(edges[0], threshold, rtol=0, atol=1e-12):
+        raise ValueError(f"bin_edges start at {edges[0]} but threshold is {threshold}: the first edge must be the threshold")
+    in_voi = g > threshold
+    voi = float(v[in_voi].sum())
+    total = float(v.sum())
+    # bin index: 0 for (e0, e1], ..., len(edges)-1 for > e_last
+    idx = np.searchsorted(edges, g[in_voi], side="left") - 1
+    per_bin = np.bincount(idx, weights=v[in_voi], minlength=len(edges))
+    labels = bin_labels(edges)
+    pct = 100.0 * per_bin / voi if voi > 0 else np.zeros(len(edges))
+    energy = None
+    if energy_density_mpa is not None:
+        w = np.asarray(energy_density_mpa, float).ravel()
+        if w.shape != g.shape:
+            raise ValueError(f"energy_density_mpa has {w.size} values but gamma has {g.size}")
+        energy = float(np.sum(w[in_voi] * v[in_voi]))
+    return VoiStatistics(
+        threshold=float(threshold),
+        voi_mm3=voi,
+        total_mm3=total,
+        bins_percent={k: float(p) for k, p in zip(labels, pct)},
+        below_threshold_percent=float(100.0 * v[~in_voi].sum() / total),
+        peak_gamma=float(g.max()),
+        strain_energy_mJ=energy,
+    )

@@ -1,0 +1,302 @@
+"""Per-variant results of the study: ``summary.json``, ``result.vtu`` and the skin agreement with MRI.
+
+One FE run (animal × variant) leaves ``results/{animal}/{variant}/summary.json`` (a :class:`Summary`)
+and ``result.vtu``. A run that did not converge or failed still leaves a summary
+(:func:`failed_summary`: ``converged`` false and the ``reason``) so the aggregate sees every
+variant and can apply the exclusion policy; nothing is silently lost.
+
+Skin agreement: the distance from each skin contour point segmented in the *during* scan to the
+deformed FE skin surface (10-node tetrahedra's 6-node skin facets, each split into four flat
+triangles through its corner and mid-edge nodes), exact point-to-triangle distance with KD-tree
+candidate search; reported as mean and 95th percentile [mm].
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .io import atomic_path, read_json, write_json
+from .mesh import TetMesh
+from .strain import DEFAULT_BIN_EDGES, STRAIN_MEASURES, ElementStrain, element_strain, voi_statistics
+
+
+@dataclass(frozen=True)
+class Summary:
+    """The numbers of one animal × variant run (``summary.json``). ``None`` where not available."""
+
+    animal: str
+    variant: str
+    converged: bool
+    reason: str | None = None  # why not converged / failed (None when converged)
+    strain_measure: str = "green_lagrange"  # which γmax the VOI numbers use
+    threshold: float = 0.3  # γmax threshold of the VOI [-]
+    voi_mm3: float | None = None  # reference volume with γmax > threshold [mm^3]
+    bins_percent: dict | None = None  # bin label -> % of the VOI volume
+    below_threshold_percent: float | None = None  # % of the whole model volume with γmax <= threshold
+    peak_gamma: float | None = None  # max γmax over elements [-]
+    strain_energy_mJ: float | None = None  # strain energy in the VOI [mJ]
+    indenter_force_N: float | None = None  # indenter reaction force along its axis at full depth [N]
+    n_elements: int | None = None
+    n_dofs: int | None = None
+    increments: int | None = None  # load increments used
+    newton_iterations: int | None = None  # Newton iterations summed over increments
+    wall_s: float | None = None  # wall-clock time of the solve [s]
+    skin_mean_mm: float | None = None  # mean distance during-scan skin contours -> deformed FE skin [mm]
+    skin_p95_mm: float | None = None  # 95th percentile of that distance [mm]
+    voi_by_measure_mm3: dict | None = None  # {"green_lagrange": .., "log": ..} VOI with each measure [mm^3]
+    peak_gamma_by_measure: dict | None = None  # {"green_lagrange": .., "log": ..}
+    extra: dict = field(default_factory=dict)  # further solver diagnostics, kept and tabulated
+
+    def __post_init__(self):
+        if self.strain_measure not in STRAIN_MEASURES:
+            raise ValueError(f"summary {self.animal}/{self.variant}: strain_measure {self.strain_measure!r} not in {STRAIN_MEASURES}")
+        if not isinstance(self.converged, bool):
+            raise ValueError(f"summary {self.animal}/{self.variant}: converged must be true or false, got {self.converged!r}")
+        if not self.converged and not self.reason:
+            raise ValueError(f"summary {self.animal}/{self.variant}: a run that did not converge needs a reason")
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        extra = d.pop("extra")
+        d.update(extra)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict, *, source: str = "summary") -> "Summary":
+        names = {f.name for f in fields(cls)} - {"extra"}
+        missing = [k for k in ("animal", "variant", "converged") if k not in d]
+        if missing:
+            raise ValueError(f"{source}: missing key(s) {missing}")
+        known = {k: v for k, v in d.items() if k in names}
+        extra = {k: v for k, v in d.items() if k not in names}
+        try:
+            return cls(**known, extra=extra)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{source}: {exc}") from exc
+
+
+def write_summary(path: str | Path, summary: Summary) -> None:
+    write_json(path, summary.to_dict())
+
+
+def read_summary(path: str | Path) -> Summary:
+    """Read ``results/{animal}/{variant}/summary.json``; ``animal``/``variant`` default to the path's."""
+    path = Path(path)
+    d = read_json(path)
+    d.setdefault("variant", path.parent.name)
+    d.setdefault("animal", path.parent.parent.name)
+    return Summary.from_dict(d, source=str(path))
+
+
+def failed_summary(*, animal: str, variant: str, reason: str, strain_measure: str = "green_lagrange",
+                   threshold: float = 0.3, **known) -> Summary:
+    """Summary of a run that did not converge or failed: ``converged`` false, the reason, and any
+    numbers that are still known (``n_elements``, ``n_dofs``, ``increments``, ``wall_s``, ...)."""
+    if not reason:
+        raise ValueError(f"failed_summary {animal}/{variant}: give the reason")
+    names = {f.name for f in fields(Summary)}
+    extra = {k: v for k, v in known.items() if k not in names}
+    known = {k: v for k, v in known.items() if k in names}
+    known["extra"] = {**known.get("extra", {}), **extra}
+    return Summary(animal=animal, variant=variant, converged=False, reason=str(reason),
+                   strain_measure=strain_measure, threshold=threshold, **known)
+
+
+def summarize_solution(
+    mesh: TetMesh,
+    displacement_mm,
+    *,
+    animal: str,
+    variant: str,
+    strain_measure: str = "green_lagrange",
+    threshold: float = 0.3,
+    bin_edges: Sequence[float] = DEFAULT_BIN_EDGES,
+    energy_density_mpa=None,
+    skin_contours_mm=None,
+    **solver_info,
+) -> tuple[Summary, ElementStrain]:
+    """Summary of a converged solution from the reference mesh and nodal displacement (n_nodes, 3) [mm].
+
+    ``energy_density_mpa`` (n_tets,) strain-energy density per reference volume [MPa]; ``skin_contours_mm``
+    (..., 3) skin contour points of the during scan [mm] (compared with the deformed ``skin`` facets);
+    ``solver_info``: indenter_force_N, n_dofs, increments, newton_iterations, wall_s and any extra
+    diagnostics. Returns the summary and the element strain (for ``result.vtu``).
+    """
+    s = element_strain(mesh, displacement_mm)
+    st = voi_statistics(s.gamma(strain_measure), s.volume_mm3, threshold=threshold, bin_edges=bin_edges,
+                        energy_density_mpa=energy_density_mpa)
+    by = {m: voi_statistics(s.gamma(m), s.volume_mm3, threshold=threshold, bin_edges=bin_edges) for m in STRAIN_MEASURES}
+    skin = {}
+    if skin_contours_mm is not None:
+        verts, tris = deformed_surface(mesh, displacement_mm, facet="skin")
+        mean, p95 = skin_agreement_mm(skin_contours_mm, verts, tris)
+        skin = {"skin_mean_mm": mean, "skin_p95_mm": p95}
+    names = {f.name for f in fields(Summary)}
+    extra = {k: v for k, v in solver_info.items() if k not in names}
+    solver = {k: v for k, v in solver_info.items() if k in names}
+    summary = Summary(
+        animal=animal, variant=variant, converged=True, reason=None, strain_measure=strain_measure,
+        threshold=float(threshold), voi_mm3=st.voi_mm3, bins_percent=st.bins_percent,
+        below_threshold_percent=st.below_threshold_percent, peak_gamma=st.peak_gamma,
+        strain_energy_mJ=st.strain_energy_mJ, n_elements=int(mesh.n_tets),
+        voi_by_measure_mm3={m: b.voi_mm3 for m, b in by.items()},
+        peak_gamma_by_measure={m: b.peak_gamma for m, b in by.items()},
+        **skin, **solver, extra=extra,
+    )
+    return summary, s
+
+
+# --- result.vtu ------------------------------------------------------------------------------------
+
+# VTK's quadratic tetra orders the last two mid-edge nodes (1,3), (2,3); gmsh (2,3), (1,3)
+_GMSH_TO_VTK_TET10 = np.array([0, 1, 2, 3, 4, 5, 6, 7, 9, 8])
+
+
+def write_result_vtu(path: str | Path, mesh: TetMesh, displacement_mm, strain: ElementStrain, *, cell_data: dict | None = None) -> None:
+    """``result.vtu`` for ParaView: reference nodes, point data ``displacement_mm``, cell data
+    ``gamma_gl``, ``gamma_log``, ``volume_mm3``, ``principal_gl`` (n, 3) and any extra ``cell_data``."""
+    import meshio
+
+    cd = {"gamma_gl": strain.gamma_gl, "gamma_log": strain.gamma_log, "volume_mm3": strain.volume_mm3,
+          "principal_gl": strain.principal_gl}
+    cd.update(cell_data or {})
+    m = meshio.Mesh(
+        points=mesh.nodes_mm,
+        cells=[("tetra10", mesh.tets[:, _GMSH_TO_VTK_TET10])],
+        point_data={"displacement_mm": np.asarray(displacement_mm, float)},
+        cell_data={k: [np.asarray(v, float)] for k, v in cd.items()},
+    )
+    with atomic_path(path) as tmp:
+        meshio.write(tmp, m, file_format="vtu")
+
+
+def read_result_vtu(path: str | Path) -> tuple[TetMesh, np.ndarray, dict]:
+    """Inverse of :func:`write_result_vtu`: (reference TetMesh, displacement (n, 3) [mm], cell data)."""
+    import meshio
+
+    try:
+        m = meshio.read(path)
+        tets = m.get_cells_type("tetra10")[:, _GMSH_TO_VTK_TET10]
+        cd = {k: np.asarray(v[0]) for k, v in m.cell_data.items()}
+        u = np.asarray(m.point_data["displacement_mm"], float)
+    except (KeyError, IndexError, ValueError, OSError) as exc:
+        raise ValueError(f"{path}: not a deeptissue result.vtu ({exc})") from exc
+    return TetMesh(nodes_mm=np.asarray(m.points, float), tets=tets.astype(np.int64)), u, cd
+
+
+# --- skin agreement --------------------------------------------------------------------------------
+
+def tri6_to_tri3(facets: np.ndarray) -> np.ndarray:
+    """Split 6-node triangles (gmsh order: corners 0-2, mid-edges (0,1), (1,2), (2,0)) into four flat
+    triangles each, same orientation: (n, 6) -> (4n, 3) node indices."""
+    f = np.asarray(facets)
+    sub = np.array([[0, 3, 5], [3, 1, 4], [5, 4, 2], [3, 4, 5]])
+    return f[:, sub].reshape(-1, 3)
+
+
+def deformed_surface(mesh: TetMesh, displacement_mm, *, facet: str = "skin") -> tuple[np.ndarray, np.ndarray]:
+    """Deformed positions of a named facet set: vertices (n_nodes, 3) [mm] and flat triangles (T, 3)."""
+    if facet not in mesh.facets:
+        raise ValueError(f"mesh has no facet set {facet!r} (has {sorted(mesh.facets)})")
+    return mesh.nodes_mm + np.asarray(displacement_mm, float), tri6_to_tri3(mesh.facets[facet])
+
+
+def point_triangle_distance(p, a, b, c) -> np.ndarray:
+    """Exact Euclidean distance from points ``p`` to triangles ``(a, b, c)`` (all (n, 3)) -> (n,) [mm].
+
+    Closest point by Voronoi regions of the triangle (vertex, edge or face), as in Ericson,
+    *Real-Time Collision Detection*, 5.1.5; degenerate triangles fall back to the nearest edge.
+    """
+    p, a, b, c = (np.asarray(x, float) for x in (p, a, b, c))
+    ab, ac, ap = b - a, c - a, p - a
+    d1, d2 = _dot(ab, ap), _dot(ac, ap)
+    bp = p - b
+    d3, d4 = _dot(ab, bp), _dot(ac, bp)
+    cp = p - c
+    d5, d6 = _dot(ab, cp), _dot(ac, cp)
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    denom = va + vb + vc
+    with np.errstate(divide="ignore", invalid="ignore"):
+        v = vb / denom
+        w = vc / denom
+    q = a + v[:, None] * ab + w[:, None] * ac  # face region
+    face = (va >= 0) & (vb >= 0) & (vc >= 0) & (denom > 0)
+    # outside the face region (or degenerate): nearest of the three edges, which covers vertices too
+    out = ~face
+    if np.any(out):
+        e = np.stack([_seg_dist(p[out], a[out], b[out]), _seg_dist(p[out], b[out], c[out]), _seg_dist(p[out], c[out], a[out])])
+        dist = np.empty(len(p))
+        dist[out] = e.min(axis=0)
+        dist[face] = np.linalg.norm(p[face] - q[face], axis=1)
+        return dist
+    return np.linalg.norm(p - q, axis=1)
+
+
+def _dot(x, y):
+    return np.einsum("ij,ij->i", x, y)
+
+
+def _seg_dist(p, a, b):
+    ab = b - a
+    L2 = _dot(ab, ab)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(L2 > 0, _dot(p - a, ab) / L2, 0.0)
+    t = np.clip(t, 0.0, 1.0)
+    return np.linalg.norm(p - (a + t[:, None] * ab), axis=1)
+
+
+def surface_distance_mm(points_mm, vertices_mm, triangles) -> np.ndarray:
+    """Exact distance from each point (..., 3) to a triangle surface -> (n_points,) [mm].
+
+    Candidates come from a KD-tree on triangle centroids: with ``d0`` the distance to the triangles of
+    the nearest few centroids and ``R`` the largest centroid-to-vertex distance, every triangle closer
+    than ``d0`` has its centroid within ``d0 + R``; all of those are checked exactly.
+    """
+    P = np.asarray(points_mm, float).reshape(-1, 3)
+    V = np.asarray(vertices_mm, float)
+    T = np.asarray(triangles, np.int64)
+    if len(T) == 0:
+        raise ValueError("surface_distance_mm: the surface has no triangles")
+    if len(P) == 0:
+        return np.zeros(0)
+    tri = V[T]  # (T, 3, 3)
+    cen = tri.mean(axis=1)
+    R = float(np.max(np.linalg.norm(tri - cen[:, None], axis=2)))
+    tree = cKDTree(cen)
+    k = min(8, len(T))
+    _, idx = tree.query(P, k=k)
+    idx = idx.reshape(len(P), k)
+    rows = np.repeat(np.arange(len(P)), k)
+    d0 = point_triangle_distance(P[rows], *(tri[idx.ravel(), j] for j in range(3))).reshape(len(P), k).min(axis=1)
+    cand = tree.query_ball_point(P, d0 + R + 1e-9)
+    counts = np.fromiter((len(c) for c in cand), int, len(P))
+    flat = np.fromiter((i for c in cand for i in c), np.int64, counts.sum())
+    rows = np.repeat(np.arange(len(P)), counts)
+    d = point_triangle_distance(P[rows], tri[flat, 0], tri[flat, 1], tri[flat, 2])
+    out = np.full(len(P), np.inf)
+    np.minimum.at(out, rows, d)
+    return np.minimum(out, d0)
+
+
+def skin_agreement_mm(contour_points_mm, vertices_mm, triangles, *, clip_to_surface_z: bool = True) -> tuple[float, float]:
+    """(mean, 95th percentile) distance [mm] from skin contour points (..., 3) to the surface.
+
+    With ``clip_to_surface_z`` only contour points whose z (leg axis) lies within the z range of the
+    surface's triangles count: scan slices beyond the model's ends would otherwise measure the
+    distance to the open rim rather than to the skin.
+    """
+    P = np.asarray(contour_points_mm, float).reshape(-1, 3)
+    if clip_to_surface_z:
+        z = np.asarray(vertices_mm, float)[np.unique(np.asarray(triangles))][:, 2]
+        P = P[(P[:, 2] >= z.min()) & (P[:, 2] <= z.max())]
+    d = surface_distance_mm(P, vertices_mm, triangles)
+    if d.size == 0:
+        raise ValueError("skin agreement: no contour points within the model's z range")
+    return float(d.mean()), float(np.percentile(d, 95))

@@ -1,0 +1,103 @@
+"""Study configs validate against the schema; rule aggregate runs on hand-made summaries."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from deeptissue.config import ConfigError, validate_config
+from deeptissue.pose import Pose, save_pose
+from deeptissue.summary import failed_summary, summarize_solution, write_result_vtu, write_summary
+from study_meshes import box_tet10
+
+ROOT = Path(__file__).resolve().parents[1]
+SCHEMA = ROOT / "workflow" / "schemas" / "config.schema.yaml"
+
+
+def _load(name):
+    return validate_config(yaml.safe_load((ROOT / "config" / name).read_text()), SCHEMA, base_dir=ROOT)
+
+
+def test_paper_config_spans_the_study_variation():
+    c = _load("paper.yaml")
+    assert len(c["animals"]) == 10
+    ph = [a["phantom"] for a in c["animals"].values()]
+    depth = np.array([p["depth_mm"] for p in ph])
+    tilt = np.array([np.hypot(*p["tilt_deg"]) for p in ph])
+    rot = np.array([np.linalg.norm(p["bone_rotation_deg"]) for p in ph])
+    snr = np.array([p["snr"] for p in ph])
+    assert depth.min() == 1.5 and depth.max() == 3.0
+    assert tilt.max() <= 20.0 + 1e-9 and tilt.max() >= 19.0 and tilt.min() == 0.0
+    assert rot.max() <= 3.0 + 1e-9 and rot.max() >= 2.9
+    assert snr.min() == 10 and snr.max() == 30
+    assert len({p["seed"] for p in ph}) == 10
+    assert c["study"]["variants"] == ["sphere", "bar", "sphere_rx+15", "sphere_rx-15", "sphere_rz+15", "sphere_rz-15"]
+
+
+def test_test_config_and_study_defaults():
+    c = _load("test.yaml")
+    assert list(c["animals"]) == ["rat01"] and c["study"]["variants"] == ["sphere", "bar"]
+    assert c["study"]["threshold"] == 0.3
+    assert c["study"]["bin_edges"] == [0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0]
+    assert c["study"]["strain_measure"] == "green_lagrange" and c["study"]["figure_animal"] is None
+    bad = yaml.safe_load((ROOT / "config" / "test.yaml").read_text())
+    bad["study"]["strain_measure"] = "hencky"
+    with pytest.raises(ConfigError, match="study.strain_measure"):
+        validate_config(bad, SCHEMA, base_dir=ROOT)
+
+
+def _snakemake(workdir, *targets_then_options):
+    """snakemake on the test config in ``workdir``; targets must come first (options like
+    --allowed-rules take several values)."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
+    cmd = [sys.executable, "-m", "snakemake", *targets_then_options, "-s", str(ROOT / "Snakefile"),
+           "--directory", str(workdir), "--configfile", str(ROOT / "config" / "test.yaml")]
+    return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+
+
+@pytest.mark.slow
+def test_rule_aggregate_runs_on_hand_made_summaries(tmp_path):
+    """sphere converged, bar failed (its summary says why): the animal is excluded, the study completes,
+    and a second run has nothing to do."""
+    m = box_tet10(np.linspace(-3, 3, 7), np.linspace(0, 5, 6), np.linspace(-3, 3, 7))
+    y = m.nodes_mm[:, 1]
+    for variant, k in [("sphere", 0.9), ("bar", 1.3)]:
+        u = np.column_stack([k * y**2 / 10, 0 * y, 0 * y])
+        s, strain = summarize_solution(m, u, animal="rat01", variant=variant, indenter_force_N=0.1)
+        if variant == "bar":
+            s = failed_summary(animal="rat01", variant="bar", reason="no convergence at 85% depth", increments=9)
+        write_summary(tmp_path / "results" / "rat01" / variant / "summary.json", s)
+        write_result_vtu(tmp_path / "results" / "rat01" / variant / "result.vtu", m, u, strain)
+    save_pose(tmp_path / "results" / "rat01" / "pose.json",
+              Pose(indenter_axis=[0, -1, 0], tip_start_mm=[0, 5, 0], tip_end_mm=[0, 3, 0], depth_mm=2.0,
+                   bone_com_mm=[0, 1, 0], bone_rotation_deg=[0, 0, 0], bone_translation_mm=[0, 0, 0]))
+    targets = ["results/summary/voi.csv", "results/summary/sections.png", "results/summary/orientations.png"]
+    r = _snakemake(tmp_path, *targets, "--cores", "1", "--allowed-rules", "aggregate")
+    assert r.returncode == 0, r.stderr[-3000:]
+    voi = pd.read_csv(tmp_path / "results" / "summary" / "voi.csv")
+    assert list(voi["variant"]) == ["sphere", "bar"] and voi["converged"].tolist() == [True, False]
+    assert voi["excluded"].all()
+    assert voi["exclusion_reason"].iloc[0] == "not converged: bar: no convergence at 85% depth"
+    bins = pd.read_csv(tmp_path / "results" / "summary" / "bins.csv").groupby("variant", sort=False)["percent"]
+    assert bins.sum(min_count=1).round(9).tolist()[0] == 100.0 and bins.count().tolist() == [8, 0]
+    for name in ["bins.csv", "voi.png", "bins.png", "voi_change.png", "sections.png", "orientations.png"]:
+        assert (tmp_path / "results" / "summary" / name).stat().st_size > 0
+    r = _snakemake(tmp_path, *targets, "-n", "--allowed-rules", "aggregate")
+    assert r.returncode == 0 and "Nothing to be done" in r.stdout + r.stderr
+
+
+@pytest.mark.slow
+def test_inconsistent_study_config_is_a_one_line_error(tmp_path):
+    cfg = yaml.safe_load((ROOT / "config" / "test.yaml").read_text())
+    cfg["study"]["threshold"] = 0.25
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump(cfg))
+    env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
+    r = subprocess.run([sys.executable, "-m", "snakemake", "-n", "-s", str(ROOT / "Snakefile"), "--directory", str(tmp_path),
+                        "--configfile", str(tmp_path / "bad.yaml")], env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode != 0
+    assert "config key study.bin_edges: must start at study.threshold (0.25), got 0.3" in r.stderr + r.stdout

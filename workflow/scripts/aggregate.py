@@ -1,0 +1,21 @@
+"""Glue of rule aggregate: every summary.json -> results/summary/ tables and figures."""
+
+import contextlib
+import logging
+
+from deeptissue.report import aggregate_study
+
+with open(snakemake.log[0], "w") as log, contextlib.redirect_stderr(log):
+    logging.basicConfig(stream=log, level=logging.INFO)
+    aggregate_study(
+        summary_paths=list(snakemake.input.summaries),
+        animals=snakemake.params.animals,
+        variants=snakemake.params.variants,
+        outputs={k: snakemake.output[k] for k in snakemake.output.keys()},
+        figure_animal=snakemake.params.figure_animal,
+        figure_results=dict(zip(snakemake.params.section_variants, snakemake.input.results)),
+        pose_path=snakemake.input.pose,
+        strain_measure=snakemake.params.strain_measure,
+        threshold=snakemake.params.threshold,
+        bin_edges=snakemake.params.bin_edges,
+    )
