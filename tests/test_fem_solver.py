@@ -2,9 +2,7 @@
 
 import numpy as np
 import pytest
-from _standin_material import NeoHooke, NeoHookeLaw
-
-from deeptissue.fem.assembly import MaterialLaw
+from deeptissue.fem.assembly import as_material_law
 from deeptissue.fem.cast import Cast
 from deeptissue.fem.contact import ContactSurface
 from deeptissue.fem.indenters import Indenter
@@ -13,7 +11,9 @@ from deeptissue.fem.solver import BoneMotion, SolverSettings, solve_indentation,
 from deeptissue.mesh import TetMesh
 from deeptissue.rigid import apply_rigid
 
-LAW = MaterialLaw(NeoHooke(), NeoHookeLaw.energy, NeoHookeLaw.stress, NeoHookeLaw.stress_tangent)
+from deeptissue.fem.material import Ogden
+
+LAW = as_material_law(Ogden())  # mu = 3.65 kPa, alpha = 5, D = 57 mm^2/N
 
 
 def green_lagrange(F):

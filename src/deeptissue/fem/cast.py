@@ -64,7 +64,8 @@ def closest_point_on_triangles(p, a, b, c):
 class Cast:
     """A rigid triangulated cast. vertices_mm (V, 3), triangles (T, 3) oriented toward the leg."""
 
-    def __init__(self, vertices_mm: np.ndarray, triangles: np.ndarray, *, k_nearest: int = 8):
+    def __init__(self, vertices_mm: np.ndarray, triangles: np.ndarray, *, k_nearest: int = 8, curvature: bool = True):
+        self.curvature = curvature
         self.v = np.asarray(vertices_mm, float)
         self.t = np.asarray(triangles, np.int64)
         if self.v.ndim != 2 or self.v.shape[1] != 3 or self.t.ndim != 2 or self.t.shape[1] != 3 or len(self.t) == 0:
@@ -146,4 +147,4 @@ class Cast:
         vtx = reg >= 4
         on_free[vtx] = self.free_vertex[tri[vtx], reg[vtx] - 4]
         g = np.where(on_free, np.inf, g)
-        return g, nrm, H
+        return g, nrm, (H if self.curvature else None)

@@ -5,10 +5,10 @@ is rigid and given by a gap function ``gap(x) -> (g, n, H)``: signed distance g 
 penetration), outward unit normal n = grad g and its gradient H = grad n [1/mm] (None if flat).
 
 Per quadrature point (a material point of the skin) with multiplier lam [MPa] and penalty eps
-[N/mm^3], the pressure is p = max(0, lam - eps g) and the potential
-``Pi_c = sum_q dA0 (p^2 - lam^2) / (2 eps)`` (integrated over the reference area). Its gradient is
-the contact force ``-sum_q dA0 p n N_a`` and its Hessian the consistent tangent
-``sum_q dA0 N_a N_b (eps [p > 0] n n^T - p H)`` (symmetric). The multipliers are updated
+[N/mm^3], the pressure is p = ramp(lam - eps g) (max(0, .) with its kink rounded over a tiny band)
+and the potential ``Pi_c = sum_q dA0 (psi(lam - eps g) - psi(lam)) / eps`` with psi' = ramp
+(integrated over the reference area). Its gradient is the contact force ``-sum_q dA0 p n N_a`` and
+its Hessian the consistent tangent ``sum_q dA0 N_a N_b (eps ramp' n n^T - p H)`` (symmetric). The multipliers are updated
 lam <- p between Newton solves until the penetration is below a fraction of the facet size.
 """
 
@@ -26,6 +26,23 @@ def tri6_shape(xi: np.ndarray, eta: np.ndarray):
     dxi = np.stack([-(4 * l0 - 1), 4 * xi - 1, 0 * xi, 4 * (l0 - xi), 4 * eta, -4 * eta], -1)
     deta = np.stack([-(4 * l0 - 1), 0 * xi, 4 * eta - 1, -4 * xi, 4 * xi, 4 * (l0 - eta)], -1)
     return N, np.stack([dxi, deta], -1)
+
+
+def _ramp(z, delta):
+    """p = max(0, z) rounded over |z| < delta (C1), its derivative and its integral psi (psi' = p)."""
+    z = np.asarray(z, float)
+    delta = np.broadcast_to(np.asarray(delta, float), z.shape) if np.ndim(delta) else np.full(z.shape, float(delta))
+    if not np.any(delta > 0):
+        p = np.maximum(z, 0.0)
+        return p, (z > 0).astype(float), 0.5 * p * p
+    d = np.maximum(delta, 1e-300)
+    band = np.abs(z) < d
+    hi = z >= d
+    zb = z + d
+    p = np.where(hi, z, np.where(band, zb * zb / (4 * d), 0.0))
+    dp = np.where(hi, 1.0, np.where(band, zb / (2 * d), 0.0))
+    psi = np.where(hi, 0.5 * z * z + d * d / 6.0, np.where(band, zb**3 / (12 * d), 0.0))
+    return p, dp, psi
 
 
 class ContactSurface:
@@ -66,10 +83,16 @@ class ContactSurface:
         g = gapfn(x.reshape(-1, 3))[0]
         return g.reshape(x.shape[:2])
 
-    def evaluate(self, u: np.ndarray, gapfn, eps: np.ndarray, idx: np.ndarray, *, tangent: bool = True):
+    def evaluate(self, u: np.ndarray, gapfn, eps: np.ndarray, idx: np.ndarray, *, tangent: bool = True,
+                 smoothing_mm: float = 0.0, near_mm: float = 0.0):
         """Contact potential, force and tangent of candidate facets idx.
 
-        eps (K,) penalty per facet [N/mm^3]. Returns dict: energy [mJ], force (n_dofs,) [N] (internal
+        eps (K,) penalty per facet [N/mm^3]; smoothing_mm: the kink of p = max(0, z), z = lam - eps g,
+        is rounded to a C1 ramp over |z| < eps * smoothing_mm (a penetration-equivalent width), which
+        keeps Newton from cycling when points enter and leave contact; near_mm: points closer than
+        this (not yet in contact) get the penalty stiffness in the tangent too, so a Newton step does
+        not drive them deep into the master (a stabilised, not exactly consistent tangent: only the
+        search direction changes, the potential and force stay exact). Returns dict: energy [mJ], force (n_dofs,) [N] (internal
         force contribution), traction_sum (3,) [N] (force applied by the master on the skin),
         pressure (K', Q) [MPa], gap (K', Q) [mm], and if tangent: Kf (K', 18, 18) [N/mm] (normal part,
         positive semi-definite), Kf_geo (K', 18, 18) (curvature part -p grad n, absent for flat masters;
@@ -83,16 +106,19 @@ class ContactSurface:
         nrm = nrm.reshape(K, Q, 3)
         lam = self.lam[idx]
         e = eps[idx][:, None]
-        p = np.maximum(0.0, lam - e * g)
+        z = lam - e * g
+        p, dp, psi = _ramp(z, e * smoothing_mm)
+        psi0 = _ramp(lam, e * smoothing_mm)[2]
         dA = self.dA0[idx]
-        energy = float(np.sum(dA * (p * p - lam * lam) / (2.0 * e)))
+        energy = float(np.sum(dA * (psi - psi0) / e))
         t = (dA * p)[..., None] * nrm  # (K, Q, 3) force on the skin
         fe = -np.einsum("qa,kqi->kai", self.N, t).reshape(K, 18)
         force = np.bincount(self.dofs[idx].ravel(), weights=fe.ravel(), minlength=n_dofs)
         out = dict(energy=energy, force=force, traction_sum=t.sum(axis=(0, 1)), pressure=p, gap=g)
         if tangent:
-            act = p > 0
-            kq = (dA * e * act)[..., None, None] * nrm[..., :, None] * nrm[..., None, :]
+            if near_mm is not None and np.any(np.asarray(near_mm) > 0):
+                dp = np.maximum(dp, (g < near_mm).astype(float))
+            kq = (dA * e * dp)[..., None, None] * nrm[..., :, None] * nrm[..., None, :]
             out["Kf"] = np.einsum("qa,qb,kqij->kaibj", self.N, self.N, kq).reshape(K, 18, 18)
             if H is not None:
                 kg = -(dA * p)[..., None, None] * H.reshape(K, Q, 3, 3)

@@ -58,6 +58,9 @@ class SolverSettings:
     penetration_tol: allowed penetration / facet size after the augmented-Lagrangian updates at the
     end of each step (penetration_tol_intermediate inside a step).
     first_touch_mm: at most this much indentation in the increment where contact starts.
+    contact_smoothing_rel: width of the rounded pressure kink as a penetration / facet size.
+    contact_near_rel: points with a gap below this x facet size get penalty stiffness in the Newton
+    matrix (stabilises the active set; used once an increment needs more than easy_iterations).
     candidate_distance_mm: facets within this gap are contact candidates (None: 2 x largest facet size).
     linear_solver: 'pardiso' | 'amg' | 'superlu'.
     """
@@ -78,6 +81,8 @@ class SolverSettings:
     penetration_tol_intermediate: float = 0.05
     max_al_updates: int = 10
     first_touch_mm: float = 0.1
+    contact_smoothing_rel: float = 1e-3
+    contact_near_rel: float = 0.05
     candidate_distance_mm: float | None = None
     linear_solver: str = "pardiso"
     quadrature_order: int = 2
@@ -289,7 +294,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
     solver = make_solver(s.linear_solver, coords_mm=X, free=asm.free)
     timers = dict(assembly=0.0, solve=0.0, contact=0.0)
 
-    def contact_eval(u, tangent):
+    def contact_eval(u, tangent, near=False):
         tc = time.perf_counter()
         energy, force, out = 0.0, np.zeros(asm.n_dofs), []
         data = np.zeros(asm.nnz) if tangent else None
@@ -298,7 +303,9 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
             if len(p.cand) == 0:
                 out.append(None)
                 continue
-            r = p.surf.evaluate(u, p.gapfn, p.eps, p.cand, tangent=tangent)
+            r = p.surf.evaluate(u, p.gapfn, p.eps, p.cand, tangent=tangent,
+                                smoothing_mm=s.contact_smoothing_rel * p.surf.h_mm[p.cand][:, None],
+                                near_mm=(s.contact_near_rel * p.surf.h_mm[p.cand][:, None]) if near else 0.0)
             energy += r["energy"]
             force += r["force"]
             if tangent:
@@ -352,7 +359,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
             timers["assembly"] += time.perf_counter() - ta
             if not np.isfinite(W):
                 return False, "inverted element", it, residuals, None
-            Wc, fc, datac, outs = contact_eval(u, True)
+            Wc, fc, datac, outs = contact_eval(u, True, near=it >= s.easy_iterations)
             r = f + fc
             du_d = np.zeros(asm.n_dofs)
             du_d[constrained] = target_d - u[constrained]
