@@ -80,7 +80,7 @@ class Assembler:
         self.sk = skmesh if skmesh is not None else to_skfem(mesh)
         from .skmesh import reference_jacobians
 
-        bad = np.flatnonzero(np.any(reference_jacobians(mesh, skmesh=self.sk) <= 0, axis=1))
+        bad = np.flatnonzero(np.any(reference_jacobians(mesh, skmesh=self.sk, order=intorder, corners=False) <= 0, axis=1))
         if len(bad):
             raise ValueError(f"mesh: {len(bad)} tetrahedra have a non-positive Jacobian (inverted or too curved), e.g. tet {bad[0]}")
         basis = Basis(self.sk.mesh, ElementTetP2(), intorder=intorder)

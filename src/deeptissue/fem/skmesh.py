@@ -108,13 +108,13 @@ def to_skfem(tm: TetMesh) -> SkMesh:
     return SkMesh(mesh=mesh, tetmesh_node=tetmesh_node, vertex_of_node=vert, facets=facets)
 
 
-def reference_jacobians(tm: TetMesh, *, order: int = 4, skmesh: SkMesh | None = None) -> np.ndarray:
+def reference_jacobians(tm: TetMesh, *, order: int = 4, skmesh: SkMesh | None = None, corners: bool = True) -> np.ndarray:
     """det(dX/dxi) (n_tets, n_points) of the (curved) P2 geometry at the points of a quadrature
-    rule of ``order``: all must be > 0 for a valid mesh."""
+    rule of ``order`` (and at the 4 corners if ``corners``): must be > 0 where the solver integrates."""
     from skfem.quadrature import get_quadrature
     from skfem.refdom import RefTet
 
     sk = skmesh if skmesh is not None else to_skfem(tm)
     xi, _ = get_quadrature(RefTet, order)
-    corners = np.concatenate([xi, np.eye(3), np.zeros((3, 1))], axis=1)
-    return sk.mesh._mapping().detDF(corners)
+    pts = np.concatenate([xi, np.eye(3), np.zeros((3, 1))], axis=1) if corners else xi
+    return sk.mesh._mapping().detDF(pts)

@@ -52,7 +52,9 @@ class SolverSettings:
 
     rtol: residual norm over the free dofs relative to the internal-force norm at the end of each
     step (rtol_intermediate inside a step: the problem is path independent, so only converged end
-    states need full accuracy; set both equal to record accurate curves); atol_mu_rel: absolute
+    states need full accuracy; set both equal to record accurate curves); energy_rtol: alternatively
+    converged when the Newton decrement |r . du| falls below this fraction of the first one of the
+    increment (FEBio-style energy norm; ends stagnation caused by active-set chatter); atol_mu_rel: absolute
     floor, as a fraction of mu * V^(2/3) [N]. Increments are fractions of a load step.
     penalty_factor: penalty = factor * E / h (E small-strain Young's modulus, h facet size).
     penetration_tol: allowed penetration / facet size after the augmented-Lagrangian updates at the
@@ -67,6 +69,8 @@ class SolverSettings:
 
     rtol: float = 1e-7
     rtol_intermediate: float = 1e-5
+    energy_rtol: float = 1e-10
+    energy_rtol_intermediate: float = 1e-7
     atol_mu_rel: float = 1e-10
     max_iterations: int = 14
     easy_iterations: int = 4
@@ -79,7 +83,7 @@ class SolverSettings:
     penalty_factor: float = 30.0
     penetration_tol: float = 0.01
     penetration_tol_intermediate: float = 0.05
-    max_al_updates: int = 10
+    max_al_updates: int = 6
     first_touch_mm: float = 0.1
     contact_smoothing_rel: float = 1e-3
     contact_near_rel: float = 0.05
@@ -350,9 +354,10 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
         timers["contact"] += time.perf_counter() - tc
         return added
 
-    def newton(u, target_d, rtol):
+    def newton(u, target_d, rtol, etol):
         """Iterate on u in place. Returns (ok, reason, iterations, residuals, contact outputs)."""
         residuals = []
+        slope_first, slope_last = None, None
         for it in range(s.max_iterations + 1):
             ta = time.perf_counter()
             W, f, data, Ke_bc = asm.tangent(u)
@@ -371,6 +376,8 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
             if not np.isfinite(res):
                 return False, "non-finite residual", it, residuals, None
             if not has_d and res <= rtol * scale + atol:
+                return True, "", it, residuals, outs
+            if not has_d and slope_first is not None and it >= 2 and abs(slope_last) <= etol * abs(slope_first):
                 return True, "", it, residuals, outs
             if it == s.max_iterations:
                 return False, "too many iterations", it, residuals, None
@@ -393,6 +400,10 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
                 slope = float(r[asm.free] @ x)
                 if has_d or (slope < 0 and getattr(solver, "last_mode", 2) != -2) or not np.any(datac[1]):
                     break
+            if not has_d:
+                slope_last = slope
+                if slope_first is None:
+                    slope_first = slope
             du = du_d.copy()
             du[asm.free] = x
             # line search
@@ -478,13 +489,22 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
             update_candidates(u_try, t1)
             step_end = t1 >= k + 1 - 1e-12
             rtol = s.rtol if step_end else s.rtol_intermediate
+            etol = s.energy_rtol if step_end else s.energy_rtol_intermediate
             pen_tol = s.penetration_tol if step_end else s.penetration_tol_intermediate
             ok, why, iters, al, outs, residuals = False, "", 0, 0, None, []
+            last_good = None  # (u, multipliers, outs) of the last converged solve in this increment
             while True:
-                ok, why, it, res, outs = newton(u_try, target_d, rtol)
+                ok, why, it, res, outs = newton(u_try, target_d, rtol, etol)
                 iters += it
                 residuals += res
                 if not ok:
+                    if last_good is not None:
+                        # the multiplier update did not converge (e.g. a facet coarser than the
+                        # indenter cannot meet every point constraint): keep the converged penalty state
+                        log.warning("AL update %d did not converge (%s): keeping the penalty solution", al, why)
+                        u_try[:] = last_good[0]
+                        _restore_al(pairs, last_good[1])
+                        outs, ok, why = last_good[2], True, ""
                     break
                 if missed_contact(u_try):
                     continue
@@ -494,6 +514,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
                 if al >= s.max_al_updates:
                     log.warning("penetration %.3g x facet size after %d AL updates", pen_rel, al)
                     break
+                last_good = (u_try.copy(), _al_state(pairs), outs)
                 for p, r in zip(pairs, outs):
                     if r is not None:
                         p.surf.lam[p.cand] = r["pressure"]
