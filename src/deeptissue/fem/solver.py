@@ -96,6 +96,16 @@ class SolverSettings:
     cast_set: str = "skin"
 
 
+def solver_settings_from_config(solver_cfg: dict | None) -> SolverSettings:
+    """SolverSettings from the ``fem.solver`` config section (unknown keys raise ValueError)."""
+    cfg = dict(solver_cfg or {})
+    known = set(SolverSettings.__dataclass_fields__)
+    bad = sorted(set(cfg) - known)
+    if bad:
+        raise ValueError(f"fem.solver: unknown keys {bad}")
+    return SolverSettings(**cfg)
+
+
 @dataclass(frozen=True)
 class IncrementRecord:
     step: int  # 1..4: rotation x, y, z, translation + indentation

@@ -148,3 +148,55 @@ def benchmark(material, *, h_mm=1.0, linear_solver="pardiso") -> pd.DataFrame:
         n_free_dofs=r.n_free_dofs, n_tets=len(m.tets), increments=r.increments, newton_iterations=r.newton_iterations,
         wall_s=wall, assembly_s=r.assembly_s, linear_solve_s=r.linear_solve_s, contact_s=r.contact_s,
         other_s=wall - r.assembly_s - r.linear_solve_s - r.contact_s, indenter_force_N=r.indenter_force_N)])
+
+
+def _write_csv(df: pd.DataFrame, path) -> None:
+    from ..io import atomic_path
+
+    with atomic_path(path) as tmp:
+        df.to_csv(tmp, index=False)
+
+
+def write_hertz_verification(material, *, hertz_csv, curve_csv, figure_png, radius_mm=1.5) -> None:
+    """Hertz check (fine mesh, depth <= 0.1 R) and the force-depth curve to 2 R (coarser mesh).
+
+    hertz_csv: depth_mm, force_N, hertz_N, rel_error; curve_csv: the same to depth 2R;
+    figure_png: both against Hertz (log-log inset free: linear axes).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    small = hertz_curve(material, radius_mm=radius_mm, max_depth_mm=0.1 * radius_mm)
+    _write_csv(small, hertz_csv)
+    big = hertz_curve(material, radius_mm=radius_mm, max_depth_mm=2 * radius_mm, h_mm=3.0, h_fine_mm=0.3,
+                      fine_radius_mm=3.0, max_increment=0.05, accurate=False)
+    _write_csv(big, curve_csv)
+    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+    for a, df, title in ((ax[0], small, "depth <= 0.1 R (fine mesh)"), (ax[1], big, "to depth 2 R")):
+        d = np.linspace(0, df.depth_mm.max(), 200)
+        a.plot(d, hertz_force_N(material, radius_mm, d), "k-", label="Hertz (small strain)")
+        a.plot(df.depth_mm, df.force_N, "o", ms=4, label="FE (Ogden)")
+        a.set_xlabel("indentation depth [mm]")
+        a.set_ylabel("force [N]")
+        a.set_title(title)
+        a.legend()
+    fig.tight_layout()
+    from ..io import atomic_path
+
+    with atomic_path(figure_png) as tmp:
+        fig.savefig(tmp, dpi=120)
+    plt.close(fig)
+
+
+def write_case_verification(material, *, checks_csv, hard_csv) -> None:
+    """Patch tests and rigid bone motion (checks_csv), hard convergence cases (hard_csv)."""
+    checks = pd.concat([patch_cases(material), rigid_motion_cases(material)], ignore_index=True)
+    _write_csv(checks, checks_csv)
+    _write_csv(hard_cases(material), hard_csv)
+
+
+def write_benchmark(material, *, benchmark_csv, h_mm=1.0) -> None:
+    """Reference indentation benchmark (one row: DOFs, increments, iterations, time split)."""
+    _write_csv(benchmark(material, h_mm=h_mm), benchmark_csv)
