@@ -83,7 +83,8 @@ class SolverSettings:
     penalty_factor: float = 30.0
     penetration_tol: float = 0.01
     penetration_tol_intermediate: float = 0.05
-    max_al_updates: int = 6
+    max_al_updates: int = 4
+    max_al_iterations: int = 6
     first_touch_mm: float = 0.1
     contact_smoothing_rel: float = 1e-3
     contact_near_rel: float = 0.05
@@ -364,11 +365,11 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
         timers["contact"] += time.perf_counter() - tc
         return added
 
-    def newton(u, target_d, rtol, etol):
+    def newton(u, target_d, rtol, etol, max_it):
         """Iterate on u in place. Returns (ok, reason, iterations, residuals, contact outputs)."""
         residuals = []
         slope_first, slope_last = None, None
-        for it in range(s.max_iterations + 1):
+        for it in range(max_it + 1):
             ta = time.perf_counter()
             W, f, data, Ke_bc = asm.tangent(u)
             timers["assembly"] += time.perf_counter() - ta
@@ -389,7 +390,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
                 return True, "", it, residuals, outs
             if not has_d and slope_first is not None and it >= 2 and abs(slope_last) <= etol * abs(slope_first):
                 return True, "", it, residuals, outs
-            if it == s.max_iterations:
+            if it == max_it:
                 return False, "too many iterations", it, residuals, None
             if len(residuals) > 3 and res > 1e3 * min(residuals):
                 return False, "diverging", it, residuals, None
@@ -439,7 +440,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
                 return False, "line search failed", it, residuals, None
             log.debug("  it %d res %.3e step %.3g slope %.3e", it, res, step, slope)
             u += step * du
-        return False, "too many iterations", s.max_iterations, residuals, None
+        return False, "too many iterations", max_it, residuals, None
 
     def penetration(outs):
         pen_mm, pen_rel = 0.0, 0.0
@@ -504,7 +505,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
             ok, why, iters, al, outs, residuals = False, "", 0, 0, None, []
             last_good = None  # (u, multipliers, outs) of the last converged solve in this increment
             while True:
-                ok, why, it, res, outs = newton(u_try, target_d, rtol, etol)
+                ok, why, it, res, outs = newton(u_try, target_d, rtol, etol, s.max_iterations if al == 0 else s.max_al_iterations)
                 iters += it
                 residuals += res
                 if not ok:
