@@ -113,9 +113,9 @@ def _cylinder_cast(radius, length, n=64, m=16, hole_centre=None, hole_radius=0.0
 
 @pytest.mark.slow
 def test_cast_holds_the_skin_when_the_bone_pushes_outward(limb):
-    # the bone moves 0.6 mm toward +x; a cast of radius 3.2 mm stops the skin on that side
+    # the bone moves 0.45 mm toward +x; a cast of radius 3.2 mm stops the skin on that side
     cast = _cylinder_cast(3.2, 6.0)
-    motion = BoneMotion(translation_mm=(0.6, 0.0, 0.0))
+    motion = BoneMotion(translation_mm=(0.45, 0.0, 0.0))
     r = solve_indentation(limb, material=LAW, indenter=None, bone_motion=motion, cast=cast)
     assert r.converged, r.reason
     x = limb.nodes_mm + r.displacement_mm
@@ -124,7 +124,7 @@ def test_cast_holds_the_skin_when_the_bone_pushes_outward(limb):
     assert radial.max() < 3.2 + 0.01 * 1.2 * 2  # penetration below ~1 % of the facet size (+ facet chord)
     assert r.cast_force_N[0] < 0  # the cast pushes the tissue back toward -x
     free = solve_indentation(limb, material=LAW, indenter=None, bone_motion=motion)
-    assert np.linalg.norm(free.displacement_mm[skin, :2] + limb.nodes_mm[skin, :2], axis=1).max() > 3.45
+    assert np.linalg.norm(free.displacement_mm[skin, :2] + limb.nodes_mm[skin, :2], axis=1).max() > 3.3
 
 
 def test_vtu_output_round_trip(limb, tmp_path):
