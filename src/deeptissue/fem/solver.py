@@ -321,6 +321,8 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
             r = p.surf.evaluate(u, p.gapfn, p.eps, p.cand, tangent=tangent,
                                 smoothing_mm=s.contact_smoothing_rel * p.surf.h_mm[p.cand][:, None],
                                 near_mm=(s.contact_near_rel * p.surf.h_mm[p.cand][:, None]) if near else 0.0)
+            r["h_mm"] = p.surf.h_mm[p.cand]
+            r["cand"] = p.cand.copy()
             energy += r["energy"]
             force += r["force"]
             if tangent:
@@ -451,7 +453,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
             if g.size:
                 pm = np.max(-g, axis=1)
                 pen_mm = max(pen_mm, float(pm.max()))
-                pen_rel = max(pen_rel, float(np.max(pm / p.surf.h_mm[p.cand])))
+                pen_rel = max(pen_rel, float(np.max(pm / r["h_mm"])))
         return pen_mm, pen_rel
 
     def forces(outs):
@@ -528,7 +530,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
                 last_good = (u_try.copy(), _al_state(pairs), outs)
                 for p, r in zip(pairs, outs):
                     if r is not None:
-                        p.surf.lam[p.cand] = r["pressure"]
+                        p.surf.lam[r["cand"]] = r["pressure"]
                 al += 1
             n_iter_total += iters
             ft, fc = forces(outs) if ok else (np.zeros(3), np.zeros(3))
