@@ -115,14 +115,15 @@ def _indent_limb(mesh, material, *, kind="sphere", tilt_deg=0.0, depth_mm=2.0, s
 
 def hard_cases(material) -> pd.DataFrame:
     """Cases that must converge with the default settings (no hand tuning)."""
-    coarse = reference_limb(1.6)
+    # coarse limb (1.6 mm) with 0.5 mm elements where the indenter acts (as the model stage refines the patch)
+    coarse = reference_limb(1.6, fine_h_mm=0.5)
     cases = {
         "sphere to depth 2R (3 mm)": lambda: _indent_limb(coarse, material, depth_mm=3.0),
         "bar tilted 15 deg, 2 mm": lambda: _indent_limb(coarse, material, kind="bar", tilt_deg=15.0),
         "bar tilted 30 deg, 2 mm": lambda: _indent_limb(coarse, material, kind="bar", tilt_deg=30.0),
         "first touch (0.02 mm)": lambda: _indent_limb(coarse, material, depth_mm=0.02),
         "coarse distorted mesh, sphere 2 mm": lambda: _indent_limb(
-            distort_interior(reference_limb(2.2), amount=0.15, seed=3, curved=False), material),
+            distort_interior(reference_limb(2.2, fine_h_mm=0.7), amount=0.15, seed=3, curved=False), material),
         "bone rotation 20 deg + sphere 1.5 mm": lambda: _indent_limb(
             coarse, material, depth_mm=1.5, bone_motion=BoneMotion(rotation_deg=(10.0, 5.0, 15.0), centre_mm=(0, 0, 10.0))),
     }
