@@ -11,6 +11,7 @@ from deeptissue.fem.assembly import Assembler, MaterialLaw, as_material_law
 from deeptissue.fem.material import Ogden
 from deeptissue.fem.shapes import block_mesh, cored_cylinder_mesh
 from deeptissue.fem.skmesh import GMSH_TO_SKFEM_TET10, to_skfem
+from deeptissue.mesh import TetMesh
 
 LAW = as_material_law(Ogden())
 # any law with the CONTRACTS API works: a compressible neo-Hookean (test-only)
@@ -85,3 +86,17 @@ def test_inverted_element_gives_infinite_energy(block):
     u.reshape(-1, 3)[:, 2] = -2.0 * block.nodes_mm[:, 2]  # mirror z: det F < 0
     assert A.energy(u) == np.inf
     assert A.tangent(u)[1] is None
+
+
+def test_folded_curved_tet_is_straightened():
+    from deeptissue.fem.skmesh import reference_jacobians, straighten_invalid
+
+    m = block_mesh((2.0, 2.0, 2.0), h_mm=1.0)
+    p = m.nodes_mm.copy()
+    t = m.tets[0]
+    p[t[4]] = p[t[0]] + 1.5 * (p[t[1]] - p[t[0]])  # mid-node of edge (0, 1) pushed past corner 1: folded
+    bad = TetMesh(nodes_mm=p, tets=m.tets, facets=m.facets)
+    assert np.any(reference_jacobians(bad, order=2) <= 0)
+    fixed, n = straighten_invalid(bad)
+    assert n >= 1 and np.all(reference_jacobians(fixed, order=2) > 0)
+    np.testing.assert_allclose(fixed.nodes_mm[t[4]], 0.5 * (p[t[0]] + p[t[1]]))

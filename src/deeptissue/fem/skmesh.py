@@ -118,3 +118,21 @@ def reference_jacobians(tm: TetMesh, *, order: int = 4, skmesh: SkMesh | None = 
     xi, _ = get_quadrature(RefTet, order)
     pts = np.concatenate([xi, np.eye(3), np.zeros((3, 1))], axis=1) if corners else xi
     return sk.mesh._mapping().detDF(pts)
+
+
+def straighten_invalid(tm: TetMesh, *, order: int = 2, max_rounds: int = 5) -> tuple[TetMesh, int]:
+    """Move the mid-nodes of tets whose P2 Jacobian is <= 0 at a quadrature point (of ``order``) or
+    at a corner onto their straight edges (gmsh's curved boundary elements can fold near tight
+    curvature). Returns (mesh, number of tets straightened); the mesh is unchanged if none."""
+    nodes = tm.nodes_mm.copy()
+    fixed = np.zeros(len(tm.tets), bool)
+    for _ in range(max_rounds):
+        cur = TetMesh(nodes_mm=nodes, tets=tm.tets, facets=tm.facets)
+        bad = np.any(reference_jacobians(cur, order=order) <= 0, axis=1)
+        if not np.any(bad):
+            return cur, int(fixed.sum())
+        fixed |= bad
+        t = tm.tets[bad]
+        for k, (a, b) in enumerate(GMSH_TET_EDGES):
+            nodes[t[:, 4 + k]] = 0.5 * (nodes[t[:, a]] + nodes[t[:, b]])
+    raise ValueError(f"mesh: {int(bad.sum())} tetrahedra stay inverted after straightening their edges")

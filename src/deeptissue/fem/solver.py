@@ -279,6 +279,11 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
         if need and (name not in mesh.facets or len(mesh.facets[name]) == 0):
             raise ValueError(f"solve_indentation: mesh has no facet set {name!r} (sets: {sorted(mesh.facets)})")
     law = as_material_law(material)
+    from .skmesh import straighten_invalid
+
+    mesh, n_straightened = straighten_invalid(mesh, order=s.quadrature_order)
+    if n_straightened:
+        log.warning("straightened the edges of %d curved tets with a non-positive Jacobian", n_straightened)
     X = mesh.nodes_mm
     n_nodes = len(X)
     bone_nodes = np.unique(np.concatenate([mesh.facets[b].ravel() for b in bc_sets]))
@@ -572,5 +577,5 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
         max_penetration_mm=pm, max_penetration_rel=pr, strain_energy_mJ=float(W), n_dofs=asm.n_dofs,
         n_free_dofs=asm.n_free, increments=sum(1 for h in history if h.converged), newton_iterations=n_iter_total,
         load_reached=t, wall_s=wall, assembly_s=timers["assembly"], linear_solve_s=timers["solve"],
-        contact_s=timers["contact"],
+        contact_s=timers["contact"], extra={"straightened_tets": n_straightened},
     )
