@@ -1,1 +1,57 @@
-# Rules of the fem stage.
+# Rules of the fem stage: verification and benchmark of the FE core (target `verify`, not part of `all`).
+
+
+rule verify_hertz:
+    output:
+        hertz="results/verification/hertz.csv",
+        curve="results/verification/hertz_curve.csv",
+        figure=report(
+            "results/verification/hertz.png",
+            caption="../report/hertz.rst",
+            category="Verification",
+            subcategory="solver",
+        ),
+    params:
+        material=config["fem"]["material"],
+    log:
+        "results/logs/verify_hertz.log",
+    conda:
+        "../envs/deeptissue.yaml"
+    script:
+        "../scripts/verify_fem_hertz.py"
+
+
+rule verify_fem_cases:
+    output:
+        checks="results/verification/fem_checks.csv",
+        hard="results/verification/hard_cases.csv",
+    params:
+        material=config["fem"]["material"],
+    log:
+        "results/logs/verify_fem_cases.log",
+    conda:
+        "../envs/deeptissue.yaml"
+    script:
+        "../scripts/verify_fem_cases.py"
+
+
+rule verify_fem_benchmark:
+    output:
+        benchmark="results/verification/benchmark.csv",
+    params:
+        material=config["fem"]["material"],
+    log:
+        "results/logs/verify_fem_benchmark.log",
+    threads: 2
+    conda:
+        "../envs/deeptissue.yaml"
+    script:
+        "../scripts/verify_fem_benchmark.py"
+
+
+rule verify:
+    input:
+        rules.verify_material.output,
+        rules.verify_hertz.output,
+        rules.verify_fem_cases.output,
+        rules.verify_fem_benchmark.output,

@@ -1,0 +1,206 @@
+"""Vectorised assembly of the hyperelastic internal force, tangent and energy on P2 tetrahedra.
+
+scikit-fem supplies the mesh, the P2 basis and the quadrature (shape-function gradients in the
+reference configuration at every quadrature point of every element); the hot loop is ours:
+``einsum`` over all elements x quadrature points, a sparsity pattern computed once and a
+``bincount`` scatter into CSR data.
+
+Degrees of freedom: ``3 * node + component`` in TetMesh node numbering (node order of
+``TetMesh.nodes_mm``), displacements in mm, forces in N, energy in mJ (N mm).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+import scipy.sparse as sp
+from skfem import Basis, ElementTetP2
+
+from ..mesh import TetMesh
+from .skmesh import SkMesh, to_skfem
+
+
+@dataclass(frozen=True)
+class MaterialLaw:
+    """A hyperelastic law as three vectorised functions of (F, params) (API of CONTRACTS 'Material').
+
+    energy(F, params) -> W (...) [MPa]; stress(F, params) -> P (..., 3, 3) [MPa];
+    stress_tangent(F, params) -> (W, P, A) with A (..., 3, 3, 3, 3) = dP_iJ/dF_kL [MPa].
+    params must have ``mu_mpa`` and ``bulk_mpa`` (small-strain moduli, used for penalty scaling).
+    """
+
+    params: Any
+    energy: Callable
+    stress: Callable
+    stress_tangent: Callable
+
+    @property
+    def mu_mpa(self) -> float:
+        return float(self.params.mu_mpa)
+
+    @property
+    def bulk_mpa(self) -> float:
+        return float(self.params.bulk_mpa)
+
+    @property
+    def young_mpa(self) -> float:
+        """Small-strain Young's modulus E = 9 K mu / (3 K + mu) [MPa]."""
+        K, mu = self.bulk_mpa, self.mu_mpa
+        return 9.0 * K * mu / (3.0 * K + mu)
+
+
+def as_material_law(material) -> MaterialLaw:
+    """A MaterialLaw as is, or an Ogden parameter set bound to deeptissue.fem.material's functions."""
+    if isinstance(material, MaterialLaw):
+        return material
+    from . import material as ogden_module  # the Ogden law (fem-material branch)
+
+    return MaterialLaw(
+        params=material,
+        energy=ogden_module.ogden_energy,
+        stress=ogden_module.ogden_stress,
+        stress_tangent=ogden_module.ogden_stress_tangent,
+    )
+
+
+class Assembler:
+    """Internal force, tangent and strain energy of a TetMesh (P2, total Lagrangian).
+
+    constrained: boolean (n_dofs,) mask of Dirichlet dofs; the tangent is assembled only on the
+    free dofs (upper triangle, CSR, for a symmetric solver), and the coupling free x constrained
+    is kept per element for the Dirichlet predictor.
+    """
+
+    def __init__(self, mesh: TetMesh, law: MaterialLaw, *, constrained: np.ndarray | None = None, intorder: int = 2,
+                 skmesh: SkMesh | None = None):
+        self.tetmesh = mesh
+        self.law = law
+        self.sk = skmesh if skmesh is not None else to_skfem(mesh)
+        from .skmesh import reference_jacobians
+
+        bad = np.flatnonzero(np.any(reference_jacobians(mesh, skmesh=self.sk, order=intorder, corners=False) <= 0, axis=1))
+        if len(bad):
+            raise ValueError(f"mesh: {len(bad)} tetrahedra have a non-positive Jacobian (inverted or too curved), e.g. tet {bad[0]}")
+        basis = Basis(self.sk.mesh, ElementTetP2(), intorder=intorder)
+        # (E, Q, 10, 3) reference gradients, (E, Q) weights [mm^3]
+        self.dN = np.ascontiguousarray(np.stack([basis.basis[a][0].grad for a in range(10)], axis=0).transpose(2, 3, 0, 1))
+        self.w = np.ascontiguousarray(basis.dx)
+        self.conn = self.sk.element_nodes()  # (E, 10) TetMesh nodes
+        self.n_nodes = len(mesh.nodes_mm)
+        self.n_dofs = 3 * self.n_nodes
+        self.edofs = (3 * self.conn[:, :, None] + np.arange(3)).reshape(len(self.conn), 30)
+        self.volume_mm3 = float(self.w.sum())
+        self.set_constrained(np.zeros(self.n_dofs, bool) if constrained is None else constrained)
+
+    # ---------------------------------------------------------------- sparsity pattern
+    def set_constrained(self, constrained: np.ndarray) -> None:
+        constrained = np.asarray(constrained, bool)
+        self.constrained = constrained
+        self.free = np.flatnonzero(~constrained)
+        self.n_free = len(self.free)
+        fidx = np.full(self.n_dofs, -1, dtype=np.int64)
+        fidx[self.free] = np.arange(self.n_free)
+        self.fidx = fidx
+        ef = fidx[self.edofs]  # (E, 30)
+        r = np.repeat(ef, 30, axis=1)
+        c = np.tile(ef, (1, 30))
+        valid = (r >= 0) & (c >= 0) & (r <= c)
+        keys = r[valid] * self.n_free + c[valid]
+        ukeys, inv = np.unique(keys, return_inverse=True)
+        self._keys = ukeys
+        self._valid = valid.ravel()
+        self._map = inv.ravel()
+        rows = ukeys // self.n_free
+        self.indices = (ukeys % self.n_free).astype(np.int32)
+        self.indptr = np.zeros(self.n_free + 1, dtype=np.int32)
+        np.cumsum(np.bincount(rows, minlength=self.n_free), out=self.indptr[1:])
+        self.nnz = len(ukeys)
+        # elements touching constrained dofs (for the Dirichlet predictor)
+        self.bc_elems = np.flatnonzero(np.any(constrained[self.edofs], axis=1))
+
+    def pattern_index(self, rows_free: np.ndarray, cols_free: np.ndarray) -> np.ndarray:
+        """CSR data positions of free-dof pairs (upper triangle is taken); -1 where not stored."""
+        r, c = np.minimum(rows_free, cols_free), np.maximum(rows_free, cols_free)
+        ok = (r >= 0) & (c >= 0)
+        k = np.where(ok, r * self.n_free + c, 0)
+        p = np.searchsorted(self._keys, k)
+        p = np.minimum(p, len(self._keys) - 1)
+        good = ok & (self._keys[p] == k)
+        return np.where(good, p, -1)
+
+    def csr(self, data: np.ndarray) -> sp.csr_matrix:
+        """Upper-triangular CSR matrix of the free dofs from pattern data (nnz,)."""
+        return sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n_free, self.n_free))
+
+    # ---------------------------------------------------------------- kinematics
+    def deformation_gradient(self, u: np.ndarray) -> np.ndarray:
+        """F (E, Q, 3, 3) at the quadrature points for the nodal displacement u (n_dofs,) [mm]."""
+        ue = u.reshape(-1, 3)[self.conn]  # (E, 10, 3)
+        F = np.einsum("eai,eqaJ->eqiJ", ue, self.dN, optimize=True)
+        F += np.eye(3)
+        return F
+
+    def energy(self, u: np.ndarray) -> float:
+        """Total strain energy [mJ]; +inf if det F <= 0 at any quadrature point."""
+        F = self.deformation_gradient(u)
+        if np.any(np.linalg.det(F) <= 0):
+            return np.inf
+        W = self.law.energy(F, self.law.params)
+        return float(np.sum(W * self.w))
+
+    def force(self, u: np.ndarray):
+        """(energy [mJ], internal force (n_dofs,) [N]); energy inf and force None if inverted."""
+        F = self.deformation_gradient(u)
+        if np.any(np.linalg.det(F) <= 0):
+            return np.inf, None
+        W = self.law.energy(F, self.law.params)
+        P = self.law.stress(F, self.law.params)
+        fe = np.einsum("eqiJ,eqaJ->eai", P * self.w[..., None, None], self.dN, optimize=True)
+        f = np.bincount(self.edofs.ravel(), weights=fe.ravel(), minlength=self.n_dofs)
+        return float(np.sum(W * self.w)), f
+
+    def tangent(self, u: np.ndarray):
+        """Energy, internal force and tangent at u.
+
+        Returns (energy [mJ], f (n_dofs,) [N], data (nnz,) upper-triangle CSR data of K_ff [N/mm],
+        Ke_bc (n_bc_elems, 30, 30) element matrices of elements touching constrained dofs) or
+        (inf, None, None, None) if det F <= 0 somewhere.
+        """
+        F = self.deformation_gradient(u)
+        if np.any(np.linalg.det(F) <= 0):
+            return np.inf, None, None, None
+        W, P, A = self.law.stress_tangent(F, self.law.params)
+        w = self.w
+        fe = np.einsum("eqiJ,eqaJ->eai", P * w[..., None, None], self.dN, optimize=True)
+        f = np.bincount(self.edofs.ravel(), weights=fe.ravel(), minlength=self.n_dofs)
+        Ke = self.element_matrices(A)
+        data = np.bincount(self._map, weights=Ke.reshape(-1)[self._valid], minlength=self.nnz)
+        return float(np.sum(W * w)), f, data, Ke[self.bc_elems]
+
+    def element_matrices(self, A: np.ndarray) -> np.ndarray:
+        """Ke (E, 30, 30) = sum_q w dN_aJ A_iJkL dN_bL, dofs ordered (node a, component i)."""
+        E, Q = self.w.shape
+        Aw = A * self.w[:, :, None, None, None, None]
+        # step 1: T[e,q,i,J,k,b] = sum_L A[e,q,i,J,k,L] dN[e,q,b,L]
+        T = np.matmul(Aw.reshape(E, Q, 27, 3), np.swapaxes(self.dN, -1, -2))  # (E,Q,27,10) = [iJk, b]
+        T = T.reshape(E, Q, 3, 3, 3, 10)
+        # step 2: K[e,a,i,b,k] = sum_q sum_J dN[e,q,a,J] T[e,q,i,J,k,b]
+        T2 = T.transpose(0, 1, 3, 2, 5, 4).reshape(E, Q, 3, 90)  # [J, (i, b, k)]
+        K = np.zeros((E, 10, 90))
+        for q in range(Q):
+            K += np.matmul(self.dN[:, q], T2[:, q])
+        return K.reshape(E, 10, 3, 10, 3).reshape(E, 30, 30)
+
+    def full_matrix(self, data: np.ndarray) -> sp.csr_matrix:
+        """Symmetric full K_ff from upper-triangle data (for tests and matvecs)."""
+        U = self.csr(data)
+        return (U + sp.triu(U, 1).T).tocsr()
+
+    def bc_force(self, Ke_bc: np.ndarray, du: np.ndarray) -> np.ndarray:
+        """K_fd du_d as a (n_dofs,) vector: the element matrices times du restricted to constrained dofs."""
+        ed = self.edofs[self.bc_elems]
+        due = np.where(self.constrained[ed], du[ed], 0.0)
+        fe = np.einsum("eab,eb->ea", Ke_bc, due)
+        return np.bincount(ed.ravel(), weights=fe.ravel(), minlength=self.n_dofs)

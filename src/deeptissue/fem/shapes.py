@@ -1,0 +1,136 @@
+"""Simple gmsh test geometries (blocks, cored cylinders) as TetMesh, for verification and benchmarks."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..mesh import TetMesh, extract_tet10
+
+
+def _start(name: str):
+    import gmsh
+
+    gmsh.initialize(interruptible=False)
+    gmsh.option.setNumber("General.Terminal", 0)
+    gmsh.option.setNumber("General.NumThreads", 1)
+    gmsh.model.add(name)
+    return gmsh
+
+
+def _size_field(gmsh, h_mm, refine_point_mm, refine_h_mm, refine_radius_mm):
+    if refine_point_mm is None:
+        gmsh.option.setNumber("Mesh.MeshSizeMax", h_mm)
+        gmsh.option.setNumber("Mesh.MeshSizeMin", 0.2 * h_mm)
+        return
+    x, y, z = refine_point_mm
+    f = gmsh.model.mesh.field.add("MathEval")
+    r = f"Sqrt((x-{x})^2+(y-{y})^2+(z-{z})^2)"
+    gmsh.model.mesh.field.setString(
+        f, "F", f"Min({h_mm}, {refine_h_mm} + ({h_mm} - {refine_h_mm}) * Max(0, {r} - {refine_radius_mm}) / {refine_radius_mm})"
+    )
+    gmsh.model.mesh.field.setAsBackgroundMesh(f)
+    for k in ("MeshSizeExtendFromBoundary", "MeshSizeFromPoints", "MeshSizeFromCurvature"):
+        gmsh.option.setNumber(f"Mesh.{k}", 0)
+
+
+def _finish(gmsh, order: int = 2) -> TetMesh:
+    gmsh.model.mesh.generate(3)
+    gmsh.model.mesh.setOrder(order)
+    return extract_tet10()
+
+
+def block_mesh(size_mm=(10.0, 10.0, 5.0), *, h_mm=1.0, refine_point_mm=None, refine_h_mm=None,
+               refine_radius_mm=None) -> TetMesh:
+    """A box [0, lx] x [0, ly] x [0, lz] meshed with quadratic tets.
+
+    Facet sets: xmin, xmax, ymin, ymax, bottom (z = 0), top (z = lz). Optional local refinement to
+    ``refine_h_mm`` within ``refine_radius_mm`` of ``refine_point_mm`` growing linearly to ``h_mm``.
+    """
+    gmsh = _start("block")
+    try:
+        lx, ly, lz = size_mm
+        gmsh.model.occ.addBox(0, 0, 0, lx, ly, lz)
+        gmsh.model.occ.synchronize()
+        gmsh.model.addPhysicalGroup(3, [1], name="tissue")
+        names = {}
+        for _, t in gmsh.model.getEntities(2):
+            c = gmsh.model.occ.getCenterOfMass(2, t)
+            for k, (lo, hi, nlo, nhi) in enumerate([(0, lx, "xmin", "xmax"), (0, ly, "ymin", "ymax"), (0, lz, "bottom", "top")]):
+                if abs(c[k] - lo) < 1e-9:
+                    names[nlo] = t
+                elif abs(c[k] - hi) < 1e-9:
+                    names[nhi] = t
+        for n, t in names.items():
+            gmsh.model.addPhysicalGroup(2, [t], name=n)
+        _size_field(gmsh, h_mm, refine_point_mm, refine_h_mm, refine_radius_mm)
+        return _finish(gmsh)
+    finally:
+        gmsh.finalize()
+
+
+def cored_cylinder_mesh(*, length_mm=20.0, radius_mm=5.0, core_radius_mm=1.0, h_mm=1.0, refine_point_mm=None,
+                        refine_h_mm=None, refine_radius_mm=None) -> TetMesh:
+    """A cylinder along z (0..length) of ``radius_mm`` around a rigid core hole of ``core_radius_mm``.
+
+    Facet sets: bone (core surface), skin (outer surface), distal (z = 0), proximal (z = length),
+    patch (= skin).
+    """
+    gmsh = _start("cyl")
+    try:
+        outer = gmsh.model.occ.addCylinder(0, 0, 0, 0, 0, length_mm, radius_mm)
+        inner = gmsh.model.occ.addCylinder(0, 0, 0, 0, 0, length_mm, core_radius_mm)
+        gmsh.model.occ.cut([(3, outer)], [(3, inner)])
+        gmsh.model.occ.synchronize()
+        vols = [t for _, t in gmsh.model.getEntities(3)]
+        gmsh.model.addPhysicalGroup(3, vols, name="tissue")
+        groups = {"bone": [], "skin": [], "distal": [], "proximal": []}
+        for _, t in gmsh.model.getEntities(2):
+            c = gmsh.model.occ.getCenterOfMass(2, t)
+            if abs(c[2]) < 1e-6:
+                groups["distal"].append(t)
+            elif abs(c[2] - length_mm) < 1e-6:
+                groups["proximal"].append(t)
+            else:
+                bb = gmsh.model.getBoundingBox(2, t)
+                groups["bone" if bb[3] < radius_mm * 0.5 + core_radius_mm * 0.5 else "skin"].append(t)
+        for n, ts in groups.items():
+            gmsh.model.addPhysicalGroup(2, ts, name=n)
+        gmsh.model.addPhysicalGroup(2, groups["skin"], name="patch")
+        _size_field(gmsh, h_mm, refine_point_mm, refine_h_mm, refine_radius_mm)
+        return _finish(gmsh)
+    finally:
+        gmsh.finalize()
+
+
+def distort_interior(mesh: TetMesh, *, amount=0.25, seed=0, keep_sets=None, curved=True) -> TetMesh:
+    """Move interior corner nodes randomly by up to ``amount`` x local edge length, and every
+    interior mid-node off its straight edge if ``curved``; boundary nodes stay. For patch tests."""
+    rng = np.random.default_rng(seed)
+    p = mesh.nodes_mm.copy()
+    boundary = np.zeros(len(p), bool)
+    for name, f in mesh.facets.items():
+        if keep_sets is None or name in keep_sets:
+            boundary[f.ravel()] = True
+    t = mesh.tets
+    edge_len = np.linalg.norm(p[t[:, 1]] - p[t[:, 0]], axis=1)
+    h = np.zeros(len(p))
+    np.maximum.at(h, t[:, :4].ravel(), np.repeat(edge_len, 4))
+    corner = np.zeros(len(p), bool)
+    corner[t[:, :4].ravel()] = True
+    move = corner & ~boundary
+    p[move] += amount * h[move, None] * rng.uniform(-1, 1, (move.sum(), 3)) / np.sqrt(3)
+    # mid-nodes: midpoint of the (moved) corners plus a bump for interior edges
+    edges = [(0, 1), (1, 2), (0, 2), (0, 3), (2, 3), (1, 3)]
+    for k, (a, b) in enumerate(edges):
+        m = t[:, 4 + k]
+        p[m] = 0.5 * (p[t[:, a]] + p[t[:, b]])
+    mids = np.unique(t[:, 4:])
+    mids = mids[~boundary[mids]]
+    bump = (0.02 if curved else 0.0) * np.median(edge_len) * rng.uniform(-1, 1, (len(mids), 3))
+    p[mids] += bump
+    out = TetMesh(nodes_mm=p, tets=mesh.tets, facets=mesh.facets)
+    from .skmesh import reference_jacobians
+
+    if np.any(out.volumes_mm3() <= 0) or np.any(reference_jacobians(out) <= 0):
+        raise ValueError("distort_interior: distortion inverted a tetrahedron; use a smaller amount")
+    return out

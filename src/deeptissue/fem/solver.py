@@ -1,0 +1,581 @@
+"""Quasi-static indentation of a hyperelastic limb: rigid bone motion, rigid indenter and cast contact.
+
+Entry point: :func:`solve_indentation`. Load parameter t runs through four steps of one unit each:
+rotation of the bone about world x (t in [0, 1]), y ([1, 2]), z ([2, 3]) by the Euler angles of
+``bone_motion.rotation_deg`` (deeptissue.rigid.euler_xyz_deg, so the bone ends exactly at R), then
+([3, 4]) the translation together with the indenter travel from ``start_mm`` to ``end_mm``.
+Steps that do nothing are skipped. Bone facet nodes follow the rigid motion (Dirichlet on all their
+dofs); the limb ends are free.
+
+Each increment is solved by Newton's method on the total potential (strain energy + contact
+potential) with the consistent tangent, a Dirichlet predictor, a backtracking line search on the
+potential, and augmented-Lagrangian updates of the contact pressures until the penetration is
+below ``penetration_tol`` x facet size. Increments are cut back on divergence, inverted elements
+(det F <= 0 at a quadrature point) or too many iterations, and grow after easy increments.
+Units: mm, N, MPa, mJ, s.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..mesh import TetMesh
+from ..rigid import euler_xyz_deg
+from .assembly import Assembler, as_material_law
+from .cast import Cast
+from .contact import ContactSurface
+from .indenters import Indenter
+from .linsolve import make_solver
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class BoneMotion:
+    """Rigid motion of the bone, pre -> during: x' = R (x - centre) + centre + translation.
+
+    rotation_deg: (3,) rotation vector [deg]; centre_mm: (3,) [mm]; translation_mm: (3,) [mm].
+    """
+
+    rotation_deg: tuple = (0.0, 0.0, 0.0)
+    centre_mm: tuple = (0.0, 0.0, 0.0)
+    translation_mm: tuple = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class SolverSettings:
+    """Newton, increment and contact settings (defaults are meant to work without tuning).
+
+    rtol: residual norm over the free dofs relative to the internal-force norm at the end of each
+    step (rtol_intermediate inside a step: the problem is path independent, so only converged end
+    states need full accuracy; set both equal to record accurate curves); energy_rtol: alternatively
+    converged when the Newton decrement |r . du| falls below this fraction of the first one of the
+    increment (FEBio-style energy norm; ends stagnation caused by active-set chatter); atol_mu_rel: absolute
+    floor, as a fraction of mu * V^(2/3) [N]. Increments are fractions of a load step.
+    penalty_factor: penalty = factor * E / h (E small-strain Young's modulus, h facet size).
+    penetration_tol: allowed penetration / facet size after the augmented-Lagrangian updates at the
+    end of each step (penetration_tol_intermediate inside a step).
+    first_touch_mm: at most this much indentation in the increment where contact starts.
+    contact_smoothing_rel: width of the rounded pressure kink as a penetration / facet size.
+    contact_near_rel: points with a gap below this x facet size get penalty stiffness in the Newton
+    matrix (stabilises the active set; used once an increment needs more than easy_iterations).
+    candidate_distance_mm: facets within this gap are contact candidates (None: 2 x largest facet size).
+    linear_solver: 'pardiso' | 'amg' | 'superlu'.
+    """
+
+    rtol: float = 1e-7
+    rtol_intermediate: float = 1e-5
+    energy_rtol: float = 1e-10
+    energy_rtol_intermediate: float = 1e-7
+    atol_mu_rel: float = 1e-10
+    max_iterations: int = 14
+    easy_iterations: int = 4
+    initial_increment: float = 0.25
+    min_increment: float = 1e-4
+    max_increment: float = 1.0
+    grow_factor: float = 1.6
+    cut_factor: float = 0.35
+    max_increments: int = 400
+    penalty_factor: float = 30.0
+    penetration_tol: float = 0.01
+    penetration_tol_intermediate: float = 0.05
+    max_al_updates: int = 4
+    max_al_iterations: int = 6
+    first_touch_mm: float = 0.1
+    contact_smoothing_rel: float = 1e-3
+    contact_near_rel: float = 0.05
+    candidate_distance_mm: float | None = None
+    linear_solver: str = "pardiso"
+    quadrature_order: int = 2
+    contact_quadrature_order: int = 4
+    bone_set: str = "bone"
+    indenter_set: str = "patch"
+    cast_set: str = "skin"
+
+
+def solver_settings_from_config(solver_cfg: dict | None) -> SolverSettings:
+    """SolverSettings from the ``fem.solver`` config section (unknown keys raise ValueError)."""
+    cfg = dict(solver_cfg or {})
+    known = set(SolverSettings.__dataclass_fields__)
+    bad = sorted(set(cfg) - known)
+    if bad:
+        raise ValueError(f"fem.solver: unknown keys {bad}")
+    return SolverSettings(**cfg)
+
+
+@dataclass(frozen=True)
+class IncrementRecord:
+    step: int  # 1..4: rotation x, y, z, translation + indentation
+    t_start: float
+    t_end: float
+    converged: bool
+    reason: str  # "" if converged, else why it was cut
+    iterations: int
+    al_updates: int
+    residuals: tuple  # residual norms [N] of the Newton iterations
+    tip_mm: tuple
+    indenter_force_N: float
+    max_penetration_mm: float
+    assembly_s: float
+    linear_solve_s: float
+    contact_s: float
+
+
+@dataclass(frozen=True)
+class SolveResult:
+    """Result of :func:`solve_indentation`.
+
+    displacement_mm (n_nodes, 3) in TetMesh node order; deformation_gradient (n_tets, 3, 3)
+    volume-averaged per element; indenter_force_N: force the indenter applies to the tissue
+    projected on the indenter axis (positive = pressing in) [N]; force_on_tissue_N (3,) that force as
+    a vector; cast_force_N (3,) total force of the cast on the tissue; max_penetration_mm /
+    max_penetration_rel: largest penetration at a contact quadrature point [mm] / over facet size.
+    load_reached: load parameter reached (4 = done). Times in s: wall, assembly (material),
+    linear_solve, contact.
+    """
+
+    converged: bool
+    reason: str
+    displacement_mm: np.ndarray
+    deformation_gradient: np.ndarray
+    history: tuple
+    indenter_force_N: float
+    force_on_tissue_N: np.ndarray
+    cast_force_N: np.ndarray
+    max_penetration_mm: float
+    max_penetration_rel: float
+    strain_energy_mJ: float
+    n_dofs: int
+    n_free_dofs: int
+    increments: int
+    newton_iterations: int
+    load_reached: float
+    wall_s: float
+    assembly_s: float
+    linear_solve_s: float
+    contact_s: float
+    extra: dict = field(default_factory=dict)
+
+
+class _Schedule:
+    def __init__(self, bone_motion: BoneMotion, indenter: Indenter | None):
+        self.c = np.asarray(bone_motion.centre_mm, float)
+        self.T = np.asarray(bone_motion.translation_mm, float)
+        self.ang = np.radians(euler_xyz_deg(bone_motion.rotation_deg))
+        self.ind = indenter
+
+    @staticmethod
+    def _rot(axis, a):
+        c, s = np.cos(a), np.sin(a)
+        i, j = [(1, 2), (2, 0), (0, 1)][axis]
+        R = np.eye(3)
+        R[i, i] = R[j, j] = c
+        R[i, j], R[j, i] = -s, s
+        return R
+
+    def rotation(self, t):
+        R = np.eye(3)
+        for k in range(3):
+            R = self._rot(k, self.ang[k] * np.clip(t - k, 0.0, 1.0)) @ R
+        return R
+
+    def bone(self, X, t):
+        return (X - self.c) @ self.rotation(t).T + self.c + np.clip(t - 3.0, 0.0, 1.0) * self.T
+
+    def tip(self, t):
+        return None if self.ind is None else self.ind.tip_at(float(np.clip(t - 3.0, 0.0, 1.0)))
+
+    def predict(self, X, x, t0, t1):
+        """Move the whole current configuration x (n, 3) by the bone's rigid increment t0 -> t1."""
+        R = self.rotation(t1) @ self.rotation(t0).T
+        T0 = np.clip(t0 - 3.0, 0.0, 1.0) * self.T
+        T1 = np.clip(t1 - 3.0, 0.0, 1.0) * self.T
+        return (x - self.c - T0) @ R.T + self.c + T1
+
+    def active_steps(self):
+        steps = [k for k in range(3) if abs(self.ang[k]) > 0]
+        return steps + [3]
+
+
+class _Pair:
+    """A contact pair: skin facets (slave) against a rigid gap function."""
+
+    def __init__(self, name, surf: ContactSurface, gap_of_t, eps, asm: Assembler):
+        self.name, self.surf, self.gap_of_t, self.eps = name, surf, gap_of_t, eps
+        fr = asm.fidx[surf.dofs]  # (K, 18)
+        rr = np.repeat(fr[:, :, None], 18, axis=2)
+        cc = np.repeat(fr[:, None, :], 18, axis=1)
+        pos = asm.pattern_index(rr, cc)
+        pos[(rr > cc) | (rr < 0) | (cc < 0)] = -1
+        self.pos = pos  # (K, 18, 18)
+        self.cand = np.arange(surf.n_facets)
+        self.gapfn = None
+
+    def set_time(self, t):
+        self.gapfn = self.gap_of_t(t)
+
+
+def _al_state(pairs):
+    return [p.surf.lam.copy() for p in pairs]
+
+
+def _restore_al(pairs, st):
+    for p, lam in zip(pairs, st):
+        p.surf.lam[:] = lam
+
+
+def solve_indentation(mesh: TetMesh, *, material, indenter: Indenter | None, bone_motion: BoneMotion,
+                      cast: Cast | None = None, settings: SolverSettings = SolverSettings()) -> SolveResult:
+    """Solve the indentation of ``mesh`` (TetMesh, mm) and return a :class:`SolveResult`.
+
+    material: an Ogden parameter set (deeptissue.fem.material.Ogden) or an assembly.MaterialLaw.
+    indenter: Indenter (contact with the ``settings.indenter_set`` facets) or None.
+    bone_motion: BoneMotion of the ``settings.bone_set`` facets (Dirichlet on all their dofs).
+    cast: a Cast (contact with the ``settings.cast_set`` facets) or None.
+    Never raises for non-convergence: returns converged=False with the reason and the last
+    converged state. Raises ValueError for missing facet sets.
+    """
+    return _solve(mesh, material=material, indenter=indenter, schedule=_Schedule(bone_motion, indenter),
+                  bc_sets=(settings.bone_set,), cast=cast, settings=settings)
+
+
+class _Prescribed:
+    def __init__(self, fn):
+        self.fn = fn
+
+    def bone(self, X, t):
+        return X + self.fn(X, float(np.clip(t - 3.0, 0.0, 1.0)))
+
+    def tip(self, t):
+        return None
+
+    def predict(self, X, x, t0, t1):
+        s0, s1 = (float(np.clip(t - 3.0, 0.0, 1.0)) for t in (t0, t1))
+        return x + self.fn(X, s1) - self.fn(X, s0)
+
+    def active_steps(self):
+        return [3]
+
+
+def solve_prescribed(mesh: TetMesh, *, material, bc_sets, displacement_mm,
+                     settings: SolverSettings = SolverSettings()) -> SolveResult:
+    """Solve with a prescribed displacement on the nodes of facet sets ``bc_sets`` (no contact).
+
+    displacement_mm(X (n, 3), s) -> (n, 3) [mm]: displacement at load fraction s in [0, 1].
+    Used for patch tests and homogeneous deformations.
+    """
+    return _solve(mesh, material=material, indenter=None, schedule=_Prescribed(displacement_mm), bc_sets=tuple(bc_sets),
+                  cast=None, settings=settings)
+
+
+def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> SolveResult:
+    t_wall = time.perf_counter()
+    s = settings
+    for name, need in [*((b, True) for b in bc_sets), (s.indenter_set, indenter is not None), (s.cast_set, cast is not None)]:
+        if need and (name not in mesh.facets or len(mesh.facets[name]) == 0):
+            raise ValueError(f"solve_indentation: mesh has no facet set {name!r} (sets: {sorted(mesh.facets)})")
+    law = as_material_law(material)
+    from .skmesh import straighten_invalid
+
+    mesh, n_straightened = straighten_invalid(mesh, order=s.quadrature_order)
+    if n_straightened:
+        log.warning("straightened the edges of %d curved tets with a non-positive Jacobian", n_straightened)
+    X = mesh.nodes_mm
+    n_nodes = len(X)
+    bone_nodes = np.unique(np.concatenate([mesh.facets[b].ravel() for b in bc_sets]))
+    constrained = np.zeros(3 * n_nodes, bool)
+    constrained[(3 * bone_nodes[:, None] + np.arange(3)).ravel()] = True
+    asm = Assembler(mesh, law, constrained=constrained, intorder=s.quadrature_order)
+    sched = schedule
+    E_mod = law.young_mpa
+    atol = s.atol_mu_rel * law.mu_mpa * asm.volume_mm3 ** (2.0 / 3.0)
+
+    pairs = []
+    if indenter is not None:
+        surf = ContactSurface(X, mesh.facets[s.indenter_set], order=s.contact_quadrature_order)
+        eps = s.penalty_factor * E_mod / surf.h_mm
+
+        def ind_gap(t, _ind=indenter):
+            tip = sched.tip(t)
+            return lambda x: _ind.gap(x, tip)
+
+        pairs.append(_Pair("indenter", surf, ind_gap, eps, asm))
+    if cast is not None:
+        surf = ContactSurface(X, mesh.facets[s.cast_set], order=s.contact_quadrature_order)
+        eps = s.penalty_factor * E_mod / surf.h_mm
+        pairs.append(_Pair("cast", surf, lambda t, _c=cast: _c.gap, eps, asm))
+    h_max = max([p.surf.h_mm.max() for p in pairs], default=1.0)
+    cand_dist = s.candidate_distance_mm if s.candidate_distance_mm is not None else 2.0 * h_max
+
+    solver = make_solver(s.linear_solver, coords_mm=X, free=asm.free)
+    timers = dict(assembly=0.0, solve=0.0, contact=0.0)
+
+    def contact_eval(u, tangent, near=False):
+        tc = time.perf_counter()
+        energy, force, out = 0.0, np.zeros(asm.n_dofs), []
+        data = np.zeros(asm.nnz) if tangent else None
+        data_geo = np.zeros(asm.nnz) if tangent else None
+        for p in pairs:
+            if len(p.cand) == 0:
+                out.append(None)
+                continue
+            r = p.surf.evaluate(u, p.gapfn, p.eps, p.cand, tangent=tangent,
+                                smoothing_mm=s.contact_smoothing_rel * p.surf.h_mm[p.cand][:, None],
+                                near_mm=(s.contact_near_rel * p.surf.h_mm[p.cand][:, None]) if near else 0.0)
+            r["h_mm"] = p.surf.h_mm[p.cand]
+            r["cand"] = p.cand.copy()
+            energy += r["energy"]
+            force += r["force"]
+            if tangent:
+                act = np.any(r["pressure"] > 0, axis=1)
+                if np.any(act):
+                    pos = p.pos[p.cand[act]].ravel()
+                    ok = pos >= 0
+                    data += np.bincount(pos[ok], weights=r["Kf"][act].ravel()[ok], minlength=asm.nnz)
+                    if "Kf_geo" in r:
+                        data_geo += np.bincount(pos[ok], weights=r["Kf_geo"][act].ravel()[ok], minlength=asm.nnz)
+            out.append(r)
+        timers["contact"] += time.perf_counter() - tc
+        return energy, force, (data, data_geo), out
+
+    def total_energy(u):
+        ta = time.perf_counter()
+        e = asm.energy(u)
+        timers["assembly"] += time.perf_counter() - ta
+        if not np.isfinite(e):
+            return np.inf
+        return e + contact_eval(u, False)[0]
+
+    def update_candidates(u, t):
+        tc = time.perf_counter()
+        for p in pairs:
+            p.set_time(t)
+            g = p.surf.gaps(u, p.gapfn)
+            p.cand = np.flatnonzero(np.min(g, axis=1) < cand_dist)
+        timers["contact"] += time.perf_counter() - tc
+
+    def missed_contact(u):
+        """Facets outside the candidate set that penetrate: add them; True if any."""
+        tc = time.perf_counter()
+        added = False
+        for p in pairs:
+            g = p.surf.gaps(u, p.gapfn)
+            pen = np.flatnonzero(np.min(g, axis=1) < 0)
+            new = np.setdiff1d(pen, p.cand)
+            if len(new):
+                p.cand = np.union1d(p.cand, np.flatnonzero(np.min(g, axis=1) < cand_dist))
+                added = True
+        timers["contact"] += time.perf_counter() - tc
+        return added
+
+    def newton(u, target_d, rtol, etol, max_it):
+        """Iterate on u in place. Returns (ok, reason, iterations, residuals, contact outputs)."""
+        residuals = []
+        slope_first, slope_last = None, None
+        for it in range(max_it + 1):
+            ta = time.perf_counter()
+            W, f, data, Ke_bc = asm.tangent(u)
+            timers["assembly"] += time.perf_counter() - ta
+            if not np.isfinite(W):
+                return False, "inverted element", it, residuals, None
+            Wc, fc, datac, outs = contact_eval(u, True, near=it >= s.easy_iterations)
+            r = f + fc
+            du_d = np.zeros(asm.n_dofs)
+            du_d[constrained] = target_d - u[constrained]
+            has_d = np.any(du_d != 0)
+            rf = r[asm.free]
+            res = float(np.linalg.norm(rf))
+            residuals.append(res)
+            scale = max(float(np.linalg.norm(f)), float(np.linalg.norm(fc)))
+            if not np.isfinite(res):
+                return False, "non-finite residual", it, residuals, None
+            if not has_d and res <= rtol * scale + atol:
+                return True, "", it, residuals, outs
+            if not has_d and slope_first is not None and it >= 2 and abs(slope_last) <= etol * abs(slope_first):
+                return True, "", it, residuals, outs
+            if it == max_it:
+                return False, "too many iterations", it, residuals, None
+            if len(residuals) > 3 and res > 1e3 * min(residuals):
+                return False, "diverging", it, residuals, None
+            rhs = -rf
+            if has_d:
+                rhs = rhs - asm.bc_force(Ke_bc, du_d)[asm.free]
+            # consistent tangent; if it is not positive definite (Newton direction not a descent
+            # direction), drop the contact curvature term (keeps the direction a descent one)
+            x = None
+            for K_data in (data + datac[0] + datac[1], data + datac[0]):
+                ts = time.perf_counter()
+                try:
+                    x = solver.solve(asm.csr(K_data), rhs)
+                except np.linalg.LinAlgError as exc:
+                    timers["solve"] += time.perf_counter() - ts
+                    return False, f"linear solver: {exc}", it, residuals, None
+                timers["solve"] += time.perf_counter() - ts
+                slope = float(r[asm.free] @ x)
+                if has_d or (slope < 0 and getattr(solver, "last_mode", 2) != -2) or not np.any(datac[1]):
+                    break
+            if not has_d:
+                slope_last = slope
+                if slope_first is None:
+                    slope_first = slope
+            du = du_d.copy()
+            du[asm.free] = x
+            # line search
+            Pi0 = W + Wc
+            log.debug("  it %d res %.3e slope %.3e solver mode %s", it, res, slope, getattr(solver, "last_mode", None))
+            step = 1.0
+            accepted = False
+            for _ in range(12):
+                Pi1 = total_energy(u + step * du)
+                if np.isfinite(Pi1):
+                    if has_d:
+                        accepted = True
+                        break
+                    if Pi1 <= Pi0 + 1e-4 * step * min(slope, 0.0) + 1e-11 * abs(Pi0) + 1e-300:
+                        accepted = True
+                        break
+                    denom = 2.0 * (Pi1 - Pi0 - slope * step)
+                    trial = -slope * step * step / denom if denom > 0 else 0.5 * step
+                    step = float(np.clip(trial, 0.1 * step, 0.5 * step))
+                else:
+                    step *= 0.3
+            if not accepted:
+                return False, "line search failed", it, residuals, None
+            log.debug("  it %d res %.3e step %.3g slope %.3e", it, res, step, slope)
+            u += step * du
+        return False, "too many iterations", max_it, residuals, None
+
+    def penetration(outs):
+        pen_mm, pen_rel = 0.0, 0.0
+        for p, r in zip(pairs, outs):
+            if r is None:
+                continue
+            g = r["gap"]
+            if g.size:
+                pm = np.max(-g, axis=1)
+                pen_mm = max(pen_mm, float(pm.max()))
+                pen_rel = max(pen_rel, float(np.max(pm / r["h_mm"])))
+        return pen_mm, pen_rel
+
+    def forces(outs):
+        ft, fcast = np.zeros(3), np.zeros(3)
+        for p, r in zip(pairs, outs):
+            if r is None:
+                continue
+            if p.name == "indenter":
+                ft = ft + r["traction_sum"]
+            else:
+                fcast = fcast + r["traction_sum"]
+        return ft, fcast
+
+    u = np.zeros(asm.n_dofs)
+    history = []
+    n_iter_total = 0
+    reason_fail = ""
+    last_outs = [None] * len(pairs)
+    t = 0.0
+    Xb = X[bone_nodes]
+    axis = indenter.unit_axis if indenter is not None else np.zeros(3)
+    travel = float(np.linalg.norm(np.subtract(indenter.end_mm, indenter.start_mm))) if indenter is not None else 0.0
+    done = True
+    for k in sched.active_steps():
+        t = float(k)
+        dt = s.initial_increment
+        while t < k + 1 - 1e-12 and done:
+            if len(history) >= s.max_increments:
+                done, reason_fail = False, f"more than {s.max_increments} increments"
+                break
+            dt = min(dt, s.max_increment, k + 1 - t)
+            # first touch: do not jump deep into contact
+            if k == 3 and pairs and pairs[0].name == "indenter" and travel > 0:
+                pairs[0].set_time(t)
+                gmin = float(np.min(pairs[0].surf.gaps(u, pairs[0].gapfn)))
+                if gmin > 0 and travel * dt > gmin + s.first_touch_mm:
+                    dt = max((gmin + s.first_touch_mm) / travel, s.min_increment)
+            t1 = t + dt
+            t0c = dict(timers)
+            # predictor: the whole limb follows the bone's rigid increment (exact for rigid motion)
+            u_try = (sched.predict(X, X + u.reshape(-1, 3), t, t1) - X).ravel()
+            al_backup = _al_state(pairs)
+            target = np.zeros(asm.n_dofs)
+            target.reshape(-1, 3)[bone_nodes] = sched.bone(Xb, t1) - Xb
+            target_d = target[constrained]
+            update_candidates(u_try, t1)
+            step_end = t1 >= k + 1 - 1e-12
+            rtol = s.rtol if step_end else s.rtol_intermediate
+            etol = s.energy_rtol if step_end else s.energy_rtol_intermediate
+            pen_tol = s.penetration_tol if step_end else s.penetration_tol_intermediate
+            ok, why, iters, al, outs, residuals = False, "", 0, 0, None, []
+            last_good = None  # (u, multipliers, outs) of the last converged solve in this increment
+            while True:
+                ok, why, it, res, outs = newton(u_try, target_d, rtol, etol, s.max_iterations if al == 0 else s.max_al_iterations)
+                iters += it
+                residuals += res
+                if not ok:
+                    if last_good is not None:
+                        # the multiplier update did not converge (e.g. a facet coarser than the
+                        # indenter cannot meet every point constraint): keep the converged penalty state
+                        log.warning("AL update %d did not converge (%s): keeping the penalty solution", al, why)
+                        u_try[:] = last_good[0]
+                        _restore_al(pairs, last_good[1])
+                        outs, ok, why = last_good[2], True, ""
+                    break
+                if missed_contact(u_try):
+                    continue
+                pen_mm, pen_rel = penetration(outs)
+                if pen_rel <= pen_tol or not pairs:
+                    break
+                if al >= s.max_al_updates:
+                    log.warning("penetration %.3g x facet size after %d AL updates", pen_rel, al)
+                    break
+                last_good = (u_try.copy(), _al_state(pairs), outs)
+                for p, r in zip(pairs, outs):
+                    if r is not None:
+                        p.surf.lam[r["cand"]] = r["pressure"]
+                al += 1
+            n_iter_total += iters
+            ft, fc = forces(outs) if ok else (np.zeros(3), np.zeros(3))
+            pen_mm = penetration(outs)[0] if ok else float("nan")
+            rec = IncrementRecord(
+                step=k + 1, t_start=t, t_end=t1, converged=ok, reason=why, iterations=iters, al_updates=al,
+                residuals=tuple(residuals), tip_mm=tuple(sched.tip(t1)) if indenter is not None else (),
+                indenter_force_N=float(ft @ axis), max_penetration_mm=pen_mm,
+                assembly_s=timers["assembly"] - t0c["assembly"], linear_solve_s=timers["solve"] - t0c["solve"],
+                contact_s=timers["contact"] - t0c["contact"],
+            )
+            history.append(rec)
+            log.info("step %d t %.4f->%.4f %s it %d al %d F %.4g N pen %.3g mm", k + 1, t, t1,
+                     "ok" if ok else f"cut ({why})", iters, al, rec.indenter_force_N, pen_mm)
+            if ok:
+                u = u_try
+                last_outs = outs
+                t = t1
+                if iters <= s.easy_iterations:
+                    dt *= s.grow_factor
+            else:
+                _restore_al(pairs, al_backup)
+                dt *= s.cut_factor
+                if dt < s.min_increment:
+                    done, reason_fail = False, f"increment below {s.min_increment} at t = {t:.4f} ({why})"
+        if not done:
+            break
+    solver.close()
+    # final state
+    F = asm.deformation_gradient(u)
+    Fe = np.einsum("eqij,eq->eij", F, asm.w) / asm.w.sum(axis=1)[:, None, None]
+    ft, fc = forces(last_outs)
+    pm, pr = penetration(last_outs)
+    W = asm.energy(u)
+    wall = time.perf_counter() - t_wall
+    return SolveResult(
+        converged=done, reason=reason_fail, displacement_mm=u.reshape(-1, 3).copy(), deformation_gradient=Fe,
+        history=tuple(history), indenter_force_N=float(ft @ axis), force_on_tissue_N=ft, cast_force_N=fc,
+        max_penetration_mm=pm, max_penetration_rel=pr, strain_energy_mJ=float(W), n_dofs=asm.n_dofs,
+        n_free_dofs=asm.n_free, increments=sum(1 for h in history if h.converged), newton_iterations=n_iter_total,
+        load_reached=t, wall_s=wall, assembly_s=timers["assembly"], linear_solve_s=timers["solve"],
+        contact_s=timers["contact"], extra={"straightened_tets": n_straightened},
+    )

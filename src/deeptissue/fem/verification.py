@@ -1,0 +1,203 @@
+"""Verification and benchmark cases of the FE core (run by the Snakemake target ``verify``).
+
+Each function builds its own gmsh geometry, solves and returns a pandas DataFrame; the numbers
+are compared with analytical truths (Hertz, rigid motion, homogeneous deformation), never with
+the code under test.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pandas as pd
+
+from ..mesh import TetMesh
+from ..rigid import apply_rigid
+from .assembly import as_material_law
+from .indenters import Indenter
+from .shapes import block_mesh, cored_cylinder_mesh, distort_interior
+from .solver import BoneMotion, SolverSettings, solve_indentation, solve_prescribed
+
+ACCURATE = dict(rtol_intermediate=1e-7, penetration_tol_intermediate=0.01)
+
+
+def small_strain_moduli(material) -> tuple[float, float]:
+    """(E [MPa], nu) of the law at F = I: E = 9 K mu / (3 K + mu), nu = (3K - 2mu) / (2 (3K + mu))."""
+    law = as_material_law(material)
+    K, mu = law.bulk_mpa, law.mu_mpa
+    return 9 * K * mu / (3 * K + mu), (3 * K - 2 * mu) / (2 * (3 * K + mu))
+
+
+def hertz_force_N(material, radius_mm: float, depth_mm) -> np.ndarray:
+    """Hertz force of a rigid sphere on an elastic half-space: 4/3 E/(1-nu^2) sqrt(R) d^1.5 [N]."""
+    E, nu = small_strain_moduli(material)
+    return 4.0 / 3.0 * E / (1 - nu**2) * np.sqrt(radius_mm) * np.asarray(depth_mm, float) ** 1.5
+
+
+def _block_with_top_patch(size, h, h_fine, r_fine, centre):
+    m = block_mesh(size, h_mm=h, refine_point_mm=centre, refine_h_mm=h_fine, refine_radius_mm=r_fine)
+    return TetMesh(m.nodes_mm, m.tets, {"bone": m.facets["bottom"], "patch": m.facets["top"]})
+
+
+def hertz_curve(material, *, radius_mm=1.5, max_depth_mm=0.15, block_mm=(20.0, 20.0, 10.0), h_mm=2.5,
+                h_fine_mm=0.06, fine_radius_mm=0.7, max_increment=0.1, accurate=True) -> pd.DataFrame:
+    """Sphere (radius R) pressed into the centre of a block whose bottom is fixed.
+
+    Returns depth_mm, force_N, hertz_N, rel_error per converged increment (depth from first touch),
+    and attrs n_dofs, wall_s, converged.
+    """
+    lx, ly, lz = block_mm
+    top = (lx / 2, ly / 2, lz)
+    m = _block_with_top_patch(block_mm, h_mm, h_fine_mm, fine_radius_mm, top)
+    ind = Indenter("sphere", axis=(0, 0, -1), start_mm=(lx / 2, ly / 2, lz + 1e-3), end_mm=(lx / 2, ly / 2, lz - max_depth_mm),
+                   radius_mm=radius_mm)
+    st = SolverSettings(max_increment=max_increment, first_touch_mm=max_depth_mm * max_increment,
+                        **(ACCURATE if accurate else {}))
+    r = solve_indentation(m, material=material, indenter=ind, bone_motion=BoneMotion(), settings=st)
+    rows = [(lz - h.tip_mm[2], h.indenter_force_N) for h in r.history if h.converged and h.step == 4]
+    df = pd.DataFrame(rows, columns=["depth_mm", "force_N"])
+    df = df[df.depth_mm > 0].reset_index(drop=True)
+    df["hertz_N"] = hertz_force_N(material, radius_mm, df.depth_mm)
+    df["rel_error"] = df.force_N / df.hertz_N - 1
+    df.attrs.update(n_dofs=r.n_dofs, wall_s=r.wall_s, converged=r.converged, reason=r.reason)
+    return df
+
+
+def rigid_motion_cases(material) -> pd.DataFrame:
+    """Bone rotations of 15 and 90 degrees (plus a translation) with free ends: strain must vanish."""
+    m = cored_cylinder_mesh(length_mm=6.0, radius_mm=3.0, core_radius_mm=0.8, h_mm=1.0)
+    rows = []
+    for angle in (15.0, 90.0):
+        motion = BoneMotion(rotation_deg=tuple(angle * np.array([0.6, -0.48, 0.64])), centre_mm=(0.5, -0.2, 3.0),
+                            translation_mm=(0.3, -0.4, 0.2))
+        r = solve_indentation(m, material=material, indenter=None, bone_motion=motion)
+        exact = apply_rigid(m.nodes_mm, rotation_deg=motion.rotation_deg, centre_mm=motion.centre_mm,
+                            translation_mm=motion.translation_mm)
+        F = r.deformation_gradient
+        E = 0.5 * (np.swapaxes(F, -1, -2) @ F - np.eye(3))
+        rows.append(dict(case=f"rigid bone {angle:g} deg", converged=r.converged, max_abs_green_strain=float(np.abs(E).max()),
+                         max_position_error_mm=float(np.abs(m.nodes_mm + r.displacement_mm - exact).max())))
+    return pd.DataFrame(rows)
+
+
+def patch_cases(material) -> pd.DataFrame:
+    """Homogeneous deformation on distorted meshes (straight-sided and curved P2 tets)."""
+    F0 = np.array([[1.12, 0.05, 0.0], [0.02, 0.93, 0.04], [0.03, 0.0, 1.06]])
+    rows = []
+    for curved in (False, True):
+        m = distort_interior(block_mesh((3.0, 2.0, 2.0), h_mm=0.8), amount=0.1 if curved else 0.3, seed=1, curved=curved)
+        st = SolverSettings(quadrature_order=3 if curved else 2)
+        r = solve_prescribed(m, material=material, bc_sets=list(m.facets),
+                             displacement_mm=lambda X, s: s * X @ (F0 - np.eye(3)).T, settings=st)
+        rows.append(dict(case=f"patch test, {'curved' if curved else 'straight'} distorted", converged=r.converged,
+                         max_displacement_error_mm=float(np.abs(r.displacement_mm - m.nodes_mm @ (F0 - np.eye(3)).T).max()),
+                         max_F_error=float(np.abs(r.deformation_gradient - F0).max())))
+    return pd.DataFrame(rows)
+
+
+def reference_limb(h_mm=1.0, *, fine_h_mm=None) -> TetMesh:
+    """The reference limb: 20 mm long cylinder of 10 mm diameter around a 2 mm rigid core."""
+    kw = {} if fine_h_mm is None else dict(refine_point_mm=(5.0, 0.0, 10.0), refine_h_mm=fine_h_mm, refine_radius_mm=2.5)
+    return cored_cylinder_mesh(length_mm=20.0, radius_mm=5.0, core_radius_mm=1.0, h_mm=h_mm, **kw)
+
+
+def _indent_limb(mesh, material, *, kind="sphere", tilt_deg=0.0, depth_mm=2.0, settings=SolverSettings(),
+                 bone_motion=BoneMotion()):
+    """Indent the reference limb at (5, 0, 10) along -x (tilted about z by tilt_deg for the bar... about y)."""
+    a = np.radians(tilt_deg)
+    axis = np.array([-np.cos(a), 0.0, np.sin(a)])  # tilted toward +z about the y axis
+    end = np.array([5.0 - depth_mm, 0.0, 10.0])
+    start = end - (depth_mm + 0.5) * axis
+    ind = Indenter(kind, axis=tuple(axis), start_mm=tuple(start), end_mm=tuple(end), bar_length_mm=8.0)
+    return solve_indentation(mesh, material=material, indenter=ind, bone_motion=bone_motion, settings=settings)
+
+
+def hard_cases(material) -> pd.DataFrame:
+    """Cases that must converge with the default settings (no hand tuning)."""
+    # coarse limb (1.6 mm) with 0.5 mm elements where the indenter acts (as the model stage refines the patch)
+    coarse = reference_limb(1.6, fine_h_mm=0.5)
+    cases = {
+        "sphere to depth 2R (3 mm)": lambda: _indent_limb(coarse, material, depth_mm=3.0),
+        "bar tilted 15 deg, 2 mm": lambda: _indent_limb(coarse, material, kind="bar", tilt_deg=15.0),
+        "bar tilted 30 deg, 2 mm": lambda: _indent_limb(coarse, material, kind="bar", tilt_deg=30.0),
+        "first touch (0.02 mm)": lambda: _indent_limb(coarse, material, depth_mm=0.02),
+        "coarse distorted mesh, sphere 2 mm": lambda: _indent_limb(
+            distort_interior(reference_limb(2.2, fine_h_mm=0.7), amount=0.15, seed=3, curved=False), material),
+        "bone rotation 20 deg + sphere 1.5 mm": lambda: _indent_limb(
+            coarse, material, depth_mm=1.5, bone_motion=BoneMotion(rotation_deg=(10.0, 5.0, 15.0), centre_mm=(0, 0, 10.0))),
+    }
+    rows = []
+    for name, run in cases.items():
+        t = time.perf_counter()
+        r = run()
+        rows.append(dict(case=name, converged=r.converged, reason=r.reason, increments=r.increments,
+                         newton_iterations=r.newton_iterations, indenter_force_N=r.indenter_force_N,
+                         max_penetration_rel=r.max_penetration_rel, n_dofs=r.n_dofs, wall_s=time.perf_counter() - t))
+    return pd.DataFrame(rows)
+
+
+def benchmark(material, *, h_mm=1.0, linear_solver="pardiso") -> pd.DataFrame:
+    """Reference indentation (limb Ø10 mm x 20 mm around a Ø2 mm core, sphere to 2 mm, ~1 mm elements):
+    DOFs, increments, iterations and where the wall time goes."""
+    m = reference_limb(h_mm)
+    t = time.perf_counter()
+    r = _indent_limb(m, material, depth_mm=2.0, settings=SolverSettings(linear_solver=linear_solver))
+    wall = time.perf_counter() - t
+    return pd.DataFrame([dict(
+        case="reference sphere 2 mm", linear_solver=linear_solver, converged=r.converged, n_dofs=r.n_dofs,
+        n_free_dofs=r.n_free_dofs, n_tets=len(m.tets), increments=r.increments, newton_iterations=r.newton_iterations,
+        wall_s=wall, assembly_s=r.assembly_s, linear_solve_s=r.linear_solve_s, contact_s=r.contact_s,
+        other_s=wall - r.assembly_s - r.linear_solve_s - r.contact_s, indenter_force_N=r.indenter_force_N)])
+
+
+def _write_csv(df: pd.DataFrame, path) -> None:
+    from ..io import atomic_path
+
+    with atomic_path(path) as tmp:
+        df.to_csv(tmp, index=False)
+
+
+def write_hertz_verification(material, *, hertz_csv, curve_csv, figure_png, radius_mm=1.5) -> None:
+    """Hertz check (fine mesh, depth <= 0.1 R) and the force-depth curve to 2 R (coarser mesh).
+
+    hertz_csv: depth_mm, force_N, hertz_N, rel_error; curve_csv: the same to depth 2R;
+    figure_png: both against Hertz (log-log inset free: linear axes).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    small = hertz_curve(material, radius_mm=radius_mm, max_depth_mm=0.1 * radius_mm)
+    _write_csv(small, hertz_csv)
+    big = hertz_curve(material, radius_mm=radius_mm, max_depth_mm=2 * radius_mm, h_mm=3.0, h_fine_mm=0.3,
+                      fine_radius_mm=3.0, max_increment=0.05, accurate=False)
+    _write_csv(big, curve_csv)
+    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+    for a, df, title in ((ax[0], small, "depth <= 0.1 R (fine mesh)"), (ax[1], big, "to depth 2 R")):
+        d = np.linspace(0, df.depth_mm.max(), 200)
+        a.plot(d, hertz_force_N(material, radius_mm, d), "k-", label="Hertz (small strain)")
+        a.plot(df.depth_mm, df.force_N, "o", ms=4, label="FE (Ogden)")
+        a.set_xlabel("indentation depth [mm]")
+        a.set_ylabel("force [N]")
+        a.set_title(title)
+        a.legend()
+    fig.tight_layout()
+    from ..io import atomic_path
+
+    with atomic_path(figure_png) as tmp:
+        fig.savefig(tmp, dpi=120)
+    plt.close(fig)
+
+
+def write_case_verification(material, *, checks_csv, hard_csv) -> None:
+    """Patch tests and rigid bone motion (checks_csv), hard convergence cases (hard_csv)."""
+    checks = pd.concat([patch_cases(material), rigid_motion_cases(material)], ignore_index=True)
+    _write_csv(checks, checks_csv)
+    _write_csv(hard_cases(material), hard_csv)
+
+
+def write_benchmark(material, *, benchmark_csv, h_mm=1.0) -> None:
+    """Reference indentation benchmark (one row: DOFs, increments, iterations, time split)."""
+    _write_csv(benchmark(material, h_mm=h_mm), benchmark_csv)
