@@ -1,6 +1,6 @@
-# Rules of the study stage: every animal x variant summary -> tables and figures of the whole study.
-# (The `solve` rule, one job per animal x variant writing results/{animal}/{variant}/summary.json and
-# result.vtu, lives with the FE core.)
+# Rules of the study stage: one FE solve per animal x variant, then tables and figures of the whole study.
+import re
+
 from deeptissue.config import ConfigError
 from deeptissue.variants import parse_variant
 
@@ -82,3 +82,42 @@ rule aggregate:
         "../envs/deeptissue.yaml"
     script:
         "../scripts/aggregate.py"
+
+
+wildcard_constraints:
+    variant="|".join(re.escape(v) for v in VARIANTS),
+
+
+rule solve:
+    """One FE job: the animal's model and pose, one indenter variant -> summary.json and result.vtu.
+
+    A variant that fails or does not converge still writes both files (converged: false, reason), so
+    the study goes on and the animal is marked excluded by `aggregate`.
+    """
+    input:
+        mesh="results/{animal}/model/mesh.npz",
+        cast="results/{animal}/model/cast.npz",
+        pose="results/{animal}/pose.json",
+        during_contours="results/{animal}/contours/during.npz",
+    output:
+        summary="results/{animal}/{variant}/summary.json",
+        vtu="results/{animal}/{variant}/result.vtu",
+    log:
+        "results/{animal}/logs/solve_{variant}.log",
+    benchmark:
+        "results/{animal}/benchmarks/solve_{variant}.tsv"
+    params:
+        fem=config["fem"],
+        study=STUDY,
+    resources:
+        mem_mb=4000,
+    conda:
+        "../envs/deeptissue.yaml"
+    script:
+        "../scripts/solve.py"
+
+
+rule study:
+    """The FE study of every configured animal and variant: `snakemake --cores 2 study`."""
+    input:
+        study_outputs(),

@@ -1,0 +1,133 @@
+"""One study job: an animal's model, pose and one variant -> FE solution, strain statistics, files.
+
+:func:`solve_variant` never raises for a failed solve: a variant that does not converge, or whose
+set-up fails, is returned as a summary with ``converged = False`` and the reason, so the study
+goes on and the aggregate step can mark the animal excluded.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+import traceback
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from .contours import load_contours
+from .fem.cast import Cast
+from .fem.indenters import Indenter
+from .fem.material import Ogden, ogden_energy
+from .fem.solver import BoneMotion, SolverSettings, solve_indentation, solver_settings_from_config
+from .mesh import TetMesh, load_tetmesh
+from .pose import Pose, load_pose
+from .strain import DEFAULT_BIN_EDGES, element_strain
+from .summary import Summary, failed_summary, summarize_solution, write_result_vtu, write_summary
+from .variants import parse_variant, variant_travel
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class StudySettings:
+    """Post-processing settings of the study (config ``study``)."""
+
+    threshold: float = 0.3
+    bin_edges: tuple = tuple(DEFAULT_BIN_EDGES)
+    strain_measure: str = "green_lagrange"
+
+
+def variant_indenter(pose: Pose, variant_name: str, *, radius_mm: float = 1.5, bar_length_mm: float = 10.0) -> Indenter:
+    """The rigid indenter of a variant: shape from the name, axis turned about the final tip."""
+    v = parse_variant(variant_name)
+    axis, start, end = variant_travel(v, axis=pose.indenter_axis, tip_start_mm=pose.tip_start_mm, tip_end_mm=pose.tip_end_mm)
+    return Indenter(kind=v.indenter, axis=tuple(axis), start_mm=tuple(start), end_mm=tuple(end),
+                    radius_mm=radius_mm, bar_length_mm=bar_length_mm)
+
+
+def bone_motion(pose: Pose) -> BoneMotion:
+    return BoneMotion(rotation_deg=tuple(pose.bone_rotation_deg), centre_mm=tuple(pose.bone_com_mm),
+                      translation_mm=tuple(pose.bone_translation_mm))
+
+
+def solve_variant(
+    *,
+    animal: str,
+    variant: str,
+    mesh: TetMesh,
+    pose: Pose,
+    cast: Cast | None,
+    material: Ogden,
+    settings: SolverSettings,
+    study: StudySettings = StudySettings(),
+    skin_contours_mm: np.ndarray | None = None,
+    bar_length_mm: float = 10.0,
+):
+    """Solve one variant and summarise it. Returns ``(summary, displacement_mm, strain)``.
+
+    For a solve that did not converge the summary says why, and the displacement is the last
+    converged state (so its strain field can still be looked at, never counted).
+    """
+    t0 = time.perf_counter()
+    indenter = variant_indenter(pose, variant, bar_length_mm=bar_length_mm)
+    set_name = f"patch_{variant}" if f"patch_{variant}" in mesh.facets else "patch"
+    settings = replace(settings, indenter_set=set_name)
+    result = solve_indentation(mesh, material=material, indenter=indenter, bone_motion=bone_motion(pose),
+                               cast=cast, settings=settings)
+    info = dict(
+        indenter_force_N=result.indenter_force_N, n_dofs=result.n_dofs, increments=result.increments,
+        newton_iterations=result.newton_iterations, wall_s=time.perf_counter() - t0,
+        solver_wall_s=result.wall_s, assembly_s=result.assembly_s, linear_solve_s=result.linear_solve_s,
+        contact_s=result.contact_s, max_penetration_mm=result.max_penetration_mm,
+        load_reached=result.load_reached, contact_set=set_name,
+    )
+    if not result.converged:
+        log.warning("%s/%s did not converge: %s", animal, variant, result.reason)
+        strain = element_strain(mesh, result.displacement_mm)
+        summary = failed_summary(animal=animal, variant=variant, reason=result.reason,
+                                 strain_measure=study.strain_measure, threshold=study.threshold,
+                                 n_elements=int(mesh.n_tets), **info)
+        return summary, result.displacement_mm, strain
+    energy = ogden_energy(result.deformation_gradient, material)
+    summary, strain = summarize_solution(
+        mesh, result.displacement_mm, animal=animal, variant=variant, strain_measure=study.strain_measure,
+        threshold=study.threshold, bin_edges=study.bin_edges, energy_density_mpa=energy,
+        skin_contours_mm=skin_contours_mm, **info,
+    )
+    return summary, result.displacement_mm, strain
+
+
+def run_solve(*, animal: str, variant: str, mesh_path, cast_path, pose_path, during_contours_path,
+              summary_path, vtu_path, fem_cfg: dict, study_cfg: dict) -> Summary:
+    """Rule ``solve``: read the model files, solve, write ``summary.json`` and ``result.vtu``.
+
+    Both files are always written: a failure (set-up error or no convergence) gives a summary with
+    ``converged = False`` and the reason, and a VTU of the last converged state (or the undeformed
+    mesh when nothing was solved).
+    """
+    study = StudySettings(threshold=float(study_cfg.get("threshold", 0.3)),
+                          bin_edges=tuple(study_cfg.get("bin_edges", DEFAULT_BIN_EDGES)),
+                          strain_measure=study_cfg.get("strain_measure", "green_lagrange"))
+    mesh = load_tetmesh(mesh_path)
+    u = np.zeros_like(mesh.nodes_mm)
+    try:
+        pose = load_pose(pose_path)
+        cast = Cast.load(cast_path) if cast_path else None
+        skin = load_contours(during_contours_path).skin if during_contours_path else None
+        material = Ogden(**fem_cfg.get("material", {}))
+        settings = solver_settings_from_config(fem_cfg.get("solver"))
+        summary, u, strain = solve_variant(
+            animal=animal, variant=variant, mesh=mesh, pose=pose, cast=cast, material=material,
+            settings=settings, study=study, skin_contours_mm=skin,
+            bar_length_mm=float(fem_cfg.get("bar_length_mm", 10.0)),
+        )
+    except Exception as exc:  # recorded, never lost: the study goes on without this variant
+        log.error("%s/%s failed:\n%s", animal, variant, traceback.format_exc())
+        summary = failed_summary(animal=animal, variant=variant, reason=f"{type(exc).__name__}: {exc}",
+                                 strain_measure=study.strain_measure, threshold=study.threshold,
+                                 n_elements=int(mesh.n_tets))
+        strain = element_strain(mesh, u)
+    write_result_vtu(vtu_path, mesh, u, strain, cell_data={"converged": np.full(mesh.n_tets, int(summary.converged))})
+    write_summary(summary_path, summary)
+    return summary

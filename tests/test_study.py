@@ -1,0 +1,72 @@
+"""The study job (rule solve): files in, summary.json and result.vtu out, failures recorded."""
+
+import numpy as np
+import pytest
+
+from deeptissue.fem.shapes import cored_cylinder_mesh
+from deeptissue.mesh import save_tetmesh
+from deeptissue.pose import Pose, save_pose
+from deeptissue.study import run_solve, variant_indenter
+from deeptissue.summary import read_result_vtu, read_summary
+
+R, L = 5.0, 10.0  # cylinder radius and length [mm]
+
+
+@pytest.fixture(scope="module")
+def model_files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("model")
+    mesh = cored_cylinder_mesh(length_mm=L, radius_mm=R, core_radius_mm=1.0, h_mm=2.0,
+                               refine_point_mm=(0.0, R, L / 2), refine_h_mm=0.4, refine_radius_mm=2.0)
+    save_tetmesh(d / "mesh.npz", mesh)
+    depth = 0.4
+    pose = Pose(indenter_axis=[0, -1, 0], tip_start_mm=[0, R + 1.0, L / 2], tip_end_mm=[0, R - depth, L / 2],
+                depth_mm=depth, bone_com_mm=[0, 0, L / 2], bone_rotation_deg=[0.5, 0, 0], bone_translation_mm=[0, 0.02, 0])
+    save_pose(d / "pose.json", pose)
+    return d, mesh
+
+
+@pytest.mark.slow
+def test_solve_job_writes_a_converged_summary_and_result(model_files, tmp_path):
+    d, mesh = model_files
+    s = run_solve(animal="cyl", variant="sphere", mesh_path=d / "mesh.npz", cast_path=None,
+                  pose_path=d / "pose.json", during_contours_path=None, summary_path=tmp_path / "summary.json",
+                  vtu_path=tmp_path / "result.vtu", fem_cfg={}, study_cfg={"threshold": 0.05, "bin_edges": [0.05, 0.1, 0.2]})
+    assert s.converged, s.reason
+    back = read_summary(tmp_path / "summary.json")
+    assert back.converged and back.n_elements == mesh.n_tets
+    assert back.indenter_force_N > 0
+    # strains stay local: a shallow dent strains far less than the whole cylinder above 0.05
+    total = np.pi * (R**2 - 1.0) * L
+    assert 0 < back.voi_mm3 < 0.2 * total
+    assert sum(back.bins_percent.values()) == pytest.approx(100.0)
+    _, u, cells = read_result_vtu(tmp_path / "result.vtu")
+    # the skin under the tip moved inward by about the indentation depth
+    top = np.argmin(np.linalg.norm(mesh.nodes_mm - [0, R, L / 2], axis=1))
+    assert u[top, 1] == pytest.approx(-0.4, abs=0.08)
+    assert np.all(cells["converged"] == 1)
+
+
+def test_failed_job_is_recorded_with_its_reason(model_files, tmp_path):
+    d, mesh = model_files
+    bad = tmp_path / "pose.json"
+    bad.write_text("{not json")
+    s = run_solve(animal="cyl", variant="bar", mesh_path=d / "mesh.npz", cast_path=None, pose_path=bad,
+                  during_contours_path=None, summary_path=tmp_path / "summary.json", vtu_path=tmp_path / "result.vtu",
+                  fem_cfg={}, study_cfg={})
+    assert not s.converged
+    back = read_summary(tmp_path / "summary.json")
+    assert not back.converged and "pose.json" in back.reason and "not valid JSON" in back.reason
+    _, u, cells = read_result_vtu(tmp_path / "result.vtu")
+    assert np.all(u == 0) and np.all(cells["converged"] == 0)
+
+
+def test_variant_indenter_turns_about_the_final_tip(model_files):
+    d, _ = model_files
+    from deeptissue.pose import load_pose
+
+    pose = load_pose(d / "pose.json")
+    ind = variant_indenter(pose, "sphere_rz+15")
+    np.testing.assert_allclose(ind.end_mm, pose.tip_end_mm)
+    assert np.degrees(np.arccos(np.dot(ind.unit_axis, pose.indenter_axis))) == pytest.approx(15.0)
+    assert np.linalg.norm(np.subtract(ind.end_mm, ind.start_mm)) == pytest.approx(pose.travel_mm)
+    assert variant_indenter(pose, "bar").kind == "bar"
