@@ -551,58 +551,80 @@ def _components(tris: np.ndarray, mask: np.ndarray, n_vertices: int) -> np.ndarr
 # --------------------------------------------------------------------------- distances to a triangle surface
 
 
-def point_triangle_distance(points: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """Exact distance from points (m, 3) to triangles (m, 3) given by corners a, b, c [mm].
+def point_triangle_distance(p, a, b, c) -> np.ndarray:
+    """Exact Euclidean distance from points ``p`` to triangles ``(a, b, c)`` (all (n, 3)) -> (n,) [mm].
 
-    Closest point by region tests on the barycentric coordinates (Ericson, Real-Time Collision
-    Detection, sec. 5.1.5), vectorised.
+    Closest point by Voronoi regions of the triangle (vertex, edge or face), as in Ericson,
+    *Real-Time Collision Detection*, 5.1.5; degenerate triangles fall back to the nearest edge.
     """
-    p = points
+    p, a, b, c = (np.asarray(x, float) for x in (p, a, b, c))
     ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
+    d1, d2 = _dot(ab, ap), _dot(ac, ap)
     bp = p - b
-    d3, d4 = np.einsum("ij,ij->i", ab, bp), np.einsum("ij,ij->i", ac, bp)
+    d3, d4 = _dot(ab, bp), _dot(ac, bp)
     cp = p - c
-    d5, d6 = np.einsum("ij,ij->i", ab, cp), np.einsum("ij,ij->i", ac, cp)
+    d5, d6 = _dot(ab, cp), _dot(ac, cp)
     va = d3 * d6 - d5 * d4
     vb = d5 * d2 - d1 * d6
     vc = d1 * d4 - d3 * d2
+    denom = va + vb + vc
     with np.errstate(divide="ignore", invalid="ignore"):
-        den = va + vb + vc
-        v = vb / den
-        w = vc / den
-        q = a + ab * v[:, None] + ac * w[:, None]  # interior
-        # edges
-        t_ab = d1 / (d1 - d3)
-        t_ac = d2 / (d2 - d6)
-        t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-    q = np.where(((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0))[:, None], b + t_bc[:, None] * (c - b), q)
-    q = np.where(((vb <= 0) & (d2 >= 0) & (d6 <= 0))[:, None], a + t_ac[:, None] * ac, q)
-    q = np.where(((vc <= 0) & (d1 >= 0) & (d3 <= 0))[:, None], a + t_ab[:, None] * ab, q)
-    q = np.where(((d6 >= 0) & (d5 <= d6))[:, None], c, q)
-    q = np.where(((d3 >= 0) & (d4 <= d3))[:, None], b, q)
-    q = np.where(((d1 <= 0) & (d2 <= 0))[:, None], a, q)
+        v = vb / denom
+        w = vc / denom
+    q = a + v[:, None] * ab + w[:, None] * ac  # face region
+    face = (va >= 0) & (vb >= 0) & (vc >= 0) & (denom > 0)
+    # outside the face region (or degenerate): nearest of the three edges, which covers vertices too
+    out = ~face
+    if np.any(out):
+        e = np.stack([_seg_dist(p[out], a[out], b[out]), _seg_dist(p[out], b[out], c[out]), _seg_dist(p[out], c[out], a[out])])
+        dist = np.empty(len(p))
+        dist[out] = e.min(axis=0)
+        dist[face] = np.linalg.norm(p[face] - q[face], axis=1)
+        return dist
     return np.linalg.norm(p - q, axis=1)
 
 
-def surface_distance_mm(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, *, k: int = 12) -> np.ndarray:
-    """Distance from points (m, 3) to a triangle surface [mm] (exact over the triangles incident to the
-    ``k`` nearest surface vertices, enough for surfaces sampled finer than their distance to the points).
+def _dot(x, y):
+    return np.einsum("ij,ij->i", x, y)
+
+
+def _seg_dist(p, a, b):
+    ab = b - a
+    L2 = _dot(ab, ab)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(L2 > 0, _dot(p - a, ab) / L2, 0.0)
+    t = np.clip(t, 0.0, 1.0)
+    return np.linalg.norm(p - (a + t[:, None] * ab), axis=1)
+
+
+def surface_distance_mm(points_mm, vertices_mm, triangles) -> np.ndarray:
+    """Exact distance from each point (..., 3) to a triangle surface -> (n_points,) [mm].
+
+    Candidates come from a KD-tree on triangle centroids: with ``d0`` the distance to the triangles of
+    the nearest few centroids and ``R`` the largest centroid-to-vertex distance, every triangle closer
+    than ``d0`` has its centroid within ``d0 + R``; all of those are checked exactly.
     """
-    tree = cKDTree(vertices)
-    _, near = tree.query(points, k=min(k, len(vertices)))
-    # vertex -> incident triangles (CSR)
-    order = np.argsort(triangles.ravel(), kind="stable")
-    tri_of = order // 3
-    start = np.searchsorted(triangles.ravel()[order], np.arange(len(vertices) + 1))
-    best = np.full(len(points), np.inf)
-    for col in range(near.shape[1]):
-        v = near[:, col]
-        counts = start[v + 1] - start[v]
-        for s in range(int(counts.max()) if len(counts) else 0):
-            ok = counts > s
-            t = tri_of[start[v[ok]] + s]
-            tri = triangles[t]
-            d = point_triangle_distance(points[ok], vertices[tri[:, 0]], vertices[tri[:, 1]], vertices[tri[:, 2]])
-            best[ok] = np.minimum(best[ok], d)
-    return best
+    P = np.asarray(points_mm, float).reshape(-1, 3)
+    V = np.asarray(vertices_mm, float)
+    T = np.asarray(triangles, np.int64)
+    if len(T) == 0:
+        raise ValueError("surface_distance_mm: the surface has no triangles")
+    if len(P) == 0:
+        return np.zeros(0)
+    tri = V[T]  # (T, 3, 3)
+    cen = tri.mean(axis=1)
+    R = float(np.max(np.linalg.norm(tri - cen[:, None], axis=2)))
+    tree = cKDTree(cen)
+    k = min(8, len(T))
+    _, idx = tree.query(P, k=k)
+    idx = idx.reshape(len(P), k)
+    rows = np.repeat(np.arange(len(P)), k)
+    d0 = point_triangle_distance(P[rows], *(tri[idx.ravel(), j] for j in range(3))).reshape(len(P), k).min(axis=1)
+    cand = tree.query_ball_point(P, d0 + R + 1e-9)
+    counts = np.fromiter((len(c) for c in cand), int, len(P))
+    flat = np.fromiter((i for c in cand for i in c), np.int64, counts.sum())
+    rows = np.repeat(np.arange(len(P)), counts)
+    d = point_triangle_distance(P[rows], tri[flat, 0], tri[flat, 1], tri[flat, 2])
+    out = np.full(len(P), np.inf)
+    np.minimum.at(out, rows, d)
+    return np.minimum(out, d0)

@@ -18,8 +18,8 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
-from scipy.spatial import cKDTree
 
+from .geometry import point_triangle_distance, surface_distance_mm  # noqa: F401 (part of this module's API)
 from .io import atomic_path, read_json, write_json
 from .mesh import TetMesh
 from .strain import DEFAULT_BIN_EDGES, STRAIN_MEASURES, ElementStrain, element_strain, voi_statistics
@@ -204,85 +204,6 @@ def deformed_surface(mesh: TetMesh, displacement_mm, *, facet: str = "skin") -> 
     if facet not in mesh.facets:
         raise ValueError(f"mesh has no facet set {facet!r} (has {sorted(mesh.facets)})")
     return mesh.nodes_mm + np.asarray(displacement_mm, float), tri6_to_tri3(mesh.facets[facet])
-
-
-def point_triangle_distance(p, a, b, c) -> np.ndarray:
-    """Exact Euclidean distance from points ``p`` to triangles ``(a, b, c)`` (all (n, 3)) -> (n,) [mm].
-
-    Closest point by Voronoi regions of the triangle (vertex, edge or face), as in Ericson,
-    *Real-Time Collision Detection*, 5.1.5; degenerate triangles fall back to the nearest edge.
-    """
-    p, a, b, c = (np.asarray(x, float) for x in (p, a, b, c))
-    ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = _dot(ab, ap), _dot(ac, ap)
-    bp = p - b
-    d3, d4 = _dot(ab, bp), _dot(ac, bp)
-    cp = p - c
-    d5, d6 = _dot(ab, cp), _dot(ac, cp)
-    va = d3 * d6 - d5 * d4
-    vb = d5 * d2 - d1 * d6
-    vc = d1 * d4 - d3 * d2
-    denom = va + vb + vc
-    with np.errstate(divide="ignore", invalid="ignore"):
-        v = vb / denom
-        w = vc / denom
-    q = a + v[:, None] * ab + w[:, None] * ac  # face region
-    face = (va >= 0) & (vb >= 0) & (vc >= 0) & (denom > 0)
-    # outside the face region (or degenerate): nearest of the three edges, which covers vertices too
-    out = ~face
-    if np.any(out):
-        e = np.stack([_seg_dist(p[out], a[out], b[out]), _seg_dist(p[out], b[out], c[out]), _seg_dist(p[out], c[out], a[out])])
-        dist = np.empty(len(p))
-        dist[out] = e.min(axis=0)
-        dist[face] = np.linalg.norm(p[face] - q[face], axis=1)
-        return dist
-    return np.linalg.norm(p - q, axis=1)
-
-
-def _dot(x, y):
-    return np.einsum("ij,ij->i", x, y)
-
-
-def _seg_dist(p, a, b):
-    ab = b - a
-    L2 = _dot(ab, ab)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.where(L2 > 0, _dot(p - a, ab) / L2, 0.0)
-    t = np.clip(t, 0.0, 1.0)
-    return np.linalg.norm(p - (a + t[:, None] * ab), axis=1)
-
-
-def surface_distance_mm(points_mm, vertices_mm, triangles) -> np.ndarray:
-    """Exact distance from each point (..., 3) to a triangle surface -> (n_points,) [mm].
-
-    Candidates come from a KD-tree on triangle centroids: with ``d0`` the distance to the triangles of
-    the nearest few centroids and ``R`` the largest centroid-to-vertex distance, every triangle closer
-    than ``d0`` has its centroid within ``d0 + R``; all of those are checked exactly.
-    """
-    P = np.asarray(points_mm, float).reshape(-1, 3)
-    V = np.asarray(vertices_mm, float)
-    T = np.asarray(triangles, np.int64)
-    if len(T) == 0:
-        raise ValueError("surface_distance_mm: the surface has no triangles")
-    if len(P) == 0:
-        return np.zeros(0)
-    tri = V[T]  # (T, 3, 3)
-    cen = tri.mean(axis=1)
-    R = float(np.max(np.linalg.norm(tri - cen[:, None], axis=2)))
-    tree = cKDTree(cen)
-    k = min(8, len(T))
-    _, idx = tree.query(P, k=k)
-    idx = idx.reshape(len(P), k)
-    rows = np.repeat(np.arange(len(P)), k)
-    d0 = point_triangle_distance(P[rows], *(tri[idx.ravel(), j] for j in range(3))).reshape(len(P), k).min(axis=1)
-    cand = tree.query_ball_point(P, d0 + R + 1e-9)
-    counts = np.fromiter((len(c) for c in cand), int, len(P))
-    flat = np.fromiter((i for c in cand for i in c), np.int64, counts.sum())
-    rows = np.repeat(np.arange(len(P)), counts)
-    d = point_triangle_distance(P[rows], tri[flat, 0], tri[flat, 1], tri[flat, 2])
-    out = np.full(len(P), np.inf)
-    np.minimum.at(out, rows, d)
-    return np.minimum(out, d0)
 
 
 def skin_agreement_mm(contour_points_mm, vertices_mm, triangles, *, clip_to_surface_z: bool = True) -> tuple[float, float]:
