@@ -374,6 +374,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
 
     def newton(u, target_d, rtol, etol, max_it):
         """Iterate on u in place. Returns (ok, reason, iterations, residuals, contact outputs)."""
+        d_tol = 1e-12 * (1.0 + float(np.max(np.abs(target_d), initial=0.0)) + float(np.max(np.abs(X))))
         residuals = []
         slope_first, slope_last = None, None
         for it in range(max_it + 1):
@@ -386,7 +387,13 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
             r = f + fc
             du_d = np.zeros(asm.n_dofs)
             du_d[constrained] = target_d - u[constrained]
-            has_d = np.any(du_d != 0)
+            # a prescribed increment of round-off size (the rigid predictor and the Dirichlet target
+            # are computed by different formulas) is no increment: snap to the target, so that the
+            # Armijo line search, the descent check and the convergence tests stay on
+            has_d = float(np.max(np.abs(du_d), initial=0.0)) > d_tol
+            if not has_d and np.any(du_d != 0):
+                u[constrained] = target_d
+                du_d[:] = 0.0
             rf = r[asm.free]
             res = float(np.linalg.norm(rf))
             residuals.append(res)
