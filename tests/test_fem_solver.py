@@ -157,3 +157,22 @@ def test_rigid_predictor_is_not_mistaken_for_a_prescribed_increment(limb):
     assert r.converged, r.reason
     assert r.increments >= 4
     assert r.newton_iterations == 0
+
+
+@pytest.mark.slow
+def test_sphere_with_bone_motion_reaches_full_depth_without_cutbacks(limb):
+    # regression (rat01 'sphere' barely progressed after first touch): bone rotation + translation
+    # with 1 mm of sphere indentation. Before the fixes the increments after first touch were cut
+    # 7 times ("too many iterations", "line search failed") and took ~200 Newton iterations: the
+    # first iteration of each increment ran without a line search (round-off Dirichlet increment) and
+    # the stabilised ("near") contact tangent, switched on after 4 iterations, was not the derivative
+    # of the residual, so Newton converged only linearly once the contact set was settling.
+    motion = BoneMotion(rotation_deg=(1.0, -0.5, 0.5), centre_mm=(0.1, -0.2, 3.0), translation_mm=(0.05, -0.1, 0.0))
+    ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(4.0, 0.0, 3.0), end_mm=(1.5, 0.0, 3.0))
+    r = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=motion)
+    assert r.converged, r.reason
+    assert r.load_reached == pytest.approx(4.0)
+    cut = [(h.t_start, h.t_end, h.reason) for h in r.history if not h.converged]
+    assert not cut, cut
+    assert r.newton_iterations <= 80
+    assert r.indenter_force_N > 0.0

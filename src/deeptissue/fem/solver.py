@@ -87,7 +87,7 @@ class SolverSettings:
     max_al_iterations: int = 6
     first_touch_mm: float = 0.1
     contact_smoothing_rel: float = 1e-3
-    contact_near_rel: float = 0.05
+    contact_near_rel: float = 0.0
     candidate_distance_mm: float | None = None
     linear_solver: str = "pardiso"
     quadrature_order: int = 2
