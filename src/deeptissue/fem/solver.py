@@ -62,7 +62,9 @@ class SolverSettings:
     first_touch_mm: at most this much indentation in the increment where contact starts.
     contact_smoothing_rel: width of the rounded pressure kink as a penetration / facet size.
     contact_near_rel: points with a gap below this x facet size get penalty stiffness in the Newton
-    matrix (stabilises the active set; used once an increment needs more than easy_iterations).
+    matrix once an increment needs more than easy_iterations. Default 0 (off): that matrix is not the
+    derivative of the residual, and on rat01 and a small limb it made Newton converge only linearly
+    after first touch (increments cut for too many iterations); the consistent tangent does better.
     candidate_distance_mm: facets within this gap are contact candidates (None: 2 x largest facet size).
     linear_solver: 'pardiso' | 'amg' | 'superlu'.
     """
