@@ -142,3 +142,37 @@ def test_vtu_output_round_trip(limb, tmp_path):
     p, t = back.points, back.cells_dict["tetra10"]
     d = lambda k, a, b: np.linalg.norm(p[t[:, k]] - 0.5 * (p[t[:, a]] + p[t[:, b]]), axis=1)
     assert np.all(d(8, 1, 3) < d(8, 2, 3)) and np.all(d(9, 2, 3) < d(9, 1, 3))
+
+
+def test_rigid_predictor_is_not_mistaken_for_a_prescribed_increment(limb):
+    # regression: the rigid predictor and the Dirichlet target of the bone are computed by
+    # different formulas and differ by round-off (~1e-16 mm); that difference was treated as a
+    # prescribed increment, which switched off the Armijo line search, the descent check and the
+    # convergence test of the first Newton iteration of every increment (one wasted, unguarded
+    # iteration per increment; on rat01 it let an indefinite contact tangent take a full step).
+    # A rigid motion of the whole limb is an exact equilibrium: the predictor solves it, so no
+    # Newton iteration is needed.
+    motion = BoneMotion(rotation_deg=(1.0, -0.5, 0.5), centre_mm=(0.1, -0.2, 3.0), translation_mm=(0.05, -0.1, 0.0))
+    r = solve_indentation(limb, material=LAW, indenter=None, bone_motion=motion)
+    assert r.converged, r.reason
+    assert r.increments >= 4
+    assert r.newton_iterations == 0
+
+
+@pytest.mark.slow
+def test_sphere_with_bone_motion_reaches_full_depth_without_cutbacks(limb):
+    # regression (rat01 'sphere' barely progressed after first touch): bone rotation + translation
+    # with 1 mm of sphere indentation. Before the fixes the increments after first touch were cut
+    # 7 times ("too many iterations", "line search failed") and took ~200 Newton iterations: the
+    # first iteration of each increment ran without a line search (round-off Dirichlet increment) and
+    # the stabilised ("near") contact tangent, switched on after 4 iterations, was not the derivative
+    # of the residual, so Newton converged only linearly once the contact set was settling.
+    motion = BoneMotion(rotation_deg=(1.0, -0.5, 0.5), centre_mm=(0.1, -0.2, 3.0), translation_mm=(0.05, -0.1, 0.0))
+    ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(4.0, 0.0, 3.0), end_mm=(1.5, 0.0, 3.0))
+    r = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=motion)
+    assert r.converged, r.reason
+    assert r.load_reached == pytest.approx(4.0)
+    cut = [(h.t_start, h.t_end, h.reason) for h in r.history if not h.converged]
+    assert not cut, cut
+    assert r.newton_iterations <= 80
+    assert r.indenter_force_N > 0.0
