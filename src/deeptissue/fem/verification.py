@@ -35,13 +35,14 @@ def hertz_force_N(material, radius_mm: float, depth_mm) -> np.ndarray:
     return 4.0 / 3.0 * E / (1 - nu**2) * np.sqrt(radius_mm) * np.asarray(depth_mm, float) ** 1.5
 
 
-def _block_with_top_patch(size, h, h_fine, r_fine, centre):
-    m = block_mesh(size, h_mm=h, refine_point_mm=centre, refine_h_mm=h_fine, refine_radius_mm=r_fine)
+def _block_with_top_patch(size, h, h_fine, r_fine, centre, growth=None):
+    m = block_mesh(size, h_mm=h, refine_point_mm=centre, refine_h_mm=h_fine, refine_radius_mm=r_fine,
+                   refine_growth=growth)
     return TetMesh(m.nodes_mm, m.tets, {"bone": m.facets["bottom"], "patch": m.facets["top"]})
 
 
-def hertz_curve(material, *, radius_mm=1.5, max_depth_mm=0.15, block_mm=(20.0, 20.0, 10.0), h_mm=2.5,
-                h_fine_mm=0.06, fine_radius_mm=0.7, max_increment=0.1, accurate=True) -> pd.DataFrame:
+def hertz_curve(material, *, radius_mm=1.5, max_depth_mm=0.15, block_mm=(60.0, 60.0, 30.0), h_mm=8.0,
+                h_fine_mm=0.08, fine_radius_mm=0.5, growth=0.5, max_increment=0.1, accurate=True) -> pd.DataFrame:
     """Sphere (radius R) pressed into the centre of a block whose bottom is fixed.
 
     Returns depth_mm, force_N, hertz_N, rel_error per converged increment (depth from first touch),
@@ -49,7 +50,7 @@ def hertz_curve(material, *, radius_mm=1.5, max_depth_mm=0.15, block_mm=(20.0, 2
     """
     lx, ly, lz = block_mm
     top = (lx / 2, ly / 2, lz)
-    m = _block_with_top_patch(block_mm, h_mm, h_fine_mm, fine_radius_mm, top)
+    m = _block_with_top_patch(block_mm, h_mm, h_fine_mm, fine_radius_mm, top, growth)
     ind = Indenter("sphere", axis=(0, 0, -1), start_mm=(lx / 2, ly / 2, lz + 1e-3), end_mm=(lx / 2, ly / 2, lz - max_depth_mm),
                    radius_mm=radius_mm)
     st = SolverSettings(max_increment=max_increment, first_touch_mm=max_depth_mm * max_increment,
