@@ -4,6 +4,20 @@
 rule verify_hertz:
     output:
         hertz="results/verification/hertz.csv",
+    params:
+        material=config["fem"]["material"],
+    log:
+        "results/logs/verify_hertz.log",
+    conda:
+        "../envs/deeptissue.yaml"
+    script:
+        "../scripts/verify_fem_hertz.py"
+
+
+rule verify_hertz_curve:
+    input:
+        hertz=rules.verify_hertz.output.hertz,
+    output:
         curve="results/verification/hertz_curve.csv",
         figure=report(
             "results/verification/hertz.png",
@@ -14,11 +28,11 @@ rule verify_hertz:
     params:
         material=config["fem"]["material"],
     log:
-        "results/logs/verify_hertz.log",
+        "results/logs/verify_hertz_curve.log",
     conda:
         "../envs/deeptissue.yaml"
     script:
-        "../scripts/verify_fem_hertz.py"
+        "../scripts/verify_fem_hertz_curve.py"
 
 
 rule verify_fem_cases:
@@ -53,5 +67,6 @@ rule verify:
     input:
         rules.verify_material.output,
         rules.verify_hertz.output,
+        rules.verify_hertz_curve.output,
         rules.verify_fem_cases.output,
         rules.verify_fem_benchmark.output,

@@ -17,18 +17,29 @@ def _start(name: str):
     return gmsh
 
 
-def _size_field(gmsh, h_mm, refine_point_mm, refine_h_mm, refine_radius_mm):
+def _size_field(gmsh, h_mm, refine_point_mm, refine_h_mm, refine_radius_mm, refine_growth=None):
+    """Background size: ``refine_h_mm`` within ``refine_radius_mm`` of the point, then growing linearly
+    to ``h_mm`` over ``refine_radius_mm`` (or, with ``refine_growth``, at that rate in mm per mm).
+
+    gmsh samples the background field only at the vertices (and circumcentres) of the mesh it is
+    refining, so a small refinement ball inside a coarse initial triangulation of a large face is
+    missed: the size must grow gently (``refine_growth`` <= ~0.5) for the refinement to be found.
+    The mesh size from points, curvature and boundary extension is switched off so the field alone
+    decides (checked in tests/test_fem_hertz.py on the facets under the refine point).
+    """
     if refine_point_mm is None:
         gmsh.option.setNumber("Mesh.MeshSizeMax", h_mm)
         gmsh.option.setNumber("Mesh.MeshSizeMin", 0.2 * h_mm)
         return
     x, y, z = refine_point_mm
+    ramp = refine_radius_mm if refine_growth is None else (h_mm - refine_h_mm) / refine_growth
     f = gmsh.model.mesh.field.add("MathEval")
     r = f"Sqrt((x-{x})^2+(y-{y})^2+(z-{z})^2)"
     gmsh.model.mesh.field.setString(
-        f, "F", f"Min({h_mm}, {refine_h_mm} + ({h_mm} - {refine_h_mm}) * Max(0, {r} - {refine_radius_mm}) / {refine_radius_mm})"
+        f, "F", f"Min({h_mm}, {refine_h_mm} + ({h_mm} - {refine_h_mm}) * Max(0, {r} - {refine_radius_mm}) / {ramp})"
     )
     gmsh.model.mesh.field.setAsBackgroundMesh(f)
+    gmsh.option.setNumber("Mesh.MeshSizeMax", h_mm)
     for k in ("MeshSizeExtendFromBoundary", "MeshSizeFromPoints", "MeshSizeFromCurvature"):
         gmsh.option.setNumber(f"Mesh.{k}", 0)
 
@@ -40,11 +51,13 @@ def _finish(gmsh, order: int = 2) -> TetMesh:
 
 
 def block_mesh(size_mm=(10.0, 10.0, 5.0), *, h_mm=1.0, refine_point_mm=None, refine_h_mm=None,
-               refine_radius_mm=None) -> TetMesh:
+               refine_radius_mm=None, refine_growth=None) -> TetMesh:
     """A box [0, lx] x [0, ly] x [0, lz] meshed with quadratic tets.
 
     Facet sets: xmin, xmax, ymin, ymax, bottom (z = 0), top (z = lz). Optional local refinement to
-    ``refine_h_mm`` within ``refine_radius_mm`` of ``refine_point_mm`` growing linearly to ``h_mm``.
+    ``refine_h_mm`` within ``refine_radius_mm`` of ``refine_point_mm`` growing linearly to ``h_mm``
+    (over ``refine_radius_mm``, or at ``refine_growth`` mm per mm: use it when the refined region is
+    much smaller than ``h_mm`` and the block, see ``_size_field``).
     """
     gmsh = _start("block")
     try:
@@ -62,7 +75,7 @@ def block_mesh(size_mm=(10.0, 10.0, 5.0), *, h_mm=1.0, refine_point_mm=None, ref
                     names[nhi] = t
         for n, t in names.items():
             gmsh.model.addPhysicalGroup(2, [t], name=n)
-        _size_field(gmsh, h_mm, refine_point_mm, refine_h_mm, refine_radius_mm)
+        _size_field(gmsh, h_mm, refine_point_mm, refine_h_mm, refine_radius_mm, refine_growth)
         return _finish(gmsh)
     finally:
         gmsh.finalize()
