@@ -215,12 +215,20 @@ def build_model(
         cast = build_cast(contours, pose, variants=variants, settings=s, animal=animal)
     axes = variant_axes(pose, variants)
     segs, seen = [], []
-    for name, (axis, start, end, _) in axes.items():
-        key = tuple(np.round(np.concatenate([axis, start]), 9))
-        if key in seen:
-            continue
-        seen.append(key)
-        segs.append(RefineSegment(start_mm=start, end_mm=end + s.refine_depth_mm * axis))
+    for name, (axis, start, end, v) in axes.items():
+        # the bar's travel is swept along the bar: its rounded ends concentrate strain too
+        offsets = [0.0]
+        if v.indenter == "bar" and s.bar_length_mm > 2 * SPHERE_RADIUS_MM:
+            half = 0.5 * s.bar_length_mm - SPHERE_RADIUS_MM
+            offsets = [-half, 0.0, half]
+            long_dir = geo.bar_direction(axis)
+        for off in offsets:
+            shift = off * long_dir if off else 0.0
+            key = tuple(np.round(np.concatenate([axis, start + shift]), 9))
+            if key in seen:
+                continue
+            seen.append(key)
+            segs.append(RefineSegment(start_mm=start + shift, end_mm=end + shift + s.refine_depth_mm * axis))
     specs = _patch_specs(pose, variants, s)
     import tempfile
 

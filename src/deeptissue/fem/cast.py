@@ -92,11 +92,11 @@ class Cast:
         self.free_vertex = vfree[self.t]  # (T, 3)
 
     @classmethod
-    def load(cls, path: str | Path) -> "Cast":
-        """Read cast.npz (arrays vertices_mm, triangles)."""
+    def load(cls, path: str | Path, **kwargs) -> "Cast":
+        """Read cast.npz (arrays vertices_mm, triangles); kwargs go to the constructor."""
         try:
             with np.load(path) as d:
-                return cls(d["vertices_mm"], d["triangles"])
+                return cls(d["vertices_mm"], d["triangles"], **kwargs)
         except (KeyError, OSError) as exc:
             raise ValueError(f"{path}: not a cast file ({exc})") from exc
 
