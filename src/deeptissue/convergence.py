@@ -165,13 +165,13 @@ def default_ladder(conv_cfg: dict | None = None, *, model_cfg: dict | None = Non
     ratio = float(c.get("refine_ratio", 0.5))
     notes = []
     orders = []
-    for o in c.get("element_orders", [2]):
+    for o in c.get("element_orders", [1, 2]):
         if o in SUPPORTED_ELEMENT_ORDERS:
             orders.append(int(o))
         else:
             notes.append(f"element order {o} left out: the mesh/FE code supports orders {list(SUPPORTED_ELEMENT_ORDERS)} only "
                          "(deeptissue.mesh.TetMesh is 10-node, fem.assembly uses ElementTetP2)")
-            log.warning("convergence: %s", notes[-1])
+            log.info("convergence: %s", notes[-1])
     if not orders:
         raise ValueError(f"config key convergence.element_orders: none of {c.get('element_orders')} is supported "
                          f"(supported: {list(SUPPORTED_ELEMENT_ORDERS)})")
