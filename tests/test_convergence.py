@@ -162,6 +162,7 @@ def test_summary_names_cheapest_setting_meeting_goal_and_judges_default():
     assert "`p2_n8000` does NOT meet the goal" in text and "sits on the" in text
     assert "reference for `bar`: `p2_n64000`" in text
     assert "Note: element order 1 left out" in text
+    assert "is the reference itself" in summary_markdown(df, default_name="p2_n64000")
     # memory above the start grows exactly linearly in n_dofs in these rows
     assert "`rss_above_start_mb` ∝ n_dofs^1.00" in text
 

@@ -688,7 +688,11 @@ def summary_markdown(df, *, default_name: str | None, goal: AccuracyGoal = Accur
     lines.append("")
     lines.append("Configured default:")
     d = st[st["setting"] == default_name] if default_name else st.iloc[0:0]
-    if len(d):
+    if len(d) and bool(d.iloc[0]["is_reference"]):
+        d = d.iloc[0]
+        lines.append(f"`{default_name}` is the reference itself (the finest converged run): its error is not measured; "
+                     f"add finer settings to the ladder. Its cost ratio is {_fmt(d['cost_ratio'], '.1f')}.")
+    elif len(d):
         d = d.iloc[0]
         ratio_ok = np.isfinite(d["cost_ratio"]) and d["cost_ratio"] <= max_cost_ratio
         lines.append(f"`{default_name}` {'meets' if d['meets_goal'] else 'does NOT meet'} the goal "
@@ -734,6 +738,7 @@ def plot_error_vs_time(path, df, *, goal: AccuracyGoal = AccuracyGoal()) -> None
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import NullFormatter
 
     from .io import atomic_path
 
@@ -765,6 +770,8 @@ def plot_error_vs_time(path, df, *, goal: AccuracyGoal = AccuracyGoal()) -> None
         ax.axhline(g, color="k", ls=":", lw=1)
         ax.set_xscale("log")
         ax.set_yscale("log")
+        for axis in (ax.xaxis, ax.yaxis):
+            axis.set_minor_formatter(NullFormatter())
         ax.set_xlabel("wall time (mesh + solve + post) [s]")
         ax.set_ylabel(label)
         ax.grid(True, which="both", alpha=0.3)
