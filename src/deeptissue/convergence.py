@@ -673,7 +673,7 @@ def summary_markdown(df, *, default_name: str | None, goal: AccuracyGoal = Accur
     if len(cand):
         c = cand.iloc[0]
         lines.append(f"**Cheapest setting meeting the goal: `{c['setting']}`** ({c['family']}; {_fmt(c['wall_s'], '.1f')} s "
-                     f"for all variants, largest error {_fmt(c['goal_error'], '.2f')} × goal, cost ratio ≤ {_fmt(c['cost_ratio'], '.1f')}).")
+                     f"for all variants, largest error {_fmt(c['goal_error'], '.2f')} × goal, largest cost ratio {_fmt(c['cost_ratio'], '.1f')}).")
     else:
         lines.append("**No setting other than the reference meets the goal in every variant.**")
     lines.append("")
@@ -729,6 +729,18 @@ def summary_markdown(df, *, default_name: str | None, goal: AccuracyGoal = Accur
     for n in notes:
         lines.append(f"Note: {n}")
     return "\n".join(lines).rstrip() + "\n"
+
+
+def write_summary_md(path, df, *, default_name: str | None, goal: AccuracyGoal = AccuracyGoal(), notes=(),
+                     max_cost_ratio: float = 15.0, measure: str = "dofs") -> str:
+    """Write :func:`summary_markdown` to ``path`` (atomically); returns the text."""
+    from .io import atomic_path
+
+    text = summary_markdown(df, default_name=default_name, goal=goal, notes=notes, max_cost_ratio=max_cost_ratio,
+                            measure=measure)
+    with atomic_path(path) as tmp:
+        Path(tmp).write_text(text)
+    return text
 
 
 def plot_error_vs_time(path, df, *, goal: AccuracyGoal = AccuracyGoal()) -> None:
@@ -823,7 +835,6 @@ def aggregate_convergence(*, row_paths, benchmark_paths=(), csv_path, png_path, 
     with atomic_path(csv_path) as tmp:
         df.to_csv(tmp, index=False)
     plot_error_vs_time(png_path, df, goal=g)
-    text = summary_markdown(df, default_name=default_name, goal=g, notes=notes, max_cost_ratio=max_cost_ratio, measure=measure)
-    with atomic_path(md_path) as tmp:
-        Path(tmp).write_text(text)
+    write_summary_md(md_path, df, default_name=default_name, goal=g, notes=notes, max_cost_ratio=max_cost_ratio,
+                     measure=measure)
     return df
