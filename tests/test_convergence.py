@@ -248,14 +248,26 @@ def test_run_discretisation_on_a_tiny_synthetic_leg():
 
 @pytest.mark.slow
 def test_slurm_profile_dry_run_plans_the_study_and_the_ladder():
+    import yaml
+
+    from deeptissue.config import validate_config
+
+    cfg = validate_config(yaml.safe_load((ROOT / "config/config.yaml").read_text()),
+                          ROOT / "workflow/schemas/config.schema.yaml", base_dir=ROOT)
+    n_solve = len(cfg["animals"]) * len(cfg["study"]["variants"])
+    n_ladder = len(cfg["convergence"]["variants"]) * len(
+        default_ladder(cfg["convergence"], model_cfg=cfg["model"], solver_cfg=cfg["fem"]["solver"]).settings)
     exe = Path(sys.executable).with_name("snakemake")
     env = dict(os.environ, PYTHONPATH=str(ROOT / "src"))
-    p = subprocess.run([str(exe), "-n", "--profile", "profiles/slurm", "study", "convergence"],
+    # --forceall: plan every job whatever results/ already holds; without the plugin installed, snakemake
+    # refuses the profile ("--executor: invalid choice: 'slurm'")
+    p = subprocess.run([str(exe), "-n", "--forceall", "--profile", "profiles/slurm", "study", "convergence"],
                        cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
     out = p.stdout + p.stderr
     assert p.returncode == 0, out[-3000:]
-    # 3 demo animals x 6 variants, and 2 variants x the default ladder, each with the profile's resources
-    assert any(line.split() == ["solve", "18"] for line in out.splitlines()), out[-2000:]
-    assert any(line.split()[:1] == ["convergence_run"] for line in out.splitlines())
+    # every animal x variant and every convergence run, each with the profile's resources
+    stats = [line.split() for line in out.splitlines()]
+    assert ["solve", str(n_solve)] in stats, out[-2000:]
+    assert ["convergence_run", str(n_ladder)] in stats, out[-2000:]
     assert "runtime=120, cpus_per_task=2" in out  # solve
     assert "mem_mb=8000" in out and "runtime=240" in out  # convergence_run
