@@ -18,6 +18,7 @@ include: "workflow/rules/model.smk"
 include: "workflow/rules/material.smk"
 include: "workflow/rules/fem.smk"
 include: "workflow/rules/study.smk"
+include: "workflow/rules/convergence.smk"
 
 
 rule all:

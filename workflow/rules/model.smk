@@ -10,6 +10,9 @@ rule cast:
         cast="results/{animal}/model/cast.npz",
     log:
         "results/{animal}/logs/cast.log",
+    resources:
+        mem_mb=2000,
+        runtime=10,
     params:
         settings=dict(config["model"], bar_length_mm=float(config.get("fem", {}).get("bar_length_mm", 10.0))),
         variants=config["study"]["variants"],
@@ -39,6 +42,9 @@ rule mesh:
         "results/{animal}/logs/mesh.log",
     benchmark:
         "results/{animal}/benchmarks/mesh.tsv"
+    resources:
+        mem_mb=2000,
+        runtime=15,
     params:
         settings=dict(config["model"], bar_length_mm=float(config.get("fem", {}).get("bar_length_mm", 10.0))),
         variants=config["study"]["variants"],

@@ -78,6 +78,9 @@ rule aggregate:
         bin_edges=STUDY["bin_edges"],
     log:
         "results/summary/aggregate.log",
+    resources:
+        mem_mb=4000,
+        runtime=30,
     conda:
         "../envs/deeptissue.yaml"
     script:
@@ -111,6 +114,7 @@ rule solve:
         study=STUDY,
     resources:
         mem_mb=4000,
+        runtime=120,
     conda:
         "../envs/deeptissue.yaml"
     script:

@@ -1,0 +1,273 @@
+"""Speed against error (issue 7): errors, Richardson, Pareto, goal, scaling, summary; one tiny run;
+the SLURM profile's dry run. Known answers come from closed forms (c + k h^p), not from the code."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from deeptissue.convergence import (
+    ROW_COLUMNS,
+    AccuracyGoal,
+    Discretisation,
+    aggregate_convergence,
+    convergence_table,
+    default_ladder,
+    pareto_mask,
+    richardson_extrapolation,
+    run_discretisation,
+    scaling_fit,
+    setting_name,
+    setting_table,
+    summary_markdown,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def make_row(setting, *, variant="sphere", family="P2 uniform", n_dofs, voi, force, bins, wall_s,
+             tolerance="default", rtol=1e-7, is_default=False, converged=True, h=1.0):
+    return dict(
+        animal="rat01", variant=variant, setting=setting, family=family, element_order=2, element_size_mm=h,
+        refine_size_mm=None, tolerance=tolerance, rtol=rtol, penetration_tol=0.01,
+        mesh_key=f"p2_h{h:g}_rnone", is_default=is_default, converged=converged,
+        reason=None if converged else "cut-back limit", n_elements=n_dofs // 10, n_dofs=n_dofs, increments=5,
+        newton_iterations=20, voi_mm3=voi, bins_percent=bins, peak_gamma=0.5, indenter_force_N=force,
+        mesh_s=1.0, assembly_s=0.3 * wall_s, linear_solve_s=0.5 * wall_s, contact_s=0.05 * wall_s,
+        solver_other_s=0.0, post_s=0.1, solve_s=0.85 * wall_s, wall_s=wall_s, linear_setup_s=0.1,
+        linear_assembly_s=0.1, linear_factor_solve_s=0.1, linear_wall_s=0.3, cost_ratio=0.85 * wall_s / 0.3,
+        start_rss_mb=100.0, peak_rss_mb=100.0 + n_dofs / 100.0,
+    )
+
+
+# --------------------------------------------------------------------------- Richardson
+
+
+@pytest.mark.parametrize("p", [1.0, 1.5, 2.0, 3.0])
+def test_richardson_recovers_limit_and_order_of_c_plus_k_h_to_the_p(p):
+    c, k = 12.0, 3.5
+    h = np.array([1.6, 1.1, 0.7])  # unequal ratios
+    r = richardson_extrapolation(h, c + k * h**p)
+    assert r.order_p == pytest.approx(p, abs=1e-9)
+    assert r.extrapolated == pytest.approx(c, abs=1e-9)
+    assert r.k == pytest.approx(k, rel=1e-8)
+    # order of the input does not matter, and only the three finest sizes are used
+    h4 = np.array([0.7, 2.5, 1.1, 1.6])
+    f4 = c + k * h4**p
+    f4[1] += 100.0  # the coarsest point is off the curve: ignored
+    assert richardson_extrapolation(h4, f4).extrapolated == pytest.approx(c, abs=1e-9)
+
+
+def test_richardson_refuses_non_monotone_or_too_few_sizes():
+    assert richardson_extrapolation([1.6, 1.1, 0.7], [1.0, 2.0, 1.5]) is None  # oscillates
+    assert richardson_extrapolation([1.6, 1.1], [1.0, 2.0]) is None
+    assert richardson_extrapolation([1.6, 1.6, 0.7], [1.0, 2.0, 1.5]) is None
+    assert richardson_extrapolation([1.6, 1.1, 0.7], [1.0, 1.0, 1.0]) is None  # nothing to extrapolate
+
+
+# --------------------------------------------------------------------------- errors, goal, Pareto
+
+BINS_REF = {"0.3-0.4": 60.0, "0.4-0.5": 30.0, ">0.5": 10.0}
+
+
+def ladder_rows(variant="sphere", scale=1.0):
+    """Uniform family with VOI = 10 + 200 h^2 and force = 0.1 (1 + 2 h^2), h = n_dofs^(-1/3)."""
+    rows = []
+    for n, wall in [(1000, 2.0), (8000, 10.0), (27000, 40.0), (64000, 120.0)]:
+        h = n ** (-1 / 3)
+        bins = {k: v + (3.0 if k == "0.3-0.4" else -3.0 if k == "0.4-0.5" else 0.0) * (h / 0.025) ** 2 * 0.1
+                for k, v in BINS_REF.items()}
+        rows.append(make_row(f"p2_n{n}", variant=variant, n_dofs=n, voi=scale * (10 + 200 * h**2),
+                             force=0.1 * (1 + 2 * h**2), bins=bins, wall_s=wall, h=100 * h))
+    return rows
+
+
+def test_errors_against_the_finest_run_and_richardson():
+    df = convergence_table(ladder_rows())
+    df = df.set_index("setting")
+    assert df["is_reference"].sum() == 1 and df.loc["p2_n64000", "is_reference"]
+    assert (df["reference_setting"] == "p2_n64000").all()
+    f = lambda h: 10 + 200 * h**2
+    g = lambda h: 0.1 * (1 + 2 * h**2)
+    h1, h4 = 0.1, 0.025
+    assert df.loc["p2_n1000", "voi_rel_error"] == pytest.approx((f(h1) - f(h4)) / f(h4), rel=1e-9)
+    assert df.loc["p2_n1000", "force_rel_error"] == pytest.approx((g(h1) - g(h4)) / g(h4), rel=1e-9)
+    # bin errors: the 0.3-0.4 bin moved by 0.3 (h/h4)^2 pp, 0.4-0.5 by the same, reference moved 0.3 pp
+    assert df.loc["p2_n1000", "bin_max_error_pp"] == pytest.approx(0.3 * (h1 / h4) ** 2 - 0.3, rel=1e-9)
+    assert df.loc["p2_n64000", "voi_rel_error"] == 0.0
+    # Richardson through the three finest sizes recovers the limits 10 and 0.1 exactly
+    assert df.loc["p2_n1000", "voi_rel_error_richardson"] == pytest.approx((f(h1) - 10) / 10, rel=1e-7)
+    assert df.loc["p2_n64000", "force_rel_error_richardson"] == pytest.approx(2 * h4**2, rel=1e-6)
+    # goal: VOI error of n27000 is 200 (1/900 - 1/1600) / f(h4) = 0.96 % (< 2 %), of n8000 3.7 %
+    assert df.loc["p2_n27000", "voi_rel_error"] == pytest.approx(200 * (1 / 900 - 1 / 1600) / f(h4), rel=1e-9)
+    assert df.loc["p2_n27000", "meets_goal"] and not df.loc["p2_n8000", "meets_goal"]
+    assert df.loc["p2_n27000", "bin_max_error_pp"] == pytest.approx(0.3 * (1600 / 900) - 0.3, rel=1e-9)
+    # each row costs more and is more accurate than the previous: all on the front
+    assert df["pareto"].all()
+
+
+def test_element_size_measure_and_bin_columns():
+    rows = ladder_rows()
+    df = convergence_table(rows, measure="element_size")  # h column = 100 n^(-1/3): same extrapolation
+    assert df["voi_rel_error_richardson"].iloc[0] == pytest.approx(200 * 0.01 / 10, rel=1e-6)
+    assert {"bin_0.3-0.4", "bin_0.4-0.5", "bin_>0.5"} <= set(df.columns)
+
+
+def test_pareto_mask_and_dominated_setting():
+    cost = [1, 2, 3, 4, 5, np.nan]
+    err = [5, 3, 4, 1, 1, 0]
+    assert pareto_mask(cost, err).tolist() == [True, True, False, True, False, False]
+    rows = ladder_rows()
+    rows.append(make_row("slow_bad", n_dofs=9000, voi=10 + 200 * 9000 ** (-2 / 3) * 1.5, force=0.1,
+                         bins=BINS_REF, wall_s=50.0, h=4.8))
+    df = convergence_table(rows).set_index("setting")
+    assert not df.loc["slow_bad", "pareto"]  # n27000 is faster and more accurate
+
+
+def test_failed_run_has_no_error_and_is_never_the_reference():
+    rows = ladder_rows()
+    rows.append(make_row("p2_fail", n_dofs=200000, voi=None, force=None, bins=None, wall_s=999.0,
+                         converged=False, h=0.2))
+    df = convergence_table(rows).set_index("setting")
+    assert df.loc["p2_n1000", "reference_setting"] == "p2_n64000"
+    assert np.isnan(df.loc["p2_fail", "voi_rel_error"]) and not df.loc["p2_fail", "meets_goal"]
+    assert not df.loc["p2_fail", "pareto"]
+
+
+# --------------------------------------------------------------------------- scaling and summary
+
+
+def test_scaling_fit_recovers_exponent_and_prefactor():
+    n = np.array([1e3, 5e3, 2e4, 1e5])
+    fit = scaling_fit(n, 3.0 * n**1.5, quantity="solve_s")
+    assert fit.exponent == pytest.approx(1.5, abs=1e-12)
+    assert fit.prefactor == pytest.approx(3.0, rel=1e-9)
+    assert fit.r2 == pytest.approx(1.0) and fit.n_points == 4
+    assert scaling_fit([1e3, 1e3], [1.0, 2.0]) is None
+
+
+def test_summary_names_cheapest_setting_meeting_goal_and_judges_default():
+    rows = ladder_rows("sphere") + ladder_rows("bar", scale=1.1)
+    for r in rows:
+        r["is_default"] = r["setting"] == "p2_n8000"
+    df = convergence_table(rows)
+    st = setting_table(df)
+    assert st.set_index("setting").loc["p2_n27000", "meets_goal"]
+    text = summary_markdown(df, default_name="p2_n8000", notes=["element order 1 left out"])
+    assert "Cheapest setting meeting the goal: `p2_n27000`" in text
+    assert "`p2_n8000` does NOT meet the goal" in text and "sits on the" in text
+    assert "reference for `bar`: `p2_n64000`" in text
+    assert "Note: element order 1 left out" in text
+    assert "is the reference itself" in summary_markdown(df, default_name="p2_n64000")
+    # memory above the start grows exactly linearly in n_dofs in these rows
+    assert "`rss_above_start_mb` ∝ n_dofs^1.00" in text
+
+
+def test_aggregate_writes_csv_figure_and_summary_with_benchmarks(tmp_path):
+    from deeptissue.io import write_json
+
+    paths, benches = [], []
+    for r in ladder_rows():
+        p = tmp_path / "rows" / f"{r['setting']}.json"
+        write_json(p, r)
+        paths.append(p)
+        b = tmp_path / "bench" / f"sphere_{r['setting']}.tsv"
+        b.parent.mkdir(exist_ok=True)
+        b.write_text("s\th:m:s\tmax_rss\tmax_vms\tmax_uss\tmax_pss\tio_in\tio_out\tmean_load\tcpu_time\n"
+                     f"{r['wall_s'] + 2}\t0:00:01\t{r['peak_rss_mb'] + 5}\t1\t1\t1\t0\t0\t90\t{r['wall_s']}\n")
+        benches.append(b)
+    out = tmp_path / "out"
+    df = aggregate_convergence(row_paths=paths, benchmark_paths=benches, csv_path=out / "convergence.csv",
+                               png_path=out / "error_vs_time.png", md_path=out / "summary.md",
+                               default_name="p2_n27000")
+    back = pd.read_csv(out / "convergence.csv")
+    assert len(back) == 4 and set(ROW_COLUMNS) - {"bins_percent"} <= set(back.columns)
+    assert np.allclose(back["benchmark_max_rss_mb"], back["peak_rss_mb"] + 5)
+    assert (out / "error_vs_time.png").read_bytes()[:4] == b"\x89PNG"
+    assert "`p2_n27000` meets the goal" in (out / "summary.md").read_text()
+    assert df["meets_goal"].sum() == 2
+
+
+# --------------------------------------------------------------------------- ladder
+
+
+def test_default_ladder_contains_default_families_and_leaves_p1_out():
+    lad = default_ladder({"element_orders": [1, 2], "element_sizes_mm": [1.6, 0.9], "refined_element_sizes_mm": [1.2, 1.0],
+                          "refine_ratio": 0.5, "tolerances": [{"name": "loose", "rtol": 1e-5}, {"name": "default"}]},
+                         model_cfg={"element_size_mm": 1.0, "refine_size_mm": 0.5}, solver_cfg={"rtol": 1e-7, "penetration_tol": 0.01})
+    names = lad.names
+    assert len(names) == len(set(names))
+    assert lad.default_name == "p2_h1_r0.5" and lad.default_name in names
+    assert {"p2_h1.6", "p2_h0.9", "p2_h1.2_r0.6", "p2_h1_r0.5", "p2_h1_r0.5_loose"} == set(names)
+    assert lad.by_name("p2_h1_r0.5_loose").rtol == 1e-5 and lad.by_name("p2_h1_r0.5_loose").penetration_tol == 0.01
+    assert lad.by_name("p2_h1.6").model_settings({"refine_radius_mm": 4.0}) == {
+        "refine_radius_mm": 4.0, "element_size_mm": 1.6, "refine_size_mm": 1.6}
+    assert any("element order 1 left out" in n for n in lad.notes)
+    assert not any(s.element_order == 1 for s in lad.settings)
+    assert setting_name(element_size_mm=0.7, refine_size_mm=0.35, tolerance="tight") == "p2_h0.7_r0.35_tight"
+    with pytest.raises(ValueError, match="element_orders"):
+        default_ladder({"element_orders": [1]})
+
+
+# --------------------------------------------------------------------------- one real run
+
+
+@pytest.mark.slow
+def test_run_discretisation_on_a_tiny_synthetic_leg():
+    from model_synth import leg_contours, leg_pose
+
+    c = leg_contours(n_slices=12, n_points=60)
+    pose = leg_pose(c, depth_mm=0.5)
+    s = Discretisation(name="p2_h2.5", family="P2 uniform", element_size_mm=2.5)
+    study = {"variants": ["sphere"], "threshold": 0.05, "bin_edges": [0.05, 0.1, 0.2]}
+    row = run_discretisation(animal="synth", variant="sphere", setting=s, contours=c, pose=pose, cast=False,
+                             study_cfg=study, is_default=True)
+    assert set(ROW_COLUMNS) <= set(row)
+    assert row["converged"], row["reason"]
+    assert row["n_elements"] > 100 and row["n_dofs"] > 3 * row["n_elements"]
+    assert row["voi_mm3"] > 0 and sum(row["bins_percent"].values()) == pytest.approx(100.0)
+    assert row["indenter_force_N"] > 0 and row["newton_iterations"] >= row["increments"] > 0
+    # the solver's parts add up to its wall time; the run's wall time holds meshing, solve and post
+    parts = row["assembly_s"] + row["linear_solve_s"] + row["contact_s"] + row["solver_other_s"]
+    assert parts == pytest.approx(row["solve_s"], rel=1e-6)
+    assert row["wall_s"] == pytest.approx(row["mesh_s"] + row["solve_s"] + row["post_s"], rel=1e-6)
+    # a nonlinear contact solve takes several Newton iterations: more than one linear solve
+    assert row["cost_ratio"] > 1 and row["linear_wall_s"] > 0
+    assert row["peak_rss_mb"] >= row["start_rss_mb"] > 0
+    with pytest.raises(ValueError, match="not supported"):
+        run_discretisation(animal="synth", variant="sphere", contours=c, pose=pose, cast=False,
+                           setting=Discretisation(name="p1_h2.5", family="P1 uniform", element_size_mm=2.5, element_order=1))
+
+
+# --------------------------------------------------------------------------- SLURM profile
+
+
+@pytest.mark.slow
+def test_slurm_profile_dry_run_plans_the_study_and_the_ladder():
+    import yaml
+
+    from deeptissue.config import validate_config
+
+    cfg = validate_config(yaml.safe_load((ROOT / "config/config.yaml").read_text()),
+                          ROOT / "workflow/schemas/config.schema.yaml", base_dir=ROOT)
+    n_solve = len(cfg["animals"]) * len(cfg["study"]["variants"])
+    n_ladder = len(cfg["convergence"]["variants"]) * len(
+        default_ladder(cfg["convergence"], model_cfg=cfg["model"], solver_cfg=cfg["fem"]["solver"]).settings)
+    exe = Path(sys.executable).with_name("snakemake")
+    env = dict(os.environ, PYTHONPATH=str(ROOT / "src"))
+    # --forceall: plan every job whatever results/ already holds; without the plugin installed, snakemake
+    # refuses the profile ("--executor: invalid choice: 'slurm'")
+    p = subprocess.run([str(exe), "-n", "--forceall", "--profile", "profiles/slurm", "study", "convergence"],
+                       cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    out = p.stdout + p.stderr
+    assert p.returncode == 0, out[-3000:]
+    # every animal x variant and every convergence run, each with the profile's resources
+    stats = [line.split() for line in out.splitlines()]
+    assert ["solve", str(n_solve)] in stats, out[-2000:]
+    assert ["convergence_run", str(n_ladder)] in stats, out[-2000:]
+    assert "runtime=120, cpus_per_task=2" in out  # solve
+    assert "mem_mb=8000" in out and "runtime=240" in out  # convergence_run

@@ -1,0 +1,21 @@
+"""Glue of rule convergence_aggregate: rows + benchmarks -> convergence.csv, error_vs_time.png, summary.md."""
+
+import contextlib
+import logging
+
+from deeptissue.convergence import aggregate_convergence
+
+with open(snakemake.log[0], "w") as log, contextlib.redirect_stderr(log):
+    logging.basicConfig(stream=log, level=logging.INFO)
+    aggregate_convergence(
+        row_paths=list(snakemake.input.rows),
+        benchmark_paths=list(snakemake.input.benchmarks),
+        csv_path=snakemake.output.csv,
+        png_path=snakemake.output.png,
+        md_path=snakemake.output.md,
+        default_name=snakemake.params.default_name,
+        goal=dict(snakemake.params.goal),
+        notes=list(snakemake.params.notes),
+        max_cost_ratio=float(snakemake.params.max_cost_ratio),
+        measure=snakemake.params.size_measure,
+    )

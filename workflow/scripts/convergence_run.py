@@ -1,0 +1,24 @@
+"""Glue of rule convergence_run: one animal x variant x setting -> one row (JSON)."""
+
+import contextlib
+import logging
+
+from deeptissue.convergence import run_convergence_job
+
+with open(snakemake.log[0], "w") as log, contextlib.redirect_stderr(log):
+    logging.basicConfig(stream=log, level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    run_convergence_job(
+        animal=snakemake.wildcards.animal,
+        variant=snakemake.wildcards.conv_variant,
+        setting=dict(snakemake.params.setting),
+        contours_path=snakemake.input.contours,
+        pose_path=snakemake.input.pose,
+        cast_path=snakemake.input.cast,
+        row_path=snakemake.output.row,
+        model_cfg=dict(snakemake.params.model),
+        fem_cfg=dict(snakemake.params.fem),
+        study_cfg=dict(snakemake.params.study),
+        mesh_variants=list(snakemake.params.mesh_variants),
+        is_default=bool(snakemake.params.is_default),
+        linear_reference=bool(snakemake.params.linear_reference),
+    )
