@@ -5,7 +5,11 @@ from snakemake.utils import min_version
 min_version("9.0")
 
 
-configfile: "config/config.yaml"
+# the demo study, unless a config file is given on the command line (`--configfile config/paper.yaml`):
+# then that file alone is the configuration (its animals are not merged with the demo's)
+if not workflow.overwrite_configfiles:
+
+    configfile: "config/config.yaml"
 
 
 report: "workflow/report/workflow.rst"
