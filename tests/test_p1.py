@@ -234,6 +234,12 @@ def test_p1_limb_mesh_has_the_corner_tets_of_the_p2_mesh():
     # straight tets under-fill the lofted skin a little; still within 1 % of the prismatoid volume
     prism = geo.limb_volume_mm3(c.skin, c.bone)
     assert st["mesh_volume_mm3"] == pytest.approx(a.volumes_mm3().sum(), rel=1e-12)
+    from deeptissue.mesh import tet10_min_det_jacobian, tet10_volume_mm3
+
+    assert tet10_volume_mm3(a) == pytest.approx(a.volumes_mm3().sum(), rel=1e-12)
+    np.testing.assert_array_equal(tet10_min_det_jacobian(a), a.volumes_mm3())
+    # curved P2 boundary edges bulge onto the lofted skin: the P1 volume is a little smaller
+    assert st["mesh_volume_mm3"] < m2.info["mesh"]["mesh_volume_mm3"]
     assert abs(st["mesh_volume_mm3"] - prism) < 0.01 * prism
     assert m1.info["settings"]["element_order"] == 1
     assert len(a.facets["patch_sphere"]) > 0
@@ -273,3 +279,49 @@ def test_run_discretisation_runs_a_p1_setting():
     assert row["n_elements"] > 100 and row["n_dofs"] < 3 * row["n_elements"]
     assert row["voi_mm3"] > 0 and sum(row["bins_percent"].values()) == pytest.approx(100.0)
     assert row["indenter_force_N"] > 0 and row["linear_wall_s"] > 0
+
+
+@pytest.mark.slow
+def test_p1_model_files_and_solve_job_with_the_cast(tmp_path):
+    # the rules' entry points with model.element_order 1: cast, mesh (npz, msh, vtu, json, QC figure),
+    # then the solve job with cast contact and the skin agreement (pre contours standing in for the
+    # during scan: the deformed skin stays close to them away from the small dent)
+    import json
+
+    import meshio
+    from model_synth import leg_contours, leg_pose
+
+    from deeptissue.contours import save_contours
+    from deeptissue.model import run_cast, run_mesh
+    from deeptissue.pose import save_pose
+    from deeptissue.study import run_solve
+    from deeptissue.summary import read_summary
+
+    c = leg_contours(n_slices=12, n_points=60)
+    pose = leg_pose(c, depth_mm=0.5)
+    save_contours(tmp_path / "contours.npz", c)
+    save_pose(tmp_path / "pose.json", pose)
+    settings = {"element_size_mm": 2.0, "refine_size_mm": 1.0, "element_order": 1}
+    run_cast(contours_npz=tmp_path / "contours.npz", pose_json=tmp_path / "pose.json", cast_npz=tmp_path / "cast.npz",
+             variants=["sphere"], settings=settings, animal="synth")
+    out = {k: tmp_path / f"mesh.{k}" for k in ("npz", "msh", "vtu")}
+    run_mesh(contours_npz=tmp_path / "contours.npz", pose_json=tmp_path / "pose.json", cast_npz=tmp_path / "cast.npz",
+             mesh_npz=out["npz"], mesh_msh=out["msh"], mesh_vtu=out["vtu"], model_json=tmp_path / "model.json",
+             qc_png=tmp_path / "qc.png", variants=["sphere"], settings=settings, animal="synth")
+    mesh = load_tetmesh(out["npz"])
+    assert mesh.order == 1
+    v = meshio.read(out["vtu"])
+    assert set(v.cells_dict) == {"tetra", "triangle"} and len(v.cells_dict["tetra"]) == mesh.n_tets
+    info = json.loads((tmp_path / "model.json").read_text())
+    assert info["settings"]["element_order"] == 1 and info["mesh"]["element_order"] == 1
+    assert (tmp_path / "qc.png").read_bytes()[:4] == b"\x89PNG"
+    s = run_solve(animal="synth", variant="sphere", mesh_path=out["npz"], cast_path=tmp_path / "cast.npz",
+                  pose_path=tmp_path / "pose.json", during_contours_path=tmp_path / "contours.npz",
+                  summary_path=tmp_path / "summary.json", vtu_path=tmp_path / "result.vtu", fem_cfg={},
+                  study_cfg={"threshold": 0.05, "bin_edges": [0.05, 0.1, 0.2]})
+    assert s.converged, s.reason
+    back = read_summary(tmp_path / "summary.json")
+    assert back.n_elements == mesh.n_tets and back.indenter_force_N > 0 and back.voi_mm3 > 0
+    assert 0 < back.skin_mean_mm < 0.1 and back.skin_p95_mm < 0.5
+    m2, u, cells = read_result_vtu(tmp_path / "result.vtu")
+    assert m2.order == 1 and u.shape == mesh.nodes_mm.shape and np.all(cells["converged"] == 1)

@@ -403,7 +403,10 @@ def tet_scaled_jacobian(p: np.ndarray) -> np.ndarray:
 
 def tet10_min_det_jacobian(mesh: TetMesh) -> np.ndarray:
     """Smallest Jacobian determinant (n_tets,) [mm^3] of each 10-node tet, sampled at its 10 nodes,
-    its centroid and its 4 face centroids (an independent check of gmsh's quality measure)."""
+    its centroid and its 4 face centroids (an independent check of gmsh's quality measure).
+    A linear (4-node) mesh: det J / 6 is constant, the corner volume."""
+    if mesh.order == 1:
+        return mesh.volumes_mm3()
     ref = np.array(
         [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0.5, 0, 0], [0.5, 0.5, 0], [0, 0.5, 0], [0, 0, 0.5], [0, 0.5, 0.5], [0.5, 0, 0.5],
          [0.25, 0.25, 0.25], [1 / 3, 1 / 3, 0], [1 / 3, 0, 1 / 3], [0, 1 / 3, 1 / 3], [1 / 3, 1 / 3, 1 / 3]]
@@ -643,8 +646,7 @@ def mesh_limb(
     corners = mesh.nodes_mm[mesh.tets[:, :4]]
     dih = _tet_dihedral_deg(corners)
     sj = tet_scaled_jacobian(corners)
-    # straight (first-order) tets: det J / 6 is the corner volume
-    detj = tet10_min_det_jacobian(mesh) if order == 2 else mesh.volumes_mm3()
+    detj = tet10_min_det_jacobian(mesh)
     stats.update(
         n_tets=int(mesh.n_tets),
         n_nodes=int(len(mesh.nodes_mm)),
@@ -654,7 +656,7 @@ def mesh_limb(
         max_dihedral_deg=float(dih.max()),
         min_curved_ratio=float(q.min()),
         min_det_jacobian_mm3=float(detj.min()),
-        mesh_volume_mm3=float(tet10_volume_mm3(mesh)) if order == 2 else float(mesh.volumes_mm3().sum()),
+        mesh_volume_mm3=float(tet10_volume_mm3(mesh)),
         facet_counts={k: int(len(v)) for k, v in mesh.facets.items()},
         algorithm_3d=algorithm_3d,
         wall_s=time.perf_counter() - t_start,
@@ -675,7 +677,10 @@ def mesh_limb(
 
 def tet10_volume_mm3(mesh: TetMesh) -> float:
     """Volume of a quadratic tet mesh [mm^3], exact for curved 10-node tets: the Jacobian determinant
-    is a cubic polynomial, integrated exactly by the degree-3 Keast rule (5 points)."""
+    is a cubic polynomial, integrated exactly by the degree-3 Keast rule (5 points). A linear
+    (4-node) mesh: the sum of the corner volumes."""
+    if mesh.order == 1:
+        return float(mesh.volumes_mm3().sum())
     # degree-3 exact rule on the reference tet (Keast, 5 points, one negative weight)
     pts = np.array([[0.25, 0.25, 0.25], [1 / 6, 1 / 6, 1 / 6], [0.5, 1 / 6, 1 / 6], [1 / 6, 0.5, 1 / 6], [1 / 6, 1 / 6, 0.5]])
     w = np.array([-4 / 5, 9 / 20, 9 / 20, 9 / 20, 9 / 20]) / 6.0
