@@ -195,22 +195,24 @@ def test_aggregate_writes_csv_figure_and_summary_with_benchmarks(tmp_path):
 # --------------------------------------------------------------------------- ladder
 
 
-def test_default_ladder_contains_default_families_and_leaves_p1_out():
+def test_default_ladder_contains_default_families_of_both_orders():
     lad = default_ladder({"element_orders": [1, 2], "element_sizes_mm": [1.6, 0.9], "refined_element_sizes_mm": [1.2, 1.0],
                           "refine_ratio": 0.5, "tolerances": [{"name": "loose", "rtol": 1e-5}, {"name": "default"}]},
                          model_cfg={"element_size_mm": 1.0, "refine_size_mm": 0.5}, solver_cfg={"rtol": 1e-7, "penetration_tol": 0.01})
     names = lad.names
     assert len(names) == len(set(names))
     assert lad.default_name == "p2_h1_r0.5" and lad.default_name in names
-    assert {"p2_h1.6", "p2_h0.9", "p2_h1.2_r0.6", "p2_h1_r0.5", "p2_h1_r0.5_loose"} == set(names)
+    p2 = {"p2_h1.6", "p2_h0.9", "p2_h1.2_r0.6", "p2_h1_r0.5", "p2_h1_r0.5_loose"}
+    assert p2 | {n.replace("p2_", "p1_") for n in p2} == set(names)
     assert lad.by_name("p2_h1_r0.5_loose").rtol == 1e-5 and lad.by_name("p2_h1_r0.5_loose").penetration_tol == 0.01
     assert lad.by_name("p2_h1.6").model_settings({"refine_radius_mm": 4.0}) == {
-        "refine_radius_mm": 4.0, "element_size_mm": 1.6, "refine_size_mm": 1.6}
-    assert any("element order 1 left out" in n for n in lad.notes)
-    assert not any(s.element_order == 1 for s in lad.settings)
+        "refine_radius_mm": 4.0, "element_size_mm": 1.6, "refine_size_mm": 1.6, "element_order": 2}
+    assert lad.by_name("p1_h1.6").model_settings({"element_order": 2})["element_order"] == 1
+    assert lad.by_name("p1_h0.9").family == "P1 uniform" and not lad.notes
     assert setting_name(element_size_mm=0.7, refine_size_mm=0.35, tolerance="tight") == "p2_h0.7_r0.35_tight"
+    assert default_ladder({"element_orders": [1]}).default_name == "p1_h1_r0.5"
     with pytest.raises(ValueError, match="element_orders"):
-        default_ladder({"element_orders": [1]})
+        default_ladder({"element_orders": [3]})
 
 
 # --------------------------------------------------------------------------- one real run
@@ -238,9 +240,6 @@ def test_run_discretisation_on_a_tiny_synthetic_leg():
     # a nonlinear contact solve takes several Newton iterations: more than one linear solve
     assert row["cost_ratio"] > 1 and row["linear_wall_s"] > 0
     assert row["peak_rss_mb"] >= row["start_rss_mb"] > 0
-    with pytest.raises(ValueError, match="not supported"):
-        run_discretisation(animal="synth", variant="sphere", contours=c, pose=pose, cast=False,
-                           setting=Discretisation(name="p1_h2.5", family="P1 uniform", element_size_mm=2.5, element_order=1))
 
 
 # --------------------------------------------------------------------------- SLURM profile

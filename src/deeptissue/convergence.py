@@ -27,9 +27,9 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-# Element orders the mesh, assembly and contact code support (deeptissue.mesh.TetMesh is 10-node
-# only and deeptissue.fem.assembly uses ElementTetP2): linear tetrahedra are left out of the ladder.
-SUPPORTED_ELEMENT_ORDERS = (2,)
+# Element orders the mesh, assembly and contact code support: 4-node (model.element_order 1) and
+# 10-node (2) tetrahedra.
+SUPPORTED_ELEMENT_ORDERS = (1, 2)
 
 ROW_COLUMNS = (
     "animal", "variant", "setting", "family", "element_order", "element_size_mm", "refine_size_mm",
@@ -88,8 +88,10 @@ class Discretisation:
         return f"p{self.element_order}_h{self.element_size_mm:g}_r{r}"
 
     def model_settings(self, model_cfg: dict | None = None) -> dict:
-        """The ``model`` config with this setting's sizes (no refinement: refine size = global size)."""
+        """The ``model`` config with this setting's sizes (no refinement: refine size = global size)
+        and element order (``model.element_order``)."""
         d = dict(model_cfg or {})
+        d["element_order"] = int(self.element_order)
         d["element_size_mm"] = float(self.element_size_mm)
         d["refine_size_mm"] = float(self.element_size_mm if self.refine_size_mm is None else self.refine_size_mm)
         return d
@@ -169,8 +171,7 @@ def default_ladder(conv_cfg: dict | None = None, *, model_cfg: dict | None = Non
         if o in SUPPORTED_ELEMENT_ORDERS:
             orders.append(int(o))
         else:
-            notes.append(f"element order {o} left out: the mesh/FE code supports orders {list(SUPPORTED_ELEMENT_ORDERS)} only "
-                         "(deeptissue.mesh.TetMesh is 10-node, fem.assembly uses ElementTetP2)")
+            notes.append(f"element order {o} left out: the mesh/FE code supports orders {list(SUPPORTED_ELEMENT_ORDERS)} only")
             log.info("convergence: %s", notes[-1])
     if not orders:
         raise ValueError(f"config key convergence.element_orders: none of {c.get('element_orders')} is supported "
@@ -194,7 +195,9 @@ def default_ladder(conv_cfg: dict | None = None, *, model_cfg: dict | None = Non
         add(f"P{o} default", h0, r0, o, "default")
         for t in tols:
             add(f"P{o} tolerance", h0, r0, o, t)
-    o = 2 if 2 in orders else orders[0]
+    o = int(m.get("element_order", 2))
+    if o not in orders:
+        o = 2 if 2 in orders else orders[0]
     default_name = setting_name(element_size_mm=h0, refine_size_mm=r0, element_order=o)
     return Ladder(settings=tuple(out.values()), default_name=default_name, notes=tuple(notes))
 

@@ -1,10 +1,11 @@
-"""Quadratic tetrahedral meshes from gmsh, as plain arrays (the hand-over between mesher and solver).
+"""Tetrahedral meshes from gmsh, as plain arrays (the hand-over between mesher and solver).
 
 A :class:`TetMesh` holds every node of a second-order mesh (corner and mid-edge), the 10-node
 tetrahedra in **gmsh's node order**, and named boundary facet sets as 6-node triangles (gmsh
 order too). gmsh's Tetrahedron10 order is corners 0-3, then the mid-edge nodes of edges
 (0,1), (1,2), (0,2), (0,3), (2,3), (1,3); scikit-fem orders the last two edges (1,3), (2,3), so a
 conversion swaps local nodes 8 and 9 (done in the FE core, which owns scikit-fem meshes).
+A first-order (linear) mesh is the same with 4-node tetrahedra and 3-node facets (``order`` 1).
 Written and read only by :func:`save_tetmesh` / :func:`load_tetmesh` (``.npz``).
 """
 
@@ -19,26 +20,44 @@ from .io import save_npz
 
 GMSH_TET10 = 11  # gmsh element type of the 10-node tetrahedron
 GMSH_TRI6 = 9  # gmsh element type of the 6-node triangle
+GMSH_TET4 = 4  # gmsh element type of the 4-node tetrahedron
+GMSH_TRI3 = 2  # gmsh element type of the 3-node triangle
+# nodes per tetrahedron / facet of each element order
+TET_NODES = {1: 4, 2: 10}
+FACET_NODES = {1: 3, 2: 6}
 
 
 @dataclass(frozen=True)
 class TetMesh:
+    """Nodes, tetrahedra and named facet sets of a first- or second-order tetrahedral mesh.
+
+    nodes_mm (n_nodes, 3) world mm; tets (n_tets, 10) gmsh Tetrahedron10 order (order 2) or
+    (n_tets, 4) corners (order 1); facets: name -> (n_facets, 6) gmsh Triangle6 order (order 2) or
+    (n_facets, 3) corners (order 1). Every facet set must have the order of the tetrahedra.
+    """
+
     nodes_mm: np.ndarray  # (n_nodes, 3) world mm, corner and mid-edge nodes
-    tets: np.ndarray  # (n_tets, 10) node indices, gmsh Tetrahedron10 order
-    facets: dict = field(default_factory=dict)  # name -> (n_facets, 6) node indices, gmsh Triangle6 order
+    tets: np.ndarray  # (n_tets, 10) node indices, gmsh Tetrahedron10 order; or (n_tets, 4) for order 1
+    facets: dict = field(default_factory=dict)  # name -> (n_facets, 6) gmsh Triangle6 order; or (n_facets, 3)
 
     def __post_init__(self):
         if self.nodes_mm.ndim != 2 or self.nodes_mm.shape[1] != 3:
             raise ValueError(f"TetMesh.nodes_mm: expected (n, 3), got {self.nodes_mm.shape}")
-        if self.tets.ndim != 2 or self.tets.shape[1] != 10:
-            raise ValueError(f"TetMesh.tets: expected (n, 10), got {self.tets.shape}")
+        if self.tets.ndim != 2 or self.tets.shape[1] not in (4, 10):
+            raise ValueError(f"TetMesh.tets: expected (n, 10) (quadratic) or (n, 4) (linear), got {self.tets.shape}")
+        nf = FACET_NODES[self.order]
         for name, f in self.facets.items():
-            if f.ndim != 2 or f.shape[1] != 6:
-                raise ValueError(f"TetMesh.facets[{name!r}]: expected (n, 6), got {f.shape}")
+            if f.ndim != 2 or f.shape[1] != nf:
+                raise ValueError(f"TetMesh.facets[{name!r}]: expected (n, {nf}) for {self.tets.shape[1]}-node tetrahedra, got {f.shape}")
         n = len(self.nodes_mm)
         for name, arr in [("tets", self.tets), *((f"facets[{k!r}]", v) for k, v in self.facets.items())]:
             if arr.size and (arr.min() < 0 or arr.max() >= n):
                 raise ValueError(f"TetMesh.{name}: node index out of range 0..{n - 1}")
+
+    @property
+    def order(self) -> int:
+        """Element order: 2 for 10-node, 1 for 4-node tetrahedra."""
+        return 1 if self.tets.shape[1] == 4 else 2
 
     @property
     def n_tets(self) -> int:
@@ -50,16 +69,21 @@ class TetMesh:
         return np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0]) / 6.0
 
 
-def extract_tet10(gmsh_module=None) -> TetMesh:
-    """Read the current gmsh model (meshed with ``setOrder(2)``) into a :class:`TetMesh`.
+def extract_tetmesh(gmsh_module=None, *, order: int = 2) -> TetMesh:
+    """Read the current gmsh model into a :class:`TetMesh` of ``order`` 2 (meshed with ``setOrder(2)``:
+    10-node tets, 6-node facets) or 1 (first-order mesh: 4-node tets, 3-node facets).
 
-    Boundary facet sets are the 2D physical groups, by name; only 10-node tetrahedra of 3D
-    physical groups are kept (all of them if there is no 3D physical group). Nodes are
-    renumbered 0..n-1 and unused nodes dropped.
+    Boundary facet sets are the 2D physical groups, by name; only tetrahedra of 3D physical groups
+    are kept (all of them if there is no 3D physical group). Nodes are renumbered 0..n-1 and unused
+    nodes dropped.
     """
+    if order not in TET_NODES:
+        raise ValueError(f"extract_tetmesh: order must be 1 or 2, got {order}")
     if gmsh_module is None:
         import gmsh as gmsh_module
     g = gmsh_module
+    tet_type, tri_type = (GMSH_TET10, GMSH_TRI6) if order == 2 else (GMSH_TET4, GMSH_TRI3)
+    nt, nf = TET_NODES[order], FACET_NODES[order]
     tags, coords, _ = g.model.mesh.getNodes()
     coords = np.asarray(coords, float).reshape(-1, 3)
     index = np.full(int(tags.max()) + 1, -1, dtype=np.int64)
@@ -71,10 +95,11 @@ def extract_tet10(gmsh_module=None) -> TetMesh:
     ]
     tet_chunks = []
     for ent in vol_entities:
-        _, nodes = g.model.mesh.getElementsByType(GMSH_TET10, ent)
-        tet_chunks.append(np.asarray(nodes, dtype=np.int64).reshape(-1, 10))
+        _, nodes = g.model.mesh.getElementsByType(tet_type, ent)
+        tet_chunks.append(np.asarray(nodes, dtype=np.int64).reshape(-1, nt))
     if not tet_chunks or sum(len(c) for c in tet_chunks) == 0:
-        raise ValueError("gmsh model has no 10-node tetrahedra: mesh with generate(3) and setOrder(2)")
+        how = "generate(3) and setOrder(2)" if order == 2 else "generate(3) (first order)"
+        raise ValueError(f"gmsh model has no {nt}-node tetrahedra: mesh with {how}")
     tets = index[np.concatenate(tet_chunks)]
 
     facets = {}
@@ -82,14 +107,20 @@ def extract_tet10(gmsh_module=None) -> TetMesh:
         name = g.model.getPhysicalName(dim, tag) or f"surface_{tag}"
         chunks = []
         for ent in g.model.getEntitiesForPhysicalGroup(dim, tag):
-            _, nodes = g.model.mesh.getElementsByType(GMSH_TRI6, ent)
-            chunks.append(np.asarray(nodes, dtype=np.int64).reshape(-1, 6))
-        facets[name] = index[np.concatenate(chunks)] if chunks else np.zeros((0, 6), np.int64)
+            _, nodes = g.model.mesh.getElementsByType(tri_type, ent)
+            chunks.append(np.asarray(nodes, dtype=np.int64).reshape(-1, nf))
+        facets[name] = index[np.concatenate(chunks)] if chunks else np.zeros((0, nf), np.int64)
 
     used = np.unique(np.concatenate([tets.ravel(), *[f.ravel() for f in facets.values()]]))
     renum = np.full(len(coords), -1, dtype=np.int64)
     renum[used] = np.arange(len(used))
     return TetMesh(nodes_mm=coords[used], tets=renum[tets], facets={k: renum[v] for k, v in facets.items()})
+
+
+def extract_tet10(gmsh_module=None) -> TetMesh:
+    """Read the current gmsh model (meshed with ``setOrder(2)``) into a quadratic :class:`TetMesh`
+    (:func:`extract_tetmesh` with ``order=2``)."""
+    return extract_tetmesh(gmsh_module, order=2)
 
 
 def save_tetmesh(path: str | Path, mesh: TetMesh) -> None:
@@ -372,7 +403,10 @@ def tet_scaled_jacobian(p: np.ndarray) -> np.ndarray:
 
 def tet10_min_det_jacobian(mesh: TetMesh) -> np.ndarray:
     """Smallest Jacobian determinant (n_tets,) [mm^3] of each 10-node tet, sampled at its 10 nodes,
-    its centroid and its 4 face centroids (an independent check of gmsh's quality measure)."""
+    its centroid and its 4 face centroids (an independent check of gmsh's quality measure).
+    A linear (4-node) mesh: det J / 6 is constant, the corner volume."""
+    if mesh.order == 1:
+        return mesh.volumes_mm3()
     ref = np.array(
         [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0.5, 0, 0], [0.5, 0.5, 0], [0, 0.5, 0], [0, 0, 0.5], [0, 0.5, 0.5], [0.5, 0, 0.5],
          [0.25, 0.25, 0.25], [1 / 3, 1 / 3, 0], [1 / 3, 0, 1 / 3], [0, 1 / 3, 1 / 3], [1 / 3, 1 / 3, 1 / 3]]
@@ -403,10 +437,12 @@ def mesh_limb(
     min_dihedral_deg: float = 2.0,
     min_curved_ratio: float = 0.2,
     algorithm_3d: str = "hxt",
+    order: int = 2,
     animal: str = "?",
     msh_path=None,
 ) -> tuple[TetMesh, dict]:
-    """Quadratic tetrahedral mesh of the limb between a skin and a bone contour stack.
+    """Quadratic (``order=2``, default) or linear (``order=1``) tetrahedral mesh of the limb between a
+    skin and a bone contour stack.
 
     skin, bone (n_slices, n_points, 3) world mm (checked by :func:`deeptissue.geometry.check_contours`).
     Skin and tibia are lofted (OpenCASCADE ``addThruSections`` through closed splines of at most
@@ -417,14 +453,16 @@ def mesh_limb(
     refined to ``refine_size_mm`` within ``refine_radius_mm`` of each refine segment, growing back over
     ``refine_transition_mm``. Second order: with ``curved`` the boundary mid-edge nodes are placed on
     the geometry (parametric midpoint), and straightened again in any element where that would make
-    the scaled Jacobian fall below ``min_scaled_jacobian``.
+    the scaled Jacobian fall below ``min_scaled_jacobian``. First order (``order=1``): the same
+    geometry and size field, 4-node tets and 3-node facets, no mid-nodes (``curved`` and
+    ``min_curved_ratio`` do not apply; the gate checks the corner tets).
 
     Facet sets: ``bone``, ``skin``, ``proximal``, ``distal``, and for each ``patches`` entry
     (name -> :class:`PatchSpec`) the skin facets of that patch, and their union as ``patch_union``. Raises :class:`MeshQualityError`
     (naming the animal) if an element is inverted or degenerate: a Jacobian determinant <= 0 anywhere
     sampled in a curved element, a corner-tet scaled Jacobian below ``min_scaled_jacobian``, a
     dihedral angle below ``min_dihedral_deg``, or gmsh's curved-element Jacobian ratio (minSJ, 1 for
-    straight elements) below ``min_curved_ratio``. ``algorithm_3d``: "hxt" (fast) or "delaunay".
+    straight elements) below ``min_curved_ratio`` (order 2 only). ``algorithm_3d``: "hxt" (fast) or "delaunay".
     Returns the mesh and statistics (element count, quality, volumes, timings). Writes the gmsh
     ``.msh`` (with physical groups, patches included) to ``msh_path`` if given.
     """
@@ -438,7 +476,11 @@ def mesh_limb(
     t_start = time.perf_counter()
     if loft not in ("ruled", "smooth"):
         raise ValueError(f"animal {animal}: loft {loft!r}: expected 'ruled' or 'smooth'")
-    stats: dict = {}
+    if order not in TET_NODES:
+        raise ValueError(f"animal {animal}: element order {order!r}: expected 1 (4-node) or 2 (10-node tetrahedra)")
+    curved = bool(curved) and order == 2
+    tet_type, tri_type, n_fn = (GMSH_TET10, GMSH_TRI6, 6) if order == 2 else (GMSH_TET4, GMSH_TRI3, 3)
+    stats: dict = {"element_order": int(order)}
     own_init = not gmsh.isInitialized()
     if own_init:
         gmsh.initialize(interruptible=False)
@@ -511,13 +553,14 @@ def mesh_limb(
         stats["generate_s"] = time.perf_counter() - t0
         ents = sorted(set((1, t) for d, t in gmsh.model.getEntities(1))) + [(2, s) for e2 in groups.values() for s in e2]
         corner_params = _corner_params(gmsh, ents) if curved else {}
-        gmsh.model.mesh.setOrder(2)
+        if order == 2:
+            gmsh.model.mesh.setOrder(2)
         stats["order2_s"] = time.perf_counter() - t0 - stats["generate_s"]
         t0 = time.perf_counter()
 
         # curve boundary mid-edge nodes onto the geometry
-        tet_tags, tet_nodes = gmsh.model.mesh.getElementsByType(GMSH_TET10, vol)
-        tet_nodes = np.asarray(tet_nodes, np.int64).reshape(-1, 10)
+        tet_tags, tet_nodes = gmsh.model.mesh.getElementsByType(tet_type, vol)
+        tet_nodes = np.asarray(tet_nodes, np.int64).reshape(-1, TET_NODES[order])
         n_curved = n_straightened = 0
         if curved:
             moved, n_bad = _curve_mid_nodes(gmsh, ents, corner_params)
@@ -544,16 +587,17 @@ def mesh_limb(
                 n_straightened += len(fix)
         stats["mid_nodes_curved"] = n_curved - n_straightened
         stats["mid_nodes_straightened_for_quality"] = n_straightened
-        q = np.asarray(gmsh.model.mesh.getElementQualities(tet_tags, "minSJ"), float)
+        # gmsh's curved-element Jacobian ratio; straight (first-order) tets: 1
+        q = np.asarray(gmsh.model.mesh.getElementQualities(tet_tags, "minSJ"), float) if order == 2 else np.ones(len(tet_tags))
         stats["curve_s"] = time.perf_counter() - t0
 
         # patches: copies of the selected skin triangles as discrete surfaces with their own group
         if patches:
             sk_el, sk_nodes = [], []
             for s in groups["skin"]:
-                et_, en_ = gmsh.model.mesh.getElementsByType(GMSH_TRI6, s)
+                et_, en_ = gmsh.model.mesh.getElementsByType(tri_type, s)
                 sk_el.append(np.asarray(et_, np.int64))
-                sk_nodes.append(np.asarray(en_, np.int64).reshape(-1, 6))
+                sk_nodes.append(np.asarray(en_, np.int64).reshape(-1, n_fn))
             sk_nodes = np.concatenate(sk_nodes)
             ntags, ncoord, _ = gmsh.model.mesh.getNodes()
             coords = np.zeros((int(np.max(ntags)) + 1, 3))
@@ -582,9 +626,9 @@ def mesh_limb(
                 ent = gmsh.model.addDiscreteEntity(2)
                 tags = np.arange(next_el, next_el + int(sel.sum()))
                 next_el += len(tags)
-                gmsh.model.mesh.addElementsByType(ent, GMSH_TRI6, tags.tolist(), sk_nodes[sel].ravel().tolist())
+                gmsh.model.mesh.addElementsByType(ent, tri_type, tags.tolist(), sk_nodes[sel].ravel().tolist())
                 gmsh.model.addPhysicalGroup(2, [ent], name=name)
-        mesh = extract_tet10(gmsh)
+        mesh = extract_tetmesh(gmsh, order=order)
         if msh_path is not None:
             with atomic_path(msh_path) as tmp:
                 gmsh.write(str(tmp))
@@ -633,7 +677,10 @@ def mesh_limb(
 
 def tet10_volume_mm3(mesh: TetMesh) -> float:
     """Volume of a quadratic tet mesh [mm^3], exact for curved 10-node tets: the Jacobian determinant
-    is a cubic polynomial, integrated exactly by the degree-3 Keast rule (5 points)."""
+    is a cubic polynomial, integrated exactly by the degree-3 Keast rule (5 points). A linear
+    (4-node) mesh: the sum of the corner volumes."""
+    if mesh.order == 1:
+        return float(mesh.volumes_mm3().sum())
     # degree-3 exact rule on the reference tet (Keast, 5 points, one negative weight)
     pts = np.array([[0.25, 0.25, 0.25], [1 / 6, 1 / 6, 1 / 6], [0.5, 1 / 6, 1 / 6], [1 / 6, 0.5, 1 / 6], [1 / 6, 1 / 6, 0.5]])
     w = np.array([-4 / 5, 9 / 20, 9 / 20, 9 / 20, 9 / 20]) / 6.0

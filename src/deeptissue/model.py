@@ -53,6 +53,7 @@ class ModelSettings:
     min_dihedral_deg: float = 2.0
     min_curved_ratio: float = 0.2
     min_gap_mm: float = 0.05
+    element_order: int = 2  # 2: 10-node, 1: 4-node tetrahedra
 
     @classmethod
     def from_dict(cls, d: dict | None) -> "ModelSettings":
@@ -245,6 +246,7 @@ def build_model(
         min_scaled_jacobian=s.min_scaled_jacobian,
         min_dihedral_deg=s.min_dihedral_deg,
         min_curved_ratio=s.min_curved_ratio,
+        order=s.element_order,
         animal=animal,
     )
     with tempfile.TemporaryDirectory() as tmp:
@@ -320,15 +322,19 @@ def build_model(
 
 
 def write_vtu(path: str | Path, mesh: TetMesh) -> None:
-    """ParaView file: the 10-node tets and one block of 6-node triangles per facet set; cell data
-    ``group`` (0 = tets, i = i-th facet set in sorted order, listed in field data)."""
+    """ParaView file: the 10-node tets and one block of 6-node triangles per facet set (4-node tets and
+    3-node triangles for a linear mesh); cell data ``group`` (0 = tets, i = i-th facet set in sorted
+    order, listed in field data)."""
     import meshio
 
     names = sorted(mesh.facets)
-    cells = [("tetra10", mesh.tets[:, [0, 1, 2, 3, 4, 5, 6, 7, 9, 8]])]  # VTK orders edges (1,3) before (2,3)
+    if mesh.order == 2:
+        cells = [("tetra10", mesh.tets[:, [0, 1, 2, 3, 4, 5, 6, 7, 9, 8]])]  # VTK orders edges (1,3) before (2,3)
+    else:
+        cells = [("tetra", mesh.tets)]
     groups = [np.zeros(len(mesh.tets), np.int32)]
     for i, n in enumerate(names, start=1):
-        cells.append(("triangle6", mesh.facets[n]))
+        cells.append(("triangle6" if mesh.order == 2 else "triangle", mesh.facets[n]))
         groups.append(np.full(len(mesh.facets[n]), i, np.int32))
     m = meshio.Mesh(mesh.nodes_mm, cells, cell_data={"group": groups})
     with atomic_path(path) as tmp:
@@ -383,7 +389,7 @@ def plot_model_qc(path, model: AnimalModel, pose: Pose) -> None:
         ax.set_title(title, fontsize=9)
     st = model.info["mesh"]
     fig.suptitle(
-        f"{model.animal}: {st['n_tets']} quadratic tets, min scaled Jacobian {st['min_scaled_jacobian']:.2f}, "
+        f"{model.animal}: {st['n_tets']} {'quadratic' if mesh.order == 2 else 'linear'} tets, min scaled Jacobian {st['min_scaled_jacobian']:.2f}, "
         f"min dihedral {st['min_dihedral_deg']:.1f} deg; skin grey, contact patch red, cast blue, hole rim black, axis orange",
         fontsize=9,
     )

@@ -1,7 +1,9 @@
 """Strain post-processing of a quadratic-tetrahedral solution: γmax per element, VOI and its bins.
 
 Everything here works on a :class:`deeptissue.mesh.TetMesh` (10-node tetrahedra in gmsh order) and
-a nodal displacement ``(n_nodes, 3)`` in mm; no solver is needed.
+a nodal displacement ``(n_nodes, 3)`` in mm; no solver is needed. A first-order TetMesh (4-node
+tetrahedra, shape functions ``N_i = L_i``) is handled too: its F is constant in each element and
+its volume is that of the corner tetrahedron.
 
 Shape functions (gmsh Tetrahedron10). With reference coordinates ``(ξ, η, ζ)`` and barycentric
 coordinates ``L0 = 1 − ξ − η − ζ, L1 = ξ, L2 = η, L3 = ζ`` (corner ``i`` at ``L_i = 1``):
@@ -99,8 +101,11 @@ def element_volumes_mm3(mesh: TetMesh, *, order: int = 3) -> np.ndarray:
     """Reference volumes of the (possibly curved) 10-node tetrahedra (n_tets,) [mm³].
 
     ``∫ det J dξ`` over the reference element with :func:`tet_quadrature` (exact for the cubic det J
-    of a quadratic tetrahedron with the default ``order=3``).
+    of a quadratic tetrahedron with the default ``order=3``). Linear (4-node) tetrahedra: the corner
+    tetrahedron's volume.
     """
+    if mesh.order == 1:
+        return mesh.volumes_mm3()
     pts, w = tet_quadrature(order)
     dN = tet10_shape_gradients(pts)  # (q, 10, 3)
     X = mesh.nodes_mm[mesh.tets]  # (m, 10, 3)
@@ -111,7 +116,8 @@ def element_volumes_mm3(mesh: TetMesh, *, order: int = 3) -> np.ndarray:
 def deformation_gradient_at_centroids(mesh: TetMesh, displacement_mm) -> np.ndarray:
     """Deformation gradient ``F = I + ∂u/∂X`` at the reference-element centroids (n_tets, 3, 3)."""
     u = _check_mesh_and_u(mesh, displacement_mm)
-    dN = tet10_shape_gradients(np.full((1, 3), 0.25))[0]  # (10, 3)
+    # (10, 3); linear tets: the barycentric gradients (4, 3), F constant in the element
+    dN = tet10_shape_gradients(np.full((1, 3), 0.25))[0] if mesh.order == 2 else _DL
     X = mesh.nodes_mm[mesh.tets]
     J = np.swapaxes(X, 1, 2) @ dN  # (m, 3, 3): dX_i/dξ_j
     det = np.linalg.det(J)

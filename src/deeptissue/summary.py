@@ -7,7 +7,7 @@ variant and can apply the exclusion policy; nothing is silently lost.
 
 Skin agreement: the distance from each skin contour point segmented in the *during* scan to the
 deformed FE skin surface (10-node tetrahedra's 6-node skin facets, each split into four flat
-triangles through its corner and mid-edge nodes), exact point-to-triangle distance with KD-tree
+triangles through its corner and mid-edge nodes; a linear mesh's 3-node facets as they are), exact point-to-triangle distance with KD-tree
 candidate search; reported as mean and 95th percentile [mm].
 """
 
@@ -159,7 +159,8 @@ _GMSH_TO_VTK_TET10 = np.array([0, 1, 2, 3, 4, 5, 6, 7, 9, 8])
 
 def write_result_vtu(path: str | Path, mesh: TetMesh, displacement_mm, strain: ElementStrain, *, cell_data: dict | None = None) -> None:
     """``result.vtu`` for ParaView: reference nodes, point data ``displacement_mm``, cell data
-    ``gamma_gl``, ``gamma_log``, ``volume_mm3``, ``principal_gl`` (n, 3) and any extra ``cell_data``."""
+    ``gamma_gl``, ``gamma_log``, ``volume_mm3``, ``principal_gl`` (n, 3) and any extra ``cell_data``.
+    Cells are VTK quadratic tetra (``tetra10``), or ``tetra`` for a linear mesh."""
     import meshio
 
     cd = {"gamma_gl": strain.gamma_gl, "gamma_log": strain.gamma_log, "volume_mm3": strain.volume_mm3,
@@ -167,7 +168,7 @@ def write_result_vtu(path: str | Path, mesh: TetMesh, displacement_mm, strain: E
     cd.update(cell_data or {})
     m = meshio.Mesh(
         points=mesh.nodes_mm,
-        cells=[("tetra10", mesh.tets[:, _GMSH_TO_VTK_TET10])],
+        cells=[("tetra10", mesh.tets[:, _GMSH_TO_VTK_TET10]) if mesh.order == 2 else ("tetra", mesh.tets)],
         point_data={"displacement_mm": np.asarray(displacement_mm, float)},
         cell_data={k: [np.asarray(v, float)] for k, v in cd.items()},
     )
@@ -182,6 +183,10 @@ def read_result_vtu(path: str | Path) -> tuple[TetMesh, np.ndarray, dict]:
     try:
         m = meshio.read(path)
         tets = m.get_cells_type("tetra10")[:, _GMSH_TO_VTK_TET10]
+        if len(tets) == 0:  # a linear mesh
+            tets = m.get_cells_type("tetra")
+            if len(tets) == 0:
+                raise ValueError("no tetra10 or tetra cells")
         cd = {k: np.asarray(v[0]) for k, v in m.cell_data.items()}
         u = np.asarray(m.point_data["displacement_mm"], float)
     except (KeyError, IndexError, ValueError, OSError) as exc:
@@ -200,10 +205,12 @@ def tri6_to_tri3(facets: np.ndarray) -> np.ndarray:
 
 
 def deformed_surface(mesh: TetMesh, displacement_mm, *, facet: str = "skin") -> tuple[np.ndarray, np.ndarray]:
-    """Deformed positions of a named facet set: vertices (n_nodes, 3) [mm] and flat triangles (T, 3)."""
+    """Deformed positions of a named facet set: vertices (n_nodes, 3) [mm] and flat triangles (T, 3)
+    (6-node facets split in four; 3-node facets of a linear mesh as they are)."""
     if facet not in mesh.facets:
         raise ValueError(f"mesh has no facet set {facet!r} (has {sorted(mesh.facets)})")
-    return mesh.nodes_mm + np.asarray(displacement_mm, float), tri6_to_tri3(mesh.facets[facet])
+    f = mesh.facets[facet]
+    return mesh.nodes_mm + np.asarray(displacement_mm, float), (tri6_to_tri3(f) if mesh.order == 2 else np.asarray(f))
 
 
 def skin_agreement_mm(contour_points_mm, vertices_mm, triangles, *, clip_to_surface_z: bool = True) -> tuple[float, float]:

@@ -1,6 +1,6 @@
-"""Vectorised assembly of the hyperelastic internal force, tangent and energy on P2 tetrahedra.
+"""Vectorised assembly of the hyperelastic internal force, tangent and energy on P2 (or P1) tetrahedra.
 
-scikit-fem supplies the mesh, the P2 basis and the quadrature (shape-function gradients in the
+scikit-fem supplies the mesh, the P2 basis (P1 for a first-order TetMesh) and the quadrature (shape-function gradients in the
 reference configuration at every quadrature point of every element); the hot loop is ours:
 ``einsum`` over all elements x quadrature points, a sparsity pattern computed once and a
 ``bincount`` scatter into CSR data.
@@ -16,7 +16,7 @@ from typing import Any, Callable
 
 import numpy as np
 import scipy.sparse as sp
-from skfem import Basis, ElementTetP2
+from skfem import Basis, ElementTetP1, ElementTetP2
 
 from ..mesh import TetMesh
 from .skmesh import SkMesh, to_skfem
@@ -66,7 +66,8 @@ def as_material_law(material) -> MaterialLaw:
 
 
 class Assembler:
-    """Internal force, tangent and strain energy of a TetMesh (P2, total Lagrangian).
+    """Internal force, tangent and strain energy of a TetMesh (P2, or P1 for a first-order mesh; total
+    Lagrangian). ``n_local`` nodes per element: 10 (P2) or 4 (P1).
 
     constrained: boolean (n_dofs,) mask of Dirichlet dofs; the tangent is assembled only on the
     free dofs (upper triangle, CSR, for a symmetric solver), and the coupling free x constrained
@@ -83,14 +84,16 @@ class Assembler:
         bad = np.flatnonzero(np.any(reference_jacobians(mesh, skmesh=self.sk, order=intorder, corners=False) <= 0, axis=1))
         if len(bad):
             raise ValueError(f"mesh: {len(bad)} tetrahedra have a non-positive Jacobian (inverted or too curved), e.g. tet {bad[0]}")
-        basis = Basis(self.sk.mesh, ElementTetP2(), intorder=intorder)
+        p1 = self.sk.order == 1
+        self.n_local = 4 if p1 else 10
+        basis = Basis(self.sk.mesh, ElementTetP1() if p1 else ElementTetP2(), intorder=intorder)
         # (E, Q, 10, 3) reference gradients, (E, Q) weights [mm^3]
-        self.dN = np.ascontiguousarray(np.stack([basis.basis[a][0].grad for a in range(10)], axis=0).transpose(2, 3, 0, 1))
+        self.dN = np.ascontiguousarray(np.stack([basis.basis[a][0].grad for a in range(self.n_local)], axis=0).transpose(2, 3, 0, 1))
         self.w = np.ascontiguousarray(basis.dx)
         self.conn = self.sk.element_nodes()  # (E, 10) TetMesh nodes
         self.n_nodes = len(mesh.nodes_mm)
         self.n_dofs = 3 * self.n_nodes
-        self.edofs = (3 * self.conn[:, :, None] + np.arange(3)).reshape(len(self.conn), 30)
+        self.edofs = (3 * self.conn[:, :, None] + np.arange(3)).reshape(len(self.conn), 3 * self.n_local)
         self.volume_mm3 = float(self.w.sum())
         self.set_constrained(np.zeros(self.n_dofs, bool) if constrained is None else constrained)
 
@@ -104,8 +107,9 @@ class Assembler:
         fidx[self.free] = np.arange(self.n_free)
         self.fidx = fidx
         ef = fidx[self.edofs]  # (E, 30)
-        r = np.repeat(ef, 30, axis=1)
-        c = np.tile(ef, (1, 30))
+        nd = self.edofs.shape[1]
+        r = np.repeat(ef, nd, axis=1)
+        c = np.tile(ef, (1, nd))
         valid = (r >= 0) & (c >= 0) & (r <= c)
         keys = r[valid] * self.n_free + c[valid]
         ukeys, inv = np.unique(keys, return_inverse=True)
@@ -180,18 +184,19 @@ class Assembler:
         return float(np.sum(W * w)), f, data, Ke[self.bc_elems]
 
     def element_matrices(self, A: np.ndarray) -> np.ndarray:
-        """Ke (E, 30, 30) = sum_q w dN_aJ A_iJkL dN_bL, dofs ordered (node a, component i)."""
+        """Ke (E, 30, 30) = sum_q w dN_aJ A_iJkL dN_bL, dofs ordered (node a, component i); (E, 12, 12) for P1."""
         E, Q = self.w.shape
+        n = self.n_local
         Aw = A * self.w[:, :, None, None, None, None]
         # step 1: T[e,q,i,J,k,b] = sum_L A[e,q,i,J,k,L] dN[e,q,b,L]
         T = np.matmul(Aw.reshape(E, Q, 27, 3), np.swapaxes(self.dN, -1, -2))  # (E,Q,27,10) = [iJk, b]
-        T = T.reshape(E, Q, 3, 3, 3, 10)
+        T = T.reshape(E, Q, 3, 3, 3, n)
         # step 2: K[e,a,i,b,k] = sum_q sum_J dN[e,q,a,J] T[e,q,i,J,k,b]
-        T2 = T.transpose(0, 1, 3, 2, 5, 4).reshape(E, Q, 3, 90)  # [J, (i, b, k)]
-        K = np.zeros((E, 10, 90))
+        T2 = T.transpose(0, 1, 3, 2, 5, 4).reshape(E, Q, 3, 9 * n)  # [J, (i, b, k)]
+        K = np.zeros((E, n, 9 * n))
         for q in range(Q):
             K += np.matmul(self.dN[:, q], T2[:, q])
-        return K.reshape(E, 10, 3, 10, 3).reshape(E, 30, 30)
+        return K.reshape(E, n, 3, n, 3).reshape(E, 3 * n, 3 * n)
 
     def full_matrix(self, data: np.ndarray) -> sp.csr_matrix:
         """Symmetric full K_ff from upper-triangle data (for tests and matvecs)."""

@@ -1,6 +1,7 @@
 """Frictionless penalty / augmented-Lagrangian contact at the quadrature points of quadratic facets.
 
-The slave side is a set of 6-node skin triangles (TetMesh facets, gmsh Triangle6 order); the master
+The slave side is a set of 6-node skin triangles (TetMesh facets, gmsh Triangle6 order), or of
+3-node triangles with linear shape functions for a first-order mesh; the master
 is rigid and given by a gap function ``gap(x) -> (g, n, H)``: signed distance g [mm] (negative =
 penetration), outward unit normal n = grad g and its gradient H = grad n [1/mm] (None if flat).
 
@@ -28,6 +29,14 @@ def tri6_shape(xi: np.ndarray, eta: np.ndarray):
     return N, np.stack([dxi, deta], -1)
 
 
+def tri3_shape(xi: np.ndarray, eta: np.ndarray):
+    """Shape functions N (Q, 3) and derivatives dN (Q, 3, 2) of the linear 3-node triangle at (xi, eta)."""
+    N = np.stack([1.0 - xi - eta, xi, eta], -1)
+    dxi = np.stack([-np.ones_like(xi), np.ones_like(xi), np.zeros_like(xi)], -1)
+    deta = np.stack([-np.ones_like(xi), np.zeros_like(xi), np.ones_like(xi)], -1)
+    return N, np.stack([dxi, deta], -1)
+
+
 def _ramp(z, delta):
     """p = max(0, z) rounded over |z| < delta (C1), its derivative and its integral psi (psi' = p)."""
     z = np.asarray(z, float)
@@ -46,9 +55,10 @@ def _ramp(z, delta):
 
 
 class ContactSurface:
-    """Quadrature on a set of quadratic skin facets (the contact slave side).
+    """Quadrature on a set of quadratic skin facets (the contact slave side), or linear ones.
 
-    nodes_mm (n_nodes, 3), facets6 (K, 6) TetMesh node indices. Attributes: N (Q, 6), dofs (K, 18),
+    nodes_mm (n_nodes, 3), facets6 (K, 6) TetMesh node indices (or (K, 3) 3-node facets of a
+    first-order mesh: then N (Q, 3), dofs (K, 9) and the matrices below are 9 x 9). Attributes: N (Q, 6), dofs (K, 18),
     X (K, Q, 3) reference quadrature points [mm], dA0 (K, Q) reference area weights [mm^2],
     h_mm (K,) facet size sqrt(2 * area) [mm], lam (K, Q) multipliers [MPa].
     """
@@ -57,15 +67,17 @@ class ContactSurface:
         facets6 = np.asarray(facets6, dtype=np.int64)
         if len(facets6) == 0:
             raise ValueError("contact surface: empty facet set")
+        if facets6.ndim != 2 or facets6.shape[1] not in (3, 6):
+            raise ValueError(f"contact surface: facets must be (K, 6) or (K, 3), got {facets6.shape}")
         q, w = get_quadrature(RefTri, order)
-        self.N, dN = tri6_shape(q[0], q[1])
+        self.N, dN = (tri6_shape if facets6.shape[1] == 6 else tri3_shape)(q[0], q[1])
         Xf = nodes_mm[facets6]  # (K, 6, 3)
         a1 = np.einsum("qa,kai->kqi", dN[..., 0], Xf)
         a2 = np.einsum("qa,kai->kqi", dN[..., 1], Xf)
         self.dA0 = np.linalg.norm(np.cross(a1, a2), axis=-1) * w
         self.X = np.einsum("qa,kai->kqi", self.N, Xf)
         self.facets6 = facets6
-        self.dofs = (3 * facets6[:, :, None] + np.arange(3)).reshape(len(facets6), 18)
+        self.dofs = (3 * facets6[:, :, None] + np.arange(3)).reshape(len(facets6), 3 * facets6.shape[1])
         self.h_mm = np.sqrt(2.0 * self.dA0.sum(axis=1))
         self.lam = np.zeros_like(self.dA0)
         self.n_facets, self.n_qp = self.dA0.shape
@@ -99,6 +111,7 @@ class ContactSurface:
         the consistent tangent is Kf + Kf_geo), dofs (K', 18).
         """
         n_dofs = u.size
+        nd = self.dofs.shape[1]  # 18 (6-node facets) or 9 (3-node)
         x = self.positions(u, idx)
         K, Q = x.shape[:2]
         g, nrm, H = gapfn(x.reshape(-1, 3))
@@ -112,16 +125,16 @@ class ContactSurface:
         dA = self.dA0[idx]
         energy = float(np.sum(dA * (psi - psi0) / e))
         t = (dA * p)[..., None] * nrm  # (K, Q, 3) force on the skin
-        fe = -np.einsum("qa,kqi->kai", self.N, t).reshape(K, 18)
+        fe = -np.einsum("qa,kqi->kai", self.N, t).reshape(K, nd)
         force = np.bincount(self.dofs[idx].ravel(), weights=fe.ravel(), minlength=n_dofs)
         out = dict(energy=energy, force=force, traction_sum=t.sum(axis=(0, 1)), pressure=p, gap=g)
         if tangent:
             if near_mm is not None and np.any(np.asarray(near_mm) > 0):
                 dp = np.maximum(dp, (g < near_mm).astype(float))
             kq = (dA * e * dp)[..., None, None] * nrm[..., :, None] * nrm[..., None, :]
-            out["Kf"] = np.einsum("qa,qb,kqij->kaibj", self.N, self.N, kq).reshape(K, 18, 18)
+            out["Kf"] = np.einsum("qa,qb,kqij->kaibj", self.N, self.N, kq).reshape(K, nd, nd)
             if H is not None:
                 kg = -(dA * p)[..., None, None] * H.reshape(K, Q, 3, 3)
-                out["Kf_geo"] = np.einsum("qa,qb,kqij->kaibj", self.N, self.N, kg).reshape(K, 18, 18)
+                out["Kf_geo"] = np.einsum("qa,qb,kqij->kaibj", self.N, self.N, kg).reshape(K, nd, nd)
             out["dofs"] = self.dofs[idx]
         return out

@@ -1,4 +1,4 @@
-"""VTU output of an FE result (ParaView): quadratic tets, nodal displacement, per-element F."""
+"""VTU output of an FE result (ParaView): quadratic (or linear) tets, nodal displacement, per-element F."""
 
 from __future__ import annotations
 
@@ -19,7 +19,8 @@ def write_result_vtu(path: str | Path, mesh: TetMesh, result, *, cell_data: dict
     """Write ``mesh`` with ``result.displacement_mm`` (point data 'displacement_mm', (n_nodes, 3)) and
     ``result.deformation_gradient`` (cell data 'F', (n_tets, 9) row-major) to a .vtu file.
 
-    cell_data / point_data: extra arrays by name, (n_tets, ...) / (n_nodes, ...).
+    cell_data / point_data: extra arrays by name, (n_tets, ...) / (n_nodes, ...). Cells: VTK
+    ``tetra10``, or ``tetra`` for a linear mesh.
     """
     import meshio
 
@@ -33,6 +34,6 @@ def write_result_vtu(path: str | Path, mesh: TetMesh, result, *, cell_data: dict
     pd = {"displacement_mm": np.asarray(result.displacement_mm)}
     for k, v in (point_data or {}).items():
         pd[k] = np.asarray(v)
-    m = meshio.Mesh(mesh.nodes_mm, [("tetra10", mesh.tets[:, GMSH_TO_VTK_TET10])], point_data=pd, cell_data=cd)
+    m = meshio.Mesh(mesh.nodes_mm, [("tetra10", mesh.tets[:, GMSH_TO_VTK_TET10]) if mesh.order == 2 else ("tetra", mesh.tets)], point_data=pd, cell_data=cd)
     with atomic_path(path) as tmp:
         meshio.write(tmp, m, file_format="vtu")

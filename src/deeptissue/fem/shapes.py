@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..mesh import TetMesh, extract_tet10
+from ..mesh import TetMesh, extract_tetmesh
 
 
 def _start(name: str):
@@ -45,14 +45,17 @@ def _size_field(gmsh, h_mm, refine_point_mm, refine_h_mm, refine_radius_mm, refi
 
 
 def _finish(gmsh, order: int = 2) -> TetMesh:
+    if order not in (1, 2):
+        raise ValueError(f"element order must be 1 or 2, got {order}")
     gmsh.model.mesh.generate(3)
-    gmsh.model.mesh.setOrder(order)
-    return extract_tet10()
+    if order == 2:
+        gmsh.model.mesh.setOrder(order)
+    return extract_tetmesh(order=order)
 
 
 def block_mesh(size_mm=(10.0, 10.0, 5.0), *, h_mm=1.0, refine_point_mm=None, refine_h_mm=None,
-               refine_radius_mm=None, refine_growth=None) -> TetMesh:
-    """A box [0, lx] x [0, ly] x [0, lz] meshed with quadratic tets.
+               refine_radius_mm=None, refine_growth=None, order=2) -> TetMesh:
+    """A box [0, lx] x [0, ly] x [0, lz] meshed with quadratic tets (linear with ``order=1``).
 
     Facet sets: xmin, xmax, ymin, ymax, bottom (z = 0), top (z = lz). Optional local refinement to
     ``refine_h_mm`` within ``refine_radius_mm`` of ``refine_point_mm`` growing linearly to ``h_mm``
@@ -76,14 +79,15 @@ def block_mesh(size_mm=(10.0, 10.0, 5.0), *, h_mm=1.0, refine_point_mm=None, ref
         for n, t in names.items():
             gmsh.model.addPhysicalGroup(2, [t], name=n)
         _size_field(gmsh, h_mm, refine_point_mm, refine_h_mm, refine_radius_mm, refine_growth)
-        return _finish(gmsh)
+        return _finish(gmsh, order)
     finally:
         gmsh.finalize()
 
 
 def cored_cylinder_mesh(*, length_mm=20.0, radius_mm=5.0, core_radius_mm=1.0, h_mm=1.0, refine_point_mm=None,
-                        refine_h_mm=None, refine_radius_mm=None) -> TetMesh:
-    """A cylinder along z (0..length) of ``radius_mm`` around a rigid core hole of ``core_radius_mm``.
+                        refine_h_mm=None, refine_radius_mm=None, order=2) -> TetMesh:
+    """A cylinder along z (0..length) of ``radius_mm`` around a rigid core hole of ``core_radius_mm``,
+    meshed with quadratic tets (linear with ``order=1``).
 
     Facet sets: bone (core surface), skin (outer surface), distal (z = 0), proximal (z = length),
     patch (= skin).
@@ -110,14 +114,14 @@ def cored_cylinder_mesh(*, length_mm=20.0, radius_mm=5.0, core_radius_mm=1.0, h_
             gmsh.model.addPhysicalGroup(2, ts, name=n)
         gmsh.model.addPhysicalGroup(2, groups["skin"], name="patch")
         _size_field(gmsh, h_mm, refine_point_mm, refine_h_mm, refine_radius_mm)
-        return _finish(gmsh)
+        return _finish(gmsh, order)
     finally:
         gmsh.finalize()
 
 
 def distort_interior(mesh: TetMesh, *, amount=0.25, seed=0, keep_sets=None, curved=True) -> TetMesh:
     """Move interior corner nodes randomly by up to ``amount`` x local edge length, and every
-    interior mid-node off its straight edge if ``curved``; boundary nodes stay. For patch tests."""
+    interior mid-node off its straight edge if ``curved`` (order 2); boundary nodes stay. For patch tests."""
     rng = np.random.default_rng(seed)
     p = mesh.nodes_mm.copy()
     boundary = np.zeros(len(p), bool)
@@ -132,6 +136,11 @@ def distort_interior(mesh: TetMesh, *, amount=0.25, seed=0, keep_sets=None, curv
     corner[t[:, :4].ravel()] = True
     move = corner & ~boundary
     p[move] += amount * h[move, None] * rng.uniform(-1, 1, (move.sum(), 3)) / np.sqrt(3)
+    if mesh.order == 1:
+        out = TetMesh(nodes_mm=p, tets=mesh.tets, facets=mesh.facets)
+        if np.any(out.volumes_mm3() <= 0):
+            raise ValueError("distort_interior: distortion inverted a tetrahedron; use a smaller amount")
+        return out
     # mid-nodes: midpoint of the (moved) corners plus a bump for interior edges
     edges = [(0, 1), (1, 2), (0, 2), (0, 3), (2, 3), (1, 3)]
     for k, (a, b) in enumerate(edges):

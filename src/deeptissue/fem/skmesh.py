@@ -1,10 +1,11 @@
-"""TetMesh (gmsh order) -> scikit-fem ``MeshTet2`` with named facet sets.
+"""TetMesh (gmsh order) -> scikit-fem ``MeshTet2`` (``MeshTet1`` for a linear mesh) with named facet sets.
 
 scikit-fem numbers the P2 nodes as all vertices first, then one node per edge in its own edge
 numbering; its local edge order in a tet is (0,1), (1,2), (0,2), (0,3), (1,3), (2,3) while gmsh's
 Tetrahedron10 lists (0,3), (2,3), (1,3) last, i.e. local nodes 8 and 9 are swapped. Instead of
 relying on the local order, every skfem edge is matched to the gmsh mid-node of the same vertex
-pair, so curved geometry keeps its mid-nodes exactly.
+pair, so curved geometry keeps its mid-nodes exactly. A first-order TetMesh (4-node tets) becomes
+a ``MeshTet1`` on its corner nodes.
 """
 
 from __future__ import annotations
@@ -26,19 +27,27 @@ GMSH_TO_SKFEM_TET10 = np.array([0, 1, 2, 3, 4, 5, 6, 7, 9, 8])
 class SkMesh:
     """A TetMesh as a scikit-fem mesh.
 
-    mesh: skfem MeshTet2 (vertices = TetMesh corner nodes, edge nodes = TetMesh mid-nodes).
-    tetmesh_node: (n_skfem_nodes,) TetMesh node index of each skfem P2 node (vertices, then edges).
+    mesh: skfem MeshTet2 (vertices = TetMesh corner nodes, edge nodes = TetMesh mid-nodes), or
+    MeshTet1 for a first-order TetMesh.
+    tetmesh_node: (n_skfem_nodes,) TetMesh node index of each skfem P2 node (vertices, then edges;
+    vertices only for MeshTet1).
     vertex_of_node: (n_tetmesh_nodes,) skfem vertex index of each TetMesh node (-1 for mid-nodes).
     facets: name -> (K,) skfem facet indices, in the row order of TetMesh.facets[name].
     """
 
-    mesh: MeshTet2
+    mesh: MeshTet2 | MeshTet1
     tetmesh_node: np.ndarray
     vertex_of_node: np.ndarray
     facets: dict
 
+    @property
+    def order(self) -> int:
+        return 2 if isinstance(self.mesh, MeshTet2) else 1  # (MeshTet2 is a subclass of MeshTet1)
+
     def element_nodes(self) -> np.ndarray:
-        """(n_tets, 10) TetMesh node indices in skfem's local P2 order."""
+        """(n_tets, 10) TetMesh node indices in skfem's local P2 order ((n_tets, 4) corners for P1)."""
+        if self.order == 1:
+            return self.tetmesh_node[self.mesh.t.T]
         return self.tetmesh_node[self.mesh.dofs.element_dofs.T]
 
 
@@ -59,6 +68,8 @@ def to_skfem(tm: TetMesh) -> SkMesh:
     vert[corners] = np.arange(len(corners))
     t = vert[tm.tets[:, :4]].T
     m1 = MeshTet1(tm.nodes_mm[corners].T.copy(), np.ascontiguousarray(t))
+    if tm.order == 1:
+        return SkMesh(mesh=m1, tetmesh_node=corners, vertex_of_node=vert, facets=_facet_sets(tm, m1, vert, len(corners)))
     m2 = MeshTet2.from_mesh(m1)
 
     # gmsh mid-node of every (vertex pair)
@@ -85,10 +96,13 @@ def to_skfem(tm: TetMesh) -> SkMesh:
     if not (np.array_equal(ed[:4], m2.t) and np.array_equal(ed[4:], m2.t2e + m2.nvertices)):
         raise AssertionError("unexpected skfem P2 dof numbering")
     mesh = MeshTet2(doflocs, m2.t.copy())
+    return SkMesh(mesh=mesh, tetmesh_node=tetmesh_node, vertex_of_node=vert, facets=_facet_sets(tm, mesh, vert, len(corners)))
 
+
+def _facet_sets(tm: TetMesh, mesh, vert: np.ndarray, nv: int) -> dict:
+    """name -> (K,) skfem facet indices of each TetMesh facet set (matched by corner triples)."""
     facets = {}
     fkeys_sk = np.sort(mesh.facets, axis=0).astype(np.int64)
-    nv = len(corners)
     fk = (fkeys_sk[0] * nv + fkeys_sk[1]) * nv + fkeys_sk[2]
     forder = np.argsort(fk)
     fks = fk[forder]
@@ -105,11 +119,11 @@ def to_skfem(tm: TetMesh) -> SkMesh:
         if not np.all(ok):
             raise ValueError(f"TetMesh.facets[{name!r}]: {np.count_nonzero(~ok)} facets are not faces of the tetrahedra")
         facets[name] = forder[p]
-    return SkMesh(mesh=mesh, tetmesh_node=tetmesh_node, vertex_of_node=vert, facets=facets)
+    return facets
 
 
 def reference_jacobians(tm: TetMesh, *, order: int = 4, skmesh: SkMesh | None = None, corners: bool = True) -> np.ndarray:
-    """det(dX/dxi) (n_tets, n_points) of the (curved) P2 geometry at the points of a quadrature
+    """det(dX/dxi) (n_tets, n_points) of the (curved) P2 geometry (straight P1 geometry for order 1) at the points of a quadrature
     rule of ``order`` (and at the 4 corners if ``corners``): must be > 0 where the solver integrates."""
     from skfem.quadrature import get_quadrature
     from skfem.refdom import RefTet
@@ -123,7 +137,13 @@ def reference_jacobians(tm: TetMesh, *, order: int = 4, skmesh: SkMesh | None = 
 def straighten_invalid(tm: TetMesh, *, order: int = 2, max_rounds: int = 5) -> tuple[TetMesh, int]:
     """Move the mid-nodes of tets whose P2 Jacobian is <= 0 at a quadrature point (of ``order``) or
     at a corner onto their straight edges (gmsh's curved boundary elements can fold near tight
-    curvature). Returns (mesh, number of tets straightened); the mesh is unchanged if none."""
+    curvature). Returns (mesh, number of tets straightened); the mesh is unchanged if none.
+    A first-order mesh has nothing to straighten: it is returned as is, or ValueError if inverted."""
+    if tm.order == 1:
+        bad = np.any(reference_jacobians(tm, order=order) <= 0, axis=1)
+        if np.any(bad):
+            raise ValueError(f"mesh: {int(bad.sum())} linear tetrahedra are inverted or flat, e.g. tet {int(np.flatnonzero(bad)[0])}")
+        return tm, 0
     nodes = tm.nodes_mm.copy()
     fixed = np.zeros(len(tm.tets), bool)
     for _ in range(max_rounds):

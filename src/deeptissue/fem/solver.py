@@ -213,9 +213,9 @@ class _Pair:
 
     def __init__(self, name, surf: ContactSurface, gap_of_t, eps, asm: Assembler):
         self.name, self.surf, self.gap_of_t, self.eps = name, surf, gap_of_t, eps
-        fr = asm.fidx[surf.dofs]  # (K, 18)
-        rr = np.repeat(fr[:, :, None], 18, axis=2)
-        cc = np.repeat(fr[:, None, :], 18, axis=1)
+        fr, nd = asm.fidx[surf.dofs], surf.dofs.shape[1]  # (K, 18); 9 for 3-node facets
+        rr = np.repeat(fr[:, :, None], nd, axis=2)
+        cc = np.repeat(fr[:, None, :], nd, axis=1)
         pos = asm.pattern_index(rr, cc)
         pos[(rr > cc) | (rr < 0) | (cc < 0)] = -1
         self.pos = pos  # (K, 18, 18)
