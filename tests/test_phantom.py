@@ -64,14 +64,24 @@ def test_indenter_truth(ph):
 
 def test_bone_motion_and_com(ph):
     t = ph.truth
-    # COM from the truth contours (area-weighted slice centroids) agrees with the analytic one
+    # COM from the dense truth boundaries (marching squares of the level function on a 0.01 mm
+    # grid; area-weighted slice centroids) agrees with the phantom's polar integrals
+    A, C = [], []
+    for k in range(20):
+        a, c = polygon_area_centroid(ph.dense[("pre", "bone")][k][:, :2])
+        A.append(abs(a))
+        C.append([*c, ph.z_mm[k]])
+    com = (np.array(A)[:, None] * np.array(C)).sum(0) / np.sum(A)
+    np.testing.assert_allclose(com, t.bone_com_mm, atol=5e-5)
+    # and from the 100-point contours a segmentation gives: the polygon cuts the rounded corners,
+    # which differ along z, so the centroid's z is off by a few tenths of a micrometre
     A, C = [], []
     for k in range(20):
         a, c = polygon_area_centroid(ph.truth_pre.bone[k, :, :2])
-        A.append(a)
+        A.append(abs(a))
         C.append([*c, ph.z_mm[k]])
     com = (np.array(A)[:, None] * np.array(C)).sum(0) / np.sum(A)
-    np.testing.assert_allclose(com, t.bone_com_mm, atol=2e-4)
+    np.testing.assert_allclose(com, t.bone_com_mm, atol=5e-4)
     # a during-bone boundary point maps back onto the pre bone surface
     sc = _Scene(SPEC)
     k = 10
