@@ -76,7 +76,7 @@ def main() -> None:
     a = ap.parse_args()
     opts = PoseOptions() if a.dof is None else PoseOptions(bone_dof=a.dof)
     print(f"bone_dof {opts.bone_dof}, {'exact' if a.exact else 'segmented'} contours")
-    print(f"{'case':20s} {'axis':>6s} {'tip':>6s} {'depth':>6s} {'rot':>6s} {'drx':>7s} {'dry':>7s} {'drz':>7s}"
+    print(f"{'case':20s} {'axis':>6s} {'tip':>6s} {'depth':>6s} {'start':>6s} {'rot':>6s} {'drx':>7s} {'dry':>7s} {'drz':>7s}"
           f" {'trans':>6s} {'dtx':>7s} {'dty':>7s} {'dtz':>7s} {'s':>5s}")
     for name in a.cases:
         t0 = time.time()
@@ -89,7 +89,7 @@ def main() -> None:
         dt = t - truth.bone_translation_mm
         dr = pose.bone_rotation_deg - truth.bone_rotation_deg
         print(f"{name:20s} {e['axis_error_deg']:6.3f} {e['tip_end_error_mm']:6.3f} {e['depth_error_mm']:6.3f} "
-              f"{e['bone_rotation_error_deg']:6.3f} {dr[0]:7.3f} {dr[1]:7.3f} {dr[2]:7.3f} "
+              f"{e['tip_start_error_mm']:6.3f} {e['bone_rotation_error_deg']:6.3f} {dr[0]:7.3f} {dr[1]:7.3f} {dr[2]:7.3f} "
               f"{e['bone_translation_error_mm']:6.3f} {dt[0]:7.3f} {dt[1]:7.3f} {dt[2]:7.3f} {time.time() - t0:5.1f}",
               flush=True)
 
