@@ -205,7 +205,8 @@ class _Anatomy:
         theta, z = np.broadcast_arrays(np.asarray(theta, float), np.asarray(z, float))
         cx, cy = self.tib_centre(z)
         u, v = np.cos(theta), np.sin(theta)
-        r = np.full(theta.shape, 4.0 * self.s.tibia_inradius_mm)
+        # start outside: a corner of the sharp triangle is 2 inradii out, the rounding only pulls in
+        r = 3.0 * self.s.tibia_inradius_mm * np.maximum(self.tib_scale(z), 1.0) * max(self.tib_side.max(), 1.0)
         h = 1e-6
         for _ in range(60):
             f = self.bone_f(cx + r * u, cy + r * v, z, inset)
@@ -264,11 +265,13 @@ class _Scene:
         if rounding.min() < 0.05:
             raise ValueError(f"phantom: tibia_rounding_mm / tibia_rounding_slope give a corner rounding of "
                              f"{rounding.min():.3g} mm along the slab; keep it >= 0.05 mm")
+        zs = np.linspace(z_lo, z_hi, 41)
+        f_centre = an.bone_f(*an.tib_centre(zs), zs, inset=spec.cortex_thickness_mm + 0.1)
+        if f_centre.max() >= 0:
+            raise ValueError(f"phantom: at z = {zs[np.argmax(f_centre)]:.3g} mm the tibia is too thin or too rounded to "
+                             f"hold marrow inside a {spec.cortex_thickness_mm} mm cortex; reduce tibia_taper, "
+                             "tibia_flare or tibia_rounding_mm, or increase tibia_inradius_mm")
         self.tib_rmin, self.tib_rmax = an.tib_radius_range(z_lo, z_hi)
-        marrow_rmin, _ = an.tib_radius_range(z_lo, z_hi, inset=spec.cortex_thickness_mm)
-        if not (self.tib_rmin > 0.3 and marrow_rmin > 0.1) or not np.isfinite(marrow_rmin):
-            raise ValueError(f"phantom: the tibia narrows to a radius of {self.tib_rmin:.3g} mm, too thin for a "
-                             f"{spec.cortex_thickness_mm} mm cortex around marrow; reduce tibia_taper")
         # tibia centre of mass over the slices (area-weighted slice centroids, as a segmentation sees it)
         ac = [an.tib_area_centroid(float(z)) for z in self.z]
         w = np.array([a for a, _ in ac])
