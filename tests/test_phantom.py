@@ -147,7 +147,7 @@ def test_tibia_is_a_tapering_rounded_triangle():
     assert moved.max() > 0.004
 
 
-@pytest.mark.parametrize("bad", [dict(tibia_rounding_mm=0.9, tibia_rounding_slope=0.0), dict(tibia_taper=0.08),
+@pytest.mark.parametrize("bad", [dict(tibia_inradius_mm=0.4), dict(tibia_taper=0.08),
                                  dict(tibia_rounding_slope=0.03)])
 def test_impossible_tibia_is_refused(bad):
     with pytest.raises(ValueError, match="phantom: .*tibia"):

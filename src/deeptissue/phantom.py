@@ -12,8 +12,8 @@ The anatomy is analytic, so every boundary is known exactly:
   side) times ``s(z) = 1 + tibia_taper z + tibia_flare z²`` (narrower distally, flaring
   proximally), corner rounding ``1/k`` growing distally (``tibia_rounding_mm``,
   ``tibia_rounding_slope``), and the crest turning ``tibia_twist`` deg per mm. A dark cortex
-  ``cortex_thickness_mm`` thick (the same function with every side moved in) around a
-  darker-than-muscle marrow.
+  ``cortex_thickness_mm`` thick on the sides (the marrow is the same shape scaled down about the
+  centre) around a darker-than-muscle marrow.
 - **coil**: a surface loop of radius ``coil_radius_mm`` above the anterior (+y) skin; sensitivity
   ``(a² / (a² + d²))^(3/2)`` with ``d`` the distance below the coil, normalised to 1 in the
   well-lit muscle 1 mm under the skin where the indenter enters; the posterior side gets about
@@ -174,29 +174,32 @@ class _Anatomy:
         return self.s.tibia_rounding_mm + self.s.tibia_rounding_slope * np.asarray(z, float)
 
     def bone_f(self, x, y, z, inset=0.0):
-        """Level function of the tibia (mm; < 0 inside, ``inset`` mm: the marrow).
+        """Level function of the tibia (mm; < 0 inside; with ``inset`` mm: the marrow's).
 
         A rounded triangle: the smooth maximum (log-sum-exp, sharpness ``k = 1 / rounding(z)``) of
         the three side functions ``n_i · (p - c(z)) - d_i(z)``, outward side normals ``n_i`` at the
         crest direction ``θc(z)`` + 60°, 180°, 300° (the crest is the corner between the first and
-        the last side), ``d_i = tibia_inradius_mm · side_i · scale(z) - inset``. It is convex in
-        (x, y), its zero set is the exact boundary, and its gradient has length <= 1, so ``|f|`` is
-        at most the distance to the boundary.
+        the last side), ``d_i = tibia_inradius_mm · side_i · scale(z)``. It is convex in (x, y), its
+        zero set is the exact boundary, and its gradient has length <= 1, so ``|f|`` is at most the
+        distance to the boundary. The marrow is the same shape scaled about the centre by
+        ``λ = 1 - inset / d(z)`` (``f_m(p) = λ f(c + (p - c) / λ)``, gradient <= 1 too): the cortex
+        is ``inset`` thick on the sides and a little thicker at the corners.
         """
         s = self.s
         z = np.asarray(z, float)
         cx, cy = self.tib_centre(z)
-        dx, dy = x - cx, y - cy
+        d0 = s.tibia_inradius_mm * self.tib_scale(z)
+        lam = 1.0 - inset / d0
+        dx, dy = (x - cx) / lam, (y - cy) / lam
         k = 1.0 / self.tib_rounding(z)
         crest = self.tib_crest + np.radians(s.tibia_twist) * z
-        d0 = s.tibia_inradius_mm * self.tib_scale(z)
         terms = []
         for i, off in enumerate((np.pi / 3, np.pi, -np.pi / 3)):
             a = crest + off
-            terms.append(k * (dx * np.cos(a) + dy * np.sin(a) - (d0 * self.tib_side[i] - inset)))
+            terms.append(k * (dx * np.cos(a) + dy * np.sin(a) - d0 * self.tib_side[i]))
         terms = np.stack(np.broadcast_arrays(*terms))
         m = terms.max(axis=0)
-        return (m + np.log(np.exp(terms - m).sum(axis=0))) / k
+        return lam * (m + np.log(np.exp(terms - m).sum(axis=0))) / k
 
     def tib_r(self, theta, z, inset=0.0):
         """Radius (mm) of the tibia boundary (or the marrow's, ``inset``) at polar angle ``theta``
@@ -265,12 +268,14 @@ class _Scene:
         if rounding.min() < 0.05:
             raise ValueError(f"phantom: tibia_rounding_mm / tibia_rounding_slope give a corner rounding of "
                              f"{rounding.min():.3g} mm along the slab; keep it >= 0.05 mm")
-        zs = np.linspace(z_lo, z_hi, 41)
-        f_centre = an.bone_f(*an.tib_centre(zs), zs, inset=spec.cortex_thickness_mm + 0.1)
-        if f_centre.max() >= 0:
-            raise ValueError(f"phantom: at z = {zs[np.argmax(f_centre)]:.3g} mm the tibia is too thin or too rounded to "
-                             f"hold marrow inside a {spec.cortex_thickness_mm} mm cortex; reduce tibia_taper, "
-                             "tibia_flare or tibia_rounding_mm, or increase tibia_inradius_mm")
+        # a marrow (the shape scaled by 1 - cortex / inradius) at least 0.15 mm to its sides over the
+        # slab and the 1 mm beyond it that a slice of the moved bone can reach (3 deg over 10 mm)
+        zs = np.linspace(self.z.min() - 1.0, self.z.max() + 1.0, 41)
+        marrow = spec.tibia_inradius_mm * an.tib_scale(zs) * an.tib_side.min() - spec.cortex_thickness_mm
+        if marrow.min() < 0.15:
+            raise ValueError(f"phantom: at z = {zs[np.argmin(marrow)]:.3g} mm the tibia is too thin to hold marrow "
+                             f"inside a {spec.cortex_thickness_mm} mm cortex; reduce tibia_taper or tibia_flare, "
+                             "or increase tibia_inradius_mm")
         self.tib_rmin, self.tib_rmax = an.tib_radius_range(z_lo, z_hi)
         # tibia centre of mass over the slices (area-weighted slice centroids, as a segmentation sees it)
         ac = [an.tib_area_centroid(float(z)) for z in self.z]
