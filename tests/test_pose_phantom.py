@@ -6,10 +6,11 @@ The pose stage is measured on its own here: the contours are the phantom's exact
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from deeptissue.phantom import PhantomSpec, make_phantom
 from deeptissue.pose import ACCURACY_TOLERANCES as TOL
-from deeptissue.pose import estimate_pose, pose_errors
+from deeptissue.pose import estimate_pose, fit_bone_motion, pose_errors
 from deeptissue.rigid import rotation_matrix
 
 CASES = {
@@ -36,7 +37,15 @@ def test_pose_on_phantom_within_issue_tolerances(name):
     R = rotation_matrix(pose.bone_rotation_deg)
     t = pose.bone_translation_mm + (R - np.eye(3)) @ (truth.bone_com_mm - pose.bone_com_mm)
     assert np.linalg.norm((t - truth.bone_translation_mm)[:2]) <= TOL["bone_translation_error_mm"]
-    # along the leg the phantom's tibia is a near-prism: the 5-DOF fit keeps the centroid's z shift (~0)
+    # the default 5-DOF fit leaves the shift along the leg at the centroid's (~0 here)
     assert abs(pose.bone_translation_mm[2]) <= 0.005
+    # with exact contours the tapering, flaring, twisting tibia shows its shift along the leg too:
+    # the 6-DOF fit recovers the full translation vector and the full rotation
+    m = fit_bone_motion(ph.truth_pre.bone, ph.truth_during.bone, dof=6)
+    R = rotation_matrix(m.rotation_deg)
+    t6 = m.translation_mm + (R - np.eye(3)) @ (truth.bone_com_mm - m.com_mm)
+    assert np.linalg.norm(t6 - truth.bone_translation_mm) <= TOL["bone_translation_error_mm"]
+    rel = Rotation.from_matrix(R @ rotation_matrix(truth.bone_rotation_deg).T).magnitude()
+    assert np.degrees(rel) <= TOL["bone_rotation_error_deg"]
     if not np.any(truth.bone_rotation_deg):
         assert np.linalg.norm(pose.bone_rotation_deg) <= 0.05  # zero comes back as zero

@@ -6,8 +6,14 @@ The anatomy is analytic, so every boundary is known exactly:
   ``r(θ, z) = R(z) (1 + e cos 2θ + h3 cos(3θ + φ3) + h4 cos(4θ + φ4))`` with a linear taper
   ``R(z) = leg_radius_mm + leg_taper * z`` (8–11 mm across with the defaults); a skin and
   subcutaneous layer ``skin_thickness_mm`` thick lines it.
-- **tibia**: an elliptic cylinder along z (eccentric, drifting slightly with z), a dark cortex
-  ``cortex_thickness_mm`` thick around a darker-than-muscle marrow.
+- **tibia**: eccentric, its centre drifting slightly with z; a rounded-triangular cross-section
+  (the rat's mid-shaft, anterior crest towards +y): the smooth maximum of three half-planes,
+  ``f = (1/k) log Σ exp(k (n_i·(p - c) - d_i))``, with ``d_i`` ``tibia_inradius_mm`` (seeded ±8 % per
+  side) times ``s(z) = 1 + tibia_taper z + tibia_flare z²`` (narrower distally, flaring
+  proximally), corner rounding ``1/k`` growing distally (``tibia_rounding_mm``,
+  ``tibia_rounding_slope``), and the crest turning ``tibia_twist`` deg per mm. A dark cortex
+  ``cortex_thickness_mm`` thick on the sides (the marrow is the same shape scaled down about the
+  centre) around a darker-than-muscle marrow.
 - **coil**: a surface loop of radius ``coil_radius_mm`` above the anterior (+y) skin; sensitivity
   ``(a² / (a² + d²))^(3/2)`` with ``d`` the distance below the coil, normalised to 1 in the
   well-lit muscle 1 mm under the skin where the indenter enters; the posterior side gets about
@@ -61,8 +67,13 @@ class PhantomSpec:
     leg_ellipticity: float = 0.08
     skin_thickness_mm: float = 0.4
     tibia_centre_mm: tuple = (-0.9, -0.3)
-    tibia_semi_axes_mm: tuple = (1.15, 0.95)
-    tibia_angle_deg: float = 25.0
+    tibia_inradius_mm: float = 0.78  # centre to each flat side of the triangular cross-section at z = 0
+    tibia_rounding_mm: float = 0.2  # corner rounding (1 / sharpness of the smooth maximum) at z = 0
+    tibia_rounding_slope: float = -0.008  # its change per mm of z (a sharper crest proximally, rounder distally)
+    tibia_crest_angle_deg: float = 100.0  # direction of the anterior crest (one corner) from +x at z = 0
+    tibia_twist: float = 1.0  # deg per mm: the crest turns slowly along z (torsion)
+    tibia_taper: float = 0.012  # relative change of the size per mm of z (wider proximally, +z)
+    tibia_flare: float = 0.0006  # relative quadratic term per mm² (the proximal flare)
     cortex_thickness_mm: float = 0.3
     # coil
     coil_radius_mm: float = 11.0
@@ -127,8 +138,9 @@ class _Anatomy:
         self.leg_drift = rng.uniform(-0.01, 0.01, 2)
         self.tib_c0 = np.asarray(spec.tibia_centre_mm, float) + rng.uniform(-0.15, 0.15, 2)
         self.tib_drift = np.array([0.015, -0.01]) + rng.uniform(-0.005, 0.005, 2)
-        self.tib_ab = np.asarray(spec.tibia_semi_axes_mm, float) * (1 + rng.uniform(-0.05, 0.05))
-        self.tib_ang = np.radians(spec.tibia_angle_deg)
+        # the three sides differ a little (seeded): relative inradius of each side
+        self.tib_side = 1.0 + rng.uniform(-0.08, 0.08, 3)
+        self.tib_crest = np.radians(spec.tibia_crest_angle_deg + rng.uniform(-8.0, 8.0))
 
     # leg ------------------------------------------------------------------------------------
     def leg_centre(self, z):
@@ -152,18 +164,84 @@ class _Anatomy:
         z = np.asarray(z, float)
         return self.tib_c0[0] + self.tib_drift[0] * z, self.tib_c0[1] + self.tib_drift[1] * z
 
-    def tib_axes(self, z):
-        f = 1 - 0.004 * np.asarray(z, float)
-        return self.tib_ab[0] * f, self.tib_ab[1] * f
+    def tib_scale(self, z):
+        """Relative size of the cross-section along z: taper and proximal flare (1 at z = 0)."""
+        z = np.asarray(z, float)
+        return 1.0 + self.s.tibia_taper * z + self.s.tibia_flare * z**2
+
+    def tib_rounding(self, z):
+        """Corner rounding (mm) at z: 1 / the sharpness k of the smooth maximum in :meth:`bone_f`."""
+        return self.s.tibia_rounding_mm + self.s.tibia_rounding_slope * np.asarray(z, float)
 
     def bone_f(self, x, y, z, inset=0.0):
-        """< 0 inside the tibia (``inset`` mm: the marrow); exact zero set is the ellipse."""
+        """Level function of the tibia (mm; < 0 inside; with ``inset`` mm: the marrow's).
+
+        A rounded triangle: the smooth maximum (log-sum-exp, sharpness ``k = 1 / rounding(z)``) of
+        the three side functions ``n_i · (p - c(z)) - d_i(z)``, outward side normals ``n_i`` at the
+        crest direction ``θc(z)`` + 60°, 180°, 300° (the crest is the corner between the first and
+        the last side), ``d_i = tibia_inradius_mm · side_i · scale(z)``. It is convex in (x, y), its
+        zero set is the exact boundary, and its gradient has length <= 1, so ``|f|`` is at most the
+        distance to the boundary. The marrow is the same shape scaled about the centre by
+        ``λ = 1 - inset / d(z)`` (``f_m(p) = λ f(c + (p - c) / λ)``, gradient <= 1 too): the cortex
+        is ``inset`` thick on the sides and a little thicker at the corners.
+        """
+        s = self.s
+        z = np.asarray(z, float)
         cx, cy = self.tib_centre(z)
-        a, b = self.tib_axes(z)
-        c, s = np.cos(self.tib_ang), np.sin(self.tib_ang)
-        u = (x - cx) * c + (y - cy) * s
-        v = -(x - cx) * s + (y - cy) * c
-        return np.sqrt((u / (a - inset)) ** 2 + (v / (b - inset)) ** 2) - 1.0
+        d0 = s.tibia_inradius_mm * self.tib_scale(z)
+        lam = 1.0 - inset / d0
+        dx, dy = (x - cx) / lam, (y - cy) / lam
+        k = 1.0 / self.tib_rounding(z)
+        crest = self.tib_crest + np.radians(s.tibia_twist) * z
+        terms = []
+        for i, off in enumerate((np.pi / 3, np.pi, -np.pi / 3)):
+            a = crest + off
+            terms.append(k * (dx * np.cos(a) + dy * np.sin(a) - d0 * self.tib_side[i]))
+        terms = np.stack(np.broadcast_arrays(*terms))
+        m = terms.max(axis=0)
+        return lam * (m + np.log(np.exp(terms - m).sum(axis=0))) / k
+
+    def tib_r(self, theta, z, inset=0.0):
+        """Radius (mm) of the tibia boundary (or the marrow's, ``inset``) at polar angle ``theta``
+        (rad, from +x) about ``tib_centre(z)``: the root of ``bone_f`` along the ray (Newton from
+        outside; ``bone_f`` is convex along the ray, so the iteration is monotone)."""
+        theta, z = np.broadcast_arrays(np.asarray(theta, float), np.asarray(z, float))
+        cx, cy = self.tib_centre(z)
+        u, v = np.cos(theta), np.sin(theta)
+        # start outside: a corner of the sharp triangle is 2 inradii out, the rounding only pulls in
+        r = 3.0 * self.s.tibia_inradius_mm * np.maximum(self.tib_scale(z), 1.0) * max(self.tib_side.max(), 1.0)
+        h = 1e-6
+        for _ in range(60):
+            f = self.bone_f(cx + r * u, cy + r * v, z, inset)
+            df = (self.bone_f(cx + (r + h) * u, cy + (r + h) * v, z, inset) - self.bone_f(cx + (r - h) * u, cy + (r - h) * v, z, inset)) / (2 * h)
+            step = f / df
+            r = r - step
+            if np.abs(step).max() < 1e-12:
+                break
+        return r
+
+    def tib_radius_range(self, z_lo: float, z_hi: float, inset: float = 0.0) -> tuple[float, float]:
+        """Smallest and largest radius (mm) of the tibia boundary (or the marrow's) for z in [z_lo, z_hi]."""
+        th, zz = np.meshgrid(np.linspace(0, 2 * np.pi, 360, endpoint=False), np.linspace(z_lo, z_hi, 21))
+        r = self.tib_r(th, zz, inset)
+        return float(r.min()), float(r.max())
+
+    def tib_area_centroid(self, z: float) -> tuple[float, np.ndarray]:
+        """Area (mm²) and centroid (x, y) mm of the tibia cross-section at z (polar integrals of the
+        exact boundary radius, converging exponentially for this smooth periodic r(θ)):
+        A = ½∮r² dθ, c = ⅓∮r³ (cos θ, sin θ) dθ / A."""
+        th = np.linspace(0, 2 * np.pi, 2048, endpoint=False)
+        r = self.tib_r(th, z)
+        area = np.pi * np.mean(r**2)
+        c = 2 * np.pi / 3 * np.array([np.mean(r**3 * np.cos(th)), np.mean(r**3 * np.sin(th))]) / area
+        return float(area), np.asarray(self.tib_centre(z), float) + c
+
+    def tib_boundary(self, z: float, n: int = 180) -> np.ndarray:
+        """(n, 2) points (mm) on the outer tibia boundary at z."""
+        th = np.linspace(0, 2 * np.pi, n, endpoint=False)
+        r = self.tib_r(th, z)
+        cx, cy = self.tib_centre(z)
+        return np.column_stack([cx + r * np.cos(th), cy + r * np.sin(th)])
 
 
 def _affine(spec: PhantomSpec) -> np.ndarray:
@@ -183,11 +261,27 @@ class _Scene:
         self.affine = _affine(spec)
         self.z = self.affine[2, 2] * np.arange(spec.n_slices) + self.affine[2, 3]
         an = self.an
-        # tibia centre of mass over the slices (area-weighted slice centroids; ellipse area π a b)
-        cx, cy = an.tib_centre(self.z)
-        a, b = an.tib_axes(self.z)
-        w = np.pi * a * b
-        self.bone_com = np.array([np.sum(w * cx), np.sum(w * cy), np.sum(w * self.z)]) / w.sum()
+        # the tibia's shape must stay a rounded triangle with a cortex and marrow over the slab and
+        # the 2 mm beyond it that the moved bone may reach
+        z_lo, z_hi = self.z.min() - 2.0, self.z.max() + 2.0
+        rounding = an.tib_rounding(np.array([z_lo, z_hi]))
+        if rounding.min() < 0.05:
+            raise ValueError(f"phantom: tibia_rounding_mm / tibia_rounding_slope give a corner rounding of "
+                             f"{rounding.min():.3g} mm along the slab; keep it >= 0.05 mm")
+        # a marrow (the shape scaled by 1 - cortex / inradius) at least 0.15 mm to its sides over the
+        # slab and the 1 mm beyond it that a slice of the moved bone can reach (3 deg over 10 mm)
+        zs = np.linspace(self.z.min() - 1.0, self.z.max() + 1.0, 41)
+        marrow = spec.tibia_inradius_mm * an.tib_scale(zs) * an.tib_side.min() - spec.cortex_thickness_mm
+        if marrow.min() < 0.15:
+            raise ValueError(f"phantom: at z = {zs[np.argmin(marrow)]:.3g} mm the tibia is too thin to hold marrow "
+                             f"inside a {spec.cortex_thickness_mm} mm cortex; reduce tibia_taper or tibia_flare, "
+                             "or increase tibia_inradius_mm")
+        self.tib_rmin, self.tib_rmax = an.tib_radius_range(z_lo, z_hi)
+        # tibia centre of mass over the slices (area-weighted slice centroids, as a segmentation sees it)
+        ac = [an.tib_area_centroid(float(z)) for z in self.z]
+        w = np.array([a for a, _ in ac])
+        cxy = np.array([c for _, c in ac])
+        self.bone_com = np.array([np.sum(w * cxy[:, 0]), np.sum(w * cxy[:, 1]), np.sum(w * self.z)]) / w.sum()
         self.R = rotation_matrix(spec.bone_rotation_deg)
         self.t = np.asarray(spec.bone_translation_mm, float)
         # indenter axis: nominal -y through the tibia centre at indenter_z, tilted about X then Z
@@ -261,11 +355,7 @@ class _Scene:
         best = np.inf
         th = np.linspace(0, 2 * np.pi, 180, endpoint=False)
         for z in zs:
-            cx, cy = self.an.tib_centre(z)
-            a, b = self.an.tib_axes(z)
-            c, s = np.cos(self.an.tib_ang), np.sin(self.an.tib_ang)
-            u, v = a * np.cos(th), b * np.sin(th)
-            pts = np.column_stack([cx + u * c - v * s, cy + u * s + v * c, np.full_like(th, z)])
+            pts = np.column_stack([self.an.tib_boundary(z, len(th)), np.full_like(th, z)])
             pts = (pts - self.bone_com) @ self.R.T + self.bone_com + self.t
             best = min(best, float(self.indenter_sd(pts[:, 0], pts[:, 1], pts[:, 2]).min()))
         return best
@@ -279,9 +369,10 @@ class _Scene:
         tissue = phi < 0
         val[tissue] = s.muscle
         val[tissue & (phi > -s.skin_thickness_mm)] = s.skin
-        scale = min(self.an.tib_ab) - s.cortex_thickness_mm
-        fb = self.bone(X, Y, z, state) * scale
-        fm = self.bone(X, Y, z, state, inset=s.cortex_thickness_mm) * (scale - s.cortex_thickness_mm)
+        # |bone_f| is at most the distance (mm) to its zero set (gradient length <= 1), so
+        # sub-sampling happens wherever a boundary crosses a pixel
+        fb = self.bone(X, Y, z, state)
+        fm = self.bone(X, Y, z, state, inset=s.cortex_thickness_mm)
         bone = tissue & (fb < 0)
         val[bone] = s.cortex
         val[bone & (fm < 0)] = s.marrow
@@ -334,7 +425,7 @@ class _Scene:
             if state == "during":
                 p = (np.array([cx, cy, z]) - self.bone_com) @ self.R.T + self.bone_com + self.t
                 cx, cy = p[0], p[1]
-            half = max(self.an.tib_ab) * 1.3 + 0.5
+            half = self.tib_rmax * 1.3 + 0.5
             fn = lambda X, Y: self.bone(X, Y, z, state)
             h = h_mm
         g = np.arange(-half, half + h / 2, h)
