@@ -176,3 +176,19 @@ def test_sphere_with_bone_motion_reaches_full_depth_without_cutbacks(limb):
     assert not cut, cut
     assert r.newton_iterations <= 80
     assert r.indenter_force_N > 0.0
+
+
+def test_state_violating_contact_is_never_accepted(limb):
+    # the AL / final-solve fallbacks keep penalty or loosely converged states; one that still
+    # penetrates more than penetration_accept x facet size must be cut back, not reported converged
+    # (found on a demo animal: "converged" with 0.37 mm penetration). A bound below what AL can reach
+    # on this coarse limb makes every contact increment fail.
+    ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(4.0, 0.0, 3.0), end_mm=(2.6, 0.0, 3.0))
+    strict = SolverSettings(penetration_accept=1e-9, min_increment=0.02, max_al_updates=0)
+    r = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=BoneMotion(), settings=strict)
+    assert not r.converged
+    assert "penetration" in r.reason
+    assert any("penetration" in h.reason for h in r.history if not h.converged)
+    ok = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=BoneMotion())
+    assert ok.converged, ok.reason
+    assert ok.max_penetration_rel <= SolverSettings().penetration_accept

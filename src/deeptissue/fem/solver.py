@@ -58,7 +58,9 @@ class SolverSettings:
     floor, as a fraction of mu * V^(2/3) [N]. Increments are fractions of a load step.
     penalty_factor: penalty = factor * E / h (E small-strain Young's modulus, h facet size).
     penetration_tol: allowed penetration / facet size after the augmented-Lagrangian updates at the
-    end of each step (penetration_tol_intermediate inside a step).
+    end of each step (penetration_tol_intermediate inside a step); penetration_accept: an increment whose
+    state still penetrates more than this x facet size (the augmented-Lagrangian passes or the final
+    tight solve did not converge) is cut back, never accepted.
     first_touch_mm: at most this much indentation in the increment where contact starts.
     contact_smoothing_rel: width of the rounded pressure kink as a penetration / facet size.
     contact_near_rel: points with a gap below this x facet size get penalty stiffness in the Newton
@@ -88,6 +90,7 @@ class SolverSettings:
     penalty_factor: float = 30.0
     penetration_tol: float = 0.01
     penetration_tol_intermediate: float = 0.05
+    penetration_accept: float = 0.1
     max_al_updates: int = 4
     max_al_iterations: int = 6
     first_touch_mm: float = 0.1
@@ -584,6 +587,12 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
                         p.surf.lam[r["cand"]] = r["pressure"]
                 al += 1
             n_iter_total += iters
+            if ok and pairs:
+                # a state whose contact is violated this much is not a solution, whatever the residual:
+                # cut the increment (the fallbacks above keep penalty or loosely converged states)
+                pen_rel_end = penetration(outs)[1]
+                if pen_rel_end > s.penetration_accept:
+                    ok, why = False, f"penetration {pen_rel_end:.2f} x facet size > {s.penetration_accept}"
             ft, fc = forces(outs) if ok else (np.zeros(3), np.zeros(3))
             pen_mm = penetration(outs)[0] if ok else float("nan")
             rec = IncrementRecord(
