@@ -169,13 +169,18 @@ def variant_axes(pose: Pose, variants) -> dict:
     return out
 
 
+def _bar_sweep(v, axis, s: ModelSettings):
+    """(half length of the bar's centre segment [mm], unit direction along the bar) of a variant;
+    (0.0, None) for a sphere (or a bar no longer than its diameter)."""
+    if v.indenter == "bar" and s.bar_length_mm > 2 * SPHERE_RADIUS_MM:
+        return 0.5 * s.bar_length_mm - SPHERE_RADIUS_MM, geo.bar_direction(axis)
+    return 0.0, None
+
+
 def _patch_specs(pose: Pose, variants, s: ModelSettings) -> dict:
     specs = {}
     for name, (axis, _, end, v) in variant_axes(pose, variants).items():
-        half, long_dir = 0.0, None
-        if v.indenter == "bar" and s.bar_length_mm > 2 * SPHERE_RADIUS_MM:
-            half = 0.5 * s.bar_length_mm - SPHERE_RADIUS_MM
-            long_dir = geo.bar_direction(axis)
+        half, long_dir = _bar_sweep(v, axis, s)
         specs[f"patch_{name}"] = PatchSpec(point_mm=end, axis=axis, radius_mm=0.5 * s.patch_diameter_mm, half_length_mm=half, long_dir=long_dir)
     return specs
 
@@ -218,12 +223,8 @@ def build_model(
     segs, seen = [], []
     for name, (axis, start, end, v) in axes.items():
         # the bar's travel is swept along the bar: its rounded ends concentrate strain too
-        offsets = [0.0]
-        if v.indenter == "bar" and s.bar_length_mm > 2 * SPHERE_RADIUS_MM:
-            half = 0.5 * s.bar_length_mm - SPHERE_RADIUS_MM
-            offsets = [-half, 0.0, half]
-            long_dir = geo.bar_direction(axis)
-        for off in offsets:
+        half, long_dir = _bar_sweep(v, axis, s)
+        for off in ([-half, 0.0, half] if half > 0 else [0.0]):
             shift = off * long_dir if off else 0.0
             key = tuple(np.round(np.concatenate([axis, start + shift]), 9))
             if key in seen:

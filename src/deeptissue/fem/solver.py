@@ -533,10 +533,12 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
             last_good = None  # (u, multipliers, outs) of the last converged solve in this increment
             # at a step end with contact the augmented-Lagrangian passes are solved to the intermediate
             # tolerance and only the last state is polished to the full one (one tight solve, not one per pass)
-            stalled = False
             nested = s.inexact_al and step_end and bool(pairs) and rtol < s.rtol_intermediate
-            polish = False
+            polish, pre_polish = False, None
             while True:
+                if polish and pre_polish is None:
+                    # the state the tight solve starts from, kept in case it stalls
+                    pre_polish = (u_try.copy(), outs, _al_state(pairs))
                 tol = (rtol, etol) if (polish or not nested) else (s.rtol_intermediate, s.energy_rtol_intermediate)
                 max_it = s.max_iterations if (al == 0 or polish) else s.max_al_iterations
                 ok, why, it, res, outs = newton(u_try, target_d, *tol, max_it)
@@ -544,7 +546,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
                 residuals += res
                 if polish:
                     if ok and missed_contact(u_try):
-                        polish = False
+                        polish, pre_polish = False, None
                         continue
                     if not ok:
                         # the tight solve stalled (contact chatter on facets coarser than the indenter):
@@ -553,7 +555,6 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
                                     why, res[-1] if res else float("nan"), s.rtol_intermediate)
                         u_try[:], outs, ok, why = pre_polish[0], pre_polish[1], True, ""
                         _restore_al(pairs, pre_polish[2])
-                        stalled = True
                     break
                 if not ok:
                     if last_good is not None:
@@ -564,7 +565,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
                         _restore_al(pairs, last_good[1])
                         outs, ok, why = last_good[2], True, ""
                         if nested:
-                            polish, pre_polish = True, (u_try.copy(), outs, _al_state(pairs))
+                            polish = True
                             continue
                     break
                 if missed_contact(u_try):
@@ -572,13 +573,13 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
                 pen_mm, pen_rel = penetration(outs)
                 if pen_rel <= pen_tol or not pairs:
                     if nested:
-                        polish, pre_polish = True, (u_try.copy(), outs, _al_state(pairs))
+                        polish = True
                         continue
                     break
                 if al >= s.max_al_updates:
                     log.warning("penetration %.3g x facet size after %d AL updates", pen_rel, al)
                     if nested:
-                        polish, pre_polish = True, (u_try.copy(), outs, _al_state(pairs))
+                        polish = True
                         continue
                     break
                 last_good = (u_try.copy(), _al_state(pairs), outs)
@@ -587,14 +588,15 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
                         p.surf.lam[r["cand"]] = r["pressure"]
                 al += 1
             n_iter_total += iters
-            if ok and pairs:
+            pen_mm = float("nan")
+            if ok:
+                pen_mm, pen_rel_end = penetration(outs)
                 # a state whose contact is violated this much is not a solution, whatever the residual:
                 # cut the increment (the fallbacks above keep penalty or loosely converged states)
-                pen_rel_end = penetration(outs)[1]
-                if pen_rel_end > s.penetration_accept:
+                if pairs and pen_rel_end > s.penetration_accept:
                     ok, why = False, f"penetration {pen_rel_end:.2f} x facet size > {s.penetration_accept}"
+                    pen_mm = float("nan")
             ft, fc = forces(outs) if ok else (np.zeros(3), np.zeros(3))
-            pen_mm = penetration(outs)[0] if ok else float("nan")
             rec = IncrementRecord(
                 step=k + 1, t_start=t, t_end=t1, converged=ok, reason=why, iterations=iters, al_updates=al,
                 residuals=tuple(residuals), tip_mm=tuple(sched.tip(t1)) if indenter is not None else (),
