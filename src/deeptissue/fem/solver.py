@@ -71,6 +71,12 @@ class SolverSettings:
     largest facet size). cast_candidate_distance_mm: the same for the cast (the skin starts a cast
     offset, 0.2 mm, away from it everywhere, so 2 facet sizes would make the whole skin a candidate);
     facets outside a candidate set that penetrate after a Newton solve are added and the solve repeated.
+    stall_rtol: a Newton iteration that no longer makes progress (the residual has not halved in
+    ``stall_iterations`` iterations: points entering and leaving contact between iterations) ends
+    there, converged with its best state if that state's residual is below stall_rtol x the force
+    scale (10 x looser than rtol by default, 100 x tighter than rtol_intermediate).
+    secant_predictor: in the indentation step, start each increment from the last increment's
+    displacement change scaled to the new increment (not from the rigid bone move alone).
     linear_solver: 'pardiso' | 'amg' | 'superlu'.
     """
 
@@ -93,12 +99,15 @@ class SolverSettings:
     penetration_accept: float = 0.1
     max_al_updates: int = 4
     max_al_iterations: int = 6
+    stall_rtol: float = 1e-5
+    stall_iterations: int = 3
     first_touch_mm: float = 0.1
     contact_smoothing_rel: float = 1e-3
     contact_near_rel: float = 0.0
     candidate_distance_mm: float | None = None
     cast_candidate_distance_mm: float = 0.1
     inexact_al: bool = True
+    secant_predictor: bool = True
     linear_solver: str = "pardiso"
     quadrature_order: int = 2
     contact_quadrature_order: int = 4
@@ -389,6 +398,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
         d_tol = 1e-12 * (1.0 + float(np.max(np.abs(target_d), initial=0.0)) + float(np.max(np.abs(X))))
         residuals = []
         slope_first, slope_last = None, None
+        best = (np.inf, None, None)  # (residual, u, contact outputs) of the best iterate without a prescribed increment
         for it in range(max_it + 1):
             ta = time.perf_counter()
             W, f, data, Ke_bc = asm.tangent(u)
@@ -416,6 +426,20 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
                 return True, "", it, residuals, outs
             if not has_d and slope_first is not None and it >= 2 and abs(slope_last) <= etol * abs(slope_first):
                 return True, "", it, residuals, outs
+            if not has_d and res < best[0]:
+                best = (res, u.copy(), outs)
+            k_st = s.stall_iterations
+            stalled = not has_d and len(residuals) > k_st and min(residuals[-k_st:]) > 0.5 * min(residuals[:-k_st])
+            growing = stalled and all(a < b for a, b in zip(residuals[-k_st - 1:-1], residuals[-k_st:]))
+            if stalled and best[0] <= max(s.stall_rtol, rtol) * scale + atol:
+                # no progress (contact chatter): the best iterate is as converged as this problem gets
+                log.debug("  stalled at it %d: keeping the best iterate (residual %.2e)", it, best[0])
+                u[:] = best[1]
+                return True, "", it, residuals, best[2]
+            if growing:
+                # the residual grew in each of the last iterations while the energy fell: the iterates
+                # slide along a soft contact mode away from this start; more iterations do not help
+                return False, "residual growing", it, residuals, None
             if it == max_it:
                 return False, "too many iterations", it, residuals, None
             if len(residuals) > 3 and res > 1e3 * min(residuals):
@@ -464,7 +488,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
                     step *= 0.3
             if not accepted:
                 return False, "line search failed", it, residuals, None
-            log.debug("  it %d res %.3e step %.3g slope %.3e", it, res, step, slope)
+            log.debug("  it %d res %.3e step %.3g slope %.3e dPi %.3e", it, res, step, slope, Pi1 - Pi0)
             u += step * du
         return False, "too many iterations", max_it, residuals, None
 
@@ -501,6 +525,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
     axis = indenter.unit_axis if indenter is not None else np.zeros(3)
     travel = float(np.linalg.norm(np.subtract(indenter.end_mm, indenter.start_mm))) if indenter is not None else 0.0
     done = True
+    prev = None  # (t, t_before, u_before) of the last converged increment of the indentation step
     for k in sched.active_steps():
         t = float(k)
         # a bone rotation alone is followed exactly by the rigid predictor: try the whole step
@@ -520,6 +545,10 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
             t0c = dict(timers)
             # predictor: the whole limb follows the bone's rigid increment (exact for rigid motion)
             u_try = (sched.predict(X, X + u.reshape(-1, 3), t, t1) - X).ravel()
+            if s.secant_predictor and k == 3 and prev is not None and prev[0] == t:
+                # in contact the last increment's deformation, scaled, is a far better guess than a rigid
+                # move that leaves skin deep inside the indenter (the bone part is the same: linear in t)
+                u_try = u + (t1 - t) / (t - prev[1]) * (u - prev[2])
             al_backup = _al_state(pairs)
             target = np.zeros(asm.n_dofs)
             target.reshape(-1, 3)[bone_nodes] = sched.bone(Xb, t1) - Xb
@@ -608,6 +637,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
             log.info("step %d t %.4f->%.4f %s it %d al %d F %.4g N pen %.3g mm", k + 1, t, t1,
                      "ok" if ok else f"cut ({why})", iters, al, rec.indenter_force_N, pen_mm)
             if ok:
+                prev = (t1, t, u) if k == 3 and pairs else None
                 u = u_try
                 last_outs = outs
                 t = t1
