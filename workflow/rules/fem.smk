@@ -63,6 +63,19 @@ rule verify_fem_benchmark:
         "../scripts/verify_fem_benchmark.py"
 
 
+rule verify_locking:
+    output:
+        locking="results/verification/locking.csv",
+    params:
+        material=config["fem"]["material"],
+    log:
+        "results/logs/verify_locking.log",
+    conda:
+        "../envs/deeptissue.yaml"
+    script:
+        "../scripts/verify_fem_locking.py"
+
+
 rule verify:
     input:
         rules.verify_material.output,
@@ -70,3 +83,4 @@ rule verify:
         rules.verify_hertz_curve.output,
         rules.verify_fem_cases.output,
         rules.verify_fem_benchmark.output,
+        rules.verify_locking.output,

@@ -61,6 +61,10 @@ class SolverSettings:
     end of each step (penetration_tol_intermediate inside a step); penetration_accept: an increment whose
     state still penetrates more than this x facet size (the augmented-Lagrangian passes or the final
     tight solve did not converge) is cut back, never accepted.
+    penalty_growth, max_penalty_growth: facets still penetrating more than the tolerance when an
+    increment ends (the multiplier updates stalled: high pressure on a curved indenter makes the
+    discrete contact soft in sliding) get their penalty multiplied by penalty_growth, up to
+    max_penalty_growth x the initial one, for the following increments and the retry of a cut one.
     first_touch_mm: at most this much indentation in the increment where contact starts.
     contact_smoothing_rel: width of the rounded pressure kink as a penetration / facet size.
     contact_near_rel: points with a gap below this x facet size get penalty stiffness in the Newton
@@ -98,6 +102,8 @@ class SolverSettings:
     penetration_tol_intermediate: float = 0.05
     penetration_accept: float = 0.1
     max_al_updates: int = 4
+    penalty_growth: float = 3.0
+    max_penalty_growth: float = 100.0
     max_al_iterations: int = 6
     stall_rtol: float = 1e-5
     stall_iterations: int = 3
@@ -233,6 +239,18 @@ class _Pair:
         self.pos = pos  # (K, 18, 18)
         self.cand = np.arange(surf.n_facets)
         self.gapfn = None
+        self.eps0 = np.broadcast_to(np.asarray(eps, float), (surf.n_facets,)).copy()
+        self.eps = self.eps0.copy()
+
+    def stiffen(self, r, threshold_rel, growth, max_growth):
+        """Raise the penalty of the facets of contact output r penetrating more than threshold_rel x
+        their size (the multiplier updates could not push them out); returns how many."""
+        if r is None or growth <= 1:
+            return 0
+        bad = r["cand"][np.max(-r["gap"], axis=1) > threshold_rel * r["h_mm"]]
+        bad = bad[self.eps[bad] < max_growth * self.eps0[bad]]
+        self.eps[bad] = np.minimum(self.eps[bad] * growth, max_growth * self.eps0[bad])
+        return len(bad)
 
     def set_time(self, t):
         self.gapfn = self.gap_of_t(t)
@@ -393,7 +411,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
         timers["contact"] += time.perf_counter() - tc
         return added
 
-    def newton(u, target_d, rtol, etol, max_it):
+    def newton(u, target_d, rtol, etol, max_it, stop_on_growth=False):
         """Iterate on u in place. Returns (ok, reason, iterations, residuals, contact outputs)."""
         d_tol = 1e-12 * (1.0 + float(np.max(np.abs(target_d), initial=0.0)) + float(np.max(np.abs(X))))
         residuals = []
@@ -436,7 +454,8 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
                 log.debug("  stalled at it %d: keeping the best iterate (residual %.2e)", it, best[0])
                 u[:] = best[1]
                 return True, "", it, residuals, best[2]
-            if growing:
+            if growing and stop_on_growth:
+                # (only where a converged fallback state exists: AL passes and the final solve)
                 # the residual grew in each of the last iterations while the energy fell: the iterates
                 # slide along a soft contact mode away from this start; more iterations do not help
                 return False, "residual growing", it, residuals, None
@@ -570,7 +589,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
                     pre_polish = (u_try.copy(), outs, _al_state(pairs))
                 tol = (rtol, etol) if (polish or not nested) else (s.rtol_intermediate, s.energy_rtol_intermediate)
                 max_it = s.max_iterations if (al == 0 or polish) else s.max_al_iterations
-                ok, why, it, res, outs = newton(u_try, target_d, *tol, max_it)
+                ok, why, it, res, outs = newton(u_try, target_d, *tol, max_it, stop_on_growth=al > 0 or polish)
                 iters += it
                 residuals += res
                 if polish:
@@ -625,6 +644,12 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
                 if pairs and pen_rel_end > s.penetration_accept:
                     ok, why = False, f"penetration {pen_rel_end:.2f} x facet size > {s.penetration_accept}"
                     pen_mm = float("nan")
+                if pairs and pen_rel_end > pen_tol:
+                    # the multiplier updates stalled: a stiffer penalty on these facets pushes them out in
+                    # the following increments (and in the retry of this one if it is cut)
+                    n_st = sum(p.stiffen(r, pen_tol, s.penalty_growth, s.max_penalty_growth) for p, r in zip(pairs, outs))
+                    if n_st:
+                        log.info("penalty x %g on %d facets penetrating more than %g x their size", s.penalty_growth, n_st, pen_tol)
             ft, fc = forces(outs) if ok else (np.zeros(3), np.zeros(3))
             rec = IncrementRecord(
                 step=k + 1, t_start=t, t_end=t1, converged=ok, reason=why, iterations=iters, al_updates=al,

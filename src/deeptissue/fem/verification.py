@@ -71,6 +71,31 @@ def hertz_curve(material, *, radius_mm=1.5, max_depth_mm=0.15, block_mm=(40.0, 4
     return df
 
 
+def locking_check(material, *, d_values_mm2_per_n=(57.0, 5.7, 0.57), radius_mm=1.5, depth_rel=0.1, h_fine_mm=0.15,
+                  fine_radius_mm=0.6) -> pd.DataFrame:
+    """Does the displacement formulation lock at the study's compressibility? The same Hertz indentation
+    (to depth_rel x R, one mesh) for the given D values: a locking element would show a force error
+    against Hertz that grows as D -> 0 (nu -> 0.5) on the same mesh.
+
+    Returns d_mm2_per_n, nu, depth_mm, force_N, hertz_N, rel_error, n_dofs, converged.
+    """
+    from dataclasses import replace
+
+    rows = []
+    for d in d_values_mm2_per_n:
+        mat = replace(material, d_mm2_per_n=float(d))
+        df = hertz_curve(mat, radius_mm=radius_mm, max_depth_mm=depth_rel * radius_mm, h_fine_mm=h_fine_mm,
+                         fine_radius_mm=fine_radius_mm)
+        last = df.iloc[-1] if len(df) else None
+        rows.append(dict(d_mm2_per_n=float(d), nu=small_strain_moduli(mat)[1],
+                         depth_mm=float(last.depth_mm) if last is not None else np.nan,
+                         force_N=float(last.force_N) if last is not None else np.nan,
+                         hertz_N=float(last.hertz_N) if last is not None else np.nan,
+                         rel_error=float(last.rel_error) if last is not None else np.nan,
+                         n_dofs=df.attrs.get("n_dofs"), converged=df.attrs.get("converged")))
+    return pd.DataFrame(rows)
+
+
 def rigid_motion_cases(material) -> pd.DataFrame:
     """Bone rotations of 15 and 90 degrees (plus a translation) with free ends: strain must vanish."""
     m = cored_cylinder_mesh(length_mm=6.0, radius_mm=3.0, core_radius_mm=0.8, h_mm=1.0)
@@ -212,6 +237,11 @@ def write_case_verification(material, *, checks_csv, hard_csv) -> None:
     checks = pd.concat([patch_cases(material), rigid_motion_cases(material)], ignore_index=True)
     _write_csv(checks, checks_csv)
     _write_csv(hard_cases(material), hard_csv)
+
+
+def write_locking_check(material, *, locking_csv) -> None:
+    """The u-p decision, measured: :func:`locking_check` at D = 57, 5.7 and 0.57 mm^2/N (locking_csv)."""
+    _write_csv(locking_check(material), locking_csv)
 
 
 def write_benchmark(material, *, benchmark_csv, h_mm=1.0) -> None:
