@@ -13,6 +13,10 @@ import numpy as np
 import scipy.sparse as sp
 
 
+class NotPositiveDefinite(np.linalg.LinAlgError):
+    """The Cholesky (SPD) factorisation failed."""
+
+
 class PardisoSymmetric:
     def __init__(self):
         import pypardiso
@@ -36,9 +40,11 @@ class PardisoSymmetric:
             self._solvers[mtype] = s
         return s[0]
 
-    def solve(self, U: sp.csr_matrix, b: np.ndarray) -> np.ndarray:
-        """Solve K x = b with K given by its upper triangle U (CSR, sorted, full diagonal)."""
-        for mtype in (2, -2):
+    def solve(self, U: sp.csr_matrix, b: np.ndarray, spd_only: bool = False) -> np.ndarray:
+        """Solve K x = b with K given by its upper triangle U (CSR, sorted, full diagonal).
+
+        spd_only: raise NotPositiveDefinite instead of falling back to the indefinite factorisation."""
+        for mtype in ((2,) if spd_only else (2, -2)):
             ps = self._solver(mtype, U)
             ps._check_A(U)
             ps.set_phase(23)  # numerical factorisation + solve
@@ -50,6 +56,8 @@ class PardisoSymmetric:
             if np.all(np.isfinite(x)):
                 self.last_mode = mtype
                 return x
+        if spd_only:
+            raise NotPositiveDefinite("PARDISO: the matrix is not positive definite")
         raise np.linalg.LinAlgError("PARDISO failed in SPD and symmetric-indefinite mode")
 
     def close(self):
@@ -65,7 +73,7 @@ class AMGSolver:
         self.rtol = rtol
         self.last_mode = "amg"
 
-    def solve(self, U, b):
+    def solve(self, U, b, spd_only: bool = False):
         import pyamg
         from scipy.sparse.linalg import cg
 
@@ -95,7 +103,7 @@ class AMGSolver:
 class SuperLUSolver:
     last_mode = "superlu"
 
-    def solve(self, U, b):
+    def solve(self, U, b, spd_only: bool = False):
         from scipy.sparse.linalg import spsolve
 
         K = (U + sp.triu(U, 1).T).tocsc()

@@ -29,7 +29,7 @@ from .assembly import Assembler, as_material_law
 from .cast import Cast
 from .contact import ContactSurface
 from .indenters import Indenter
-from .linsolve import make_solver
+from .linsolve import NotPositiveDefinite, make_solver
 
 log = logging.getLogger(__name__)
 
@@ -81,6 +81,8 @@ class SolverSettings:
     scale (10 x looser than rtol by default, 100 x tighter than rtol_intermediate).
     secant_predictor: in the indentation step, start each increment from the last increment's
     displacement change scaled to the new increment (not from the rigid bone move alone).
+    curvature_scales: factors tried in turn on the contact curvature term of the Newton matrix until
+    the matrix is positive definite (the last one is used regardless; 0 drops the term).
     linear_solver: 'pardiso' | 'amg' | 'superlu'.
     """
 
@@ -114,6 +116,7 @@ class SolverSettings:
     cast_candidate_distance_mm: float = 0.1
     inexact_al: bool = True
     secant_predictor: bool = True
+    curvature_scales: tuple = (1.0, 0.0)
     linear_solver: str = "pardiso"
     quadrature_order: int = 2
     contact_quadrature_order: int = 4
@@ -466,19 +469,27 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
             rhs = -rf
             if has_d:
                 rhs = rhs - asm.bc_force(Ke_bc, du_d)[asm.free]
-            # consistent tangent; if it is not positive definite (Newton direction not a descent
-            # direction), drop the contact curvature term (keeps the direction a descent one)
+            # consistent tangent; where it is not positive definite (high contact pressure on a curved
+            # indenter: the curvature term -p grad n outweighs a coarse facet's sliding stiffness), the
+            # curvature term is scaled down (curvature_scales) until the matrix is: a partly kept term
+            # still steers the iterate away from a saddle instead of drifting slowly along it
             x = None
-            for K_data in (data + datac[0] + datac[1], data + datac[0]):
+            scales = s.curvature_scales if (np.any(datac[1]) and not has_d) else (1.0,)
+            for j, theta in enumerate(scales):
+                K_data = data + datac[0] + theta * datac[1] if theta else data + datac[0]
+                last = j == len(scales) - 1
                 ts = time.perf_counter()
                 try:
-                    x = solver.solve(asm.csr(K_data), rhs)
+                    x = solver.solve(asm.csr(K_data), rhs, **({} if last else {"spd_only": True}))
+                except NotPositiveDefinite:
+                    timers["solve"] += time.perf_counter() - ts
+                    continue
                 except np.linalg.LinAlgError as exc:
                     timers["solve"] += time.perf_counter() - ts
                     return False, f"linear solver: {exc}", it, residuals, None
                 timers["solve"] += time.perf_counter() - ts
                 slope = float(r[asm.free] @ x)
-                if has_d or (slope < 0 and getattr(solver, "last_mode", 2) != -2) or not np.any(datac[1]):
+                if has_d or slope < 0 or last:
                     break
             if not has_d:
                 slope_last = slope
