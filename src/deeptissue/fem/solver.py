@@ -355,6 +355,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
 
     solver = make_solver(s.linear_solver, coords_mm=X, free=asm.free)
     timers = dict(assembly=0.0, solve=0.0, contact=0.0)
+    counts = dict(factorisations=0, not_positive_definite=0)
 
     def contact_eval(u, tangent, near=False):
         tc = time.perf_counter()
@@ -479,10 +480,12 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
                 K_data = data + datac[0] + theta * datac[1] if theta else data + datac[0]
                 last = j == len(scales) - 1
                 ts = time.perf_counter()
+                counts["factorisations"] += 1
                 try:
                     x = solver.solve(asm.csr(K_data), rhs, **({} if last else {"spd_only": True}))
                 except NotPositiveDefinite:
                     timers["solve"] += time.perf_counter() - ts
+                    counts["not_positive_definite"] += 1
                     continue
                 except np.linalg.LinAlgError as exc:
                     timers["solve"] += time.perf_counter() - ts
@@ -702,5 +705,5 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
         max_penetration_mm=pm, max_penetration_rel=pr, strain_energy_mJ=float(W), n_dofs=asm.n_dofs,
         n_free_dofs=asm.n_free, increments=sum(1 for h in history if h.converged), newton_iterations=n_iter_total,
         load_reached=t, wall_s=wall, assembly_s=timers["assembly"], linear_solve_s=timers["solve"],
-        contact_s=timers["contact"], extra={"straightened_tets": n_straightened},
+        contact_s=timers["contact"], extra={"straightened_tets": n_straightened, **counts},
     )
