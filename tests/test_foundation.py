@@ -104,3 +104,23 @@ def test_variant_names():
     # turning -y by +15 deg about x tilts it toward -z; the travel length is kept
     np.testing.assert_allclose(axis, [0, -np.cos(np.radians(15)), -np.sin(np.radians(15))], atol=1e-12)
     np.testing.assert_allclose(np.linalg.norm(end - start), 3.0)
+
+
+def test_script_log_captures_logging_stderr_and_the_failure(tmp_path):
+    import logging
+    import sys
+
+    from deeptissue.io import script_log
+
+    log = tmp_path / "job.log"
+    with pytest.raises(ValueError, match="bad input"):
+        with script_log(log, "solve"):
+            logging.getLogger("deeptissue.x").info("step 1 done")
+            print("from a library", file=sys.stderr)
+            raise ValueError("bad input")
+    text = log.read_text()
+    assert "step 1 done" in text and "from a library" in text
+    assert "solve failed" in text and "ValueError: bad input" in text
+    # the handler is removed again: later logging does not write to the closed file
+    logging.getLogger("deeptissue.x").info("after")
+    assert "after" not in log.read_text()

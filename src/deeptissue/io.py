@@ -4,12 +4,33 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
 import tempfile
 from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
+
+
+@contextlib.contextmanager
+def script_log(log_path: str | Path, job: str) -> Iterator[None]:
+    """Run a workflow script's body with stderr and logging (INFO) going to ``log_path``; an exception
+    is logged with its traceback as "<job> failed" and re-raised (Snakemake then marks the job failed
+    and keeps the log)."""
+    with open(log_path, "w") as log, contextlib.redirect_stderr(log):
+        root = logging.getLogger()
+        handler = logging.StreamHandler(log)
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s %(message)s"))
+        root.addHandler(handler)
+        root.setLevel(logging.INFO)
+        try:
+            yield
+        except Exception:
+            logging.getLogger(job).exception("%s failed", job)
+            raise
+        finally:
+            root.removeHandler(handler)
 
 
 @contextlib.contextmanager

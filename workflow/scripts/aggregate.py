@@ -1,12 +1,9 @@
 """Glue of rule aggregate: every summary.json -> results/summary/ tables and figures."""
 
-import contextlib
-import logging
-
+from deeptissue.io import script_log
 from deeptissue.report import aggregate_study
 
-with open(snakemake.log[0], "w") as log, contextlib.redirect_stderr(log):
-    logging.basicConfig(stream=log, level=logging.INFO)
+with script_log(snakemake.log[0], "aggregate"):
     aggregate_study(
         summary_paths=list(snakemake.input.summaries),
         animals=snakemake.params.animals,

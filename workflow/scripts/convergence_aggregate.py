@@ -1,12 +1,9 @@
 """Glue of rule convergence_aggregate: rows + benchmarks -> convergence.csv, error_vs_time.png, summary.md."""
 
-import contextlib
-import logging
-
 from deeptissue.convergence import aggregate_convergence
+from deeptissue.io import script_log
 
-with open(snakemake.log[0], "w") as log, contextlib.redirect_stderr(log):
-    logging.basicConfig(stream=log, level=logging.INFO)
+with script_log(snakemake.log[0], "convergence_aggregate"):
     aggregate_convergence(
         row_paths=list(snakemake.input.rows),
         benchmark_paths=list(snakemake.input.benchmarks),

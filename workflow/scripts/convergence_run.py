@@ -1,12 +1,9 @@
 """Glue of rule convergence_run: one animal x variant x setting -> one row (JSON)."""
 
-import contextlib
-import logging
-
 from deeptissue.convergence import run_convergence_job
+from deeptissue.io import script_log
 
-with open(snakemake.log[0], "w") as log, contextlib.redirect_stderr(log):
-    logging.basicConfig(stream=log, level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+with script_log(snakemake.log[0], "convergence_run"):
     run_convergence_job(
         animal=snakemake.wildcards.animal,
         variant=snakemake.wildcards.conv_variant,

@@ -1,10 +1,7 @@
 """Glue: distances of segmented to true contours (phantom), per slice and structure, as CSV."""
-import logging
-import sys
 
-sys.stderr = open(snakemake.log[0], "w")
-logging.basicConfig(stream=sys.stderr, level=logging.INFO)
-
+from deeptissue.io import script_log
 from deeptissue.segment import write_accuracy
 
-write_accuracy(snakemake.input.contours, snakemake.input.truth, snakemake.output.csv)
+with script_log(snakemake.log[0], "segmentation_accuracy"):  # noqa: F821
+    write_accuracy(snakemake.input.contours, snakemake.input.truth, snakemake.output.csv)

@@ -1,12 +1,9 @@
 """Glue of rule solve: one animal x variant -> summary.json and result.vtu."""
 
-import contextlib
-import logging
-
+from deeptissue.io import script_log
 from deeptissue.study import run_solve
 
-with open(snakemake.log[0], "w") as log, contextlib.redirect_stderr(log):
-    logging.basicConfig(stream=log, level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+with script_log(snakemake.log[0], "solve"):
     run_solve(
         animal=snakemake.wildcards.animal,
         variant=snakemake.wildcards.variant,

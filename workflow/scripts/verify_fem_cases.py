@@ -1,14 +1,9 @@
 """Glue of rule verify_fem_cases: patch tests, rigid bone motion, hard convergence cases."""
 
-import logging
-
 from deeptissue.fem.material import Ogden
 from deeptissue.fem.verification import write_case_verification
+from deeptissue.io import script_log
 
-logging.basicConfig(filename=snakemake.log[0], level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
-try:
+with script_log(snakemake.log[0], "verify_fem_cases"):
     write_case_verification(Ogden.from_config(snakemake.params.material), checks_csv=snakemake.output.checks,
                             hard_csv=snakemake.output.hard)
-except Exception:
-    logging.exception("verify_fem_cases failed")
-    raise

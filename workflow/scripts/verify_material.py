@@ -1,12 +1,10 @@
 """Glue of rule verify_material: material-point checks, homogeneous responses, speed."""
 
-import logging
-
 from deeptissue.fem.material import Ogden
 from deeptissue.fem.material_checks import run_material_verification
+from deeptissue.io import script_log
 
-logging.basicConfig(filename=snakemake.log[0], level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
-try:
+with script_log(snakemake.log[0], "verify_material"):
     run_material_verification(
         Ogden.from_config(snakemake.params.material),
         point_csv=snakemake.output.points,
@@ -14,6 +12,3 @@ try:
         figure_png=snakemake.output.figure,
         speed_csv=snakemake.output.speed,
     )
-except Exception:
-    logging.exception("verify_material failed")
-    raise
