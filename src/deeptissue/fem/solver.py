@@ -86,6 +86,10 @@ class SolverSettings:
     displacement change scaled to the new increment (not from the rigid bone move alone).
     loose_rotation_steps: the ends of the bone-rotation steps are converged to the intermediate
     tolerances (only the end of the last step is reported; the problem is path independent).
+    shift_scales: diagonal shifts s tried (K + s |diag K|, consistent curvature kept) after the plain
+    consistent matrix fails to be positive definite and before the curvature factors below; empty
+    by default (measured: fewer iterations on the small cored limb, none fewer on rat01, worse on
+    the bar tilted 30 deg).
     curvature_scales: factors tried in turn on the contact curvature term of the Newton matrix until
     the matrix is positive definite (the last one is used regardless; 0 drops the term).
     linear_solver: 'pardiso' | 'amg' | 'superlu'.
@@ -123,6 +127,7 @@ class SolverSettings:
     inexact_al: bool = True
     secant_predictor: bool = True
     curvature_scales: tuple = (1.0, 0.0)
+    shift_scales: tuple = ()
     loose_rotation_steps: bool = True
     linear_solver: str = "pardiso"
     quadrature_order: int = 2
@@ -485,9 +490,18 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
             # curvature term is scaled down (curvature_scales) until the matrix is: a partly kept term
             # still steers the iterate away from a saddle instead of drifting slowly along it
             x = None
-            scales = s.curvature_scales if (np.any(datac[1]) and not has_d) else (1.0,)
-            for j, theta in enumerate(scales):
+            if np.any(datac[1]) and not has_d:
+                # (curvature factor, diagonal shift): a shifted consistent matrix is positive definite and
+                # its Newton step grows along the negative-curvature directions, so the iterate leaves a
+                # saddle of the discrete contact quickly instead of drifting along it
+                scales = [(1.0, 0.0), *((1.0, sh) for sh in s.shift_scales), *((c, 0.0) for c in s.curvature_scales[1:])]
+            else:
+                scales = [(1.0, 0.0)]
+            for j, (theta, shift) in enumerate(scales):
                 K_data = data + datac[0] + theta * datac[1] if theta else data + datac[0]
+                if shift:
+                    K_data = K_data.copy()
+                    K_data[asm.indptr[:-1]] += shift * np.abs(K_data[asm.indptr[:-1]])
                 last = j == len(scales) - 1
                 ts = time.perf_counter()
                 counts["factorisations"] += 1
