@@ -80,6 +80,7 @@ def solve_variant(
         newton_iterations=result.newton_iterations, wall_s=time.perf_counter() - t0,
         solver_wall_s=result.wall_s, assembly_s=result.assembly_s, linear_solve_s=result.linear_solve_s,
         contact_s=result.contact_s, max_penetration_mm=result.max_penetration_mm,
+        max_penetration_rel=result.max_penetration_rel,
         load_reached=result.load_reached, contact_set=set_name,
     )
     if not result.converged:
