@@ -155,7 +155,8 @@ def plot_voi(voi: pd.DataFrame, path: str | Path, *, measure_label: str = "γmax
             _mark_excluded(ax, i, sub["exclusion_reason"].iloc[0], 1.25 * top)
     handles = [plt.Rectangle((0, 0), 1, 1, color=colours[v]) for v in variants]
     handles.append(plt.Rectangle((0, 0), 1, 1, facecolor=EXCLUDED_COLOUR, hatch=EXCLUDED_HATCH, edgecolor="0.4"))
-    ax.legend(handles, variants + ["excluded animal"], fontsize=7, ncol=2, loc="upper left")
+    # beside the axes, so that it never hides an exclusion note
+    ax.legend(handles, variants + ["excluded animal"], fontsize=7, bbox_to_anchor=(1.01, 1), loc="upper left")
     ax.set_xticks(range(len(animals)), animals)
     ax.set_ylim(0, 1.3 * top)
     ax.set_ylabel("VOI [mm³]")
@@ -221,16 +222,22 @@ def voi_change_percent(voi: pd.DataFrame, *, reference: str = "sphere") -> pd.Da
 
 
 def plot_voi_change(voi: pd.DataFrame, path: str | Path, *, reference: str = "sphere") -> None:
-    """VOI change of every variant against the estimated orientation (``reference``) per animal [%]."""
+    """VOI change of every other orientation of the reference indenter (variants named
+    ``<reference>_…``, e.g. ``sphere_rx+15``) against the estimated orientation per animal [%]; other
+    indenters (the bar, several times the sphere's VOI) would set the scale and hide the orientations
+    (their change is in :func:`voi_change_percent`)."""
     plt = _plt()
     ch = voi_change_percent(voi, reference=reference)
     animals = list(dict.fromkeys(voi["animal"]))
-    variants = [v for v in dict.fromkeys(voi["variant"]) if v != reference]
-    colours = _variant_colours(list(dict.fromkeys(voi["variant"])))
+    all_variants = list(dict.fromkeys(voi["variant"]))
+    variants = [v for v in all_variants if v != reference and v.startswith(f"{reference}_")]
+    colours = _variant_colours(all_variants)
     fig, ax = plt.subplots(figsize=(max(6, 1.2 * len(animals) + 2), 4))
     width = 0.8 / max(1, len(variants))
-    vals = ch["voi_change_percent"].to_numpy(float)
-    lim = max(10.0, float(np.nanmax(np.abs(vals), initial=0.0)) * 1.3) if len(vals) else 10.0
+    vals = ch[ch["variant"].isin(variants)]["voi_change_percent"].to_numpy(float)
+    hi = max(10.0, 1.3 * float(np.nanmax(vals, initial=0.0))) if len(vals) else 10.0
+    lo = min(-10.0, 1.3 * float(np.nanmin(vals, initial=0.0))) if len(vals) else -10.0
+    lim = hi
     for i, a in enumerate(animals):
         sub = ch[ch["animal"] == a].set_index("variant")
         excluded = bool(sub["excluded"].iloc[0]) if len(sub) else False
@@ -246,11 +253,11 @@ def plot_voi_change(voi: pd.DataFrame, path: str | Path, *, reference: str = "sp
             _mark_excluded(ax, i, sub["exclusion_reason"].iloc[0], 0.98 * lim)
     ax.axhline(0, color="k", lw=0.8)
     handles = [plt.Rectangle((0, 0), 1, 1, color=colours[v]) for v in variants]
-    ax.legend(handles, variants, fontsize=7, ncol=2, loc="lower left")
+    ax.legend(handles, variants, fontsize=7, bbox_to_anchor=(1.01, 1), loc="upper left")
     ax.set_xticks(range(len(animals)), animals)
-    ax.set_ylim(-lim, lim)
+    ax.set_ylim(lo, hi)
     ax.set_ylabel(f"VOI change vs '{reference}' [%]")
-    ax.set_title(f"VOI of each variant relative to the estimated orientation '{reference}' (x: undefined)")
+    ax.set_title(f"VOI of each orientation relative to the estimated one '{reference}' (x: undefined)")
     _save(fig, path)
 
 
