@@ -153,27 +153,16 @@ def summarize_solution(
 
 # --- result.vtu ------------------------------------------------------------------------------------
 
-# VTK's quadratic tetra orders the last two mid-edge nodes (1,3), (2,3); gmsh (2,3), (1,3)
-_GMSH_TO_VTK_TET10 = np.array([0, 1, 2, 3, 4, 5, 6, 7, 9, 8])
-
-
 def write_result_vtu(path: str | Path, mesh: TetMesh, displacement_mm, strain: ElementStrain, *, cell_data: dict | None = None) -> None:
     """``result.vtu`` for ParaView: reference nodes, point data ``displacement_mm``, cell data
     ``gamma_gl``, ``gamma_log``, ``volume_mm3``, ``principal_gl`` (n, 3) and any extra ``cell_data``.
     Cells are VTK quadratic tetra (``tetra10``), or ``tetra`` for a linear mesh."""
-    import meshio
+    from .fem.output import write_tet_vtu
 
     cd = {"gamma_gl": strain.gamma_gl, "gamma_log": strain.gamma_log, "volume_mm3": strain.volume_mm3,
-          "principal_gl": strain.principal_gl}
-    cd.update(cell_data or {})
-    m = meshio.Mesh(
-        points=mesh.nodes_mm,
-        cells=[("tetra10", mesh.tets[:, _GMSH_TO_VTK_TET10]) if mesh.order == 2 else ("tetra", mesh.tets)],
-        point_data={"displacement_mm": np.asarray(displacement_mm, float)},
-        cell_data={k: [np.asarray(v, float)] for k, v in cd.items()},
-    )
-    with atomic_path(path) as tmp:
-        meshio.write(tmp, m, file_format="vtu")
+          "principal_gl": strain.principal_gl, **(cell_data or {})}
+    write_tet_vtu(path, mesh, point_data={"displacement_mm": np.asarray(displacement_mm, float)},
+                  cell_data={k: np.asarray(v, float) for k, v in cd.items()})
 
 
 def read_result_vtu(path: str | Path) -> tuple[TetMesh, np.ndarray, dict]:
@@ -182,7 +171,9 @@ def read_result_vtu(path: str | Path) -> tuple[TetMesh, np.ndarray, dict]:
 
     try:
         m = meshio.read(path)
-        tets = m.get_cells_type("tetra10")[:, _GMSH_TO_VTK_TET10]
+        from .fem.output import GMSH_TO_VTK_TET10
+
+        tets = m.get_cells_type("tetra10")[:, GMSH_TO_VTK_TET10]
         if len(tets) == 0:  # a linear mesh
             tets = m.get_cells_type("tetra")
             if len(tets) == 0:

@@ -54,13 +54,12 @@ class Indenter:
         return a / np.linalg.norm(a)
 
     def bar_direction(self) -> np.ndarray:
-        """Unit long axis of the bar: world z projected onto the plane perpendicular to the axis."""
-        a = self.unit_axis
-        for ref in (np.array([0.0, 0.0, 1.0]), np.array([0.0, 1.0, 0.0])):
-            t = ref - (ref @ a) * a
-            if np.linalg.norm(t) > 1e-6:
-                return t / np.linalg.norm(t)
-        raise AssertionError("unreachable")
+        """Unit long axis of the bar: world z projected onto the plane perpendicular to the axis
+        (:func:`deeptissue.geometry.bar_direction`, the direction the model refines and tags the patch
+        along; ValueError for an axis along the leg)."""
+        from ..geometry import bar_direction
+
+        return bar_direction(self.unit_axis)
 
     def tip_at(self, s: float) -> np.ndarray:
         """Tip position at travel fraction s in [0, 1] (3,) [mm]."""
