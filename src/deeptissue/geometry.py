@@ -551,37 +551,68 @@ def _components(tris: np.ndarray, mask: np.ndarray, n_vertices: int) -> np.ndarr
 # --------------------------------------------------------------------------- distances to a triangle surface
 
 
-def point_triangle_distance(p, a, b, c) -> np.ndarray:
-    """Exact Euclidean distance from points ``p`` to triangles ``(a, b, c)`` (all (n, 3)) -> (n,) [mm].
-
-    Closest point by Voronoi regions of the triangle (vertex, edge or face), as in Ericson,
-    *Real-Time Collision Detection*, 5.1.5; degenerate triangles fall back to the nearest edge.
-    """
-    p, a, b, c = (np.asarray(x, float) for x in (p, a, b, c))
+def closest_point_on_triangles(p, a, b, c):
+    """Closest points on triangles (a, b, c) to points p, all (m, 3). Returns (q (m, 3), region (m,))
+    with region 0 = face interior, 1/2/3 = edge ab/bc/ca, 4/5/6 = vertex a/b/c (Ericson's method)."""
     ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = _dot(ab, ap), _dot(ac, ap)
+    d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
     bp = p - b
-    d3, d4 = _dot(ab, bp), _dot(ac, bp)
+    d3, d4 = np.einsum("ij,ij->i", ab, bp), np.einsum("ij,ij->i", ac, bp)
     cp = p - c
-    d5, d6 = _dot(ab, cp), _dot(ac, cp)
+    d5, d6 = np.einsum("ij,ij->i", ab, cp), np.einsum("ij,ij->i", ac, cp)
     va = d3 * d6 - d5 * d4
     vb = d5 * d2 - d1 * d6
     vc = d1 * d4 - d3 * d2
     denom = va + vb + vc
-    with np.errstate(divide="ignore", invalid="ignore"):
-        v = vb / denom
-        w = vc / denom
-    q = a + v[:, None] * ab + w[:, None] * ac  # face region
-    face = (va >= 0) & (vb >= 0) & (vc >= 0) & (denom > 0)
-    # outside the face region (or degenerate): nearest of the three edges, which covers vertices too
-    out = ~face
-    if np.any(out):
-        e = np.stack([_seg_dist(p[out], a[out], b[out]), _seg_dist(p[out], b[out], c[out]), _seg_dist(p[out], c[out], a[out])])
-        dist = np.empty(len(p))
-        dist[out] = e.min(axis=0)
-        dist[face] = np.linalg.norm(p[face] - q[face], axis=1)
-        return dist
-    return np.linalg.norm(p - q, axis=1)
+    denom = np.where(np.abs(denom) > 0, denom, 1.0)
+    v = vb / denom
+    w = vc / denom
+    q = a + v[:, None] * ab + w[:, None] * ac
+    region = np.zeros(len(p), dtype=np.int64)
+
+    def put(mask, val, reg):
+        nonlocal q
+        q = np.where(mask[:, None], val, q)
+        region[mask] = reg
+        return mask
+
+    done = np.zeros(len(p), bool)
+    # vertex regions
+    m = (d1 <= 0) & (d2 <= 0)
+    done |= put(m & ~done, a, 4)
+    m = (d3 >= 0) & (d4 <= d3)
+    done |= put(m & ~done, b, 5)
+    m = (d6 >= 0) & (d5 <= d6)
+    done |= put(m & ~done, c, 6)
+    # edge regions
+    m = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
+    t = d1 / np.where(d1 - d3 != 0, d1 - d3, 1.0)
+    done |= put(m & ~done, a + t[:, None] * ab, 1)
+    m = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
+    t = d2 / np.where(d2 - d6 != 0, d2 - d6, 1.0)
+    done |= put(m & ~done, a + t[:, None] * ac, 3)
+    m = (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0)
+    t = (d4 - d3) / np.where((d4 - d3) + (d5 - d6) != 0, (d4 - d3) + (d5 - d6), 1.0)
+    done |= put(m & ~done, b + t[:, None] * (c - b), 2)
+    return q, region
+
+
+def point_triangle_distance(p, a, b, c) -> np.ndarray:
+    """Exact Euclidean distance from points ``p`` to triangles ``(a, b, c)`` (all (n, 3)) -> (n,) [mm].
+
+    The closest point of :func:`closest_point_on_triangles` (Voronoi regions: vertex, edge or face,
+    Ericson, *Real-Time Collision Detection*, 5.1.5); degenerate (zero-area) triangles fall back to the
+    nearest of their edges.
+    """
+    p, a, b, c = (np.asarray(x, float) for x in (p, a, b, c))
+    q, _ = closest_point_on_triangles(p, a, b, c)
+    dist = np.linalg.norm(p - q, axis=1)
+    ab, ac = b - a, c - a
+    flat = np.linalg.norm(np.cross(ab, ac), axis=1) <= 1e-12 * (_dot(ab, ab) + _dot(ac, ac))
+    if np.any(flat):
+        f = flat
+        dist[f] = np.min([_seg_dist(p[f], a[f], b[f]), _seg_dist(p[f], b[f], c[f]), _seg_dist(p[f], c[f], a[f])], axis=0)
+    return dist
 
 
 def _dot(x, y):

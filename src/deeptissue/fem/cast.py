@@ -14,51 +14,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-
-def closest_point_on_triangles(p, a, b, c):
-    """Closest points on triangles (a, b, c) to points p, all (m, 3). Returns (q (m, 3), region (m,))
-    with region 0 = face interior, 1/2/3 = edge ab/bc/ca, 4/5/6 = vertex a/b/c (Ericson's method)."""
-    ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
-    bp = p - b
-    d3, d4 = np.einsum("ij,ij->i", ab, bp), np.einsum("ij,ij->i", ac, bp)
-    cp = p - c
-    d5, d6 = np.einsum("ij,ij->i", ab, cp), np.einsum("ij,ij->i", ac, cp)
-    va = d3 * d6 - d5 * d4
-    vb = d5 * d2 - d1 * d6
-    vc = d1 * d4 - d3 * d2
-    denom = va + vb + vc
-    denom = np.where(np.abs(denom) > 0, denom, 1.0)
-    v = vb / denom
-    w = vc / denom
-    q = a + v[:, None] * ab + w[:, None] * ac
-    region = np.zeros(len(p), dtype=np.int64)
-
-    def put(mask, val, reg):
-        nonlocal q
-        q = np.where(mask[:, None], val, q)
-        region[mask] = reg
-        return mask
-
-    done = np.zeros(len(p), bool)
-    # vertex regions
-    m = (d1 <= 0) & (d2 <= 0)
-    done |= put(m & ~done, a, 4)
-    m = (d3 >= 0) & (d4 <= d3)
-    done |= put(m & ~done, b, 5)
-    m = (d6 >= 0) & (d5 <= d6)
-    done |= put(m & ~done, c, 6)
-    # edge regions
-    m = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-    t = d1 / np.where(d1 - d3 != 0, d1 - d3, 1.0)
-    done |= put(m & ~done, a + t[:, None] * ab, 1)
-    m = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-    t = d2 / np.where(d2 - d6 != 0, d2 - d6, 1.0)
-    done |= put(m & ~done, a + t[:, None] * ac, 3)
-    m = (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0)
-    t = (d4 - d3) / np.where((d4 - d3) + (d5 - d6) != 0, (d4 - d3) + (d5 - d6), 1.0)
-    done |= put(m & ~done, b + t[:, None] * (c - b), 2)
-    return q, region
+from ..geometry import closest_point_on_triangles
 
 
 class Cast:
