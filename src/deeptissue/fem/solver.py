@@ -52,7 +52,8 @@ class SolverSettings:
 
     rtol: residual norm over the free dofs relative to the internal-force norm at the end of each
     step (rtol_intermediate inside a step: the problem is path independent, so only converged end
-    states need full accuracy; set both equal to record accurate curves); energy_rtol: alternatively
+    states need full accuracy; to record accurate curves set rtol_intermediate = rtol and
+    energy_rtol_intermediate = energy_rtol); energy_rtol: alternatively
     converged when the Newton decrement |r . du| falls below this fraction of the first one of the
     increment (FEBio-style energy norm; ends stagnation caused by active-set chatter); atol_mu_rel: absolute
     floor, as a fraction of mu * V^(2/3) [N]; atol_intermediate_mu_rel: the same in the bone-rotation
