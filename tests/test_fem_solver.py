@@ -192,3 +192,25 @@ def test_state_violating_contact_is_never_accepted(limb):
     ok = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=BoneMotion())
     assert ok.converged, ok.reason
     assert ok.max_penetration_rel <= SolverSettings().penetration_accept
+
+
+def test_penalty_growth_stiffens_only_facets_still_penetrating_and_is_capped():
+    from deeptissue.fem.assembly import Assembler
+    from deeptissue.fem.solver import _Pair
+
+    m = cored_cylinder_mesh(length_mm=3.0, radius_mm=2.0, core_radius_mm=0.8, h_mm=1.0)
+    asm = Assembler(m, Ogden(), constrained=np.zeros(3 * len(m.nodes_mm), bool))
+    surf = ContactSurface(m.nodes_mm, m.facets["skin"])
+    pair = _Pair("indenter", surf, lambda t: None, 2.0 / surf.h_mm, asm)
+    K = surf.n_facets
+    cand = np.arange(K)
+    gap = np.zeros((K, surf.n_qp))
+    gap[0, 2] = -0.05 * surf.h_mm[0]  # 5 % of its size: beyond a 1 % tolerance
+    gap[1, 0] = -0.005 * surf.h_mm[1]  # 0.5 %: within it
+    out = {"cand": cand, "gap": gap, "h_mm": surf.h_mm}
+    assert pair.stiffen(out, 0.01, 3.0, 10.0) == 1
+    assert pair.eps[0] == pytest.approx(3 * pair.eps0[0]) and np.array_equal(pair.eps[1:], pair.eps0[1:])
+    for _ in range(4):
+        pair.stiffen(out, 0.01, 3.0, 10.0)
+    assert pair.eps[0] == pytest.approx(10 * pair.eps0[0])  # capped at max_penalty_growth
+    assert pair.stiffen(out, 0.01, 3.0, 10.0) == 0  # nothing left to raise
