@@ -555,11 +555,11 @@ def closest_point_on_triangles(p, a, b, c):
     """Closest points on triangles (a, b, c) to points p, all (m, 3). Returns (q (m, 3), region (m,))
     with region 0 = face interior, 1/2/3 = edge ab/bc/ca, 4/5/6 = vertex a/b/c (Ericson's method)."""
     ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
+    d1, d2 = _dot(ab, ap), _dot(ac, ap)
     bp = p - b
-    d3, d4 = np.einsum("ij,ij->i", ab, bp), np.einsum("ij,ij->i", ac, bp)
+    d3, d4 = _dot(ab, bp), _dot(ac, bp)
     cp = p - c
-    d5, d6 = np.einsum("ij,ij->i", ab, cp), np.einsum("ij,ij->i", ac, cp)
+    d5, d6 = _dot(ab, cp), _dot(ac, cp)
     va = d3 * d6 - d5 * d4
     vb = d5 * d2 - d1 * d6
     vc = d1 * d4 - d3 * d2
@@ -610,8 +610,8 @@ def point_triangle_distance(p, a, b, c) -> np.ndarray:
     ab, ac = b - a, c - a
     flat = np.linalg.norm(np.cross(ab, ac), axis=1) <= 1e-12 * (_dot(ab, ab) + _dot(ac, ac))
     if np.any(flat):
-        f = flat
-        dist[f] = np.min([_seg_dist(p[f], a[f], b[f]), _seg_dist(p[f], b[f], c[f]), _seg_dist(p[f], c[f], a[f])], axis=0)
+        pf, af, bf, cf = p[flat], a[flat], b[flat], c[flat]
+        dist[flat] = np.min([_seg_dist(pf, af, bf), _seg_dist(pf, bf, cf), _seg_dist(pf, cf, af)], axis=0)
     return dist
 
 

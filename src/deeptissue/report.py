@@ -237,7 +237,6 @@ def plot_voi_change(voi: pd.DataFrame, path: str | Path, *, reference: str = "sp
     vals = ch[ch["variant"].isin(variants)]["voi_change_percent"].to_numpy(float)
     hi = max(10.0, 1.3 * float(np.nanmax(vals, initial=0.0))) if len(vals) else 10.0
     lo = min(-10.0, 1.3 * float(np.nanmin(vals, initial=0.0))) if len(vals) else -10.0
-    lim = hi
     for i, a in enumerate(animals):
         sub = ch[ch["animal"] == a].set_index("variant")
         excluded = bool(sub["excluded"].iloc[0]) if len(sub) else False
@@ -250,7 +249,7 @@ def plot_voi_change(voi: pd.DataFrame, path: str | Path, *, reference: str = "sp
             ax.bar(x, val, width, color=EXCLUDED_COLOUR if excluded else colours[v],
                    hatch=EXCLUDED_HATCH if excluded else None, edgecolor="0.4" if excluded else "none")
         if excluded:
-            _mark_excluded(ax, i, sub["exclusion_reason"].iloc[0], 0.98 * lim)
+            _mark_excluded(ax, i, sub["exclusion_reason"].iloc[0], 0.98 * hi)
     ax.axhline(0, color="k", lw=0.8)
     handles = [plt.Rectangle((0, 0), 1, 1, color=colours[v]) for v in variants]
     ax.legend(handles, variants, fontsize=7, bbox_to_anchor=(1.01, 1), loc="upper left")

@@ -19,6 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..geometry import bar_direction as _bar_direction
+
 
 @dataclass(frozen=True)
 class Indenter:
@@ -57,9 +59,7 @@ class Indenter:
         """Unit long axis of the bar: world z projected onto the plane perpendicular to the axis
         (:func:`deeptissue.geometry.bar_direction`, the direction the model refines and tags the patch
         along; ValueError for an axis along the leg)."""
-        from ..geometry import bar_direction
-
-        return bar_direction(self.unit_axis)
+        return _bar_direction(self.unit_axis)
 
     def tip_at(self, s: float) -> np.ndarray:
         """Tip position at travel fraction s in [0, 1] (3,) [mm]."""

@@ -488,20 +488,18 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
                 rhs = rhs - asm.bc_force(Ke_bc, du_d)[asm.free]
             # consistent tangent; where it is not positive definite (high contact pressure on a curved
             # indenter: the curvature term -p grad n outweighs a coarse facet's sliding stiffness), the
-            # curvature term is scaled down (curvature_scales) until the matrix is: a partly kept term
-            # still steers the iterate away from a saddle instead of drifting slowly along it
+            # next (curvature factor, diagonal shift) is tried: the optional shifts keep the consistent
+            # term and make the matrix positive definite, then the curvature term is scaled down
+            # (curvature_scales; by default dropped)
             x = None
             if np.any(datac[1]) and not has_d:
-                # (curvature factor, diagonal shift): a shifted consistent matrix is positive definite and
-                # its Newton step grows along the negative-curvature directions, so the iterate leaves a
-                # saddle of the discrete contact quickly instead of drifting along it
-                scales = [(1.0, 0.0), *((1.0, sh) for sh in s.shift_scales), *((c, 0.0) for c in s.curvature_scales[1:])]
+                c0, *c_rest = s.curvature_scales
+                scales = [(c0, 0.0), *((1.0, sh) for sh in s.shift_scales), *((c, 0.0) for c in c_rest)]
             else:
                 scales = [(1.0, 0.0)]
             for j, (theta, shift) in enumerate(scales):
                 K_data = data + datac[0] + theta * datac[1] if theta else data + datac[0]
                 if shift:
-                    K_data = K_data.copy()
                     K_data[asm.indptr[:-1]] += shift * np.abs(K_data[asm.indptr[:-1]])
                 last = j == len(scales) - 1
                 ts = time.perf_counter()
@@ -630,7 +628,6 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
                     pre_polish = (u_try.copy(), outs, _al_state(pairs))
                 tol = (rtol, etol) if (polish or not nested) else (s.rtol_intermediate, s.energy_rtol_intermediate)
                 max_it = s.max_iterations if (al == 0 or polish) else s.max_al_iterations
-                tight = polish or not nested
                 ok, why, it, res, outs = newton(u_try, target_d, *tol, max_it, stop_on_growth=al > 0 or polish,
                                                 atol=atol_intermediate if (k < 3 and s.loose_rotation_steps) else atol_final)
                 iters += it

@@ -89,12 +89,9 @@ def locking_check(material, *, d_values_mm2_per_n=(57.0, 5.7, 0.57), radius_mm=1
         mat = replace(material, d_mm2_per_n=float(d))
         df = hertz_curve(mat, radius_mm=radius_mm, max_depth_mm=depth_rel * radius_mm, h_fine_mm=h_fine_mm,
                          fine_radius_mm=fine_radius_mm)
-        last = df.iloc[-1] if len(df) else None
-        rows.append(dict(d_mm2_per_n=float(d), nu=small_strain_moduli(mat)[1],
-                         depth_mm=float(last.depth_mm) if last is not None else np.nan,
-                         force_N=float(last.force_N) if last is not None else np.nan,
-                         hertz_N=float(last.hertz_N) if last is not None else np.nan,
-                         rel_error=float(last.rel_error) if last is not None else np.nan,
+        cols = ["depth_mm", "force_N", "hertz_N", "rel_error"]
+        last = {c: float(df[c].iloc[-1]) if len(df) else np.nan for c in cols}
+        rows.append(dict(d_mm2_per_n=float(d), nu=small_strain_moduli(mat)[1], **last,
                          n_dofs=df.attrs.get("n_dofs"), converged=df.attrs.get("converged")))
     return pd.DataFrame(rows)
 
