@@ -214,3 +214,29 @@ def test_penalty_growth_stiffens_only_facets_still_penetrating_and_is_capped():
         pair.stiffen(out, 0.01, 3.0, 10.0)
     assert pair.eps[0] == pytest.approx(10 * pair.eps0[0])  # capped at max_penalty_growth
     assert pair.stiffen(out, 0.01, 3.0, 10.0) == 0  # nothing left to raise
+
+
+def test_indenter_starting_inside_the_skin_is_backed_off_and_reaches_the_same_end_state(limb):
+    # a bar tilted 30 deg whose axis starts 0.8 mm clear still dips its lower end 0.3 mm into the skin
+    # (the hard case "bar tilted 30 deg" started 1.3 mm deep): the solver moves the start back along
+    # the axis until the skin is start_clearance_mm clear; the end state does not depend on the path
+    a = np.radians(30.0)
+    axis = np.array([-np.cos(a), 0.0, np.sin(a)])
+    end = np.array([2.7, 0.0, 3.0])
+    ind = Indenter("bar", axis=tuple(axis), start_mm=tuple(end - 0.8 * axis), end_mm=tuple(end), bar_length_mm=5.0)
+    skin = limb.nodes_mm[np.unique(limb.facets["skin"].ravel())]
+    assert ind.gap(skin, ind.tip_at(0.0))[0].min() < -0.2
+    r = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=BoneMotion())
+    assert r.converged, r.reason
+    back = r.extra["start_backoff_mm"]
+    assert back > 0.3
+    clear = ind.gap(skin, ind.tip_at(0.0) - back * axis)[0].min()
+    assert clear > 0.5 * SolverSettings().start_clearance_mm
+    # the same end state as the solve that starts inside (it converges on this small limb)
+    inside = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=BoneMotion(),
+                               settings=SolverSettings(start_clearance_mm=-10.0))
+    assert inside.extra["start_backoff_mm"] == 0.0
+    assert r.indenter_force_N == pytest.approx(inside.indenter_force_N, rel=1e-3)
+    # a start that is clear is left alone
+    clear_ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(4.0, 0.0, 3.0), end_mm=(2.9, 0.0, 3.0))
+    assert solve_indentation(limb, material=LAW, indenter=clear_ind, bone_motion=BoneMotion()).extra["start_backoff_mm"] == 0.0

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -70,6 +70,11 @@ class SolverSettings:
     discrete contact soft in sliding) get their penalty multiplied by penalty_growth, up to
     max_penalty_growth x the initial one, for the following increments and the retry of a cut one.
     first_touch_mm: at most this much indentation in the increment where contact starts.
+    start_clearance_mm: an indenter that already touches or penetrates the skin at its start position
+    (a tilted bar's end dips below the point where its axis meets the skin) is moved back along its
+    axis, before the indentation step, until it is this far clear; the travel then starts there.
+    The end state is the same (hyperelastic, frictionless: path independent), but starting inside
+    the tissue is a jump that no increment size can resolve.
     contact_smoothing_rel: width of the rounded pressure kink as a penetration / facet size.
     contact_near_rel: points with a gap below this x facet size get penalty stiffness in the Newton
     matrix once an increment needs more than easy_iterations. Default 0 (off): that matrix is not the
@@ -122,6 +127,7 @@ class SolverSettings:
     stall_rtol: float = 1e-5
     stall_iterations: int = 3
     first_touch_mm: float = 0.1
+    start_clearance_mm: float = 0.1
     contact_smoothing_rel: float = 1e-3
     contact_near_rel: float = 0.0
     candidate_distance_mm: float | None = None
@@ -355,9 +361,9 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
         surf = ContactSurface(X, mesh.facets[s.indenter_set], order=s.contact_quadrature_order)
         eps = s.penalty_factor * E_mod / surf.h_mm
 
-        def ind_gap(t, _ind=indenter):
-            tip = sched.tip(t)
-            return lambda x: _ind.gap(x, tip)
+        def ind_gap(t):
+            tip, ind = sched.tip(t), sched.ind  # sched.ind: the start may be moved back (clear_start)
+            return lambda x: ind.gap(x, tip)
 
         pairs.append(_Pair("indenter", surf, ind_gap, eps, asm))
     if cast is not None:
@@ -430,6 +436,21 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
                 added = True
         timers["contact"] += time.perf_counter() - tc
         return added
+
+    def clear_start(u):
+        """Move the indenter's start back along its axis until the skin is start_clearance_mm clear of it
+        (in the current state, before the indentation step); returns the distance moved [mm]."""
+        p, ind, back = pairs[0], sched.ind, 0.0
+        a = ind.unit_axis
+        for _ in range(100):
+            p.set_time(3.0)
+            gmin = float(np.min(p.surf.gaps(u, p.gapfn)))
+            if gmin >= s.start_clearance_mm:
+                break
+            # a point's gap grows by at most the distance moved: repeat until clear
+            back += s.start_clearance_mm - gmin
+            sched.ind = replace(ind, start_mm=tuple(np.asarray(ind.start_mm, float) - back * a))
+        return back
 
     def newton(u, target_d, rtol, etol, max_it, stop_on_growth=False, atol=atol_final):
         """Iterate on u in place. Returns (ok, reason, iterations, residuals, contact outputs)."""
@@ -579,11 +600,18 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
     t = 0.0
     Xb = X[bone_nodes]
     axis = indenter.unit_axis if indenter is not None else np.zeros(3)
-    travel = float(np.linalg.norm(np.subtract(indenter.end_mm, indenter.start_mm))) if indenter is not None else 0.0
+    travel = 0.0
+    start_backoff_mm = 0.0
     done = True
     prev = None  # (t, t_before, u_before) of the last converged increment of the indentation step
     for k in sched.active_steps():
         t = float(k)
+        if k == 3 and indenter is not None:
+            start_backoff_mm = clear_start(u)
+            if start_backoff_mm > 0:
+                log.warning("the indenter touches the skin at its start position: start moved %.3f mm back along "
+                            "its axis (%.2f mm clear)", start_backoff_mm, s.start_clearance_mm)
+            travel = float(np.linalg.norm(np.subtract(sched.ind.end_mm, sched.ind.start_mm)))
         # a bone rotation alone is followed exactly by the rigid predictor: try the whole step
         dt = s.max_increment if k < 3 else s.initial_increment
         while t < k + 1 - 1e-12 and done:
@@ -731,5 +759,5 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
         max_penetration_mm=pm, max_penetration_rel=pr, strain_energy_mJ=float(W), n_dofs=asm.n_dofs,
         n_free_dofs=asm.n_free, increments=sum(1 for h in history if h.converged), newton_iterations=n_iter_total,
         load_reached=t, wall_s=wall, assembly_s=timers["assembly"], linear_solve_s=timers["solve"],
-        contact_s=timers["contact"], extra={"straightened_tets": n_straightened, **counts},
+        contact_s=timers["contact"], extra={"straightened_tets": n_straightened, "start_backoff_mm": start_backoff_mm, **counts},
     )
