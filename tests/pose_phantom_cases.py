@@ -28,17 +28,18 @@ CASES = {
                   bone_translation_mm=(-0.08, -0.12, 0.04), snr=15),
     "rat03": dict(seed=3, depth_mm=1.5, tilt_deg=(12.0, 4.0), bone_rotation_deg=(0.5, 1.2, -1.0),
                   bone_translation_mm=(0.02, -0.06, -0.05), snr=25),
-    "tilt25x-shallow": dict(seed=4, depth_mm=1.0, tilt_deg=(25.0, 0.0), bone_rotation_deg=(3.0, 0.0, 0.0), snr=12),
+    "tilt25x-shallow": dict(seed=4, depth_mm=1.0, tilt_deg=(25.0, 0.0), bone_rotation_deg=(3.0, 0.0, 0.0),
+                            bone_translation_mm=(0.04, -0.03, 0.15), snr=12),
     "tilt25z-deep": dict(seed=5, depth_mm=3.0, tilt_deg=(0.0, 25.0), bone_rotation_deg=(-0.5, 1.0, 2.5),
                          bone_translation_mm=(0.03, -0.05, 0.04), snr=12),
-    "tilt18-deep-norot": dict(seed=6, depth_mm=3.0, tilt_deg=(-18.0, -18.0), bone_translation_mm=(0.05, 0.05, 0.0),
+    "tilt18-deep-norot": dict(seed=6, depth_mm=3.0, tilt_deg=(-18.0, -18.0), bone_translation_mm=(0.05, 0.05, -0.12),
                               snr=12),
 }
 
 
 def extra_cases() -> dict:
     """Eight random phantoms at snr 12 (seeds 7-14): tilts up to 25 deg, depths 1-3 mm, rotations
-    0.5-3 deg, translations up to 0.1 mm across the leg and none along it."""
+    0.5-3 deg, translations up to 0.1 mm across the leg and up to 0.15 mm along it."""
     rng = np.random.default_rng(123)
     out = {}
     for seed in range(7, 15):
@@ -47,27 +48,31 @@ def extra_cases() -> dict:
         tilt = rng.uniform(-25, 25, 2)
         depth = float(rng.uniform(1, 3))
         tr = rng.uniform(-0.1, 0.1, 3)
-        tr[2] = 0.0
+        tr[2] *= 1.5  # up to 0.15 mm along the leg
         out[f"extra{seed}"] = dict(seed=seed, depth_mm=depth, tilt_deg=tuple(tilt), bone_rotation_deg=tuple(rot),
                                    bone_translation_mm=tuple(tr), snr=12)
     return out
 
 
-def segmented_contours(name: str, *, supersample: int = 8, cache: Path | None = None, exact: bool = False):
-    """(phantom truth Pose, during volume, affine, pre Contours, during Contours) of case ``name``."""
+def segmented_contours(name: str, *, supersample: int = 8, cache: Path | None = None, exact: bool = False,
+                       spec_extra: dict | None = None):
+    """(phantom truth Pose, during volume, affine, pre Contours, during Contours) of case ``name``
+    (``spec_extra``: further PhantomSpec keys, e.g. ``{"fibula": False}``)."""
     from deeptissue.contours import Contours
     from deeptissue.imaging import Volume
     from deeptissue.phantom import PhantomSpec, make_phantom
     from deeptissue.pose import Pose
     from deeptissue.segment import segment_volume
 
-    f = None if cache is None else Path(cache) / f"{name}_ss{supersample}{'_exact' if exact else ''}.npz"
+    tag = "".join(f"_{k}{v}" for k, v in sorted((spec_extra or {}).items()))
+    f = None if cache is None else Path(cache) / f"{name}_ss{supersample}{'_exact' if exact else ''}{tag}.npz"
     if f is not None and f.exists():
         d = np.load(f, allow_pickle=True)
         truth = Pose.from_dict(d["truth"].item())
-        return (truth, d["during"], d["affine"], Contours(d["pre_skin"], d["pre_bone"]),
-                Contours(d["dur_skin"], d["dur_bone"]))
-    ph = make_phantom(PhantomSpec(**CASES[name], supersample=supersample))
+        fib = {k: (d[k] if k in d.files else None) for k in ("pre_fibula", "dur_fibula")}
+        return (truth, d["during"], d["affine"], Contours(d["pre_skin"], d["pre_bone"], fib["pre_fibula"]),
+                Contours(d["dur_skin"], d["dur_bone"], fib["dur_fibula"]))
+    ph = make_phantom(PhantomSpec(**{**CASES[name], **(spec_extra or {})}, supersample=supersample))
     if exact:
         pre, dur = ph.truth_pre, ph.truth_during
     else:
@@ -75,8 +80,9 @@ def segmented_contours(name: str, *, supersample: int = 8, cache: Path | None = 
         dur, _ = segment_volume(Volume(ph.during, ph.affine), state="during")
     if f is not None:
         f.parent.mkdir(parents=True, exist_ok=True)
+        fib = {k: v for k, v in (("pre_fibula", pre.fibula), ("dur_fibula", dur.fibula)) if v is not None}
         np.savez(f, truth=np.array(ph.truth.to_dict(), dtype=object), during=ph.during, affine=ph.affine,
-                 pre_skin=pre.skin, pre_bone=pre.bone, dur_skin=dur.skin, dur_bone=dur.bone)
+                 pre_skin=pre.skin, pre_bone=pre.bone, dur_skin=dur.skin, dur_bone=dur.bone, **fib)
     return ph.truth, ph.during, ph.affine, pre, dur
 
 
@@ -90,22 +96,27 @@ def main() -> None:
     ap.add_argument("--cache", default=None)
     ap.add_argument("--supersample", type=int, default=8)
     ap.add_argument("--extra", action="store_true", help="the eight random phantoms of extra_cases() instead")
+    ap.add_argument("--spec", action="append", default=[], metavar="KEY=JSON",
+                    help="a further PhantomSpec key for every case, e.g. --spec fibula=false")
     ap.add_argument("cases", nargs="*")
     a = ap.parse_args()
+    import json
+
+    spec_extra = {k: json.loads(v) for k, v in (kv.split("=", 1) for kv in a.spec)}
     if a.extra:
         CASES.update(extra_cases())
     names = a.cases or ([n for n in CASES if n.startswith("extra")] if a.extra else list(CASES))
     opts = PoseOptions() if a.dof is None else PoseOptions(bone_dof=a.dof)
-    print(f"bone_dof {opts.bone_dof}, {'exact' if a.exact else 'segmented'} contours")
+    print(f"bone_dof {opts.bone_dof}, {'exact' if a.exact else 'segmented'} contours, spec {spec_extra}")
     print(f"{'case':20s} {'axis':>6s} {'tip':>6s} {'depth':>6s} {'start':>6s} {'rot':>6s} {'drx':>7s} {'dry':>7s} {'drz':>7s}"
-          f" {'trans':>6s} {'dtx':>7s} {'dty':>7s} {'dtz':>7s} {'s':>5s}")
+          f" {'trans':>6s} {'dtx':>7s} {'dty':>7s} {'dtz':>7s} {'dof':>3s} {'fib':>5s} {'s':>5s}")
     from deeptissue.segment import SegmentationError
 
     for name in names:
         t0 = time.time()
         try:
             truth, during, affine, pre, dur = segmented_contours(name, supersample=a.supersample, cache=a.cache,
-                                                                 exact=a.exact)
+                                                                 exact=a.exact, spec_extra=spec_extra)
         except SegmentationError as exc:
             print(f"{name:20s} segmentation failed: {exc}", flush=True)
             continue
@@ -117,7 +128,9 @@ def main() -> None:
         dr = pose.bone_rotation_deg - truth.bone_rotation_deg
         print(f"{name:20s} {e['axis_error_deg']:6.3f} {e['tip_end_error_mm']:6.3f} {e['depth_error_mm']:6.3f} "
               f"{e['tip_start_error_mm']:6.3f} {e['bone_rotation_error_deg']:6.3f} {dr[0]:7.3f} {dr[1]:7.3f} {dr[2]:7.3f} "
-              f"{e['bone_translation_error_mm']:6.3f} {dt[0]:7.3f} {dt[1]:7.3f} {dt[2]:7.3f} {time.time() - t0:5.1f}",
+              f"{e['bone_translation_error_mm']:6.3f} {dt[0]:7.3f} {dt[1]:7.3f} {dt[2]:7.3f} "
+              f"{pose.extra.get('bone_dof', '-')!s:>3s} {'/'.join(map(str, pose.extra.get('bone_fibula_slices', [])))!s:>5s} "
+              f"{time.time() - t0:5.1f}",
               flush=True)
 
 

@@ -106,12 +106,28 @@ def _bone_body(theta, w):
     return np.stack([cx + r * np.cos(theta), cy + r * np.sin(theta), w + 0 * theta], axis=-1)
 
 
+def prism_body(theta, w):
+    """A tibia that is a prism along z (no taper, no bend): its contours cannot show a shift along z."""
+    r = 1.0 * (1 + 0.18 * np.cos(2 * theta) + 0.10 * np.cos(3 * (theta - 0.3)))
+    return np.stack([0.6 + r * np.cos(theta), -1.0 + r * np.sin(theta), w + 0 * theta], axis=-1)
+
+
+def fibula_body(theta, w):
+    """A thin round bone (radius 0.4 mm) whose centre runs obliquely to the prism: 0.3 mm across the
+    slice per mm of z, converging on the tibia distally (-z)."""
+    d = 2.8 + 0.3 * w
+    u = np.array([np.cos(np.radians(-30.0)), np.sin(np.radians(-30.0))])
+    return np.stack([0.6 + d * u[0] + 0.4 * np.cos(theta), -1.0 + d * u[1] + 0.4 * np.sin(theta), w + 0 * theta],
+                    axis=-1)
+
+
 def bone_stack(*, rotation_deg=(0, 0, 0), centre_mm=(0, 0, 0), translation_mm=(0, 0, 0), n_points=100,
-               noise_mm=0.0, rng=None):
+               noise_mm=0.0, rng=None, body=_bone_body):
     """Bone contours (20, n_points, 3) at the fixed slice planes of the bone moved rigidly.
 
     The moved surface x' = R (x - c) + c + t is cut by each plane z = z_k: for every polar angle the
-    body height w is found by Newton iteration so that the moved point lies on the plane.
+    body height w is found by Newton iteration so that the moved point lies on the plane. ``body``:
+    the surface in the body frame, ``(theta, w) -> (..., 3)`` (default: the tapered, bent bone).
     """
     R = Rotation.from_rotvec(np.radians(rotation_deg)).as_matrix()
     c = np.asarray(centre_mm, float)
@@ -121,11 +137,11 @@ def bone_stack(*, rotation_deg=(0, 0, 0), centre_mm=(0, 0, 0), translation_mm=(0
     for k, z in enumerate(SLICE_Z):
         w = np.full(n_points, z)
         for _ in range(30):
-            X = (_bone_body(th, w) - c) @ R.T + c + t
+            X = (body(th, w) - c) @ R.T + c + t
             h = 1e-5
-            dX = ((_bone_body(th, w + h) - c) @ R.T + c + t - X) / h
+            dX = ((body(th, w + h) - c) @ R.T + c + t - X) / h
             w = w - (X[:, 2] - z) / dX[:, 2]
-        X = (_bone_body(th, w) - c) @ R.T + c + t
+        X = (body(th, w) - c) @ R.T + c + t
         out[k] = X
     if noise_mm:
         rng = rng or np.random.default_rng(0)

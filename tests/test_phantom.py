@@ -152,3 +152,64 @@ def test_tibia_is_a_tapering_rounded_triangle():
 def test_impossible_tibia_is_refused(bad):
     with pytest.raises(ValueError, match="phantom: .*tibia"):
         _Scene(PhantomSpec(seed=1, **bad))
+
+
+def test_fibula_is_a_thin_oblique_bone_that_moves_with_the_tibia(ph):
+    """The fibula: thin, lateral-posterior, clear of tibia and skin, crossing the slices obliquely
+    (a shift along z moves it in the slice), and moved rigidly with the tibia in the during state."""
+    t = ph.truth
+    assert ph.truth_pre.fibula.shape == ph.truth_during.fibula.shape == (20, 100, 3)
+    assert ph.truth_pre.fibula_slices.all() and ph.truth_during.fibula_slices.all()
+    sc = _Scene(SPEC)
+    rel = []
+    for k in range(20):
+        f = ph.dense[("pre", "fibula")][k][:, :2]
+        across = np.linalg.norm(f[:, None] - f[None], axis=-1).max()
+        assert 0.6 <= across <= 0.9  # the rat's fibula
+        area, cf = polygon_area_centroid(f)
+        _, ct = polygon_area_centroid(ph.dense[("pre", "bone")][k][:, :2])
+        d = cf - ct
+        assert d[0] > 0 and d[1] < 0  # lateral (+x, away from the tibia's side of the leg) and posterior
+        # separate from the tibia, inside the skin below the skin layer
+        from deeptissue.contours import point_to_polygon_distance
+
+        assert point_to_polygon_distance(f, ph.dense[("pre", "bone")][k][:, :2]).min() >= 0.3
+        assert points_in_polygon(f, ph.truth_pre.skin[k, :, :2]).all()
+        assert np.all(sc.an.phi_pre(f[:, 0], f[:, 1], ph.z_mm[k]) < -SPEC.skin_thickness_mm)
+        rel.append(np.linalg.norm(d))
+    # it converges on the tibia distally (-z), fast enough somewhere to show a shift along z:
+    # at least 0.4 mm across the slice per mm of z on two neighbouring slice pairs
+    speed = np.abs(np.diff(rel))
+    assert rel[0] < rel[-1] - 1.0
+    assert np.sort(speed)[-2] >= 0.4
+    # the during fibula is the pre fibula moved by the tibia's rigid motion (about the tibia's centre)
+    for k in (0, 7, 15):
+        pts = ph.dense[("during", "fibula")][k][::25]
+        back = apply_rigid(pts - t.bone_translation_mm, rotation_deg=-np.asarray(t.bone_rotation_deg),
+                           centre_mm=t.bone_com_mm, translation_mm=[0, 0, 0])
+        assert np.abs(sc.an.fibula_f(back[:, 0], back[:, 1], back[:, 2])).max() < 2e-3
+    # and it is dark in the image: cortex and marrow below half the muscle signal
+    k = 10
+    cf = polygon_area_centroid(ph.truth_pre.fibula[k, :, :2])[1]
+    i, j = np.round((cf - ph.affine[:2, 3]) / np.diag(ph.affine)[:2]).astype(int)
+    around = ph.pre[i - 12 : i + 13, j - 12 : j + 13, k]
+    assert ph.pre[i, j, k] < 0.5 * np.median(around)
+
+
+def test_phantom_without_fibula():
+    spec = PhantomSpec(seed=3, n_slices=3, n_pixels=96, fov_mm=12.0, supersample=2, fibula=False)
+    ph = make_phantom(spec)
+    assert ph.truth_pre.fibula is None and ph.truth_during.fibula is None
+    assert ("pre", "fibula") not in ph.dense
+    with_fib = make_phantom(PhantomSpec(**{**spec.__dict__, "fibula": True}))
+    # the same leg and tibia, with the fibula's dark spot added
+    np.testing.assert_allclose(ph.truth_pre.bone, with_fib.truth_pre.bone)
+    np.testing.assert_allclose(ph.truth.bone_com_mm, with_fib.truth.bone_com_mm)
+    assert (with_fib.pre < ph.pre - 0.3).sum() > 50
+
+
+@pytest.mark.parametrize("bad, what", [(dict(fibula_offset_mm=5.0), "skin"), (dict(fibula_distal_offset_mm=1.3), "tibia"),
+                                       (dict(fibula_cortex_mm=0.38), "marrow")])
+def test_impossible_fibula_is_refused(bad, what):
+    with pytest.raises(ValueError, match=f"phantom: .*fibula.*{what}"):
+        _Scene(PhantomSpec(seed=1, **bad))

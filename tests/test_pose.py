@@ -160,6 +160,69 @@ def test_bone_motion_surface_fit_recovers_truth(rotation, translation):
     assert v.rms_final_mm > 10 * m.rms_final_mm
 
 
+def test_fibula_resolves_the_shift_along_a_prismatic_tibia():
+    """A prism along z cannot show a shift along z; a fibula running obliquely to it, moved with it
+    as one rigid body, can (its sections move across the slice by 0.3 mm per mm of shift)."""
+    rot, tr = np.array([1.0, -0.5, 0.8]), np.array([0.03, -0.02, 0.12])
+    pre_t = ps.bone_stack(body=ps.prism_body)
+    c = bone_centroid_mm(pre_t)
+    dur_t = ps.bone_stack(body=ps.prism_body, rotation_deg=rot, centre_mm=c, translation_mm=tr)
+    pre_f = ps.bone_stack(body=ps.fibula_body)
+    dur_f = ps.bone_stack(body=ps.fibula_body, rotation_deg=rot, centre_mm=c, translation_mm=tr)
+    m = fit_bone_motion(pre_t, dur_t, fibula_pre_mm=pre_f, fibula_during_mm=dur_f, dof=6)
+    assert m.fibula_slices == (20, 20)
+    np.testing.assert_allclose(m.com_mm, c)  # the centre stays the tibia's
+    assert np.linalg.norm(m.rotation_deg - rot) < 0.01
+    assert np.linalg.norm(m.translation_mm - tr) < 0.002
+    # the tibia alone leaves the shift along z where the centroid put it (a prism's centroid hardly moves)
+    alone = fit_bone_motion(pre_t, dur_t, dof=6)
+    assert alone.fibula_slices == (0, 0)
+    assert abs(alone.translation_mm[2] - tr[2]) > 0.05
+    # slices without a fibula (NaN rows) are left out, and during sections the pre fibula does not
+    # reach are not matched to its end: on 14 common slices the fibula still resolves z
+    pre_gap, dur_gap = pre_f.copy(), dur_f.copy()
+    pre_gap[:3], dur_gap[-3:] = np.nan, np.nan
+    m = fit_bone_motion(pre_t, dur_t, fibula_pre_mm=pre_gap, fibula_during_mm=dur_gap, dof=6)
+    assert m.fibula_slices == (17, 14)  # pre slices, common slices
+    assert np.linalg.norm(m.translation_mm - tr) < 0.003
+    # with 0.005 mm of contour noise the shift along z stays well within the 0.03 mm tolerance
+    rng = np.random.default_rng(8)
+    noisy = [a + rng.normal(0, 0.005, a.shape) * [1, 1, 0] for a in (pre_t, dur_t, pre_f, dur_f)]
+    m = fit_bone_motion(noisy[0], noisy[1], fibula_pre_mm=noisy[2], fibula_during_mm=noisy[3], dof=6)
+    assert np.linalg.norm(m.translation_mm - tr) < 0.015
+
+
+def test_bone_dof_auto_uses_the_fibula_or_falls_back(caplog):
+    """bone_dof 'auto': 6 with a fibula in both states; without one, 5 and a log line saying why."""
+    import logging
+
+    vol, A, pre, dur, truth = _scene((0, 0), 2.0, rotation=(0.5, 0.0, 0.3), translation=(0.02, 0.0, 0.1))
+    with caplog.at_level(logging.INFO, logger="deeptissue.pose"):
+        pose, _ = estimate_pose(vol, A, pre, dur, animal="rat09")
+    assert pose.extra["bone_dof"] == 5 and pose.extra["bone_fibula_slices"] == [0, 0]
+    assert "animal rat09: bone_dof auto -> 5: no usable fibula contours" in caplog.text
+    # the same scene with a fibula that moved with the bone: 6 DOF, the shift along z resolved
+    c = bone_centroid_mm(pre.bone)
+    fib_pre = ps.bone_stack(body=ps.fibula_body)
+    fib_dur = ps.bone_stack(body=ps.fibula_body, rotation_deg=truth.bone_rotation_deg, centre_mm=c,
+                            translation_mm=truth.bone_translation_mm)
+    pre_f = Contours(skin=pre.skin, bone=pre.bone, fibula=fib_pre)
+    dur_f = Contours(skin=dur.skin, bone=dur.bone, fibula=fib_dur)
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="deeptissue.pose"):
+        pose, _ = estimate_pose(vol, A, pre_f, dur_f, animal="rat09")
+    assert pose.extra["bone_dof"] == 6 and pose.extra["bone_fibula_slices"] == [20, 20]
+    assert "bone_dof auto -> 6: tibia and fibula fitted together" in caplog.text
+    assert pose_errors(pose, truth)["bone_translation_error_mm"] < 0.002
+    # a fibula on too few slices of one state is not used
+    few = fib_dur.copy()
+    few[2:] = np.nan  # 2 slices
+    pose, _ = estimate_pose(vol, A, pre_f, Contours(skin=dur.skin, bone=dur.bone, fibula=few), animal="rat09")
+    assert pose.extra["bone_dof"] == 5
+    with pytest.raises(ValueError, match="bone_dof must be 3, 5, 6 or 'auto'"):
+        estimate_pose(vol, A, pre_f, dur_f, animal="rat09", options=PoseOptions(bone_dof=4))
+
+
 def test_zero_bone_rotation_comes_back_as_zero_with_noise():
     """0.01 mm contour noise on a ~2 mm bone: no spurious rotation beyond the noise (measured 0.13 deg)."""
     rng = np.random.default_rng(5)

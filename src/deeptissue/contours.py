@@ -3,8 +3,11 @@
 A :class:`Contours` holds the skin and tibia contours of every axial slice of one state
 (``pre`` or ``during``): arrays of shape ``(n_slices, n_points, 3)`` in world mm, each contour
 closed implicitly (the last point is not repeated), counter-clockwise seen from +z, starting
-at a fixed polar angle about the slice centroid. Written and read only by
-:func:`save_contours` / :func:`load_contours` (``.npz`` with arrays ``skin`` and ``bone``).
+at a fixed polar angle about the slice centroid. Optionally the fibula: an array of the same
+layout, ``(n_slices, n_points, 3)``, whose rows are NaN on the slices where no fibula was found
+(``None``: no fibula anywhere, e.g. a scan where it is out of view or not segmented).
+Written and read only by :func:`save_contours` / :func:`load_contours` (``.npz`` with arrays
+``skin`` and ``bone``, and ``fibula`` when there is one).
 """
 
 from __future__ import annotations
@@ -20,7 +23,8 @@ from .io import save_npz
 @dataclass(frozen=True)
 class Contours:
     skin: np.ndarray  # (n_slices, n_points, 3) world mm
-    bone: np.ndarray  # (n_slices, n_points, 3) world mm
+    bone: np.ndarray  # (n_slices, n_points, 3) world mm: the tibia
+    fibula: np.ndarray | None = None  # (n_slices, n_points_f, 3) world mm, NaN rows where absent; None: none
 
     def __post_init__(self):
         for name in ("skin", "bone"):
@@ -33,6 +37,23 @@ class Contours:
             raise ValueError(
                 f"contours: skin has {self.skin.shape[0]} slices but bone has {self.bone.shape[0]}"
             )
+        if self.fibula is not None:
+            f = np.asarray(self.fibula, float)
+            if f.ndim != 3 or f.shape[2] != 3 or f.shape[0] != self.skin.shape[0]:
+                raise ValueError(f"contours.fibula: expected shape ({self.skin.shape[0]}, n_points, 3), got {f.shape}")
+            fin = np.isfinite(f).reshape(f.shape[0], -1)
+            mixed = np.nonzero(fin.any(axis=1) & ~fin.all(axis=1))[0]
+            if len(mixed):
+                raise ValueError(f"contours.fibula: slice {int(mixed[0])} is partly non-finite (a slice has a whole "
+                                 "contour or NaN throughout)")
+            object.__setattr__(self, "fibula", f if fin.any() else None)
+
+    @property
+    def fibula_slices(self) -> np.ndarray:
+        """Boolean (n_slices,): the slices that have a fibula contour."""
+        if self.fibula is None:
+            return np.zeros(self.n_slices, bool)
+        return np.isfinite(self.fibula[:, :, 0]).all(axis=1)
 
     @property
     def n_slices(self) -> int:
@@ -45,19 +66,24 @@ class Contours:
 
 
 def save_contours(path: str | Path, contours: Contours) -> None:
-    save_npz(path, skin=contours.skin, bone=contours.bone)
+    arrays = dict(skin=contours.skin, bone=contours.bone)
+    if contours.fibula is not None:
+        arrays["fibula"] = contours.fibula
+    save_npz(path, **arrays)
 
 
 def load_contours(path: str | Path) -> Contours:
     try:
         with np.load(path) as data:
             skin, bone = data["skin"], data["bone"]
+            fibula = data["fibula"] if "fibula" in data.files else None
     except KeyError as exc:
         raise ValueError(f"{path}: contour file lacks array {exc}") from exc
     except (OSError, ValueError) as exc:
         raise ValueError(f"{path}: not a contour file ({exc})") from exc
     try:
-        return Contours(skin=np.asarray(skin, float), bone=np.asarray(bone, float))
+        return Contours(skin=np.asarray(skin, float), bone=np.asarray(bone, float),
+                        fibula=None if fibula is None else np.asarray(fibula, float))
     except ValueError as exc:
         raise ValueError(f"{path}: {exc}") from exc
 

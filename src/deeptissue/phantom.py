@@ -14,6 +14,17 @@ The anatomy is analytic, so every boundary is known exactly:
   ``tibia_rounding_slope``), and the crest turning ``tibia_twist`` deg per mm. A dark cortex
   ``cortex_thickness_mm`` thick on the sides (the marrow is the same shape scaled down about the
   centre) around a darker-than-muscle marrow.
+- **fibula**: a thin bone (``fibula_radius_mm``, 0.84 mm across; a dark cortex
+  ``fibula_cortex_mm`` thick around marrow, the tibia's intensities) lateral-posterior of the tibia, at
+  ``fibula_angle_deg`` from its centre. Its circular z-sections are centred at ``c_tibia(z) + D(z) u``
+  with ``D(z) = D_d + (D_p - D_d) (1 + tanh((z - z_c) / L)) / 2``: proximally it runs
+  ``fibula_offset_mm`` (``D_p``) from the tibia's centre, distally it converges on the tibia (to
+  ``fibula_distal_offset_mm``, ``D_d``; it fuses with the tibia distal of the slab) over a length
+  ``fibula_converge_mm`` (``L``) about ``fibula_converge_z_mm`` (``z_c``). The converging stretch
+  moves the fibula across the slice by up to ``(D_p - D_d) / (2 L)`` mm per mm of z (0.72 with the
+  defaults; over 0.3 on five slices), so a shift of the leg bones along z moves it in the slice:
+  the tibia alone, nearly a prism, hardly shows such a shift. It moves with the tibia (one rigid
+  body). Kept >= 0.3 mm from the tibia and >= 0.3 mm below the skin layer (else an error).
 - **coil**: a surface loop of radius ``coil_radius_mm`` above the anterior (+y) skin; sensitivity
   ``(a² / (a² + d²))^(3/2)`` with ``d`` the distance below the coil, normalised to 1 in the
   well-lit muscle 1 mm under the skin where the indenter enters; the posterior side gets about
@@ -30,7 +41,7 @@ The anatomy is analytic, so every boundary is known exactly:
   so the head defines the surface where it touches) and ``sd_indenter`` the indenter's signed
   distance; tissue in the indenter's place is displaced, the skin layer follows the surface.
 - **tibia motion** (during): rigid, ``x -> R (x - c) + c + t`` about the pre tibia centre of mass
-  ``c`` (:mod:`deeptissue.rigid`).
+  ``c`` (:mod:`deeptissue.rigid`); the fibula moves with it.
 
 Rendering is anti-aliased by ``supersample``² sub-samples per pixel in the slice plane; slices
 are planes of constant z (1 mm apart), so the truth contours are the exact boundaries in those
@@ -75,6 +86,14 @@ class PhantomSpec:
     tibia_taper: float = 0.012  # relative change of the size per mm of z (wider proximally, +z)
     tibia_flare: float = 0.0006  # relative quadratic term per mm² (the proximal flare)
     cortex_thickness_mm: float = 0.3
+    fibula: bool = True  # False: no fibula (the tibia alone, as in earlier phantoms)
+    fibula_radius_mm: float = 0.42  # radius of its circular z-sections (seeded +-5 %)
+    fibula_cortex_mm: float = 0.2
+    fibula_angle_deg: float = -20.0  # direction from the tibia centre, from +x (lateral-posterior; seeded +-5 deg)
+    fibula_offset_mm: float = 3.8  # proximal centre-to-centre distance from the tibia (seeded +-0.1 mm)
+    fibula_distal_offset_mm: float = 2.0  # distal centre-to-centre distance, where it runs beside the tibia before fusing
+    fibula_converge_z_mm: float = -5.5  # z where it converges on the tibia fastest
+    fibula_converge_mm: float = 1.25  # length scale of the convergence along z (tanh)
     # coil
     coil_radius_mm: float = 11.0
     coil_gap_mm: float = 1.0
@@ -119,7 +138,7 @@ class Phantom:
     truth_pre: Contours
     truth_during: Contours
     noise_sigma: float
-    dense: dict = field(default_factory=dict)  # (state, structure) -> list of (m, 3) exact boundary polylines per slice
+    dense: dict = field(default_factory=dict)  # (state, structure) -> list of (m, 3) exact boundary polylines per slice (structure: skin, bone, fibula)
 
     @property
     def z_mm(self) -> np.ndarray:
@@ -141,6 +160,12 @@ class _Anatomy:
         # the three sides differ a little (seeded): relative inradius of each side
         self.tib_side = 1.0 + rng.uniform(-0.08, 0.08, 3)
         self.tib_crest = np.radians(spec.tibia_crest_angle_deg + rng.uniform(-8.0, 8.0))
+        # fibula: its own stream, so that the tibia and leg of a seed do not change with it
+        frng = np.random.default_rng([spec.seed, 13])
+        self.fib_radius = spec.fibula_radius_mm * (1.0 + frng.uniform(-0.05, 0.05))
+        a = np.radians(spec.fibula_angle_deg + frng.uniform(-5.0, 5.0))
+        self.fib_u = np.array([np.cos(a), np.sin(a)])
+        self.fib_offset = spec.fibula_offset_mm + frng.uniform(-0.1, 0.1)
 
     # leg ------------------------------------------------------------------------------------
     def leg_centre(self, z):
@@ -236,6 +261,36 @@ class _Anatomy:
         c = 2 * np.pi / 3 * np.array([np.mean(r**3 * np.cos(th)), np.mean(r**3 * np.sin(th))]) / area
         return float(area), np.asarray(self.tib_centre(z), float) + c
 
+    # fibula ---------------------------------------------------------------------------------
+    def fib_offset_at(self, z):
+        """Centre-to-centre distance (mm) of the fibula from the tibia centre along ``fib_u`` at z."""
+        s = self.s
+        w = 0.5 * (1.0 + np.tanh((np.asarray(z, float) - s.fibula_converge_z_mm) / s.fibula_converge_mm))
+        return s.fibula_distal_offset_mm + (self.fib_offset - s.fibula_distal_offset_mm) * w
+
+    def fib_centre(self, z):
+        """Centre (x, y) mm of the fibula's circular section at z."""
+        cx, cy = self.tib_centre(z)
+        d = self.fib_offset_at(z)
+        return cx + d * self.fib_u[0], cy + d * self.fib_u[1]
+
+    def fib_slope_max(self) -> float:
+        """Largest in-plane speed (mm per mm of z) of the fibula centre: a bound for :meth:`fibula_f`."""
+        s = self.s
+        conv = abs(self.fib_offset - s.fibula_distal_offset_mm) / (2.0 * s.fibula_converge_mm)
+        return float(np.hypot(*self.tib_drift) + conv)
+
+    def fibula_f(self, x, y, z, inset=0.0):
+        """Level function of the fibula (mm; < 0 inside; with ``inset`` mm: the marrow's).
+
+        ``(|p - c(z)| - r) / sqrt(1 + v²)`` with ``v`` the largest in-plane speed of the centre along
+        z, so that its 3D gradient is <= 1 and ``|f|`` bounds the distance to the boundary in any
+        plane (the moved bone is cut by tilted planes); its zero set is the exact circle of each z.
+        """
+        cx, cy = self.fib_centre(z)
+        norm = np.sqrt(1.0 + self.fib_slope_max() ** 2)
+        return (np.hypot(x - cx, y - cy) - (self.fib_radius - inset)) / norm
+
     def tib_boundary(self, z: float, n: int = 180) -> np.ndarray:
         """(n, 2) points (mm) on the outer tibia boundary at z."""
         th = np.linspace(0, 2 * np.pi, n, endpoint=False)
@@ -277,6 +332,8 @@ class _Scene:
                              f"inside a {spec.cortex_thickness_mm} mm cortex; reduce tibia_taper or tibia_flare, "
                              "or increase tibia_inradius_mm")
         self.tib_rmin, self.tib_rmax = an.tib_radius_range(z_lo, z_hi)
+        if spec.fibula:
+            self._check_fibula(np.linspace(z_lo, z_hi, 45))
         # tibia centre of mass over the slices (area-weighted slice centroids, as a segmentation sees it)
         ac = [an.tib_area_centroid(float(z)) for z in self.z]
         w = np.array([a for a, _ in ac])
@@ -311,6 +368,32 @@ class _Scene:
             if gap <= 0:
                 raise ValueError(f"phantom: the indenter (depth {spec.depth_mm} mm) reaches the tibia; reduce depth_mm")
 
+    def _check_fibula(self, zs: np.ndarray) -> None:
+        """The fibula must hold marrow, stay clear of the tibia (two bones in every slice) and inside
+        the muscle (clear of the skin layer) over ``zs``; else a ValueError naming the key to change."""
+        s, an = self.s, self.an
+        if s.fibula_radius_mm <= 0 or s.fibula_converge_mm <= 0:
+            raise ValueError("phantom: fibula_radius_mm and fibula_converge_mm must be > 0")
+        if an.fib_radius - s.fibula_cortex_mm < 0.08:
+            raise ValueError(f"phantom: the fibula (radius {an.fib_radius:.3g} mm) is too thin to hold marrow inside a "
+                             f"{s.fibula_cortex_mm} mm cortex; reduce fibula_cortex_mm or increase fibula_radius_mm")
+        th = np.linspace(0, 2 * np.pi, 180, endpoint=False)
+        for z in zs:
+            fx, fy = an.fib_centre(z)
+            circ = np.column_stack([fx + an.fib_radius * np.cos(th), fy + an.fib_radius * np.sin(th)])
+            tb = an.tib_boundary(float(z), 360)
+            gap = float(np.min(np.linalg.norm(circ[:, None] - tb[None], axis=-1)))
+            inside_tibia = an.bone_f(fx, fy, z) < 0
+            if inside_tibia or gap < 0.3:
+                raise ValueError(f"phantom: at z = {z:.3g} mm the fibula comes within {gap:.3g} mm of the tibia "
+                                 "(>= 0.3 mm needed to tell the two bones apart); increase fibula_distal_offset_mm "
+                                 "or change fibula_angle_deg")
+            depth = float(np.max(an.phi_pre(circ[:, 0], circ[:, 1], z)))
+            if depth > -(s.skin_thickness_mm + 0.3):
+                raise ValueError(f"phantom: at z = {z:.3g} mm the fibula reaches within {-depth:.3g} mm of the skin "
+                                 f"(>= skin_thickness_mm + 0.3 mm needed); reduce fibula_offset_mm or change "
+                                 "fibula_angle_deg")
+
     def _coil_raw(self, x, y, z):
         a = self.s.coil_radius_mm
         d = np.maximum(self.coil_y - y, 0.0)
@@ -341,13 +424,25 @@ class _Scene:
             return ph
         return np.maximum(ph + self.dimple(x, y, z), -self.indenter_sd(x, y, z))
 
-    def bone(self, x, y, z, state, inset=0.0):
+    def _preimage(self, x, y, z, state):
+        """The pre-state point of a point of ``state`` under the bones' rigid motion: q = R^T (x - c - t) + c."""
         if state == "pre":
-            return self.an.bone_f(x, y, z, inset)
-        # pre-image of the during point: q = R^T (x - c - t) + c
+            return x, y, z
         p = np.stack([x, y, np.broadcast_to(z, np.shape(x))], -1) - self.bone_com - self.t
         q = p @ self.R + self.bone_com
-        return self.an.bone_f(q[..., 0], q[..., 1], q[..., 2], inset)
+        return q[..., 0], q[..., 1], q[..., 2]
+
+    def bone(self, x, y, z, state, inset=0.0):
+        """Level function of the tibia (mm, < 0 inside) in ``state``."""
+        return self.an.bone_f(*self._preimage(x, y, z, state), inset)
+
+    def fibula(self, x, y, z, state, inset=0.0):
+        """Level function of the fibula (mm, < 0 inside) in ``state``; it moves with the tibia."""
+        return self.an.fibula_f(*self._preimage(x, y, z, state), inset)
+
+    def _moved(self, pts):
+        """Pre-state points (n, 3) moved by the bones' rigid motion."""
+        return (pts - self.bone_com) @ self.R.T + self.bone_com + self.t
 
     def bone_gap(self) -> float:
         """Smallest distance (mm) from the tibia surface (during) to the indenter, sampled."""
@@ -356,7 +451,11 @@ class _Scene:
         th = np.linspace(0, 2 * np.pi, 180, endpoint=False)
         for z in zs:
             pts = np.column_stack([self.an.tib_boundary(z, len(th)), np.full_like(th, z)])
-            pts = (pts - self.bone_com) @ self.R.T + self.bone_com + self.t
+            if self.s.fibula:
+                fx, fy = self.an.fib_centre(z)
+                r = self.an.fib_radius
+                pts = np.vstack([pts, np.column_stack([fx + r * np.cos(th), fy + r * np.sin(th), np.full_like(th, z)])])
+            pts = self._moved(pts)
             best = min(best, float(self.indenter_sd(pts[:, 0], pts[:, 1], pts[:, 2]).min()))
         return best
 
@@ -377,6 +476,13 @@ class _Scene:
         val[bone] = s.cortex
         val[bone & (fm < 0)] = s.marrow
         margin = np.minimum.reduce([np.abs(phi), np.abs(phi + s.skin_thickness_mm), np.abs(fb), np.abs(fm)])
+        if s.fibula:
+            ff = self.fibula(X, Y, z, state)
+            ffm = self.fibula(X, Y, z, state, inset=s.fibula_cortex_mm)
+            fib = tissue & (ff < 0)
+            val[fib] = s.cortex
+            val[fib & (ffm < 0)] = s.marrow
+            margin = np.minimum.reduce([margin, np.abs(ff), np.abs(ffm)])
         if state == "during" and s.depth_mm > 0:
             sd = self.indenter_sd(X, Y, z)
             val[sd < 0] = s.wall
@@ -420,14 +526,22 @@ class _Scene:
             half = self.s.leg_radius_mm * 1.4 + 1.0
             fn = lambda X, Y: self.phi(X, Y, z, state)
             h = 3 * h_mm
-        else:
+        elif structure == "bone":
             cx, cy = self.an.tib_centre(z)
             if state == "during":
-                p = (np.array([cx, cy, z]) - self.bone_com) @ self.R.T + self.bone_com + self.t
-                cx, cy = p[0], p[1]
+                cx, cy = self._moved(np.array([[cx, cy, z]]))[0, :2]
             half = self.tib_rmax * 1.3 + 0.5
             fn = lambda X, Y: self.bone(X, Y, z, state)
             h = h_mm
+        elif structure == "fibula":
+            cx, cy = self.an.fib_centre(z)
+            if state == "during":
+                cx, cy = self._moved(np.array([[cx, cy, z]]))[0, :2]
+            half = self.an.fib_radius * 1.5 + 0.3
+            fn = lambda X, Y: self.fibula(X, Y, z, state)
+            h = 0.5 * h_mm
+        else:
+            raise ValueError(f"phantom: unknown structure {structure!r}")
         g = np.arange(-half, half + h / 2, h)
         X, Y = np.meshgrid(cx + g, cy + g, indexing="ij")
         F = fn(X, Y)
@@ -445,7 +559,8 @@ def make_phantom(spec: PhantomSpec, *, n_points: int = 100, start_angle_deg: flo
     images (muscle in the well-lit region = 1, Rician noise sigma = 1/snr), ``affine`` (4, 4) RAS mm,
     ``truth`` (:class:`~deeptissue.pose.Pose`; bone_com_mm is the area-weighted mean of the pre
     tibia's slice centroids), ``truth_pre``/``truth_during`` (:class:`~deeptissue.contours.Contours`
-    resampled to ``n_points`` as the segmentation does) and ``dense`` exact boundaries per slice.
+    resampled to ``n_points`` as the segmentation does; with ``fibula`` contours unless
+    ``spec.fibula`` is False) and ``dense`` exact boundaries per slice.
     """
     scene = _Scene(spec)
     rng = np.random.default_rng([spec.seed, 11])
@@ -459,7 +574,7 @@ def make_phantom(spec: PhantomSpec, *, n_points: int = 100, start_angle_deg: flo
             img[:, :, k] = noisy
         vols[state] = img
         out = {}
-        for structure in ("skin", "bone"):
+        for structure in ("skin", "bone", "fibula") if spec.fibula else ("skin", "bone"):
             polys, res = [], []
             for k in range(spec.n_slices):
                 poly = scene.truth_polyline(k, state, structure)
@@ -468,7 +583,7 @@ def make_phantom(spec: PhantomSpec, *, n_points: int = 100, start_angle_deg: flo
                 res.append(np.column_stack([xy, np.full(n_points, scene.z[k])]))
             dense[(state, structure)] = polys
             out[structure] = np.stack(res)
-        contours[state] = Contours(skin=out["skin"], bone=out["bone"])
+        contours[state] = Contours(skin=out["skin"], bone=out["bone"], fibula=out.get("fibula"))
     truth = Pose(
         indenter_axis=scene.axis,
         tip_start_mm=scene.tip_start,

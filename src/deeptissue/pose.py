@@ -9,6 +9,7 @@ into the leg; the indenter tip travels from ``tip_start_mm`` to ``tip_end_mm``; 
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -136,6 +137,7 @@ class BoneMotion:
     dof: int
     n_evaluations: int
     parameter_sd: np.ndarray | None = None  # (dof,) standard errors: rotation [deg], then translation [mm]
+    fibula_slices: tuple = (0, 0)  # slices with a fibula contour used in the fit (pre, during); (0, 0): tibia alone
 
 
 def _where(animal: str) -> str:
@@ -594,6 +596,8 @@ def fit_bone_motion(
     bone_pre_mm: np.ndarray,
     bone_during_mm: np.ndarray,
     *,
+    fibula_pre_mm: np.ndarray | None = None,
+    fibula_during_mm: np.ndarray | None = None,
     method: str = "surface",
     dof: int = 5,
     surface_step_mm: float = 0.05,
@@ -611,6 +615,14 @@ def fit_bone_motion(
     motion gives nearest-vertex distances between stacks sampled at the same 1 mm z planes.
     A bone that is (nearly) a prism along z cannot show a shift along z: its 6-DOF fit then drifts
     along z with the segmentation noise (check ``parameter_sd``); ``dof=5`` is the remedy.
+
+    ``fibula_pre_mm`` / ``fibula_during_mm`` (n_slices, n_points_f, 3, NaN rows where absent): the
+    fibula, which moves with the tibia as one rigid body. Its during vertices (on the slices where
+    both states have a fibula contour) join the residuals, each matched to the pre fibula's own
+    interpolated surface (never to the tibia's); the centre ``com_mm`` stays the tibia's centroid. A
+    fibula that runs obliquely to the tibia moves across the slices under a shift along z, so with
+    it ``dof=6`` resolves that shift. Used only when the pre state has it on at least
+    ``MIN_FIBULA_SLICES`` slices and both states on as many common slices.
     """
     from scipy.optimize import least_squares
     from scipy.spatial import cKDTree
@@ -633,22 +645,38 @@ def fit_bone_motion(
         raise ValueError(f"fit_bone_motion: method must be 'surface' or 'vertex', got {method!r}")
     if dof not in (3, 5, 6):
         raise ValueError(f"fit_bone_motion: dof must be 3, 5 or 6, got {dof!r}")
+    # the pre fibula's surface through all its slices; the during fibula on the slices that have one
+    # in both states (a during section whose plane the pre fibula does not reach has no counterpart:
+    # matched to the end of the pre surface, it would pull the fit along the bone)
+    has_pre, has_dur = _fibula_mask(fibula_pre_mm, pre.shape[0]), _fibula_mask(fibula_during_mm, pre.shape[0])
+    both = has_pre & has_dur
+    use_fibula = has_pre.sum() >= MIN_FIBULA_SLICES and both.sum() >= MIN_FIBULA_SLICES
+    if use_fibula:
+        fib_pre = np.asarray(fibula_pre_mm, float)[has_pre]
+        fib_dur = np.asarray(fibula_during_mm, float)[both]
     com_pre = bone_centroid_mm(pre)
     shift = bone_centroid_mm(dur) - com_pre
-    q = dur.reshape(-1, 3)
-    if method == "surface":
-        ref, nrm = dense_surface(pre, step_mm=surface_step_mm)
-    else:
-        ref, nrm = pre.reshape(-1, 3), None
-    tree = cKDTree(ref)
+    # (during vertices, pre reference points, their normals, KD-tree) per bone
+    bodies = [(pre, dur)] + ([(fib_pre, fib_dur)] if use_fibula else [])
+    parts = []
+    for b_pre, b_dur in bodies:
+        if method == "surface":
+            ref, nrm = dense_surface(b_pre, step_mm=surface_step_mm)
+        else:
+            ref, nrm = b_pre.reshape(-1, 3), None
+        parts.append((b_dur.reshape(-1, 3), ref, nrm, cKDTree(ref)))
 
     def residuals_for(rot_deg, trans):
         R = rotation_matrix(rot_deg)
-        p = (q - com_pre - trans) @ R + com_pre  # R^T (q - c - t) + c, row vectors
-        _, j = tree.query(p)
-        if nrm is None:
-            return np.linalg.norm(p - ref[j], axis=1)
-        return np.einsum("ij,ij->i", p - ref[j], nrm[j])
+        out = []
+        for q, ref, nrm, tree in parts:
+            p = (q - com_pre - trans) @ R + com_pre  # R^T (q - c - t) + c, row vectors
+            _, j = tree.query(p)
+            if nrm is None:
+                out.append(np.linalg.norm(p - ref[j], axis=1))
+            else:
+                out.append(np.einsum("ij,ij->i", p - ref[j], nrm[j]))
+        return np.concatenate(out)
 
     def rms(r):
         return float(np.sqrt(np.mean(r**2)))
@@ -673,7 +701,54 @@ def fit_bone_motion(
         com_mm=com_pre, rotation_deg=rot, translation_mm=np.asarray(trans, float), com_shift_mm=shift,
         rms_initial_mm=rms0, rms_com_mm=rms_com, rms_final_mm=rms(res.fun), method=method, dof=dof,
         n_evaluations=int(res.nfev), parameter_sd=sd,
+        fibula_slices=(int(has_pre.sum()), int(both.sum())) if use_fibula else (0, 0),
     )
+
+
+MIN_FIBULA_SLICES = 3  # a fibula seen on fewer slices of a state is not used by the bone fit
+
+
+def _fibula_mask(fibula_mm, n_slices: int) -> np.ndarray:
+    """Boolean (n_slices,): the slices of a fibula stack (n_slices, n_points, 3; NaN rows where absent)
+    that have a contour; all False for None."""
+    if fibula_mm is None:
+        return np.zeros(n_slices, bool)
+    f = np.asarray(fibula_mm, float)
+    if f.ndim != 3 or f.shape[0] != n_slices:
+        raise PoseError(f"fibula contours: expected ({n_slices}, n_points, 3), got {f.shape}")
+    return np.isfinite(f).reshape(n_slices, -1).all(axis=1)
+
+
+def _fibula_rows(fibula_mm) -> np.ndarray:
+    """The slices of a fibula stack that have a contour, stacked (m, n_points, 3)."""
+    if fibula_mm is None:
+        return np.zeros((0, 1, 3))
+    f = np.asarray(fibula_mm, float)
+    return f[_fibula_mask(f, f.shape[0])]
+
+
+def resolve_bone_dof(bone_dof, pre: Contours, during_contours: Contours) -> tuple[int, str]:
+    """The fit's degrees of freedom for the config value ``bone_dof`` (3, 5, 6 or 'auto') and why.
+
+    'auto': 6 when both states have fibula contours on at least ``MIN_FIBULA_SLICES`` common slices
+    (the oblique fibula makes the shift along the leg observable), else 5 (the tibia alone cannot
+    show it; the shift along z stays the centroid's).
+    """
+    if pre.n_slices != during_contours.n_slices:  # fit_bone_motion names the problem
+        n_pre = n_both = 0
+    else:
+        n_pre = int(pre.fibula_slices.sum())
+        n_both = int((pre.fibula_slices & during_contours.fibula_slices).sum())
+    has = n_pre >= MIN_FIBULA_SLICES and n_both >= MIN_FIBULA_SLICES
+    seen = f"fibula on {n_pre} pre slices, {n_both} of them also during"
+    if bone_dof != "auto":
+        if bone_dof not in (3, 5, 6):
+            raise ValueError(f"pose.bone_dof must be 3, 5, 6 or 'auto', got {bone_dof!r}")
+        return int(bone_dof), f"bone_dof {bone_dof} as configured ({seen})"
+    if has:
+        return 6, f"bone_dof auto -> 6: tibia and fibula fitted together ({seen})"
+    return 5, (f"bone_dof auto -> 5: no usable fibula contours ({seen}; {MIN_FIBULA_SLICES} needed); "
+               "tibia alone, the shift along the leg (z) is the centroid's")
 
 
 @dataclass(frozen=True)
@@ -690,7 +765,7 @@ class PoseOptions:
     tip_method: str = "sphere"
     start_backoff_mm: float = 1.0
     bone_method: str = "surface"
-    bone_dof: int = 5
+    bone_dof: int | str = "auto"
     bone_surface_step_mm: float = 0.05
 
     @classmethod
@@ -790,10 +865,14 @@ def estimate_pose(
         com_pre = bone_centroid_mm(pre.bone)
         rot, trans = override["bone_rotation_deg"], override["bone_translation_mm"]
     else:
+        dof, why = resolve_bone_dof(options.bone_dof, pre, during_contours)
+        logging.getLogger(__name__).info("%s%s", _where(animal), why)
         motion = fit_bone_motion(
-            pre.bone, during_contours.bone, method=options.bone_method, dof=options.bone_dof,
-            surface_step_mm=options.bone_surface_step_mm, animal=animal,
+            pre.bone, during_contours.bone, fibula_pre_mm=pre.fibula, fibula_during_mm=during_contours.fibula,
+            method=options.bone_method, dof=dof, surface_step_mm=options.bone_surface_step_mm, animal=animal,
         )
+        extra["bone_dof_reason"] = why
+        extra["bone_fibula_slices"] = list(motion.fibula_slices)
         com_pre = motion.com_mm
         rot = override.get("bone_rotation_deg", motion.rotation_deg)
         trans = override.get("bone_translation_mm", motion.translation_mm)
@@ -947,7 +1026,8 @@ def plot_tip_qc(path, pre: Contours, during_contours: Contours, pose: Pose, *, r
 
 
 def plot_bone_qc(path, pre: Contours, during_contours: Contours, pose: Pose, *, title: str = "") -> None:
-    """Bone contours before, after centroid alignment, and after the full rigid fit (x-y and y-z views)."""
+    """Bone contours (tibia, and the fibula when both states have it) before, after centroid alignment,
+    and after the full rigid fit (x-y and y-z views)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -959,13 +1039,19 @@ def plot_bone_qc(path, pre: Contours, during_contours: Contours, pose: Pose, *, 
     dur = during_contours.bone
     shift = np.asarray(pose.extra.get("bone_com_shift_mm", pose.bone_translation_mm), float)
     R = rotation_matrix(pose.bone_rotation_deg)
+    fib_pre, fib_dur = _fibula_rows(pre.fibula), _fibula_rows(during_contours.fibula)
+    if len(fib_pre) and len(fib_dur):  # the fibula, moved with the tibia, is drawn with it
+        pre_pts = np.concatenate([pre.bone.reshape(-1, 3), fib_pre.reshape(-1, 3)])
+        dur = np.concatenate([dur.reshape(-1, 3), fib_dur.reshape(-1, 3)])
+    else:
+        pre_pts = pre.bone.reshape(-1, 3)
     back = [dur, dur - shift, (dur - c - pose.bone_translation_mm) @ R + c]
     names = ["as imaged", "after centroid alignment", "after rigid fit"]
     fig, axs = plt.subplots(2, 3, figsize=(13, 8))
     for j, (b, name) in enumerate(zip(back, names)):
         for row, (p, q) in enumerate([(0, 1), (1, 2)]):
             ax = axs[row, j]
-            ax.plot(pre.bone[..., p].ravel(), pre.bone[..., q].ravel(), ".", ms=1, color="tab:blue", label="pre")
+            ax.plot(pre_pts[..., p].ravel(), pre_pts[..., q].ravel(), ".", ms=1, color="tab:blue", label="pre")
             ax.plot(b[..., p].ravel(), b[..., q].ravel(), ".", ms=1, color="tab:red", label="during, mapped back")
             ax.set(xlabel="xyz"[p] + " [mm]", ylabel="xyz"[q] + " [mm]")
             if row == 0:

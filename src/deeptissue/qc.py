@@ -11,7 +11,8 @@ from .io import atomic_path
 
 def plot_segmentation(vol: Volume, contours: Contours, path, *, truth: Contours | None = None,
                       accuracy: list[dict] | None = None, title: str = "") -> None:
-    """Every slice of ``vol`` with the skin (red) and tibia (green) contours; truth dashed (cyan).
+    """Every slice of ``vol`` with the skin (red), tibia (green) and fibula (yellow, where found)
+    contours; truth dashed (cyan).
 
     Drawn in voxel index space (so any affine works), zoomed to the skin contours; the PNG is
     written atomically. With ``accuracy`` rows (see :func:`deeptissue.segment.contour_accuracy`)
@@ -36,13 +37,16 @@ def plot_segmentation(vol: Volume, contours: Contours, path, *, truth: Contours 
         img = vol.data[:, :, k]
         ax.imshow(img.T, origin="lower", cmap="gray", vmin=0, vmax=float(np.percentile(vol.data, 99.5)),
                   interpolation="nearest")
-        for name, col in (("skin", "r"), ("bone", "lime")):
-            c = vol.voxel(getattr(contours, name)[k])
-            c = np.vstack([c, c[:1]])
-            ax.plot(c[:, 0], c[:, 1], "-", color=col, lw=0.8)
-            ax.plot(c[0, 0], c[0, 1], "o", color=col, ms=2)
-            if truth is not None:
-                t = vol.voxel(getattr(truth, name)[k])
+        for name, col in (("skin", "r"), ("bone", "lime"), ("fibula", "yellow")):
+            seg = getattr(contours, name)
+            if seg is not None and np.isfinite(seg[k]).all():
+                c = vol.voxel(seg[k])
+                c = np.vstack([c, c[:1]])
+                ax.plot(c[:, 0], c[:, 1], "-", color=col, lw=0.8)
+                ax.plot(c[0, 0], c[0, 1], "o", color=col, ms=2)
+            true = None if truth is None else getattr(truth, name)
+            if true is not None and np.isfinite(true[k]).all():
+                t = vol.voxel(true[k])
                 t = np.vstack([t, t[:1]])
                 ax.plot(t[:, 0], t[:, 1], "--", color="cyan", lw=0.6)
         ax.set_xlim(lo[0], hi[0])
@@ -51,7 +55,7 @@ def plot_segmentation(vol: Volume, contours: Contours, path, *, truth: Contours 
     sup = title
     if accuracy:
         parts = []
-        for st in ("skin", "bone"):
+        for st in ("skin", "bone", "fibula"):
             rows = [r for r in accuracy if r["structure"] == st]
             if rows:
                 parts.append(f"{st}: mean {np.mean([r['mean_mm'] for r in rows]):.3f} mm, "

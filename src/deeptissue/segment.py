@@ -25,7 +25,13 @@ Per slice (arrays indexed [i, j] as in the NIfTI, converted to world mm by the a
    skin; the largest (``bone_select: largest``) or the most anterior of those at least half as
    large as the largest (``anterior``). Automatic level: half the median muscle value of ``N``
    (cortical bone gives no signal).
-7. Every contour is resampled (:func:`deeptissue.contours.resample_closed`): ``n_points``
+7. **Fibula** (``fibula: true``): of the other dark regions inside the skin (same level, outside
+   the tibia) with an area from ``fibula_min_area_mm2`` up to ``fibula_max_area_ratio`` times the
+   tibia's and round (4 pi A / P^2 >= 0.5, not a thin or ragged gap), the largest. A volume where
+   fewer than ``fibula_min_slices`` slices have one has no fibula (a stray dark spot is not a bone
+   that runs along the leg); the slices without one are NaN in the ``fibula`` array of the
+   contour file.
+8. Every contour is resampled (:func:`deeptissue.contours.resample_closed`): ``n_points``
    points equidistant in arc length (PCHIP), counter-clockwise, starting at ``start_angle_deg``
    about its own area centroid.
 
@@ -45,9 +51,11 @@ from scipy import ndimage
 from .contours import Contours, point_to_polygon_distance, points_in_polygon, polygon_area_centroid, resample_closed
 from .imaging import ImagingError, Volume
 
-STRUCTURES = ("skin", "bone")
+STRUCTURES = ("skin", "bone", "fibula")
 # the skin plateau is read in a 1-pixel band starting this many blur widths (+ pixels) inside the edge
 _BAND_SIGMAS, _BAND_PX = 1.5, 0.0
+# a fibula candidate's isoperimetric ratio 4 pi A / P^2 (1 for a circle; the phantom's ~0.95)
+_FIBULA_MIN_ROUNDNESS = 0.5
 
 
 class SegmentationError(ValueError):
@@ -67,8 +75,12 @@ class SegmentationSettings:
     fluid_guard_mm: float = 0.2
     bias_degree: int = 3
     bias_erode_mm: float = 0.6
-    bone_min_area_mm2: float = 0.2
+    bone_min_area_mm2: float = 1.0
     bone_select: str = "largest"
+    fibula: bool = True
+    fibula_min_area_mm2: float = 0.1
+    fibula_max_area_ratio: float = 0.6
+    fibula_min_slices: int = 3
 
     @classmethod
     def from_config(cls, *dicts: dict | None) -> "SegmentationSettings":
@@ -85,7 +97,7 @@ class SegmentationSettings:
 def load_overrides(path: str | Path) -> dict:
     """Read a manual-override YAML: ``{state: {structure: {slice: [[x, y], ...]}}}``.
 
-    ``state`` is ``pre`` or ``during``, ``structure`` ``skin`` or ``bone``, ``slice`` the axial
+    ``state`` is ``pre`` or ``during``, ``structure`` ``skin``, ``bone`` (the tibia) or ``fibula``, ``slice`` the axial
     slice index in the NIfTI file (0-based), points world mm (x, y) of a closed curve (at least 4,
     in either orientation; it is resampled like an automatic contour).
     """
@@ -97,7 +109,7 @@ def load_overrides(path: str | Path) -> dict:
             raise ValueError(f"{path}: unknown state {state!r} (pre, during)")
         for structure, slices in (per or {}).items():
             if structure not in STRUCTURES:
-                raise ValueError(f"{path}: unknown structure {structure!r} (skin, bone)")
+                raise ValueError(f"{path}: unknown structure {structure!r} (skin, bone, fibula)")
             for k, pts in (slices or {}).items():
                 a = np.asarray(pts, float)
                 if a.ndim != 2 or a.shape[1] < 2 or len(a) < 4:
@@ -166,6 +178,7 @@ class _SliceResult:
     bone_ij: np.ndarray | None
     skin_level: float
     bone_level: float
+    fibula_ij: np.ndarray | None = None
 
 
 def _segment_slice(img, *, bg, noise, px_mm, settings: SegmentationSettings, where: str, need_bone: bool = True):
@@ -226,11 +239,12 @@ def _segment_slice(img, *, bg, noise, px_mm, settings: SegmentationSettings, whe
             skin_level = 0.5 * plateau(inside, d1)
         skin = trace(skin_level)
     bone_level = float(s.bone_level) if s.bone_level is not None else 0.5 * muscle
-    bone = None
+    bone = fibula = None
     if need_bone:
         min_area_px = s.bone_min_area_mm2 / px_mm**2
+        dark = _closed_contours(N, bone_level)
         cands = []
-        for c in _closed_contours(N, bone_level):
+        for c in dark:
             area = abs(polygon_area_centroid(c)[0])
             if area < min_area_px or not points_in_polygon(c, skin).all():
                 continue
@@ -242,20 +256,45 @@ def _segment_slice(img, *, bg, noise, px_mm, settings: SegmentationSettings, whe
         amax = max(a for a, _ in cands)
         if s.bone_select == "anterior":
             big = [(a, c) for a, c in cands if a >= 0.5 * amax]
-            bone = max(big, key=lambda ac: ac[1][:, 1].mean())[1]  # caller maps j to +y
+            bone_a, bone = max(big, key=lambda ac: ac[1][:, 1].mean())  # caller maps j to +y
         else:
-            bone = max(cands, key=lambda ac: ac[0])[1]
-    return _SliceResult(skin, bone, skin_level, bone_level)
+            bone_a, bone = max(cands, key=lambda ac: ac[0])
+        if s.fibula:
+            fibula = _pick_fibula(N, dark, skin, bone, bone_a, bone_level, px_mm=px_mm, settings=s)
+    return _SliceResult(skin, bone, skin_level, bone_level, fibula)
+
+
+def _pick_fibula(N, contours, skin, bone, bone_area_px, level, *, px_mm, settings: SegmentationSettings):
+    """The fibula's (i, j) contour in one slice, or None: of the closed ``contours`` at ``level``, the largest dark one
+    inside the skin and outside the tibia with an area from ``fibula_min_area_mm2`` to
+    ``fibula_max_area_ratio`` x the tibia's (``bone_area_px``, pixels)."""
+    s = settings
+    lo, hi = s.fibula_min_area_mm2 / px_mm**2, s.fibula_max_area_ratio * bone_area_px
+    best = None
+    for c in contours:
+        area = abs(polygon_area_centroid(c)[0])
+        if not lo <= area <= hi or (best is not None and area <= best[0]):
+            continue
+        perimeter = float(np.linalg.norm(np.diff(c, axis=0), axis=1).sum())
+        if 4 * np.pi * area / max(perimeter, 1e-12) ** 2 < _FIBULA_MIN_ROUNDNESS:
+            continue  # a thin or ragged dark gap (fascia, vessel), not a round bone
+        if not points_in_polygon(c, skin).all() or points_in_polygon(c, bone).any() or points_in_polygon(bone, c).any():
+            continue  # outside the skin, the tibia itself, or a region inside / around it
+        if _contour_mean(N, c) >= level:
+            continue  # a bright island
+        best = (area, c)
+    return None if best is None else best[1]
 
 
 def segment_volume(vol: Volume, *, settings: SegmentationSettings = SegmentationSettings(), state: str = "pre",
                    overrides: dict | None = None) -> tuple[Contours, dict]:
-    """Skin and tibia contours on every slice of ``vol``.
+    """Skin, tibia and (where found) fibula contours on every slice of ``vol``.
 
-    Returns :class:`~deeptissue.contours.Contours` (n_slices, n_points, 3) world mm and an info dict
-    (background, noise, per-slice levels, which slices/structures came from the manual override).
-    Raises :class:`SegmentationError` naming animal, file and slice if a slice has no closed skin
-    or bone contour, or if a bone contour lies outside the skin.
+    Returns :class:`~deeptissue.contours.Contours` (n_slices, n_points, 3) world mm, its ``fibula``
+    NaN on the slices without one and None when no slice has one, and an info dict (background,
+    noise, per-slice levels, which slices/structures came from the manual override or were found,
+    ``fibula_slices``). Raises :class:`SegmentationError` naming animal, file and slice if a slice
+    has no closed skin or bone contour, or if a bone or fibula contour lies outside the skin.
     """
     s = settings
     if s.bone_select not in ("largest", "anterior"):
@@ -272,7 +311,7 @@ def segment_volume(vol: Volume, *, settings: SegmentationSettings = Segmentation
     off = vol.index_offset[2]
     # +y direction in index space (for the 'anterior' choice): flip j if the affine's y runs opposite
     flip_j = vol.affine[1, 1] < 0
-    skins, bones, info_slices = [], [], []
+    skins, bones, fibulas, info_slices = [], [], [], []
     for k in range(vol.n_slices):
         where = vol.where(k)
         kf = k + off
@@ -280,31 +319,47 @@ def segment_volume(vol: Volume, *, settings: SegmentationSettings = Segmentation
         img = sm[:, :, k]
         if flip_j:
             img = img[:, ::-1]
-        need_auto = manual["skin"] is None or manual["bone"] is None
+        auto_fibula = s.fibula and manual["fibula"] is None
+        need_auto = manual["skin"] is None or manual["bone"] is None or auto_fibula
         res = None
         if need_auto:
-            res = _segment_slice(img, bg=bg, noise=noise, px_mm=px_mm, settings=s, where=where,
-                                 need_bone=manual["bone"] is None)
+            try:
+                res = _segment_slice(img, bg=bg, noise=noise, px_mm=px_mm, settings=s, where=where,
+                                     need_bone=manual["bone"] is None or auto_fibula)
+            except SegmentationError:
+                if manual["bone"] is None or manual["skin"] is None:
+                    raise
+                res = None  # skin and tibia drawn by hand: no automatic fibula on this slice
         z_c = float(vol.world([(vol.data.shape[0] - 1) / 2, (vol.data.shape[1] - 1) / 2, k])[2])
         out = {}
         for st in STRUCTURES:
             if manual[st] is not None:
                 xy = manual[st]
             else:
-                ij = getattr(res, f"{st}_ij")
+                ij = None if res is None else getattr(res, f"{st}_ij")
+                if ij is None:  # no fibula found (or not searched) on this slice
+                    out[st] = None
+                    continue
                 if flip_j:
                     ij = np.column_stack([ij[:, 0], vol.data.shape[1] - 1 - ij[:, 1]])
                 xy = vol.world(np.column_stack([ij, np.full(len(ij), k)]))[:, :2]
             try:
                 r = resample_closed(xy, n_points=s.n_points, start_angle_deg=s.start_angle_deg)
             except ValueError as exc:
+                if st == "fibula" and manual[st] is None:  # an automatic candidate that is not a bone's outline
+                    out[st] = None
+                    continue
                 raise SegmentationError(f"{where}: {st} contour: {exc}") from exc
             out[st] = np.column_stack([r, np.full(s.n_points, z_c)])
-        inside = points_in_polygon(out["bone"][:, :2], out["skin"][:, :2])
-        if not inside.all():
-            raise SegmentationError(f"{where}: bone contour outside the skin ({int((~inside).sum())} of {len(inside)} points)")
+        for st in ("bone", "fibula"):
+            if out[st] is None:
+                continue
+            inside = points_in_polygon(out[st][:, :2], out["skin"][:, :2])
+            if not inside.all():
+                raise SegmentationError(f"{where}: {st} contour outside the skin ({int((~inside).sum())} of {len(inside)} points)")
         skins.append(out["skin"])
         bones.append(out["bone"])
+        fibulas.append(out["fibula"])
         info_slices.append({
             "slice": kf,
             "z_mm": z_c,
@@ -312,9 +367,22 @@ def segment_volume(vol: Volume, *, settings: SegmentationSettings = Segmentation
             "bone_level": None if res is None else res.bone_level,
             "skin_source": "manual" if manual["skin"] is not None else "auto",
             "bone_source": "manual" if manual["bone"] is not None else "auto",
+            "fibula_source": "manual" if manual["fibula"] is not None else ("auto" if out["fibula"] is not None else "none"),
         })
-    info = {"background": bg, "noise": noise, "slices": info_slices, "settings": s.__dict__}
-    return Contours(skin=np.stack(skins), bone=np.stack(bones)), info
+    found = [f is not None for f in fibulas]
+    n_auto = sum(1 for r in info_slices if r["fibula_source"] == "auto")
+    if s.fibula and 0 < n_auto < s.fibula_min_slices:
+        # a dark spot on a slice or two is not a bone that runs along the leg: drop the automatic ones
+        for k, r in enumerate(info_slices):
+            if r["fibula_source"] == "auto":
+                fibulas[k], found[k] = None, False
+                r["fibula_source"] = "dropped"
+    fibula = None
+    if any(found):
+        fibula = np.stack([f if f is not None else np.full((s.n_points, 3), np.nan) for f in fibulas])
+    info = {"background": bg, "noise": noise, "slices": info_slices, "settings": s.__dict__,
+            "fibula_slices": int(sum(found))}
+    return Contours(skin=np.stack(skins), bone=np.stack(bones), fibula=fibula), info
 
 
 def contour_accuracy(seg: Contours, truth: Contours | dict) -> list[dict]:
@@ -322,14 +390,20 @@ def contour_accuracy(seg: Contours, truth: Contours | dict) -> list[dict]:
 
     ``truth`` is a :class:`Contours` (the true curve taken as the closed polygon through its
     points) or a dict ``structure -> list of (m, 2|3) dense polylines per slice``.
-    Returns rows ``{slice, structure, mean_mm, max_mm}``.
+    Returns rows ``{slice, structure, mean_mm, max_mm}``; the fibula's only on the slices where
+    both the segmentation and the truth have one.
     """
     rows = []
     for st in STRUCTURES:
         segs = getattr(seg, st)
+        true = truth.get(st) if isinstance(truth, dict) else getattr(truth, st)
+        if segs is None or true is None:
+            continue
         for k in range(segs.shape[0]):
-            t = truth[st][k] if isinstance(truth, dict) else getattr(truth, st)[k]
-            d = point_to_polygon_distance(segs[k, :, :2], np.asarray(t)[:, :2])
+            t = np.asarray(true[k], float)
+            if not np.isfinite(segs[k]).all() or not np.isfinite(t).all():
+                continue  # fibula absent from this slice in the segmentation or the truth
+            d = point_to_polygon_distance(segs[k, :, :2], t[:, :2])
             rows.append({"slice": k, "structure": st, "mean_mm": float(d.mean()), "max_mm": float(d.max())})
     return rows
 
@@ -361,7 +435,13 @@ def segment_files(image, *, contours_out, qc_out, animal: str, state: str, setti
     log.info("%s %s: background %.4g, noise %.4g", animal, state, info["background"], info["noise"])
     for row in info["slices"]:
         log.info("slice %(slice)d z %(z_mm).2f mm: skin %(skin_source)s (level %(skin_level)s), "
-                 "bone %(bone_source)s (level %(bone_level)s)", row)
+                 "bone %(bone_source)s (level %(bone_level)s), fibula %(fibula_source)s", row)
+    if not settings.fibula:
+        log.info("%s %s: fibula not segmented (segmentation.fibula is false)", animal, state)
+    elif info["fibula_slices"] == 0:
+        log.info("%s %s: no fibula found on any slice; the contour file has no 'fibula' array", animal, state)
+    else:
+        log.info("%s %s: fibula on %d of %d slices", animal, state, info["fibula_slices"], len(info["slices"]))
     true = load_contours(truth) if truth else None
     rows = contour_accuracy(contours, true) if true is not None else None
     save_contours(contours_out, contours)

@@ -24,7 +24,7 @@ rule phantom:
 
 
 rule segment:
-    """Skin and tibia contours of every slice of one state, and a QC figure."""
+    """Skin, tibia and (where found) fibula contours of every slice of one state, and a QC figure."""
     input:
         unpack(segment_inputs),
     output:
