@@ -53,7 +53,14 @@ class Contours:
         """Boolean (n_slices,): the slices that have a fibula contour."""
         if self.fibula is None:
             return np.zeros(self.n_slices, bool)
-        return np.isfinite(self.fibula[:, :, 0]).all(axis=1)
+        return slices_with_contour(self.fibula)
+
+    @property
+    def fibula_rows(self) -> np.ndarray:
+        """The fibula contours of the slices that have one, stacked (m, n_points, 3); m = 0 if none."""
+        if self.fibula is None:
+            return np.zeros((0, 1, 3))
+        return self.fibula[self.fibula_slices]
 
     @property
     def n_slices(self) -> int:
@@ -63,6 +70,13 @@ class Contours:
     def z_mm(self) -> np.ndarray:
         """Slice positions (mean z of each skin contour)."""
         return self.skin[:, :, 2].mean(axis=1)
+
+
+def slices_with_contour(stack: np.ndarray) -> np.ndarray:
+    """Boolean (n_slices,): the slices of a stack (n_slices, n_points, 3; NaN rows where a structure
+    is absent) that have a whole contour."""
+    stack = np.asarray(stack, float)
+    return np.isfinite(stack).reshape(stack.shape[0], -1).all(axis=1)
 
 
 def save_contours(path: str | Path, contours: Contours) -> None:

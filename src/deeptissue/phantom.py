@@ -291,6 +291,12 @@ class _Anatomy:
         norm = np.sqrt(1.0 + self.fib_slope_max() ** 2)
         return (np.hypot(x - cx, y - cy) - (self.fib_radius - inset)) / norm
 
+    def fib_boundary(self, z: float, n: int = 180) -> np.ndarray:
+        """(n, 2) points (mm) on the fibula's circular boundary at z."""
+        th = np.linspace(0, 2 * np.pi, n, endpoint=False)
+        cx, cy = self.fib_centre(z)
+        return np.column_stack([cx + self.fib_radius * np.cos(th), cy + self.fib_radius * np.sin(th)])
+
     def tib_boundary(self, z: float, n: int = 180) -> np.ndarray:
         """(n, 2) points (mm) on the outer tibia boundary at z."""
         th = np.linspace(0, 2 * np.pi, n, endpoint=False)
@@ -377,10 +383,9 @@ class _Scene:
         if an.fib_radius - s.fibula_cortex_mm < 0.08:
             raise ValueError(f"phantom: the fibula (radius {an.fib_radius:.3g} mm) is too thin to hold marrow inside a "
                              f"{s.fibula_cortex_mm} mm cortex; reduce fibula_cortex_mm or increase fibula_radius_mm")
-        th = np.linspace(0, 2 * np.pi, 180, endpoint=False)
         for z in zs:
             fx, fy = an.fib_centre(z)
-            circ = np.column_stack([fx + an.fib_radius * np.cos(th), fy + an.fib_radius * np.sin(th)])
+            circ = an.fib_boundary(float(z), 180)
             tb = an.tib_boundary(float(z), 360)
             gap = float(np.min(np.linalg.norm(circ[:, None] - tb[None], axis=-1)))
             inside_tibia = an.bone_f(fx, fy, z) < 0
@@ -448,14 +453,11 @@ class _Scene:
         """Smallest distance (mm) from the tibia surface (during) to the indenter, sampled."""
         zs = np.linspace(self.z[0], self.z[-1], 41)
         best = np.inf
-        th = np.linspace(0, 2 * np.pi, 180, endpoint=False)
         for z in zs:
-            pts = np.column_stack([self.an.tib_boundary(z, len(th)), np.full_like(th, z)])
+            xy = self.an.tib_boundary(z, 180)
             if self.s.fibula:
-                fx, fy = self.an.fib_centre(z)
-                r = self.an.fib_radius
-                pts = np.vstack([pts, np.column_stack([fx + r * np.cos(th), fy + r * np.sin(th), np.full_like(th, z)])])
-            pts = self._moved(pts)
+                xy = np.vstack([xy, self.an.fib_boundary(z, 180)])
+            pts = self._moved(np.column_stack([xy, np.full(len(xy), z)]))
             best = min(best, float(self.indenter_sd(pts[:, 0], pts[:, 1], pts[:, 2]).min()))
         return best
 

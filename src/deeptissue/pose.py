@@ -86,6 +86,7 @@ def load_pose(path: str | Path) -> Pose:
 
 from typing import TYPE_CHECKING  # noqa: E402
 
+from .contours import slices_with_contour  # noqa: E402
 from .rigid import rotation_matrix  # noqa: E402
 
 if TYPE_CHECKING:
@@ -716,15 +717,7 @@ def _fibula_mask(fibula_mm, n_slices: int) -> np.ndarray:
     f = np.asarray(fibula_mm, float)
     if f.ndim != 3 or f.shape[0] != n_slices:
         raise PoseError(f"fibula contours: expected ({n_slices}, n_points, 3), got {f.shape}")
-    return np.isfinite(f).reshape(n_slices, -1).all(axis=1)
-
-
-def _fibula_rows(fibula_mm) -> np.ndarray:
-    """The slices of a fibula stack that have a contour, stacked (m, n_points, 3)."""
-    if fibula_mm is None:
-        return np.zeros((0, 1, 3))
-    f = np.asarray(fibula_mm, float)
-    return f[_fibula_mask(f, f.shape[0])]
+    return slices_with_contour(f)
 
 
 def resolve_bone_dof(bone_dof, pre: Contours, during_contours: Contours) -> tuple[int, str]:
@@ -1039,7 +1032,7 @@ def plot_bone_qc(path, pre: Contours, during_contours: Contours, pose: Pose, *, 
     dur = during_contours.bone
     shift = np.asarray(pose.extra.get("bone_com_shift_mm", pose.bone_translation_mm), float)
     R = rotation_matrix(pose.bone_rotation_deg)
-    fib_pre, fib_dur = _fibula_rows(pre.fibula), _fibula_rows(during_contours.fibula)
+    fib_pre, fib_dur = pre.fibula_rows, during_contours.fibula_rows
     if len(fib_pre) and len(fib_dur):  # the fibula, moved with the tibia, is drawn with it
         pre_pts = np.concatenate([pre.bone.reshape(-1, 3), fib_pre.reshape(-1, 3)])
         dur = np.concatenate([dur.reshape(-1, 3), fib_dur.reshape(-1, 3)])

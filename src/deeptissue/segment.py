@@ -369,14 +369,14 @@ def segment_volume(vol: Volume, *, settings: SegmentationSettings = Segmentation
             "bone_source": "manual" if manual["bone"] is not None else "auto",
             "fibula_source": "manual" if manual["fibula"] is not None else ("auto" if out["fibula"] is not None else "none"),
         })
-    found = [f is not None for f in fibulas]
     n_auto = sum(1 for r in info_slices if r["fibula_source"] == "auto")
     if s.fibula and 0 < n_auto < s.fibula_min_slices:
         # a dark spot on a slice or two is not a bone that runs along the leg: drop the automatic ones
         for k, r in enumerate(info_slices):
             if r["fibula_source"] == "auto":
-                fibulas[k], found[k] = None, False
+                fibulas[k] = None
                 r["fibula_source"] = "dropped"
+    found = [f is not None for f in fibulas]
     fibula = None
     if any(found):
         fibula = np.stack([f if f is not None else np.full((s.n_points, 3), np.nan) for f in fibulas])
