@@ -100,3 +100,25 @@ def test_folded_curved_tet_is_straightened():
     fixed, n = straighten_invalid(bad)
     assert n >= 1 and np.all(reference_jacobians(fixed, order=2) > 0)
     np.testing.assert_allclose(fixed.nodes_mm[t[4]], 0.5 * (p[t[0]] + p[t[1]]))
+
+
+def _skin_facet_size_near(m, point):
+    f = m.facets["skin"][:, :3]
+    c = m.nodes_mm[f].mean(axis=1)
+    near = np.argmin(np.linalg.norm(c - np.asarray(point), axis=1))
+    area = 0.5 * np.linalg.norm(np.cross(*(m.nodes_mm[f[near, 1:]] - m.nodes_mm[f[near, 0]])))
+    return np.sqrt(2 * area)  # the facet size of ContactSurface.h_mm
+
+
+def test_refinement_along_a_segment_reaches_both_of_its_ends():
+    # a bar's footprint: the segment from (5, 0, 6) to (5, 0, 14) on the skin of the cylinder
+    a, b = (5.0, 0.0, 6.0), (5.0, 0.0, 14.0)
+    seg = cored_cylinder_mesh(length_mm=20.0, radius_mm=5.0, core_radius_mm=1.0, h_mm=2.0, refine_point_mm=(a, b),
+                              refine_h_mm=0.5, refine_radius_mm=1.0)
+    pt = cored_cylinder_mesh(length_mm=20.0, radius_mm=5.0, core_radius_mm=1.0, h_mm=2.0, refine_point_mm=(5.0, 0.0, 10.0),
+                             refine_h_mm=0.5, refine_radius_mm=1.0)
+    for p in (a, b, (5.0, 0.0, 10.0)):
+        assert _skin_facet_size_near(seg, p) < 0.8
+    assert _skin_facet_size_near(pt, a) > 1.2  # a point refines only around itself
+    with pytest.raises(ValueError, match="segment"):
+        cored_cylinder_mesh(h_mm=2.0, refine_point_mm=(a, b, a), refine_h_mm=0.5, refine_radius_mm=1.0)

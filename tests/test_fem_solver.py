@@ -1,5 +1,7 @@
 """FE core solver: patch test, rigid bone motion, contact derivatives, indentation and cast contact."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from deeptissue.fem.assembly import as_material_law
@@ -240,3 +242,25 @@ def test_indenter_starting_inside_the_skin_is_backed_off_and_reaches_the_same_en
     # a start that is clear is left alone
     clear_ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(4.0, 0.0, 3.0), end_mm=(2.9, 0.0, 3.0))
     assert solve_indentation(limb, material=LAW, indenter=clear_ind, bone_motion=BoneMotion()).extra["start_backoff_mm"] == 0.0
+
+
+def test_wall_time_budget_ends_the_solve_unconverged_with_its_reason(limb):
+    ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(3.5, 0.0, 3.0), end_mm=(2.5, 0.0, 3.0))
+    r = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=BoneMotion(),
+                          settings=SolverSettings(max_wall_s=1e-6))
+    assert not r.converged
+    assert "wall-time budget" in r.reason
+    assert r.load_reached < 4.0
+
+
+def test_unconverged_solve_is_retried_once_with_shifts_and_reports_both_tries(limb):
+    ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(3.5, 0.0, 3.0), end_mm=(2.5, 0.0, 3.0))
+    few = SolverSettings(max_increments=2)
+    r = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=BoneMotion(), settings=few)
+    assert not r.converged and r.extra["attempts"] == 2
+    assert "more than 2 increments" in r.extra["first_attempt_reason"] and "the other try" in r.reason
+    assert r.newton_iterations > r.extra["first_attempt_iterations"] > 0
+    once = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=BoneMotion(),
+                             settings=replace(few, retry_shift_scales=()))
+    assert not once.converged and once.extra["attempts"] == 1
+    assert once.newton_iterations == r.extra["first_attempt_iterations"]  # the first try is the plain solve

@@ -81,7 +81,7 @@ def solve_variant(
         solver_wall_s=result.wall_s, assembly_s=result.assembly_s, linear_solve_s=result.linear_solve_s,
         contact_s=result.contact_s, max_penetration_mm=result.max_penetration_mm,
         max_penetration_rel=result.max_penetration_rel,
-        load_reached=result.load_reached, contact_set=set_name,
+        load_reached=result.load_reached, contact_set=set_name, attempts=result.extra.get("attempts", 1),
     )
     if not result.converged:
         log.warning("%s/%s did not converge: %s", animal, variant, result.reason)

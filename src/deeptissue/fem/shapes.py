@@ -20,6 +20,8 @@ def _start(name: str):
 def _size_field(gmsh, h_mm, refine_point_mm, refine_h_mm, refine_radius_mm, refine_growth=None):
     """Background size: ``refine_h_mm`` within ``refine_radius_mm`` of the point, then growing linearly
     to ``h_mm`` over ``refine_radius_mm`` (or, with ``refine_growth``, at that rate in mm per mm).
+    ``refine_point_mm`` may also be a segment ``(a, b)`` (two points): the distance is then to the
+    segment (a bar indenter's footprint).
 
     gmsh samples the background field only at the vertices (and circumcentres) of the mesh it is
     refining, so a small refinement ball inside a coarse initial triangulation of a large face is
@@ -31,10 +33,19 @@ def _size_field(gmsh, h_mm, refine_point_mm, refine_h_mm, refine_radius_mm, refi
         gmsh.option.setNumber("Mesh.MeshSizeMax", h_mm)
         gmsh.option.setNumber("Mesh.MeshSizeMin", 0.2 * h_mm)
         return
-    x, y, z = refine_point_mm
+    pts = np.asarray(refine_point_mm, float).reshape(-1, 3)
+    if len(pts) > 2:
+        raise ValueError(f"refine_point_mm: a point or a segment (two points), got {len(pts)} points")
+    a, b = pts[0], pts[-1]
+    d = b - a
+    L2 = float(d @ d)
+    if L2 > 0:
+        t = f"Min(1, Max(0, ((x-{a[0]})*{d[0]}+(y-{a[1]})*{d[1]}+(z-{a[2]})*{d[2]})/{L2}))"
+        r = f"Sqrt((x-{a[0]}-{t}*{d[0]})^2+(y-{a[1]}-{t}*{d[1]})^2+(z-{a[2]}-{t}*{d[2]})^2)"
+    else:
+        r = f"Sqrt((x-{a[0]})^2+(y-{a[1]})^2+(z-{a[2]})^2)"
     ramp = refine_radius_mm if refine_growth is None else (h_mm - refine_h_mm) / refine_growth
     f = gmsh.model.mesh.field.add("MathEval")
-    r = f"Sqrt((x-{x})^2+(y-{y})^2+(z-{z})^2)"
     gmsh.model.mesh.field.setString(
         f, "F", f"Min({h_mm}, {refine_h_mm} + ({h_mm} - {refine_h_mm}) * Max(0, {r} - {refine_radius_mm}) / {ramp})"
     )
