@@ -264,3 +264,17 @@ def test_unconverged_solve_is_retried_once_with_shifts_and_reports_both_tries(li
                              settings=replace(few, retry_shift_scales=()))
     assert not once.converged and once.extra["attempts"] == 1
     assert once.newton_iterations == r.extra["first_attempt_iterations"]  # the first try is the plain solve
+
+
+def test_indenter_ending_inside_the_bone_is_reported_infeasible_without_solving(limb):
+    # the limb's rigid core has radius 0.8 mm about the z axis: a sphere (R 1.5 mm) whose tip ends at
+    # x = 0.6 reaches 0.2 mm into it (less at the core's nodes, which are not all on the tip's line)
+    deep = Indenter("sphere", axis=(-1, 0, 0), start_mm=(3.5, 0.0, 3.0), end_mm=(0.6, 0.0, 3.0))
+    r = solve_indentation(limb, material=LAW, indenter=deep, bone_motion=BoneMotion())
+    assert not r.converged and r.reason.startswith("infeasible") and r.extra["infeasible"]
+    assert -0.2 - 1e-9 <= r.extra["bone_clearance_mm"] < -0.1
+    assert r.newton_iterations == 0 and r.extra["attempts"] == 1  # neither solved nor retried
+    # a clear end is solved as before, and its clearance reported
+    ok_ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(3.5, 0.0, 3.0), end_mm=(2.9, 0.0, 3.0))
+    ok = solve_indentation(limb, material=LAW, indenter=ok_ind, bone_motion=BoneMotion())
+    assert ok.converged and 2.1 - 1e-9 <= ok.extra["bone_clearance_mm"] < 2.2

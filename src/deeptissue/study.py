@@ -82,6 +82,7 @@ def solve_variant(
         contact_s=result.contact_s, max_penetration_mm=result.max_penetration_mm,
         max_penetration_rel=result.max_penetration_rel,
         load_reached=result.load_reached, contact_set=set_name, attempts=result.extra.get("attempts", 1),
+        bone_clearance_mm=result.extra.get("bone_clearance_mm"),
     )
     if not result.converged:
         log.warning("%s/%s did not converge: %s", animal, variant, result.reason)
