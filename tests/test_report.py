@@ -7,6 +7,7 @@ import pytest
 from deeptissue.pose import Pose, save_pose
 from deeptissue.report import (
     aggregate_study,
+    exclusions,
     locate_points,
     sample_sections,
     section_frame,
@@ -45,6 +46,11 @@ def test_tables_flag_the_whole_animal_when_one_variant_fails(tmp_path):
     b = voi[voi["animal"] == "ratB"]
     assert b["excluded"].all()
     assert b["exclusion_reason"].iloc[0] == "not converged: bar: inverted element at 40% depth"
+    # a variant that was not solved because it is infeasible is named as such
+    infeasible = failed_summary(animal="ratB", variant="bar", reason="infeasible: the indenter ends 0.2 mm inside the moved bone")
+    assert exclusions([infeasible])["ratB"] == "bar: infeasible: the indenter ends 0.2 mm inside the moved bone"
+    both = exclusions([infeasible, failed_summary(animal="ratB", variant="sphere", reason="line search failed")])
+    assert both["ratB"].startswith("not converged: bar: infeasible")
     assert (b["converged"].tolist(), b["voi_mm3"].iloc[0]) == ([True, False, True], 20.0)
     for col in ["voi_mm3", "below_threshold_percent", "peak_gamma", "strain_energy_mJ", "indenter_force_N", "n_elements",
                 "n_dofs", "increments", "newton_iterations", "wall_s", "skin_mean_mm", "skin_p95_mm", "reason",

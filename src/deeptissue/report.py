@@ -33,12 +33,15 @@ EXCLUDED_HATCH = "///"
 # --- tables ----------------------------------------------------------------------------------------
 
 def exclusions(summaries: Sequence[Summary]) -> dict[str, str]:
-    """animal -> exclusion reason, for every animal with a variant that did not converge."""
-    out: dict[str, list[str]] = {}
+    """animal -> exclusion reason, for every animal with a variant that did not converge
+    ("not converged: <variant>: <reason>; ..."; without the prefix when every such variant was
+    infeasible, i.e. not solved because its indenter ends inside the bone)."""
+    out: dict[str, list[tuple[str, str]]] = {}
     for s in summaries:
         if not s.converged:
-            out.setdefault(s.animal, []).append(f"{s.variant}: {s.reason}")
-    return {a: "not converged: " + "; ".join(r) for a, r in out.items()}
+            out.setdefault(s.animal, []).append((s.variant, str(s.reason)))
+    return {a: ("" if all(why.startswith("infeasible") for _, why in r) else "not converged: ")
+            + "; ".join(f"{v}: {why}" for v, why in r) for a, r in out.items()}
 
 
 _DICT_FIELDS = ("bins_percent", "voi_by_measure_mm3", "peak_gamma_by_measure")

@@ -660,10 +660,10 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
         bone_clearance_mm = float(np.min(sched.ind.gap(sched.bone(Xb, 4.0), sched.tip(4.0))[0]))
         if bone_clearance_mm < s.min_bone_clearance_mm:
             done = False
-            where = (f"reaches {-bone_clearance_mm:.3f} mm into the moved bone" if bone_clearance_mm < 0
-                     else f"comes within {bone_clearance_mm:.3f} mm of the moved bone")
-            reason_fail = (f"infeasible: at the end of its travel the indenter {where} (min_bone_clearance_mm "
-                           f"{s.min_bone_clearance_mm:g}); no tissue state fits between them")
+            where = (f"{-bone_clearance_mm:.3f} mm inside the moved bone" if bone_clearance_mm < 0
+                     else f"{bone_clearance_mm:.3f} mm from the moved bone")
+            reason_fail = (f"infeasible: the indenter ends {where} (min_bone_clearance_mm "
+                           f"{s.min_bone_clearance_mm:g}): no tissue state fits between them")
             log.warning(reason_fail)
     for k in sched.active_steps() if done else ():
         t = float(k)
