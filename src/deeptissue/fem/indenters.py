@@ -61,6 +61,11 @@ class Indenter:
         along; ValueError for an axis along the leg)."""
         return _bar_direction(self.unit_axis)
 
+    @property
+    def bar_half_length_mm(self) -> float:
+        """Half length of the bar's straight part (between the centres of its rounded ends) [mm]."""
+        return 0.5 * float(self.bar_length_mm) - float(self.radius_mm)
+
     def tip_at(self, s: float) -> np.ndarray:
         """Tip position at travel fraction s in [0, 1] (3,) [mm]."""
         a, b = np.asarray(self.start_mm, float), np.asarray(self.end_mm, float)
@@ -88,7 +93,7 @@ def indenter_gap(ind: Indenter, x: np.ndarray, tip_mm: np.ndarray):
         s = np.where(on_line, s, 0.0)
     else:
         t = ind.bar_direction()
-        h = 0.5 * float(ind.bar_length_mm) - R
+        h = ind.bar_half_length_mm
         s = d @ t
         on_line = np.abs(s) < h
         s = np.clip(s, -h, h)

@@ -324,9 +324,12 @@ def solve_indentation(mesh: TetMesh, *, material, indenter: Indenter | None, bon
     with wall and component times and Newton iterations summed over both tries and
     ``extra['attempts']`` = 2.
     """
+    def run(st):
+        return _solve(mesh, material=material, indenter=indenter, schedule=_Schedule(bone_motion, indenter),
+                      bc_sets=(st.bone_set,), cast=cast, settings=st)
+
     t0 = time.perf_counter()
-    first = _solve(mesh, material=material, indenter=indenter, schedule=_Schedule(bone_motion, indenter),
-                   bc_sets=(settings.bone_set,), cast=cast, settings=settings)
+    first = run(settings)
     if first.converged or first.extra["infeasible"] or settings.shift_scales or not settings.retry_shift_scales:
         return first
     budget = settings.max_wall_s
@@ -334,12 +337,11 @@ def solve_indentation(mesh: TetMesh, *, material, indenter: Indenter | None, bon
         budget -= time.perf_counter() - t0
         if budget <= 0:
             return first
+    again = replace(settings, shift_scales=settings.retry_shift_scales, max_wall_s=budget,
+                    max_iterations=max(settings.max_iterations, settings.retry_max_iterations))
     log.warning("not converged (%s): solving again from the start with diagonal shifts %s and up to %d iterations "
-                "per increment", first.reason, settings.retry_shift_scales, max(settings.max_iterations, settings.retry_max_iterations))
-    retry = _solve(mesh, material=material, indenter=indenter, schedule=_Schedule(bone_motion, indenter),
-                   bc_sets=(settings.bone_set,), cast=cast,
-                   settings=replace(settings, shift_scales=settings.retry_shift_scales, max_wall_s=budget,
-                                    max_iterations=max(settings.max_iterations, settings.retry_max_iterations)))
+                "per increment", first.reason, again.shift_scales, again.max_iterations)
+    retry = run(again)
     # both failed: keep the try that got further (its last converged state is the more useful)
     best = retry if retry.converged or retry.load_reached >= first.load_reached else first
     reason = retry.reason if retry.converged else (
@@ -656,16 +658,18 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
     # the rigid bone and the rigid indenter at the end of the load: if they overlap, no tissue state
     # exists (the tissue between them would have to vanish), so say so instead of solving toward it
     bone_clearance_mm = None
+    infeasible = False
     if indenter is not None and isinstance(sched, _Schedule) and len(Xb):
         bone_clearance_mm = float(np.min(sched.ind.gap(sched.bone(Xb, 4.0), sched.tip(4.0))[0]))
-        if bone_clearance_mm < s.min_bone_clearance_mm:
+        infeasible = bone_clearance_mm < s.min_bone_clearance_mm
+        if infeasible:
             done = False
             where = (f"{-bone_clearance_mm:.3f} mm inside the moved bone" if bone_clearance_mm < 0
                      else f"{bone_clearance_mm:.3f} mm from the moved bone")
             reason_fail = (f"infeasible: the indenter ends {where} (min_bone_clearance_mm "
                            f"{s.min_bone_clearance_mm:g}): no tissue state fits between them")
             log.warning(reason_fail)
-    for k in sched.active_steps() if done else ():
+    for k in () if infeasible else sched.active_steps():
         t = float(k)
         if k == 3 and indenter is not None:
             start_backoff_mm = clear_start(u)
@@ -824,7 +828,5 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
         n_free_dofs=asm.n_free, increments=sum(1 for h in history if h.converged), newton_iterations=n_iter_total,
         load_reached=t, wall_s=wall, assembly_s=timers["assembly"], linear_solve_s=timers["solve"],
         contact_s=timers["contact"], extra={"attempts": 1, "straightened_tets": n_straightened, "start_backoff_mm": start_backoff_mm,
-                                            "bone_clearance_mm": bone_clearance_mm,
-                                            "infeasible": bone_clearance_mm is not None and bone_clearance_mm < s.min_bone_clearance_mm,
-                                            **counts},
+                                            "bone_clearance_mm": bone_clearance_mm, "infeasible": infeasible, **counts},
     )
