@@ -30,13 +30,16 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def make_row(setting, *, variant="sphere", family="P2 uniform", n_dofs, voi, force, bins, wall_s,
-             tolerance="default", rtol=1e-7, is_default=False, converged=True, h=1.0):
+             tolerance="default", rtol=1e-7, is_default=False, converged=True, h=1.0, voi_centroid=None,
+             bins_centroid=None):
     return dict(
         animal="rat01", variant=variant, setting=setting, family=family, element_order=2, element_size_mm=h,
         refine_size_mm=None, tolerance=tolerance, rtol=rtol, penetration_tol=0.01,
         mesh_key=f"p2_h{h:g}_rnone", is_default=is_default, converged=converged,
         reason=None if converged else "cut-back limit", n_elements=n_dofs // 10, n_dofs=n_dofs, increments=5,
-        newton_iterations=20, voi_mm3=voi, bins_percent=bins, peak_gamma=0.5, indenter_force_N=force,
+        newton_iterations=20, voi_mm3=voi, bins_percent=bins, gamma_sampling="points", voi_sampled_mm3=voi,
+        bins_sampled_percent=bins, voi_centroid_mm3=voi if voi_centroid is None else voi_centroid,
+        bins_centroid_percent=bins if bins_centroid is None else bins_centroid, peak_gamma=0.5, indenter_force_N=force,
         mesh_s=1.0, assembly_s=0.3 * wall_s, linear_solve_s=0.5 * wall_s, contact_s=0.05 * wall_s,
         solver_other_s=0.0, post_s=0.1, solve_s=0.85 * wall_s, wall_s=wall_s, linear_setup_s=0.1,
         linear_assembly_s=0.1, linear_factor_solve_s=0.1, linear_wall_s=0.3, cost_ratio=0.85 * wall_s / 0.3,
@@ -108,6 +111,28 @@ def test_errors_against_the_finest_run_and_richardson():
     assert df.loc["p2_n27000", "bin_max_error_pp"] == pytest.approx(0.3 * (1600 / 900) - 0.3, rel=1e-9)
     # each row costs more and is more accurate than the previous: all on the front
     assert df["pareto"].all()
+
+
+def test_errors_of_both_gamma_samplings():
+    """The sampled and centroid estimates get their own errors against the reference's same estimate."""
+    rows = ladder_rows()
+    for i, r in enumerate(rows):  # centroid VOI 10 % low on the coarsest mesh, 5 % on the next, exact after
+        r["voi_centroid_mm3"] = r["voi_mm3"] * (1 - [0.10, 0.05, 0.0, 0.0][i])
+        r["bins_centroid_percent"] = {k: v + [4.0, 2.0, 0.0, 0.0][i] * (1 if k == "0.3-0.4" else 0) for k, v in r["bins_percent"].items()}
+    df = convergence_table(rows).set_index("setting")
+    ref = df.loc["p2_n64000"]
+    for name, off_voi, off_bin in [("p2_n1000", 0.10, 4.0), ("p2_n8000", 0.05, 2.0)]:
+        r = df.loc[name]
+        assert r["voi_sampled_rel_error"] == pytest.approx(r["voi_rel_error"], rel=1e-12)
+        assert r["voi_centroid_rel_error"] == pytest.approx(abs(r["voi_mm3"] * (1 - off_voi) / ref["voi_mm3"] - 1), rel=1e-12)
+        assert r["bin_centroid_max_error_pp"] >= off_bin - r["bin_max_error_pp"] - 1e-12
+    assert df.loc["p2_n27000", "meets_goal_sampled"] == df.loc["p2_n27000", "meets_goal"]
+    assert not df.loc["p2_n8000", "meets_goal_centroid"]
+    assert {"bin_centroid_0.3-0.4", "bin_sampled_>0.5", "goal_error_centroid"} <= set(df.columns)
+    st = setting_table(df.reset_index()).set_index("setting")
+    assert st.loc["p2_n27000", "meets_goal_sampled"] and not st.loc["p2_n8000", "meets_goal_centroid"]
+    text = summary_markdown(df.reset_index(), default_name="p2_n8000")
+    assert "γ at element centroids (`voi_centroid_mm3`)" in text
 
 
 def test_element_size_measure_and_bin_columns():
@@ -185,7 +210,8 @@ def test_aggregate_writes_csv_figure_and_summary_with_benchmarks(tmp_path):
                                png_path=out / "error_vs_time.png", md_path=out / "summary.md",
                                default_name="p2_n27000")
     back = pd.read_csv(out / "convergence.csv")
-    assert len(back) == 4 and set(ROW_COLUMNS) - {"bins_percent"} <= set(back.columns)
+    dict_columns = {"bins_percent", "bins_sampled_percent", "bins_centroid_percent"}  # flattened to bin_* columns
+    assert len(back) == 4 and set(ROW_COLUMNS) - dict_columns <= set(back.columns)
     assert np.allclose(back["benchmark_max_rss_mb"], back["peak_rss_mb"] + 5)
     assert (out / "error_vs_time.png").read_bytes()[:4] == b"\x89PNG"
     assert "`p2_n27000` meets the goal" in (out / "summary.md").read_text()
@@ -210,7 +236,7 @@ def test_default_ladder_contains_default_families_of_both_orders():
     assert lad.by_name("p1_h1.6").model_settings({"element_order": 2})["element_order"] == 1
     assert lad.by_name("p1_h0.9").family == "P1 uniform" and not lad.notes
     assert setting_name(element_size_mm=0.7, refine_size_mm=0.35, tolerance="tight") == "p2_h0.7_r0.35_tight"
-    assert default_ladder({"element_orders": [1]}).default_name == "p1_h1_r0.5"
+    assert default_ladder({"element_orders": [1]}).default_name == "p1_h1.6_r0.8"  # the model defaults
     with pytest.raises(ValueError, match="element_orders"):
         default_ladder({"element_orders": [3]})
 

@@ -265,7 +265,7 @@ def test_run_discretisation_runs_a_p1_setting():
                           "tolerances": [{"name": "default"}]}, model_cfg={"element_size_mm": 1.0, "refine_size_mm": 0.5})
     assert {"p1_h1.6", "p2_h1.6", "p1_h1_r0.5", "p2_h1_r0.5"} <= set(lad.names) and not lad.notes
     assert lad.default_name == "p2_h1_r0.5"
-    assert default_ladder({"element_orders": [1, 2]}, model_cfg={"element_order": 1}).default_name == "p1_h1_r0.5"
+    assert default_ladder({"element_orders": [1, 2]}, model_cfg={"element_order": 1}).default_name == "p1_h1.6_r0.8"
     c = leg_contours(n_slices=12, n_points=60)
     pose = leg_pose(c, depth_mm=0.5)
     s = Discretisation(name="p1_h2", family="P1 uniform", element_size_mm=2.0, element_order=1)

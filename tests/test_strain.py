@@ -14,6 +14,7 @@ from deeptissue.strain import (
     deformation_gradient_at_centroids,
     element_strain,
     element_volumes_mm3,
+    gamma_at_points,
     green_lagrange,
     max_shear,
     principal_log_stretches,
@@ -21,6 +22,7 @@ from deeptissue.strain import (
     tet10_shape_functions,
     tet10_shape_gradients,
     tet_quadrature,
+    tet_subdivision,
     voi_statistics,
 )
 from study_meshes import box_tet10, centroids
@@ -226,3 +228,83 @@ def test_voi_statistics_edges_empty_voi_and_errors():
 def test_bin_labels():
     assert bin_labels(np.arange(3, 11) / 10) == ["0.3-0.4", "0.4-0.5", "0.5-0.6", "0.6-0.7", "0.7-0.8", "0.8-0.9", "0.9-1.0", ">1.0"]
     assert bin_labels([0.25, 1, 2]) == ["0.25-1.0", "1.0-2.0", ">2.0"]
+
+
+def test_tet_subdivision_is_a_midpoint_rule_on_equal_sub_tetrahedra():
+    for levels, n in ((0, 1), (1, 8), (2, 64)):
+        p, w = tet_subdivision(levels)
+        assert p.shape == (n, 3) and np.allclose(w, 1 / 6 / n)
+        assert np.all(p > 0) and np.all(p.sum(axis=1) < 1)  # strictly inside the reference tetrahedron
+        np.testing.assert_allclose(w @ p, np.full(3, 1 / 24), rtol=1e-13)  # ∫ξ = 1/24: linear functions exact
+    assert len({tuple(x) for x in np.round(tet_subdivision(2)[0], 12)}) == 64  # no two sub-tets alike
+    with pytest.raises(ValueError, match="levels"):
+        tet_subdivision(-1)
+
+
+def _slab_volume(k, t):
+    """Volume of the unit cube where γ_GL = s sqrt(s² + 4)/4 > t for s = k y: s_t² = sqrt(4 + 16 t²) − 2."""
+    return 1.0 - np.sqrt(np.sqrt(4 + 16 * t**2) - 2) / k
+
+
+def test_gamma_sampled_at_points_measures_the_volume_above_a_threshold_inside_elements():
+    """u_x = k y²/2 is exact in P2: simple shear of amount s = k y, γ_GL = s sqrt(s² + 4)/4 grows with y.
+    On a mesh one element thick in y the volume with γ > t is the slab y > y_t; the 64 points per
+    element find it, the centroids can only count whole elements."""
+    k, t = 1.0, 0.3
+    m = box_tet10([0, 1], [0, 1], [0, 0.5, 1])
+    y = m.nodes_mm[:, 1]
+    u = np.column_stack([0.5 * k * y**2, np.zeros_like(y), np.zeros_like(y)])
+    exact = _slab_volume(k, t)
+    gam, vol, n_folded = gamma_at_points(m, u, levels=2, strain_measures=("green_lagrange", "log"))
+    assert n_folded == 0
+    assert vol.shape == gam["green_lagrange"].shape == (m.n_tets, 64)
+    np.testing.assert_allclose(vol.sum(axis=1), element_volumes_mm3(m), rtol=1e-12)
+    # at every point γ is the closed form of the point's y
+    pts, _ = tet_subdivision(2)
+    L = np.column_stack([1 - pts.sum(axis=1), pts])  # barycentric; y of a straight tet is linear in them
+    yq = np.einsum("qa,ma->mq", L, m.nodes_mm[m.tets[:, :4], 1])
+    np.testing.assert_allclose(gam["green_lagrange"], k * yq * np.sqrt((k * yq) ** 2 + 4) / 4, atol=1e-12)
+    np.testing.assert_allclose(gam["log"], np.arcsinh(k * yq / 2), atol=1e-12)
+    sampled = voi_statistics(gam["green_lagrange"].ravel(), vol.ravel(), threshold=t, bin_edges=(t, 0.5))
+    assert sampled.voi_mm3 == pytest.approx(exact, rel=0.02)  # -1.6 %
+    gamma_from_centroids = element_strain(m, u).gamma_gl
+    centroid = voi_statistics(gamma_from_centroids, element_volumes_mm3(m), threshold=t, bin_edges=(t, 0.5))
+    assert abs(centroid.voi_mm3 - exact) > 5 * abs(sampled.voi_mm3 - exact)  # -21 %
+    # 32 768 points per element: within 1 % of the slab for other shears and thresholds too
+    for k, t in ((1.0, 0.3), (1.0, 0.2), (0.8, 0.3)):
+        u = np.column_stack([0.5 * k * y**2, np.zeros_like(y), np.zeros_like(y)])
+        g, v, _ = gamma_at_points(m, u, levels=5)
+        fine = voi_statistics(g["green_lagrange"].ravel(), v.ravel(), threshold=t, bin_edges=(t, 0.5))
+        assert fine.voi_mm3 == pytest.approx(_slab_volume(k, t), rel=0.01)
+    with pytest.raises(ValueError, match="strain_measure"):
+        gamma_at_points(m, u, strain_measures=("cauchy",))
+
+
+def test_a_curved_element_that_folds_inside_is_sampled_at_its_centroid():
+    corners = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    mids = np.array([(corners[a] + corners[b]) / 2 for a, b in ((0, 1), (1, 2), (0, 2), (0, 3), (2, 3), (1, 3))])
+    mids[0, 0] = 0.15  # edge (0, 1)'s mid node pulled toward corner 0: dx/dξ = 4·0.15 − 1 < 0 near that corner
+    m = TetMesh(nodes_mm=np.vstack([corners, mids]), tets=np.arange(10)[None])
+    u = 0.1 * m.nodes_mm[:, [1, 0, 2]]  # a linear field: F constant
+    gam, vol, n_folded = gamma_at_points(m, u)
+    assert n_folded == 1
+    np.testing.assert_allclose(vol, element_volumes_mm3(m)[0] / 64, rtol=1e-12)
+    np.testing.assert_allclose(gam["green_lagrange"], element_strain(m, u).gamma_gl[0], rtol=1e-12)
+
+
+def test_an_element_inverted_between_its_quadrature_points_is_sampled_at_its_centroid():
+    """A P2 displacement that inverts the element near one corner only (det F <= 0 there) but not at
+    the centroid: the log strain has no value at those points, so the element counts at its centroid."""
+    corners = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    mids = np.array([(corners[a] + corners[b]) / 2 for a, b in ((0, 1), (1, 2), (0, 2), (0, 3), (2, 3), (1, 3))])
+    m = TetMesh(nodes_mm=np.vstack([corners, mids]), tets=np.arange(10)[None])
+    u = np.zeros((10, 3))
+    u[4, 0] = -0.35  # mid node of edge (0, 1) pulled back: ∂u_x/∂x = 4·(−0.35) at corner 0, −1.4 < −1
+    F_c = deformation_gradient_at_centroids(m, u)
+    assert np.linalg.det(F_c)[0] > 0
+    gam, vol, n = gamma_at_points(m, u, strain_measures=("green_lagrange", "log"))
+    assert n == 1
+    np.testing.assert_allclose(vol, 1 / 6 / 64, rtol=1e-12)
+    s = element_strain(m, u)
+    np.testing.assert_allclose(gam["log"], s.gamma_log[0], rtol=1e-12)
+    np.testing.assert_allclose(gam["green_lagrange"], s.gamma_gl[0], rtol=1e-12)

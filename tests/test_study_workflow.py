@@ -45,10 +45,14 @@ def test_test_config_and_study_defaults():
     assert c["study"]["threshold"] == 0.3
     assert c["study"]["bin_edges"] == [0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0]
     assert c["study"]["strain_measure"] == "green_lagrange" and c["study"]["figure_animal"] is None
-    bad = yaml.safe_load((ROOT / "config" / "test.yaml").read_text())
-    bad["study"]["strain_measure"] = "hencky"
-    with pytest.raises(ConfigError, match="study.strain_measure"):
-        validate_config(bad, SCHEMA, base_dir=ROOT)
+    assert c["study"]["gamma_sampling"] == "points"
+    assert (c["model"]["element_size_mm"], c["model"]["refine_size_mm"]) == (2.5, 1.25)  # CI's coarse mesh
+    assert (_load("config.yaml")["model"]["element_size_mm"], _load("config.yaml")["model"]["refine_size_mm"]) == (1.6, 0.8)
+    for key, value in (("strain_measure", "hencky"), ("gamma_sampling", "nodes")):
+        bad = yaml.safe_load((ROOT / "config" / "test.yaml").read_text())
+        bad["study"][key] = value
+        with pytest.raises(ConfigError, match=f"study.{key}"):
+            validate_config(bad, SCHEMA, base_dir=ROOT)
 
 
 def _snakemake(workdir, *targets_then_options):

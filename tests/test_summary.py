@@ -118,7 +118,7 @@ def test_summarize_solution_and_json_round_trip(tmp_path):
     assert s.voi_by_measure_mm3 == pytest.approx({"green_lagrange": 1.0, "log": 1.0})
     assert s.peak_gamma_by_measure["log"] == pytest.approx(np.arcsinh(0.35), rel=1e-12)
     assert s.n_elements == m.n_tets and s.newton_iterations == 17
-    assert s.extra == {"contact_nodes": 12}
+    assert s.extra == {"contact_nodes": 12, "sampling_centroid_elements": 0}
 
     # skin agreement inside summarize_solution: the x = 1 face, sheared into x = 1 + u_x(y)
     skin = boundary_tri6(m, lambda p: np.isclose(p[:, 0], 1.0))
@@ -148,6 +148,28 @@ def test_summarize_solution_and_json_round_trip(tmp_path):
     np.testing.assert_allclose(ur, u)
     np.testing.assert_allclose(cd["gamma_gl"], strain.gamma_gl)
     np.testing.assert_allclose(cd["volume_mm3"].sum(), 2.0, rtol=1e-12)
+
+
+def test_gamma_sampling_chooses_the_reported_voi_and_both_are_kept():
+    """u_x = y²/2 (exact in P2): γ grows inside each element, so points and centroids differ."""
+    m = box_tet10([0, 1], [0, 0.5, 1], [0, 1])
+    y = m.nodes_mm[:, 1]
+    u = np.column_stack([0.5 * y**2, np.zeros_like(y), np.zeros_like(y)])
+    w = np.full(m.n_tets, 2.0)  # energy density [MPa]
+    pts, _ = summarize_solution(m, u, animal="a", variant="sphere", energy_density_mpa=w)
+    cen, _ = summarize_solution(m, u, animal="a", variant="sphere", gamma_sampling="centroid", energy_density_mpa=w)
+    assert pts.gamma_sampling == "points" and cen.gamma_sampling == "centroid"
+    assert pts.voi_sampled_mm3 == cen.voi_sampled_mm3 and pts.voi_centroid_mm3 == cen.voi_centroid_mm3
+    assert pts.voi_mm3 == pts.voi_sampled_mm3 and cen.voi_mm3 == cen.voi_centroid_mm3
+    assert pts.voi_sampled_mm3 != pytest.approx(pts.voi_centroid_mm3, rel=0.01)
+    assert pts.bins_percent == pts.bins_sampled_percent and cen.bins_percent == cen.bins_centroid_percent
+    # the VOI energy follows the sampling: density 2 MPa times that VOI
+    assert pts.strain_energy_mJ == pytest.approx(2.0 * pts.voi_mm3) and cen.strain_energy_mJ == pytest.approx(2.0 * cen.voi_mm3)
+    assert pts.below_threshold_percent == pytest.approx(100 * (1 - pts.voi_mm3))  # unit cube
+    assert pts.voi_by_measure_mm3["green_lagrange"] == pts.voi_mm3
+    assert cen.peak_gamma == pts.peak_gamma  # always the largest centroid value
+    with pytest.raises(ValueError, match="gamma_sampling"):
+        summarize_solution(m, u, animal="a", variant="sphere", gamma_sampling="nodes")
 
 
 def test_result_vtu_uses_vtk_node_order(tmp_path):

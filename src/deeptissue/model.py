@@ -32,8 +32,8 @@ SPHERE_RADIUS_MM = 1.5  # indenter head and bar radius (CONTRACTS: indenters)
 class ModelSettings:
     """Settings of the model stage (config section ``model``; see the schema for descriptions)."""
 
-    element_size_mm: float = 1.0
-    refine_size_mm: float = 0.5
+    element_size_mm: float = 1.6
+    refine_size_mm: float = 0.8
     refine_radius_mm: float = 4.0
     refine_transition_mm: float = 2.0
     refine_depth_mm: float = 4.0

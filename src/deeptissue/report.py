@@ -44,7 +44,8 @@ def exclusions(summaries: Sequence[Summary]) -> dict[str, str]:
             + "; ".join(f"{v}: {why}" for v, why in r) for a, r in out.items()}
 
 
-_DICT_FIELDS = ("bins_percent", "voi_by_measure_mm3", "peak_gamma_by_measure")
+_DICT_FIELDS = ("bins_percent", "bins_sampled_percent", "bins_centroid_percent", "voi_by_measure_mm3",
+                "peak_gamma_by_measure")
 
 
 def _flatten(d: dict) -> dict:
@@ -163,7 +164,10 @@ def plot_voi(voi: pd.DataFrame, path: str | Path, *, measure_label: str = "γmax
     ax.set_xticks(range(len(animals)), animals)
     ax.set_ylim(0, 1.3 * top)
     ax.set_ylabel("VOI [mm³]")
-    ax.set_title(f"Volume with {measure_label} above threshold (x: not converged)")
+    sampled = set(voi["gamma_sampling"].dropna()) if "gamma_sampling" in voi else set()
+    where = {"points": "64 points per element", "centroid": "element centroids"}
+    at = f", sampled at {' / '.join(where.get(x, str(x)) for x in sorted(sampled))}" if sampled else ""
+    ax.set_title(f"Volume with {measure_label} above threshold{at} (x: not converged)", fontsize=10)
     _save(fig, path)
 
 

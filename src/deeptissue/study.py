@@ -36,6 +36,15 @@ class StudySettings:
     threshold: float = 0.3
     bin_edges: tuple = tuple(DEFAULT_BIN_EDGES)
     strain_measure: str = "green_lagrange"
+    gamma_sampling: str = "points"  # 'points' (64 per element) or 'centroid' (the paper's), see summary.GAMMA_SAMPLINGS
+
+    @classmethod
+    def from_config(cls, study_cfg: dict | None) -> "StudySettings":
+        """From the config section ``study`` (defaults for missing keys)."""
+        d = dict(study_cfg or {})
+        return cls(threshold=float(d.get("threshold", 0.3)), bin_edges=tuple(d.get("bin_edges", DEFAULT_BIN_EDGES)),
+                   strain_measure=d.get("strain_measure", "green_lagrange"),
+                   gamma_sampling=d.get("gamma_sampling", "points"))
 
 
 def variant_indenter(pose: Pose, variant_name: str, *, radius_mm: float = 1.5, bar_length_mm: float = 10.0) -> Indenter:
@@ -89,12 +98,14 @@ def solve_variant(
         strain = element_strain(mesh, result.displacement_mm)
         summary = failed_summary(animal=animal, variant=variant, reason=result.reason,
                                  strain_measure=study.strain_measure, threshold=study.threshold,
+                                 gamma_sampling=study.gamma_sampling,
                                  n_elements=int(mesh.n_tets), **info)
         return summary, result.displacement_mm, strain
     energy = ogden_energy(result.deformation_gradient, material)
     summary, strain = summarize_solution(
         mesh, result.displacement_mm, animal=animal, variant=variant, strain_measure=study.strain_measure,
-        threshold=study.threshold, bin_edges=study.bin_edges, energy_density_mpa=energy,
+        threshold=study.threshold, bin_edges=study.bin_edges, gamma_sampling=study.gamma_sampling,
+        energy_density_mpa=energy,
         skin_contours_mm=skin_contours_mm, **info,
     )
     return summary, result.displacement_mm, strain
@@ -108,9 +119,7 @@ def run_solve(*, animal: str, variant: str, mesh_path, cast_path, pose_path, dur
     ``converged = False`` and the reason, and a VTU of the last converged state (or the undeformed
     mesh when nothing was solved).
     """
-    study = StudySettings(threshold=float(study_cfg.get("threshold", 0.3)),
-                          bin_edges=tuple(study_cfg.get("bin_edges", DEFAULT_BIN_EDGES)),
-                          strain_measure=study_cfg.get("strain_measure", "green_lagrange"))
+    study = StudySettings.from_config(study_cfg)
     mesh = load_tetmesh(mesh_path)
     u = np.zeros_like(mesh.nodes_mm)
     try:
@@ -128,6 +137,7 @@ def run_solve(*, animal: str, variant: str, mesh_path, cast_path, pose_path, dur
         log.error("%s/%s failed:\n%s", animal, variant, traceback.format_exc())
         summary = failed_summary(animal=animal, variant=variant, reason=f"{type(exc).__name__}: {exc}",
                                  strain_measure=study.strain_measure, threshold=study.threshold,
+                                 gamma_sampling=study.gamma_sampling,
                                  n_elements=int(mesh.n_tets))
         strain = element_strain(mesh, u)
     write_result_vtu(vtu_path, mesh, u, strain, cell_data={"converged": np.full(mesh.n_tets, int(summary.converged))})
