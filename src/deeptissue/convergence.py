@@ -162,8 +162,10 @@ def default_ladder(conv_cfg: dict | None = None, *, model_cfg: dict | None = Non
     sv = dict(solver_cfg or {})
     base_rtol = float(sv.get("rtol", 1e-7))
     base_pen = float(sv.get("penetration_tol", 0.01))
-    h0 = float(m.get("element_size_mm", 1.6))
-    r0 = float(m.get("refine_size_mm", 0.8))
+    from .model import ModelSettings  # the model stage's defaults, one definition
+
+    h0 = float(m.get("element_size_mm", ModelSettings.element_size_mm))
+    r0 = float(m.get("refine_size_mm", ModelSettings.refine_size_mm))
     r0 = None if r0 >= h0 else r0
     tols = {}
     for t in c.get("tolerances", [{"name": "default"}]):
@@ -545,21 +547,6 @@ def convergence_table(rows, *, goal: AccuracyGoal = AccuracyGoal(), measure: str
         for k in (r.get("bins_percent") or {}):
             if k not in labels:
                 labels.append(k)
-    for est in ESTIMATES:  # the errors of both γ samplings, whichever voi_mm3 is
-        for r in rows:
-            ref = refs.get(r["variant"])
-            voi, bins = f"voi_{est}_mm3", f"bins_{est}_percent"
-            ok = _ok(r) and ref is not None and r.get(voi) is not None and ref.get(voi) is not None
-            r[f"voi_{est}_rel_error"] = _rel(r.get(voi), ref[voi]) if ok else float("nan")
-            r[f"bin_{est}_max_error_pp"] = _bin_error(r.get(bins), ref.get(bins)) if ok else float("nan")
-            r[f"goal_error_{est}"] = (goal_error(r[f"voi_{est}_rel_error"], r[f"bin_{est}_max_error_pp"],
-                                                 _rel(r["indenter_force_N"], ref["indenter_force_N"]), goal)
-                                      if ok else float("nan"))
-            r[f"meets_goal_{est}"] = bool(ok and r[f"goal_error_{est}"] <= 1.0)
-            rs = rich_ref.get((r["variant"], voi))
-            r[f"voi_{est}_rel_error_richardson"] = _rel(r.get(voi), rs["extrapolated"]) if (ok and rs) else float("nan")
-            for k in labels:
-                r[f"bin_{est}_{k}"] = (r.get(bins) or {}).get(k)
     for r in rows:
         ref = refs.get(r["variant"])
         ok = _ok(r) and ref is not None
@@ -580,6 +567,18 @@ def convergence_table(rows, *, goal: AccuracyGoal = AccuracyGoal(), measure: str
             r["meets_goal_richardson"] = None
         for k in labels:
             r[f"bin_{k}"] = (r.get("bins_percent") or {}).get(k)
+        for est in ESTIMATES:  # the errors of both γ samplings, whichever voi_mm3 is
+            voi, bins = f"voi_{est}_mm3", f"bins_{est}_percent"
+            ok_e = ok and r.get(voi) is not None and ref.get(voi) is not None
+            r[f"voi_{est}_rel_error"] = _rel(r.get(voi), ref[voi]) if ok_e else float("nan")
+            r[f"bin_{est}_max_error_pp"] = _bin_error(r.get(bins), ref.get(bins)) if ok_e else float("nan")
+            r[f"goal_error_{est}"] = (goal_error(r[f"voi_{est}_rel_error"], r[f"bin_{est}_max_error_pp"],
+                                                 r["force_rel_error"], goal) if ok_e else float("nan"))
+            r[f"meets_goal_{est}"] = bool(ok_e and r[f"goal_error_{est}"] <= 1.0)
+            rs = rich_ref.get((r["variant"], voi))
+            r[f"voi_{est}_rel_error_richardson"] = _rel(r.get(voi), rs["extrapolated"]) if (ok_e and rs) else float("nan")
+            for k in labels:
+                r[f"bin_{est}_{k}"] = (r.get(bins) or {}).get(k)
     df = pd.DataFrame(rows)
     df = df.drop(columns=[c for c in ("bins_percent", *(f"bins_{e}_percent" for e in ESTIMATES)) if c in df])
     df["pareto"] = False

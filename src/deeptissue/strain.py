@@ -246,7 +246,6 @@ def gamma_at_points(mesh: TetMesh, displacement_mm, *, levels: int = 2, strain_m
     u = _check_mesh_and_u(mesh, displacement_mm)
     pts, w = tet_subdivision(levels)
     dN = tet10_shape_gradients(pts) if mesh.order == 2 else np.broadcast_to(_DL, (len(pts), 4, 3))
-    dN_c = tet10_shape_gradients(np.full((1, 3), 0.25)) if mesh.order == 2 else _DL[None]
     gam = {m: np.empty((mesh.n_tets, len(pts))) for m in strain_measures}
     vol = np.empty((mesh.n_tets, len(pts)))
     n_centroid = 0
@@ -259,13 +258,13 @@ def gamma_at_points(mesh: TetMesh, displacement_mm, *, levels: int = 2, strain_m
         only_c = np.any(det <= 0, axis=1) | np.any(np.linalg.det(F) <= 0, axis=1)
         if only_c.any():  # the centroid's F at every point, equal shares of the element's volume
             n_centroid += int(only_c.sum())
-            Jc = X[only_c] @ dN_c[None]  # (f, 1, 3, 3)
-            Fc = np.eye(3) + (U[only_c] @ dN_c[None]) @ np.linalg.inv(Jc)
-            if np.any(np.linalg.det(Jc) <= 0) or np.any(np.linalg.det(Fc) <= 0):
-                bad = lo + np.flatnonzero(only_c)[(np.linalg.det(Jc) <= 0)[:, 0] | (np.linalg.det(Fc) <= 0)[:, 0]]
-                raise StrainError(f"{len(bad)} element(s) folded or inverted at the centroid, first {bad[0]}")
-            F[only_c] = Fc
-            vol_c = element_volumes_mm3(TetMesh(nodes_mm=mesh.nodes_mm, tets=tets[only_c]))
+            sub = TetMesh(nodes_mm=mesh.nodes_mm, tets=tets[only_c])
+            Fc = deformation_gradient_at_centroids(sub, u)  # raises for a centroid folded in the reference
+            if np.any(np.linalg.det(Fc) <= 0):
+                bad = lo + np.flatnonzero(only_c)[np.linalg.det(Fc) <= 0]
+                raise StrainError(f"{len(bad)} element(s) inverted at the centroid, first {bad[0]}")
+            F[only_c] = Fc[:, None]
+            vol_c = element_volumes_mm3(sub)
             det[only_c] = (vol_c / w.sum())[:, None]  # det * w then sums to the element's volume
         c = np.linalg.eigvalsh(np.swapaxes(F, -1, -2) @ F)  # λ² ascending: E_i = (λ² − 1)/2
         for m in strain_measures:

@@ -149,7 +149,7 @@ def summarize_solution(
     if gamma_sampling not in GAMMA_SAMPLINGS:
         raise ValueError(f"gamma_sampling {gamma_sampling!r}: expected one of {GAMMA_SAMPLINGS}")
     s = element_strain(mesh, displacement_mm)
-    g_pts, v_pts, n_folded = gamma_at_points(mesh, displacement_mm, levels=SAMPLING_LEVELS, strain_measures=STRAIN_MEASURES)
+    g_pts, v_pts, n_centroid = gamma_at_points(mesh, displacement_mm, levels=SAMPLING_LEVELS, strain_measures=STRAIN_MEASURES)
     w = None if energy_density_mpa is None else np.asarray(energy_density_mpa, float).ravel()
     if w is not None and w.shape != (mesh.n_tets,):
         raise ValueError(f"energy_density_mpa has {w.size} values for {mesh.n_tets} elements")
@@ -171,7 +171,7 @@ def summarize_solution(
         skin = {"skin_mean_mm": mean, "skin_p95_mm": p95}
     names = {f.name for f in fields(Summary)}
     extra = {k: v for k, v in solver_info.items() if k not in names}
-    extra["sampling_centroid_elements"] = n_folded  # elements that fold inside: sampled at the centroid only
+    extra["sampling_centroid_elements"] = n_centroid  # folded or inverted at a sample point: counted at the centroid
     solver = {k: v for k, v in solver_info.items() if k in names}
     summary = Summary(
         animal=animal, variant=variant, converged=True, reason=None, strain_measure=strain_measure,
