@@ -278,3 +278,24 @@ def test_indenter_ending_inside_the_bone_is_reported_infeasible_without_solving(
     ok_ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(3.5, 0.0, 3.0), end_mm=(2.9, 0.0, 3.0))
     ok = solve_indentation(limb, material=LAW, indenter=ok_ind, bone_motion=BoneMotion())
     assert ok.converged and 2.1 - 1e-9 <= ok.extra["bone_clearance_mm"] < 2.2
+
+
+def test_end_state_is_solved_again_with_stiffer_facets_until_within_the_penetration_tolerance(limb):
+    # multiplier updates that stall (here: switched off) leave the penalty state of the last increment
+    # penetrating; the facets concerned are stiffened, and the end state is solved again with them
+    tol = SolverSettings().penetration_tol
+    ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(3.5, 0.0, 3.0), end_mm=(1.8, 0.0, 3.0))
+    no_al = SolverSettings(max_al_updates=0, end_penalty_passes=0)
+    plain = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=BoneMotion(), settings=no_al)
+    assert plain.converged, plain.reason
+    assert plain.max_penetration_rel > 5 * tol
+    passes = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=BoneMotion(),
+                               settings=replace(no_al, end_penalty_passes=3))
+    assert passes.converged, passes.reason
+    assert passes.max_penetration_rel <= tol
+    assert any(h.t_start == h.t_end == 4.0 and h.converged for h in passes.history)
+    default = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=BoneMotion())
+    assert default.converged and default.max_penetration_rel <= tol
+    # the force follows the contact constraint: 12 % low at 8 % penetration, within 1 % once it is met
+    assert passes.indenter_force_N == pytest.approx(default.indenter_force_N, rel=1e-2)
+    assert plain.indenter_force_N < 0.95 * default.indenter_force_N

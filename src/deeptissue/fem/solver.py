@@ -110,6 +110,10 @@ class SolverSettings:
     per increment but converges with 30.
     curvature_scales: factors tried in turn on the contact curvature term of the Newton matrix until
     the matrix is positive definite (the last one is used regardless; 0 drops the term).
+    end_penalty_passes: when the last increment ends with a penetration above penetration_tol (the
+    multiplier updates stalled; penalty_growth then stiffens the facets concerned, which otherwise only
+    helps later increments), the end state is solved again with those stiffer facets, up to this many
+    times while facets are still being stiffened; a pass that does not converge keeps the state before it.
     linear_solver: 'pardiso' | 'amg' | 'superlu'.
     max_wall_s: wall-time budget of one solve, the retry included [s] (None: none); checked between
     increments, a solve that spends it ends unconverged with the load reached, like any other failure.
@@ -159,6 +163,7 @@ class SolverSettings:
     linear_solver: str = "pardiso"
     quadrature_order: int = 2
     contact_quadrature_order: int = 4
+    end_penalty_passes: int = 3
     max_wall_s: float | None = None
     min_bone_clearance_mm: float = 0.0
     bone_set: str = "bone"
@@ -182,7 +187,7 @@ class IncrementRecord:
     t_start: float
     t_end: float
     converged: bool
-    reason: str  # "" if converged, else why it was cut
+    reason: str  # "" if converged, else why it was cut (an end pass: t_start == t_end == 4)
     iterations: int
     al_updates: int
     residuals: tuple  # residual norms [N] of the Newton iterations
@@ -655,6 +660,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
     start_backoff_mm = 0.0
     done = True
     prev = None  # (t, t_before, u_before) of the last converged increment of the indentation step
+    end_passes, redo = 0, False  # end_penalty_passes done; solve the end state again
     # the rigid bone and the rigid indenter at the end of the load: if they overlap, no tissue state
     # exists (the tissue between them would have to vanish), so say so instead of solving toward it
     bone_clearance_mm = None
@@ -679,14 +685,14 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
             travel = float(np.linalg.norm(np.subtract(sched.ind.end_mm, sched.ind.start_mm)))
         # a bone rotation alone is followed exactly by the rigid predictor: try the whole step
         dt = s.max_increment if k < 3 else s.initial_increment
-        while t < k + 1 - 1e-12 and done:
+        while (t < k + 1 - 1e-12 or redo) and done:
             if len(history) >= s.max_increments:
                 done, reason_fail = False, f"more than {s.max_increments} increments"
                 break
             if s.max_wall_s is not None and time.perf_counter() - t_wall > s.max_wall_s:
                 done, reason_fail = False, f"wall-time budget of {s.max_wall_s:g} s spent at t = {t:.4f}"
                 break
-            dt = min(dt, s.max_increment, k + 1 - t)
+            dt = 0.0 if redo else min(dt, s.max_increment, k + 1 - t)
             # first touch: do not jump deep into contact
             if k == 3 and pairs and pairs[0].name == "indenter" and travel > 0:
                 pairs[0].set_time(t)
@@ -773,6 +779,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
                 al += 1
             n_iter_total += iters
             pen_mm = float("nan")
+            n_st = 0
             if ok:
                 pen_mm, pen_rel_end = penetration(outs)
                 # a state whose contact is violated this much is not a solution, whatever the residual:
@@ -798,14 +805,25 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
             log.info("step %d t %.4f->%.4f %s it %d al %d F %.4g N pen %.3g mm", k + 1, t, t1,
                      "ok" if ok else f"cut ({why})", iters, al, rec.indenter_force_N, pen_mm)
             if ok:
-                prev = (t1, t, u) if k == 3 and pairs else None
+                # (an end pass has zero length: no secant)
+                prev = (t1, t, u) if k == 3 and pairs and t1 > t else None
                 u = u_try
                 last_outs = outs
                 t = t1
+                redo = bool(n_st) and k == 3 and t >= 4.0 - 1e-12 and end_passes < s.end_penalty_passes
+                if redo:
+                    end_passes += 1
+                    log.info("end state penetrates %.3g x facet size: solving it again with stiffer facets (pass %d of %d)",
+                             pen_rel_end, end_passes, s.end_penalty_passes)
                 if iters == 0:
                     dt = s.max_increment  # the rigid predictor was exact: finish the step at once
                 elif iters <= s.easy_iterations:
                     dt *= s.grow_factor
+            elif redo:
+                # the end state with stiffer facets did not converge: the converged one before it stands
+                _restore_al(pairs, al_backup)
+                log.warning("end state with stiffer facets not converged (%s): keeping the one before", why)
+                redo = False
             else:
                 _restore_al(pairs, al_backup)
                 dt *= s.cut_factor
