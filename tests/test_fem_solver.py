@@ -299,3 +299,18 @@ def test_end_state_is_solved_again_with_stiffer_facets_until_within_the_penetrat
     # the force follows the contact constraint: 12 % low at 8 % penetration, within 1 % once it is met
     assert passes.indenter_force_N == pytest.approx(default.indenter_force_N, rel=1e-2)
     assert plain.indenter_force_N < 0.95 * default.indenter_force_N
+
+
+def test_end_passes_never_cost_a_converged_solve_its_convergence(limb):
+    # the end state is reached and converged; the budget runs out before or during the end passes
+    ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(3.5, 0.0, 3.0), end_mm=(1.8, 0.0, 3.0))
+    no_al = SolverSettings(max_al_updates=0)
+    full = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=BoneMotion(), settings=no_al)
+    passes = [h for h in full.history if h.t_start == h.t_end == 4.0]
+    assert full.converged and passes
+    n_before = len(full.history) - len(passes)
+    capped = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=BoneMotion(),
+                               settings=replace(no_al, max_increments=n_before))
+    assert capped.converged, capped.reason
+    assert capped.load_reached == pytest.approx(4.0)
+    assert capped.max_penetration_rel > full.max_penetration_rel

@@ -686,6 +686,9 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
         # a bone rotation alone is followed exactly by the rigid predictor: try the whole step
         dt = s.max_increment if k < 3 else s.initial_increment
         while (t < k + 1 - 1e-12 or redo) and done:
+            if redo and (len(history) >= s.max_increments
+                         or (s.max_wall_s is not None and time.perf_counter() - t_wall > s.max_wall_s)):
+                break  # out of increments or time: the converged end state stands, without more end passes
             if len(history) >= s.max_increments:
                 done, reason_fail = False, f"more than {s.max_increments} increments"
                 break
