@@ -294,6 +294,7 @@ def test_end_state_is_solved_again_with_stiffer_facets_until_within_the_penetrat
     assert passes.converged, passes.reason
     assert passes.max_penetration_rel <= tol
     assert any(h.t_start == h.t_end == 4.0 and h.converged for h in passes.history)
+    assert passes.extra["end_passes"] >= 1 and plain.extra["end_passes"] == 0
     default = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=BoneMotion())
     assert default.converged and default.max_penetration_rel <= tol
     # the force follows the contact constraint: 12 % low at 8 % penetration, within 1 % once it is met

@@ -849,5 +849,6 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
         n_free_dofs=asm.n_free, increments=sum(1 for h in history if h.converged), newton_iterations=n_iter_total,
         load_reached=t, wall_s=wall, assembly_s=timers["assembly"], linear_solve_s=timers["solve"],
         contact_s=timers["contact"], extra={"attempts": 1, "straightened_tets": n_straightened, "start_backoff_mm": start_backoff_mm,
-                                            "bone_clearance_mm": bone_clearance_mm, "infeasible": infeasible, **counts},
+                                            "bone_clearance_mm": bone_clearance_mm, "infeasible": infeasible, "end_passes": end_passes,
+                                            **counts},
     )
