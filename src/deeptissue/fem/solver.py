@@ -185,9 +185,9 @@ def solver_settings_from_config(solver_cfg: dict | None) -> SolverSettings:
 class IncrementRecord:
     step: int  # 1..4: rotation x, y, z, translation + indentation
     t_start: float
-    t_end: float
+    t_end: float  # an end pass (end_penalty_passes): t_start == t_end == 4
     converged: bool
-    reason: str  # "" if converged, else why it was cut (an end pass: t_start == t_end == 4)
+    reason: str  # "" if converged, else why it was cut
     iterations: int
     al_updates: int
     residuals: tuple  # residual norms [N] of the Newton iterations
@@ -686,13 +686,14 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
         # a bone rotation alone is followed exactly by the rigid predictor: try the whole step
         dt = s.max_increment if k < 3 else s.initial_increment
         while (t < k + 1 - 1e-12 or redo) and done:
-            if redo and (len(history) >= s.max_increments
-                         or (s.max_wall_s is not None and time.perf_counter() - t_wall > s.max_wall_s)):
-                break  # out of increments or time: the converged end state stands, without more end passes
-            if len(history) >= s.max_increments:
+            out_of_increments = len(history) >= s.max_increments
+            out_of_time = s.max_wall_s is not None and time.perf_counter() - t_wall > s.max_wall_s
+            if redo and (out_of_increments or out_of_time):
+                break  # the converged end state stands, without more end passes
+            if out_of_increments:
                 done, reason_fail = False, f"more than {s.max_increments} increments"
                 break
-            if s.max_wall_s is not None and time.perf_counter() - t_wall > s.max_wall_s:
+            if out_of_time:
                 done, reason_fail = False, f"wall-time budget of {s.max_wall_s:g} s spent at t = {t:.4f}"
                 break
             dt = 0.0 if redo else min(dt, s.max_increment, k + 1 - t)
@@ -813,7 +814,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
                 u = u_try
                 last_outs = outs
                 t = t1
-                redo = bool(n_st) and k == 3 and t >= 4.0 - 1e-12 and end_passes < s.end_penalty_passes
+                redo = bool(n_st) and step_end and k == 3 and end_passes < s.end_penalty_passes
                 if redo:
                     end_passes += 1
                     log.info("end state penetrates %.3g x facet size: solving it again with stiffer facets (pass %d of %d)",
