@@ -176,6 +176,23 @@ def test_patches_within_3p5_mm_of_their_axis_and_facing_the_indenter(leg):
     assert np.ptp(fb[..., 2]) > np.ptp(m.nodes_mm[m.facets["patch_sphere"]][..., 2]) + 5.0
 
 
+def test_a_mesh_of_the_sphere_variants_is_refined_only_where_the_sphere_goes(leg):
+    # model.mesh_groups "indenter": the five sphere orientations share a mesh without the bar's refined sweep
+    c, p, model = leg
+    spheres = [v for v in VARIANTS if v != "bar"]
+    sm = build_model(c, p, variants=spheres, settings={"bar_length_mm": 10.0, "element_size_mm": 1.0,
+                                                       "refine_size_mm": 0.5}, animal="synth")
+    assert {f"patch_{v}" for v in spheres} <= set(sm.mesh.facets) and "patch_bar" not in sm.mesh.facets
+    assert sm.info["variants"] == spheres
+    assert len(sm.mesh.nodes_mm) < 0.9 * len(model.mesh.nodes_mm)
+    # the same elements near the sphere's tip: the size field there does not depend on the bar
+    def near_tip_volume_per_tet(m):
+        cen = m.nodes_mm[m.tets[:, :4]].mean(axis=1)
+        near = np.linalg.norm(cen - p.tip_end_mm, axis=1) < 2.0
+        return m.volumes_mm3()[near].mean()
+    assert near_tip_volume_per_tet(sm.mesh) == pytest.approx(near_tip_volume_per_tet(model.mesh), rel=0.25)
+
+
 def test_cast_is_0p2_mm_from_the_skin_except_at_the_hole(leg):
     c, p, model = leg
     cast, m = model.cast, model.mesh

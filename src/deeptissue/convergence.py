@@ -266,8 +266,9 @@ def run_discretisation(*, animal: str, variant: str, setting: Discretisation, co
     contours: pre-state :class:`deeptissue.contours.Contours`; pose: :class:`deeptissue.pose.Pose`;
     cast: a ``deeptissue.model.Cast`` (None: built here, outside the timing; ``False``: built for
     the mesh only, no cast contact in the solve); model_cfg / fem_cfg / study_cfg: the config sections (the setting overrides sizes and
-    tolerances); mesh_variants: variants whose travel the mesh is refined around (default: the
-    study's, so the mesh is the study's mesh; the solved variant is always included).
+    tolerances); mesh_variants: variants whose travel the mesh is refined around (default: those
+    sharing the variant's study mesh, ``model.mesh_groups`` of study.variants, so the mesh is the study's
+    mesh; the solved variant is always included).
     The row has :data:`ROW_COLUMNS`: times [s] of meshing (``mesh_s``), the solver's assembly,
     linear solves and contact and the rest (``solver_other_s``), post-processing (``post_s``), the
     solver's wall time (``solve_s``), all of it (``wall_s``), the linear-elastic reference
@@ -280,6 +281,7 @@ def run_discretisation(*, animal: str, variant: str, setting: Discretisation, co
     from .fem.solver import solver_settings_from_config
     from .model import build_cast, build_model
     from .study import StudySettings, solve_variant, variant_indenter
+    from .variants import mesh_groups
 
     if setting.element_order not in SUPPORTED_ELEMENT_ORDERS:
         raise ValueError(f"setting {setting.name}: element order {setting.element_order} is not supported by the mesh/FE "
@@ -293,7 +295,11 @@ def run_discretisation(*, animal: str, variant: str, setting: Discretisation, co
                refine_size_mm=setting.refine_size_mm, tolerance=setting.tolerance, rtol=setting.rtol,
                penetration_tol=setting.penetration_tol, mesh_key=setting.mesh_key, is_default=bool(is_default),
                converged=False, start_rss_mb=start_rss)
-    variants = list(mesh_variants or study_cfg.get("variants") or [variant])
+    if mesh_variants:
+        variants = list(mesh_variants)
+    else:  # the variants of the variant's study mesh
+        groups = mesh_groups(study_cfg.get("variants") or [variant], by=(model_cfg or {}).get("mesh_groups", "indenter"))
+        variants = next((list(m) for m in groups.values() if variant in m), [])
     if variant not in variants:
         variants.append(variant)
     msettings = setting.model_settings(model_cfg)

@@ -2,10 +2,13 @@
 from pathlib import Path
 
 from deeptissue.config import validate_config
+from deeptissue.variants import mesh_group_of, mesh_groups
 
 config = validate_config(config, workflow.source_path("../schemas/config.schema.yaml"), base_dir=Path(workflow.basedir))
 
 ANIMALS = list(config["animals"])
+# which variants share a mesh (model.mesh_groups): {mesh name: variants}
+MESH_GROUPS = mesh_groups(config["study"]["variants"], by=config["model"]["mesh_groups"])
 STATES = ["pre", "during"]
 
 
@@ -28,6 +31,11 @@ def has_during(animal):
 
 def animal_states(animal):
     return STATES if has_during(animal) else ["pre"]
+
+
+def mesh_of(animal, variant):
+    """The directory of the mesh a variant is solved on."""
+    return f"results/{animal}/model/{mesh_group_of(variant, MESH_GROUPS)}"
 
 
 def mri_input(wildcards):

@@ -12,7 +12,6 @@ if CONV_ANIMAL not in ANIMALS or not has_during(CONV_ANIMAL):
         f"config key convergence.animal: {CONV_ANIMAL!r} is not a configured animal with a during scan {ANIMALS}"
     )
 CONV_VARIANTS = list(CONV["variants"])
-CONV_MESH_VARIANTS = list(CONV["mesh_variants"] or config["study"]["variants"])
 CONV_LADDER = default_ladder(CONV, model_cfg=config["model"], solver_cfg=config["fem"]["solver"])
 CONV_SETTINGS = CONV_LADDER.names
 
@@ -40,7 +39,7 @@ rule convergence_run:
         model=config["model"],
         fem=config["fem"],
         study=config["study"],
-        mesh_variants=CONV_MESH_VARIANTS,
+        mesh_variants=CONV["mesh_variants"],  # null: the variant's study mesh (model.mesh_groups)
         linear_reference=CONV["linear_reference"],
     threads: 2  # one run at a time on a 2-core machine, so the timings do not compete
     resources:

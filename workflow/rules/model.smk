@@ -1,5 +1,12 @@
 # Rules of the model stage: rigid cast, limb mesh with contact patches (issue 5).
 # The model settings get the FE section's bar length (if set) for the bar's contact patch.
+# One cast per animal (its hole clears every variant); one mesh per group of variants
+# (model.mesh_groups: by default per indenter shape, refined only where that indenter goes).
+import re
+
+
+wildcard_constraints:
+    group="|".join(re.escape(g) for g in MESH_GROUPS),
 
 
 rule cast:
@@ -28,26 +35,26 @@ rule mesh:
         pose="results/{animal}/pose.json",
         cast="results/{animal}/model/cast.npz",
     output:
-        mesh="results/{animal}/model/mesh.npz",
-        msh="results/{animal}/model/mesh.msh",
-        vtu="results/{animal}/model/mesh.vtu",
-        model="results/{animal}/model/model.json",
+        mesh="results/{animal}/model/{group}/mesh.npz",
+        msh="results/{animal}/model/{group}/mesh.msh",
+        vtu="results/{animal}/model/{group}/mesh.vtu",
+        model="results/{animal}/model/{group}/model.json",
         qc=report(
-            "results/{animal}/qc/model.png",
+            "results/{animal}/qc/model_{group}.png",
             caption="../report/model.rst",
             category="model",
             subcategory="{animal}",
         ),
     log:
-        "results/{animal}/logs/mesh.log",
+        "results/{animal}/logs/mesh_{group}.log",
     benchmark:
-        "results/{animal}/benchmarks/mesh.tsv"
+        "results/{animal}/benchmarks/mesh_{group}.tsv"
     resources:
         mem_mb=2000,
         runtime=15,
     params:
         settings=dict(config["model"], bar_length_mm=float(config.get("fem", {}).get("bar_length_mm", 10.0))),
-        variants=config["study"]["variants"],
+        variants=lambda wc: MESH_GROUPS[wc.group],
     conda:
         "../envs/deeptissue.yaml"
     script:
@@ -56,10 +63,12 @@ rule mesh:
 
 # Final targets (animals with a during scan, i.e. a pose), once the rules making the inputs exist.
 if {"segment", "pose"} <= {r.name for r in workflow.rules}:
+    FINAL_OUTPUTS.extend(f"results/{a}/model/cast.npz" for a in ANIMALS if has_during(a))
     FINAL_OUTPUTS.extend(
-        f"results/{a}/model/{f}"
+        f"results/{a}/model/{g}/{f}"
         for a in ANIMALS
         if has_during(a)
-        for f in ("mesh.npz", "mesh.msh", "mesh.vtu", "cast.npz", "model.json")
+        for g in MESH_GROUPS
+        for f in ("mesh.npz", "mesh.msh", "mesh.vtu", "model.json")
     )
-    FINAL_OUTPUTS.extend(f"results/{a}/qc/model.png" for a in ANIMALS if has_during(a))
+    FINAL_OUTPUTS.extend(f"results/{a}/qc/model_{g}.png" for a in ANIMALS if has_during(a) for g in MESH_GROUPS)

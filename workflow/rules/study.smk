@@ -99,7 +99,7 @@ rule solve:
     the study goes on and the animal is marked excluded by `aggregate`.
     """
     input:
-        mesh="results/{animal}/model/mesh.npz",
+        mesh=lambda wc: f"{mesh_of(wc.animal, wc.variant)}/mesh.npz",
         cast="results/{animal}/model/cast.npz",
         pose="results/{animal}/pose.json",
         during_contours="results/{animal}/contours/during.npz",

@@ -15,7 +15,7 @@ with script_log(snakemake.log[0], "convergence_run"):
         model_cfg=dict(snakemake.params.model),
         fem_cfg=dict(snakemake.params.fem),
         study_cfg=dict(snakemake.params.study),
-        mesh_variants=list(snakemake.params.mesh_variants),
+        mesh_variants=snakemake.params.mesh_variants or None,
         is_default=bool(snakemake.params.is_default),
         linear_reference=bool(snakemake.params.linear_reference),
     )
