@@ -36,6 +36,34 @@ def test_patch_test_on_distorted_mesh(curved):
     np.testing.assert_allclose(r.deformation_gradient, np.broadcast_to(F0, r.deformation_gradient.shape), atol=1e-9)
 
 
+def test_newton_out_of_iterations_within_the_stall_tolerance_keeps_its_best_iterate():
+    # a Newton matrix 2.5 x too stiff converges only linearly (error x 0.6 per iteration), like Newton with the
+    # contact curvature term dropped: 14 iterations reach the stall tolerance but not rtol
+    from deeptissue.fem.assembly import MaterialLaw
+
+    o = Ogden()
+    stiff = MaterialLaw(params=o, energy=LAW.energy, stress=LAW.stress,
+                        stress_tangent=lambda F, p: (lambda W, P, A: (W, P, 2.5 * A))(*LAW.stress_tangent(F, p)))
+    m = block_mesh((2.0, 2.0, 2.0), h_mm=1.0)
+    shear = lambda X, t: t * np.stack([0.1 * X[:, 2], 0.0 * X[:, 2], -0.05 * X[:, 2]], axis=1)
+    kw = dict(rtol=1e-9, energy_rtol=1e-30, atol_mu_rel=0.0, stall_rtol=1e-2, max_iterations=14,
+              initial_increment=1.0, max_increment=1.0, min_increment=0.2, loose_rotation_steps=False)
+    exact = solve_prescribed(m, material=LAW, bc_sets=["bottom", "top"], displacement_mm=shear,
+                             settings=SolverSettings(**kw))
+    assert exact.converged and exact.newton_iterations <= 6  # quadratic
+    r = solve_prescribed(m, material=stiff, bc_sets=["bottom", "top"], displacement_mm=shear,
+                         settings=SolverSettings(**kw))
+    assert r.converged, r.reason
+    assert r.increments == 1 and r.newton_iterations == 14
+    res = r.history[-1].residuals
+    assert res[-1] < 1e-3 * res[0] and all(0.5 * a < b < 0.7 * a for a, b in zip(res[:-1], res[1:]))  # linear, never stalled
+    np.testing.assert_allclose(r.displacement_mm, exact.displacement_mm, atol=1e-3 * np.abs(exact.displacement_mm).max())  # stall_rtol 1e-2
+    # with a stall tolerance it does not reach, running out of iterations is still a failure
+    r = solve_prescribed(m, material=stiff, bc_sets=["bottom", "top"], displacement_mm=shear,
+                         settings=SolverSettings(**{**kw, "stall_rtol": 1e-9}))
+    assert not r.converged and "too many iterations" in r.reason
+
+
 @pytest.fixture(scope="module")
 def limb():
     return cored_cylinder_mesh(length_mm=6.0, radius_mm=3.0, core_radius_mm=0.8, h_mm=1.2)

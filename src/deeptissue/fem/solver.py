@@ -87,7 +87,8 @@ class SolverSettings:
     stall_rtol: a Newton iteration that no longer makes progress (the residual has not halved in
     ``stall_iterations`` iterations: points entering and leaving contact between iterations) ends
     there, converged with its best state if that state's residual is below stall_rtol x the force
-    scale (10 x looser than rtol by default, 100 x tighter than rtol_intermediate).
+    scale (10 x looser than rtol by default, 100 x tighter than rtol_intermediate); so does one that
+    runs out of iterations while converging only linearly (the contact curvature term dropped).
     secant_predictor: in the indentation step, start each increment from the last increment's
     displacement change scaled to the new increment (not from the rigid bone move alone).
     loose_rotation_steps: the bone-rotation steps are converged to the intermediate tolerances and
@@ -557,6 +558,12 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
                 # slide along a soft contact mode away from this start; more iterations do not help
                 return False, "residual growing", it, residuals, None
             if it == max_it:
+                if not has_d and best[0] <= max(s.stall_rtol, rtol) * scale + atol:
+                    # converging, but only linearly (the contact curvature term dropped from a matrix that was
+                    # not positive definite): the best iterate is within the tolerance a stall accepts
+                    log.debug("  out of iterations at it %d: keeping the best iterate (residual %.2e)", it, best[0])
+                    u[:] = best[1]
+                    return True, "", it, residuals, best[2]
                 return False, "too many iterations", it, residuals, None
             if len(residuals) > 3 and res > 1e3 * min(residuals):
                 return False, "diverging", it, residuals, None
