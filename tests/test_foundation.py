@@ -110,20 +110,21 @@ def test_mesh_groups_put_each_indenter_shape_on_its_own_mesh():
     from deeptissue.variants import mesh_group_of, mesh_groups
 
     six = ["sphere", "bar", "sphere_rx+15", "sphere_rx-15", "sphere_rz+15", "sphere_rz-15"]
-    g = mesh_groups(six)
+    assert mesh_groups(six) == {"all": six}  # the default: one mesh per animal
+    g = mesh_groups(six, by="indenter")
     assert g == {"sphere": ["sphere", "sphere_rx+15", "sphere_rx-15", "sphere_rz+15", "sphere_rz-15"], "bar": ["bar"]}
     assert mesh_group_of("sphere_rz-15", g) == "sphere" and mesh_group_of("bar", g) == "bar"
     assert mesh_groups(six, by="animal") == {"all": six}
-    assert mesh_groups(["bar_rx+15", "bar"]) == {"bar": ["bar_rx+15", "bar"]}
+    assert mesh_groups(["bar_rx+15", "bar"], by="indenter") == {"bar": ["bar_rx+15", "bar"]}
     with pytest.raises(ValueError, match="model.mesh_groups: 'variant'"):
         mesh_groups(six, by="variant")
     with pytest.raises(ValueError, match="variant 'cube'"):
-        mesh_groups(["cube"])
+        mesh_groups(["cube"], by="indenter")
     with pytest.raises(ValueError, match=r"'sphere_rx\+30' is in no mesh group"):
         mesh_group_of("sphere_rx+30", g)
     # the schema knows the key, its default and its values
     cfg = validate_config(_demo(), SCHEMA)
-    assert cfg["model"]["mesh_groups"] == "indenter"
+    assert cfg["model"]["mesh_groups"] == "animal"
     bad = _demo()
     bad["model"] = {**bad.get("model", {}), "mesh_groups": "variant"}
     with pytest.raises(ConfigError, match="mesh_groups"):

@@ -279,7 +279,7 @@ def run_discretisation(*, animal: str, variant: str, setting: Discretisation, co
     from .fem.cast import Cast as FemCast
     from .fem.material import Ogden
     from .fem.solver import solver_settings_from_config
-    from .model import build_cast, build_model
+    from .model import ModelSettings, build_cast, build_model
     from .study import StudySettings, solve_variant, variant_indenter
     from .variants import mesh_groups
 
@@ -298,7 +298,7 @@ def run_discretisation(*, animal: str, variant: str, setting: Discretisation, co
     if mesh_variants:
         variants = list(mesh_variants)
     else:  # the variants of the variant's study mesh
-        groups = mesh_groups(study_cfg.get("variants") or [variant], by=(model_cfg or {}).get("mesh_groups", "indenter"))
+        groups = mesh_groups(study_cfg.get("variants") or [variant], by=(model_cfg or {}).get("mesh_groups", ModelSettings.mesh_groups))
         variants = next((list(m) for m in groups.values() if variant in m), [])
     if variant not in variants:
         variants.append(variant)

@@ -54,7 +54,7 @@ class ModelSettings:
     min_curved_ratio: float = 0.2
     min_gap_mm: float = 0.05
     element_order: int = 2  # 2: 10-node, 1: 4-node tetrahedra
-    mesh_groups: str = "indenter"  # which variants share a mesh (deeptissue.variants.mesh_groups; used by the workflow)
+    mesh_groups: str = "animal"  # which variants share a mesh (deeptissue.variants.mesh_groups; used by the workflow)
 
     @classmethod
     def from_dict(cls, d: dict | None) -> "ModelSettings":
