@@ -1,7 +1,8 @@
 # Rules of the model stage: rigid cast, limb mesh with contact patches (issue 5).
 # The model settings get the FE section's bar length (if set) for the bar's contact patch.
 # One cast per animal (its hole clears every variant); one mesh per group of variants
-# (model.mesh_groups: by default per indenter shape, refined only where that indenter goes).
+# (model.mesh_groups: by default one mesh "all" per animal; "indenter": one per indenter shape,
+# refined only where that indenter goes).
 import re
 
 
