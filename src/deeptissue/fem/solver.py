@@ -547,9 +547,12 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
             k_st = s.stall_iterations
             stalled = not has_d and len(residuals) > k_st and min(residuals[-k_st:]) > 0.5 * min(residuals[:-k_st])
             growing = stalled and all(a < b for a, b in zip(residuals[-k_st - 1:-1], residuals[-k_st:]))
-            if stalled and best[0] <= max(s.stall_rtol, rtol) * scale + atol:
-                # no progress (contact chatter): the best iterate is as converged as this problem gets
-                log.debug("  stalled at it %d: keeping the best iterate (residual %.2e)", it, best[0])
+            if (stalled or (it == max_it and not has_d)) and best[0] <= max(s.stall_rtol, rtol) * scale + atol:
+                # no progress (contact chatter), or out of iterations while converging only linearly (the contact
+                # curvature term dropped from a matrix that was not positive definite): the best iterate is as
+                # converged as this problem gets
+                log.debug("  %s at it %d: keeping the best iterate (residual %.2e)",
+                          "stalled" if stalled else "out of iterations", it, best[0])
                 u[:] = best[1]
                 return True, "", it, residuals, best[2]
             if growing and stop_on_growth:
@@ -558,12 +561,6 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
                 # slide along a soft contact mode away from this start; more iterations do not help
                 return False, "residual growing", it, residuals, None
             if it == max_it:
-                if not has_d and best[0] <= max(s.stall_rtol, rtol) * scale + atol:
-                    # converging, but only linearly (the contact curvature term dropped from a matrix that was
-                    # not positive definite): the best iterate is within the tolerance a stall accepts
-                    log.debug("  out of iterations at it %d: keeping the best iterate (residual %.2e)", it, best[0])
-                    u[:] = best[1]
-                    return True, "", it, residuals, best[2]
                 return False, "too many iterations", it, residuals, None
             if len(residuals) > 3 and res > 1e3 * min(residuals):
                 return False, "diverging", it, residuals, None
