@@ -131,6 +131,33 @@ def test_mesh_groups_put_each_indenter_shape_on_its_own_mesh():
         validate_config(bad, SCHEMA)
 
 
+def test_solve_priority_starts_bars_and_deeper_indentations_first():
+    from deeptissue.variants import solve_priority
+
+    assert solve_priority("bar") > solve_priority("sphere")
+    assert solve_priority("bar_rx+15", 1.5) > solve_priority("sphere_rz-15", 3.0)  # any bar before any sphere
+    assert solve_priority("sphere", 2.5) > solve_priority("sphere", 2.0) > solve_priority("sphere")
+    assert solve_priority("bar", 2.5) > solve_priority("bar", 1.5)
+    with pytest.raises(ValueError, match="variant 'cube'"):
+        solve_priority("cube")
+
+
+def test_the_solve_rule_schedules_by_that_priority():
+    # the dry run of the demo shows each solve job with its priority: bars 10 + depth, spheres the depth
+    import re
+    import subprocess
+    import sys
+
+    out = subprocess.run([str(Path(sys.executable).parent / "snakemake"), "-n", "--cores", "2", "--forcerun", "solve"],
+                         cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    jobs = re.findall(r"wildcards: animal=(\w+), variant=(\S+)\n\s+priority: ([\d.]+)", out.stdout)
+    depth = {a: c["phantom"]["depth_mm"] for a, c in _demo()["animals"].items()}
+    assert len(jobs) == len(depth) * 6
+    for animal, variant, prio in jobs:
+        assert float(prio) == pytest.approx((10.0 if variant.startswith("bar") else 0.0) + depth[animal])
+
+
 def test_script_log_captures_logging_stderr_and_the_failure(tmp_path):
     import logging
     import sys

@@ -2,7 +2,7 @@
 from pathlib import Path
 
 from deeptissue.config import validate_config
-from deeptissue.variants import mesh_group_of, mesh_groups
+from deeptissue.variants import mesh_group_of, mesh_groups, solve_priority
 
 config = validate_config(config, workflow.source_path("../schemas/config.schema.yaml"), base_dir=Path(workflow.basedir))
 
@@ -31,6 +31,12 @@ def has_during(animal):
 
 def animal_states(animal):
     return STATES if has_during(animal) else ["pre"]
+
+
+def solve_job_priority(wildcards):
+    """Longest solves first (bars, then deeper phantoms): deeptissue.variants.solve_priority."""
+    depth = animal_cfg(wildcards.animal).get("phantom", {}).get("depth_mm")
+    return solve_priority(wildcards.variant, depth)
 
 
 def mesh_of(animal, variant):

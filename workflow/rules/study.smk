@@ -113,6 +113,7 @@ rule solve:
     params:
         fem=config["fem"],
         study=STUDY,
+    priority: solve_job_priority  # the longest solves first, so none runs alone at the end
     resources:
         mem_mb=4000,
         runtime=120,
