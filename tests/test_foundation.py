@@ -142,22 +142,6 @@ def test_solve_priority_starts_bars_and_deeper_indentations_first():
         solve_priority("cube")
 
 
-def test_the_solve_rule_schedules_by_that_priority():
-    # the dry run of the demo shows each solve job with its priority: bars 10 + depth, spheres the depth
-    import re
-    import subprocess
-    import sys
-
-    out = subprocess.run([str(Path(sys.executable).parent / "snakemake"), "-n", "--cores", "2", "--forcerun", "solve"],
-                         cwd=ROOT, capture_output=True, text=True, timeout=300)
-    assert out.returncode == 0, out.stderr[-2000:]
-    jobs = re.findall(r"wildcards: animal=(\w+), variant=(\S+)\n\s+priority: ([\d.]+)", out.stdout)
-    depth = {a: c["phantom"]["depth_mm"] for a, c in _demo()["animals"].items()}
-    assert len(jobs) == len(depth) * 6
-    for animal, variant, prio in jobs:
-        assert float(prio) == pytest.approx((10.0 if variant.startswith("bar") else 0.0) + depth[animal])
-
-
 def test_script_log_captures_logging_stderr_and_the_failure(tmp_path):
     import logging
     import sys

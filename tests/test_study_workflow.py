@@ -64,6 +64,21 @@ def _snakemake(workdir, *targets_then_options):
     return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
 
 
+def test_the_solve_rule_schedules_the_longest_solves_first(tmp_path):
+    # the dry run shows each solve job with its priority (deeptissue.variants.solve_priority): 10 for a bar
+    # plus the phantom's depth
+    import re
+
+    r = _snakemake(tmp_path, "-n", "--cores", "2")
+    assert r.returncode == 0, r.stderr[-2000:]
+    jobs = re.findall(r"wildcards: animal=(\w+), variant=(\S+)\n\s+priority: ([\d.]+)", r.stdout)
+    cfg = _load("test.yaml")
+    depth = {a: c["phantom"]["depth_mm"] for a, c in cfg["animals"].items()}
+    assert sorted((a, v) for a, v, _ in jobs) == sorted((a, v) for a in depth for v in cfg["study"]["variants"])
+    for animal, variant, prio in jobs:
+        assert float(prio) == pytest.approx((10.0 if variant.startswith("bar") else 0.0) + depth[animal])
+
+
 @pytest.mark.slow
 def test_rule_aggregate_runs_on_hand_made_summaries(tmp_path):
     """sphere converged, bar failed (its summary says why): the animal is excluded, the study completes,

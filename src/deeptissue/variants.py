@@ -103,4 +103,3 @@ def solve_priority(variant: str, depth_mm: float | None = None) -> float:
     v = parse_variant(variant)
     depth = float(depth_mm) if depth_mm is not None else 0.0
     return (10.0 if v.indenter == "bar" else 0.0) + depth
-
