@@ -81,7 +81,8 @@ def test_rigid_bone_motion_alone_gives_zero_strain(limb, angle):
     assert np.abs(green_lagrange(r.deformation_gradient)).max() < 1e-7
 
 
-def test_contact_force_and_tangent_are_derivatives_of_the_contact_potential(limb):
+@pytest.mark.parametrize("barrier", [False, True])
+def test_contact_force_and_tangent_are_derivatives_of_the_contact_potential(limb, barrier):
     surf = ContactSurface(limb.nodes_mm, limb.facets["skin"], order=4)
     ind = Indenter("sphere", axis=(-1, 0, 0), radius_mm=1.5)
     tip = np.array([2.7, 0.0, 3.0])
@@ -91,11 +92,23 @@ def test_contact_force_and_tangent_are_derivatives_of_the_contact_potential(limb
     eps = np.full(surf.n_facets, 0.3)
     u = 0.01 * rng.standard_normal(3 * len(limb.nodes_mm))
     idx = np.arange(surf.n_facets)
-    r = surf.evaluate(u, gap, eps, idx)
+    # barrier from 0.05 mm of penetration, limit 0.2 mm: points below its onset, on it, and beyond the
+    # 0.002 mm where it continues as a quadratic
+    bar = (np.full((len(idx), 1), 0.05), np.full((len(idx), 1), 0.2), eps[:, None]) if barrier else None
+    r = surf.evaluate(u, gap, eps, idx, barrier=bar)
     assert np.count_nonzero(r["pressure"] > 0) > 10
+    if barrier:
+        pen = -r["gap"]
+        assert np.count_nonzero((pen > 0) & (pen < 0.05)) > 5
+        assert np.count_nonzero((pen > 0.05) & (pen < 0.198)) > 5
+        assert np.count_nonzero(pen > 0.198) > 5
+        plain = surf.evaluate(u, gap, eps, idx)
+        assert r["energy"] > plain["energy"]
+        assert np.all(r["pressure"] >= plain["pressure"])
+        np.testing.assert_array_equal(r["pressure"][pen < 0.05], plain["pressure"][pen < 0.05])
     du = 1e-7 * rng.standard_normal(u.size)
-    ep = surf.evaluate(u + du, gap, eps, idx)
-    em = surf.evaluate(u - du, gap, eps, idx)
+    ep = surf.evaluate(u + du, gap, eps, idx, barrier=bar)
+    em = surf.evaluate(u - du, gap, eps, idx, barrier=bar)
     assert (ep["energy"] - em["energy"]) / 2 == pytest.approx(r["force"] @ du, rel=1e-5)
     df = (ep["force"] - em["force"]) / 2
     dofs = r["dofs"]
@@ -246,6 +259,24 @@ def test_penalty_growth_stiffens_only_facets_still_penetrating_and_is_capped():
     assert pair.stiffen(out, 0.01, 3.0, 10.0) == 0  # nothing left to raise
 
 
+def test_penetration_barrier_is_smooth_convex_and_stiffens_toward_its_limit():
+    from deeptissue.fem.contact import _barrier
+
+    s_hat, kappa = 0.07, 0.4
+    s = np.linspace(-0.05, 0.1, 3001)  # beyond the limit (s < 0), on the barrier, and past its onset
+    b, b1, b2 = _barrier(s, s_hat, kappa)
+    assert np.all(np.isfinite(b)) and np.all(b[s >= s_hat] == 0) and np.all(b2 >= 0)
+    d = 1e-8
+    (bp, b1p, _), (bm, b1m, _) = _barrier(s + d, s_hat, kappa), _barrier(s - d, s_hat, kappa)
+    np.testing.assert_allclose((bp - bm) / (2 * d), b1, rtol=1e-5, atol=1e-6 * np.abs(b1).max())
+    np.testing.assert_allclose((b1p - b1m) / (2 * d), b2, rtol=1e-5, atol=1e-6 * b2.max())
+    on = (s > 0.01 * s_hat) & (s < s_hat)
+    assert np.all(np.diff(b[on]) < 0) and np.all(np.diff(b2[on]) < 0)  # stiffer the nearer the limit
+    assert b2[np.searchsorted(s, 0.02 * s_hat)] > 500 * kappa  # ~ kappa s_hat^2 / s^2 near it
+    with pytest.raises(ValueError, match="barrier_onset_rel"):
+        SolverSettings(barrier_onset_rel=0.2, barrier_limit_rel=0.1)
+
+
 def test_indenter_starting_inside_the_skin_is_backed_off_and_reaches_the_same_end_state(limb):
     # a bar tilted 30 deg whose axis starts 0.8 mm clear still dips its lower end 0.3 mm into the skin
     # (the hard case "bar tilted 30 deg" started 1.3 mm deep): the solver moves the start back along
@@ -281,12 +312,16 @@ def test_wall_time_budget_ends_the_solve_unconverged_with_its_reason(limb):
     assert r.load_reached < 4.0
 
 
-def test_unconverged_solve_is_retried_once_with_shifts_and_reports_both_tries(limb):
+def test_unconverged_solve_is_retried_once_with_shifts_and_reports_both_tries(limb, caplog):
     ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(3.5, 0.0, 3.0), end_mm=(2.5, 0.0, 3.0))
     few = SolverSettings(max_increments=2)
-    r = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=BoneMotion(), settings=few)
+    with caplog.at_level("WARNING", logger="deeptissue.fem.solver"):
+        r = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=BoneMotion(), settings=few)
+    assert "diagonal shifts (0.1,), up to 30 iterations per increment and the penetration barrier from 0.03" in caplog.text
     assert not r.converged and r.extra["attempts"] == 2
     assert "more than 2 increments" in r.extra["first_attempt_reason"] and "the other try" in r.reason
+    # the retry solves with the shifts and the penetration barrier (the best try reports which it had)
+    assert r.extra["barrier_onset_rel"] == (few.retry_barrier_onset_rel if r.extra["shifted"] else None)
     assert r.newton_iterations > r.extra["first_attempt_iterations"] > 0
     once = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=BoneMotion(),
                              settings=replace(few, retry_shift_scales=()))

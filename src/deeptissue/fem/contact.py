@@ -11,6 +11,17 @@ and the potential ``Pi_c = sum_q dA0 (psi(lam - eps g) - psi(lam)) / eps`` with 
 (integrated over the reference area). Its gradient is the contact force ``-sum_q dA0 p n N_a`` and
 its Hessian the consistent tangent ``sum_q dA0 N_a N_b (eps ramp' n n^T - p H)`` (symmetric). The multipliers are updated
 lam <- p between Newton solves until the penetration is below a fraction of the facet size.
+
+Optionally (``barrier``) a penetration barrier is added at each point: with the distance to a limit
+surface s = g + limit (limit > 0: the deepest penetration the solver ever accepts) and
+s_hat = limit - onset, the IPC-type potential b(s) = -kappa (s - s_hat)^2 ln(s / s_hat) for
+0 < s < s_hat (zero for penetrations below onset; C2 and convex), continued below s = 0.01 s_hat by its
+second-order Taylor polynomial so that every state keeps a finite energy (an increment's predictor may
+start beyond the limit). Its pressure -b'(s) adds to p and its stiffness b''(s) (about kappa s_hat^2 /
+s^2 near the limit) to the normal tangent. A finite penalty lets pinched tissue lower its energy by
+pushing through a curved indenter (measured on the bar tilted 30 deg, Stage 4 of the README); the
+barrier makes that way out cost more the deeper it goes, and is zero in the states the multiplier
+updates deliver (penetration below penetration_tol < onset).
 """
 
 from __future__ import annotations
@@ -52,6 +63,23 @@ def _ramp(z, delta):
     dp = np.where(hi, 1.0, np.where(band, zb / (2 * d), 0.0))
     psi = np.where(hi, 0.5 * z * z + d * d / 6.0, np.where(band, zb**3 / (12 * d), 0.0))
     return p, dp, psi
+
+
+def _barrier(s, s_hat, kappa, s_min_rel=0.01):
+    """b(s) = -kappa (s - s_hat)^2 ln(s / s_hat) for s < s_hat (0 beyond), continued below
+    s_min = s_min_rel s_hat by its second-order Taylor polynomial; returns b, db/ds, d2b/ds2."""
+    s = np.asarray(s, float)
+    sh = np.broadcast_to(s_hat, s.shape)
+    k = np.broadcast_to(kappa, s.shape)
+    x = np.clip(s, s_min_rel * sh, sh)
+    r, lg = x - sh, np.log(x / sh)
+    b = -k * r * r * lg
+    b1 = -k * (2 * r * lg + r * r / x)
+    b2 = -k * (2 * lg + 4 * r / x - r * r / (x * x))
+    ds = s - x  # < 0 only below s_min
+    b, b1 = b + b1 * ds + 0.5 * b2 * ds * ds, b1 + b2 * ds
+    on = s < sh
+    return np.where(on, b, 0.0), np.where(on, b1, 0.0), np.where(on, b2, 0.0)
 
 
 class ContactSurface:
@@ -96,7 +124,7 @@ class ContactSurface:
         return g.reshape(x.shape[:2])
 
     def evaluate(self, u: np.ndarray, gapfn, eps: np.ndarray, idx: np.ndarray, *, tangent: bool = True,
-                 smoothing_mm: float = 0.0, near_mm: float = 0.0):
+                 smoothing_mm: float = 0.0, near_mm: float = 0.0, barrier=None):
         """Contact potential, force and tangent of candidate facets idx.
 
         eps (K,) penalty per facet [N/mm^3]; smoothing_mm: the kink of p = max(0, z), z = lam - eps g,
@@ -104,7 +132,9 @@ class ContactSurface:
         keeps Newton from cycling when points enter and leave contact; near_mm: points closer than
         this (not yet in contact) get the penalty stiffness in the tangent too, so a Newton step does
         not drive them deep into the master (a stabilised, not exactly consistent tangent: only the
-        search direction changes, the potential and force stay exact). Returns dict: energy [mJ], force (n_dofs,) [N] (internal
+        search direction changes, the potential and force stay exact); barrier: None or (onset_mm, limit_mm,
+        kappa) per candidate facet (K', 1) [mm, mm, N/mm^3], the penetration barrier of the module
+        docstring (pressure and tangent include it). Returns dict: energy [mJ], force (n_dofs,) [N] (internal
         force contribution), traction_sum (3,) [N] (force applied by the master on the skin),
         pressure (K', Q) [MPa], gap (K', Q) [mm], and if tangent: Kf (K', 18, 18) [N/mm] (normal part,
         positive semi-definite), Kf_geo (K', 18, 18) (curvature part -p grad n, absent for flat masters;
@@ -124,6 +154,12 @@ class ContactSurface:
         psi0 = _ramp(lam, e * smoothing_mm)[2]
         dA = self.dA0[idx]
         energy = float(np.sum(dA * (psi - psi0) / e))
+        k_b = 0.0
+        if barrier is not None:
+            onset_mm, limit_mm, kappa = barrier
+            b, b1, k_b = _barrier(g + limit_mm, limit_mm - onset_mm, kappa)
+            energy += float(np.sum(dA * b))
+            p = p - b1
         t = (dA * p)[..., None] * nrm  # (K, Q, 3) force on the skin
         fe = -np.einsum("qa,kqi->kai", self.N, t).reshape(K, nd)
         force = np.bincount(self.dofs[idx].ravel(), weights=fe.ravel(), minlength=n_dofs)
@@ -131,7 +167,7 @@ class ContactSurface:
         if tangent:
             if near_mm is not None and np.any(np.asarray(near_mm) > 0):
                 dp = np.maximum(dp, (g < near_mm).astype(float))
-            kq = (dA * e * dp)[..., None, None] * nrm[..., :, None] * nrm[..., None, :]
+            kq = (dA * (e * dp + k_b))[..., None, None] * nrm[..., :, None] * nrm[..., None, :]
             out["Kf"] = np.einsum("qa,qb,kqij->kaibj", self.N, self.N, kq).reshape(K, nd, nd)
             if H is not None:
                 kg = -(dA * p)[..., None, None] * H.reshape(K, Q, 3, 3)
