@@ -277,6 +277,21 @@ def test_penetration_barrier_is_smooth_convex_and_stiffens_toward_its_limit():
         SolverSettings(barrier_onset_rel=0.2, barrier_limit_rel=0.1)
 
 
+def test_penetration_barrier_bounds_what_a_soft_penalty_lets_through(limb):
+    # a penalty 60 x softer than the default, without multiplier updates or growth, lets the sphere sink
+    # into the skin by most of a facet; the barrier keeps every point short of its limit
+    ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(4.0, 0.0, 3.0), end_mm=(2.0, 0.0, 3.0))
+    soft = SolverSettings(penalty_factor=0.5, max_al_updates=0, end_penalty_passes=0, penalty_growth=1.0,
+                          penetration_accept=10.0, retry_shift_scales=())
+    plain = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=BoneMotion(), settings=soft)
+    walled = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=BoneMotion(),
+                               settings=replace(soft, barrier_onset_rel=0.03))
+    assert plain.converged and walled.converged, (plain.reason, walled.reason)
+    assert plain.max_penetration_rel > 0.3
+    assert soft.barrier_onset_rel is None and 0.03 < walled.max_penetration_rel < soft.barrier_limit_rel
+    assert walled.indenter_force_N > 2 * plain.indenter_force_N  # the skin is pushed, not passed through
+
+
 def test_indenter_starting_inside_the_skin_is_backed_off_and_reaches_the_same_end_state(limb):
     # a bar tilted 30 deg whose axis starts 0.8 mm clear still dips its lower end 0.3 mm into the skin
     # (the hard case "bar tilted 30 deg" started 1.3 mm deep): the solver moves the start back along
