@@ -173,13 +173,16 @@ def hard_cases(material, *, max_wall_s: float = 2400.0) -> pd.DataFrame:
     coarse = reference_limb(1.6, fine_h_mm=0.5)
     budget = SolverSettings(max_wall_s=max_wall_s)
     # a bar is refined along its footprint (its rounded ends concentrate strain too), not only at its centre
-    def along_bar(tilt_deg):
-        return reference_limb(1.6, fine_h_mm=0.5, fine_at_mm=_bar_footprint(tilt_deg))
+    def along_bar(tilt_deg, h_mm=1.6, fine_h_mm=0.5):
+        return reference_limb(h_mm, fine_h_mm=fine_h_mm, fine_at_mm=_bar_footprint(tilt_deg))
 
     cases = {
         "sphere to depth 2R (3 mm)": lambda: _indent_limb(coarse, material, depth_mm=3.0, settings=budget),
         "bar tilted 15 deg, 2 mm": lambda: _indent_limb(along_bar(15.0), material, kind="bar", tilt_deg=15.0, settings=budget),
         "bar tilted 30 deg, 2 mm": lambda: _indent_limb(along_bar(30.0), material, kind="bar", tilt_deg=30.0, settings=budget),
+        # the same squeeze on a coarser mesh (19 101 DOFs): converges on the retry with the penetration barrier
+        "bar tilted 30 deg, 2 mm, 2.0 / 0.7 mm mesh": lambda: _indent_limb(
+            along_bar(30.0, 2.0, 0.7), material, kind="bar", tilt_deg=30.0, settings=budget),
         "first touch (0.02 mm)": lambda: _indent_limb(coarse, material, depth_mm=0.02, settings=budget),
         "coarse distorted mesh, sphere 2 mm": lambda: _indent_limb(
             distort_interior(reference_limb(2.2, fine_h_mm=0.7), amount=0.15, seed=3, curved=False), material, settings=budget),
