@@ -92,16 +92,16 @@ def test_contact_force_and_tangent_are_derivatives_of_the_contact_potential(limb
     eps = np.full(surf.n_facets, 0.3)
     u = 0.01 * rng.standard_normal(3 * len(limb.nodes_mm))
     idx = np.arange(surf.n_facets)
-    # barrier from 0.05 mm of penetration, limit 0.2 mm: points below its onset, on it, and beyond the
-    # 0.002 mm where it continues as a quadratic
+    # barrier from 0.05 mm of penetration, limit 0.2 mm: points below its onset, on it, and beyond
+    # 0.1985 mm (s < 0.01 s_hat = 0.0015 mm) where it continues as a quadratic
     bar = (np.full((len(idx), 1), 0.05), np.full((len(idx), 1), 0.2), eps[:, None]) if barrier else None
     r = surf.evaluate(u, gap, eps, idx, barrier=bar)
     assert np.count_nonzero(r["pressure"] > 0) > 10
     if barrier:
         pen = -r["gap"]
         assert np.count_nonzero((pen > 0) & (pen < 0.05)) > 5
-        assert np.count_nonzero((pen > 0.05) & (pen < 0.198)) > 5
-        assert np.count_nonzero(pen > 0.198) > 5
+        assert np.count_nonzero((pen > 0.05) & (pen < 0.1985)) > 5
+        assert np.count_nonzero(pen > 0.1985) > 5
         plain = surf.evaluate(u, gap, eps, idx)
         assert r["energy"] > plain["energy"]
         assert np.all(r["pressure"] >= plain["pressure"])

@@ -71,7 +71,7 @@ class SolverSettings:
     max_penalty_growth x the initial one, for the following increments and the retry of a cut one.
     barrier_onset_rel, barrier_limit_rel, barrier_stiffness: the contact penetration barrier
     (deeptissue.fem.contact): it starts at a penetration of barrier_onset_rel x facet size, its
-    potential would be infinite at barrier_limit_rel x facet size (the bound of penetration_accept), and
+    potential would be infinite at barrier_limit_rel x facet size (by default penetration_accept's bound), and
     kappa = barrier_stiffness x the facet's initial penalty; barrier_onset_rel None (the default of the
     first try) switches it off, retry_barrier_onset_rel below sets it for the retry. States within
     penetration_tol never feel it. Not in the first try because an increment's predictor moves the
@@ -328,13 +328,6 @@ class _Pair:
     def set_time(self, t):
         self.gapfn = self.gap_of_t(t)
 
-    def barrier(self, s: "SolverSettings"):
-        """The penetration barrier's (onset_mm, limit_mm, kappa) of the candidate facets, or None."""
-        if s.barrier_onset_rel is None:
-            return None
-        h = self.surf.h_mm[self.cand][:, None]
-        return s.barrier_onset_rel * h, s.barrier_limit_rel * h, s.barrier_stiffness * self.eps0[self.cand][:, None]
-
 
 def _al_state(pairs):
     return [p.surf.lam.copy() for p in pairs]
@@ -478,11 +471,12 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
             if len(p.cand) == 0:
                 out.append(None)
                 continue
-            r = p.surf.evaluate(u, p.gapfn, p.eps, p.cand, tangent=tangent,
-                                smoothing_mm=s.contact_smoothing_rel * p.surf.h_mm[p.cand][:, None],
-                                near_mm=(s.contact_near_rel * p.surf.h_mm[p.cand][:, None]) if near else 0.0,
-                                barrier=p.barrier(s))
-            r["h_mm"] = p.surf.h_mm[p.cand]
+            h = p.surf.h_mm[p.cand][:, None]  # facet sizes scale the smoothing, the near band and the barrier
+            barrier = None if s.barrier_onset_rel is None else (
+                s.barrier_onset_rel * h, s.barrier_limit_rel * h, s.barrier_stiffness * p.eps0[p.cand][:, None])
+            r = p.surf.evaluate(u, p.gapfn, p.eps, p.cand, tangent=tangent, smoothing_mm=s.contact_smoothing_rel * h,
+                                near_mm=s.contact_near_rel * h if near else 0.0, barrier=barrier)
+            r["h_mm"] = h[:, 0]
             r["cand"] = p.cand.copy()
             energy += r["energy"]
             force += r["force"]
