@@ -248,7 +248,7 @@ def linear_reference_solve(mesh, *, material, solver_settings, load_set: str = "
     d = d / np.linalg.norm(d)
     rhs = np.zeros(3 * n)
     rhs[(3 * loaded[:, None] + np.arange(3)).ravel()] = np.tile(d / max(len(loaded), 1), len(loaded))
-    solver = make_solver(s.linear_solver, coords_mm=mesh.nodes_mm, free=asm.free)
+    solver = make_solver(s.linear_solver, coords_mm=mesh.nodes_mm, free=asm.free, precision=s.linear_precision)
     try:
         x = solver.solve(asm.csr(data), rhs[asm.free])
     finally:

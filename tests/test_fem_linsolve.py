@@ -1,0 +1,89 @@
+"""FE core: the sparse symmetric solvers of the Newton tangent (PARDISO in mixed and double precision)."""
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from deeptissue.fem.assembly import Assembler, as_material_law
+from deeptissue.fem.linsolve import NotPositiveDefinite, PardisoSymmetric, make_solver
+from deeptissue.fem.material import Ogden
+from deeptissue.fem.shapes import block_mesh
+
+
+def _full(U):
+    return (U + sp.triu(U, 1).T).tocsr()
+
+
+def _backward_error(U, x, b):
+    K = _full(U)
+    return np.abs(K @ x - b).max() / (abs(K).sum(axis=1).max() * np.abs(x).max() + np.abs(b).max())
+
+
+@pytest.fixture(scope="module")
+def elasticity():
+    """Upper triangle of a P2 block's tangent at rest (bottom fixed: positive definite) and a load."""
+    m = block_mesh((4.0, 3.0, 2.0), h_mm=0.5)
+    bottom = np.unique(m.facets["bottom"])
+    fixed = np.zeros(3 * len(m.nodes_mm), bool)
+    fixed[(3 * bottom[:, None] + np.arange(3)).ravel()] = True
+    A = Assembler(m, as_material_law(Ogden()), constrained=fixed)
+    _, _, data, _ = A.tangent(np.zeros(A.n_dofs))
+    U = A.csr(data)
+    b = np.random.default_rng(0).standard_normal(U.shape[0])
+    return U, b
+
+
+def test_mixed_precision_refines_to_the_double_precision_answer(elasticity):
+    U, b = elasticity
+    xd = PardisoSymmetric("double").solve(U, b)
+    s = PardisoSymmetric("mixed")
+    xm = s.solve(U, b)
+    # one single-precision solve carries ~7 digits: the refinement steps are what make it exact
+    assert s.refinements >= 1 and s.double_fallbacks == 0 and s.last_mode == 2
+    assert _backward_error(U, xm, b) < 1e-14
+    np.testing.assert_allclose(xm, xd, rtol=0, atol=1e-9 * np.abs(xd).max())
+    # the factorisation is reused for a new matrix on the same pattern (values change, analysis kept)
+    x2 = s.solve(U.multiply(2.0).tocsr(), b)
+    np.testing.assert_allclose(x2, 0.5 * xd, rtol=0, atol=1e-9 * np.abs(xd).max())
+    assert s.factorisations == 2
+    s.close()
+
+
+def test_an_ill_conditioned_matrix_falls_back_to_double_precision():
+    # 1D Laplacian, fixed at one end: condition ~ 16 n^2 / pi^2 = 6.5e8, beyond single precision's 7 digits
+    n = 20000
+    main = np.full(n, 2.0)
+    main[-1] = 1.0
+    U = sp.diags([main, -np.ones(n - 1)], [0, 1], format="csr")
+    b = np.ones(n)
+    s = PardisoSymmetric("mixed")
+    x = s.solve(U, b)
+    assert s.double_fallbacks == 1
+    assert _backward_error(U, x, b) < 1e-14
+    exact = np.arange(1, n + 1) * (n + 0.5) - 0.5 * np.arange(1, n + 1) ** 2  # -x'' = 1, x(0) = 0, x'(n) ~ 0
+    assert np.abs(x - exact).max() < 1e-6 * exact.max()
+
+
+@pytest.mark.parametrize("precision", ["mixed", "double"])
+def test_an_indefinite_matrix_is_refused_in_spd_mode_and_solved_by_ldlt(elasticity, precision):
+    U, b = elasticity
+    # shift the spectrum so that a few eigenvalues are negative
+    K = _full(U)
+    lam_min = sp.linalg.eigsh(K, k=1, sigma=0, which="LM", return_eigenvectors=False)[0]
+    Ui = (U - 3.0 * lam_min * sp.eye(U.shape[0], format="csr")).tocsr()
+    s = make_solver("pardiso", precision=precision)
+    with pytest.raises(NotPositiveDefinite):
+        s.solve(Ui, b, spd_only=True)
+    x = s.solve(Ui, b)
+    assert s.last_mode == -2
+    assert _backward_error(Ui, x, b) < 1e-12
+    s.close()
+
+
+def test_precision_is_validated():
+    with pytest.raises(ValueError, match="precision 'single'"):
+        PardisoSymmetric("single")
+    from deeptissue.fem.solver import SolverSettings
+
+    with pytest.raises(ValueError, match="linear_precision"):
+        SolverSettings(linear_precision="half")
