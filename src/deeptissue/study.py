@@ -91,7 +91,8 @@ def solve_variant(
         contact_s=result.contact_s, max_penetration_mm=result.max_penetration_mm,
         max_penetration_rel=result.max_penetration_rel,
         load_reached=result.load_reached, contact_set=set_name, attempts=result.extra.get("attempts", 1),
-        bone_clearance_mm=result.extra.get("bone_clearance_mm"),
+        bone_clearance_mm=result.extra.get("bone_clearance_mm"), pinch_first=result.extra.get("pinch_first", False),
+        shifted=result.extra.get("shifted", False),
     )
     if not result.converged:
         log.warning("%s/%s did not converge: %s", animal, variant, result.reason)
