@@ -87,3 +87,6 @@ def test_precision_is_validated():
 
     with pytest.raises(ValueError, match="linear_precision"):
         SolverSettings(linear_precision="half")
+    with pytest.raises(ValueError, match="retry_linear_precision"):
+        SolverSettings(retry_linear_precision="single")
+    assert SolverSettings(retry_linear_precision=None).retry_linear_precision is None

@@ -405,11 +405,12 @@ def test_pinched_solve_starts_with_the_retry_settings_and_falls_back_to_plain(li
     assert "solving first with the retry's settings (diagonal shifts (0.1,)" in caplog.text
     assert r.converged and r.extra["attempts"] == 1
     assert r.extra["pinch_first"] and r.extra["shifted"] and r.extra["barrier_onset_rel"] == pinch.retry_barrier_onset_rel
+    assert r.extra["linear_precision"] == "double"  # the retry's settings solve in double precision
     # the default threshold (0.6 mm) solves it plainly first; path independent: the same end state, to
     # within what the 1 % penetration tolerance leaves open (0.2 % in force measured)
     plain = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=BoneMotion())
     assert plain.converged and not plain.extra["pinch_first"] and not plain.extra["shifted"]
-    assert plain.extra["barrier_onset_rel"] is None
+    assert plain.extra["barrier_onset_rel"] is None and plain.extra["linear_precision"] == "mixed"
     assert r.indenter_force_N == pytest.approx(plain.indenter_force_N, rel=5e-3)
     # a pinched first try that fails is followed by the plain one, which is what it then reports
     caplog.clear()
