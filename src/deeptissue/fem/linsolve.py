@@ -25,6 +25,9 @@ import numpy as np
 import scipy.sparse as sp
 
 
+PRECISIONS = ("mixed", "double")  # of PardisoSymmetric
+
+
 class NotPositiveDefinite(np.linalg.LinAlgError):
     """The Cholesky (SPD) factorisation failed."""
 
@@ -106,8 +109,8 @@ class PardisoSymmetric:
     in double), refinements (solve steps after the first)."""
 
     def __init__(self, precision: str = "mixed", *, refine_eta: float = 1e-14, max_refinements: int = 8):
-        if precision not in ("mixed", "double"):
-            raise ValueError(f"linear solver precision {precision!r}: expected 'mixed' or 'double'")
+        if precision not in PRECISIONS:
+            raise ValueError(f"linear solver precision {precision!r}: expected one of {PRECISIONS}")
         self._call = _mkl_pardiso()
         self.precision, self.refine_eta, self.max_refinements = precision, refine_eta, max_refinements
         self._factors: dict = {}

@@ -29,7 +29,7 @@ from .assembly import Assembler, as_material_law
 from .cast import Cast
 from .contact import ContactSurface
 from .indenters import Indenter
-from .linsolve import NotPositiveDefinite, make_solver
+from .linsolve import PRECISIONS, NotPositiveDefinite, make_solver
 
 log = logging.getLogger(__name__)
 
@@ -129,7 +129,7 @@ class SolverSettings:
     times while facets are still being stiffened; a pass that does not converge keeps the state before it.
     linear_solver: 'pardiso' | 'amg' | 'superlu'.
     linear_precision: 'mixed' (pardiso: Cholesky in single precision, refined in double precision to a
-    relative residual of 1e-12, factorised again in double where the refinement does not contract;
+    normwise backward error of 1e-14, factorised again in double where the refinement does not contract;
     about half the factorisation time) | 'double'.
     retry_linear_precision: the precision of the retry (and of a pinched variant's first try), None: as
     linear_precision. Default 'double': the retry follows a near-singular mode at a bifurcation, where
@@ -205,7 +205,7 @@ class SolverSettings:
     cast_set: str = "skin"
 
     def __post_init__(self):
-        for name, allowed in (("linear_precision", ("mixed", "double")), ("retry_linear_precision", ("mixed", "double", None))):
+        for name, allowed in (("linear_precision", PRECISIONS), ("retry_linear_precision", (*PRECISIONS, None))):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"SolverSettings: {name} {getattr(self, name)!r}: expected one of {allowed}")
         for name in ("barrier_onset_rel", "retry_barrier_onset_rel"):
@@ -376,8 +376,11 @@ def solve_indentation(mesh: TetMesh, *, material, indenter: Indenter | None, bon
     ``extra``: 'shifted', 'barrier_onset_rel' and 'linear_precision' of the try returned, 'pinch_first'.
     """
     def run(st):
-        return _solve(mesh, material=material, indenter=indenter, schedule=_Schedule(bone_motion, indenter),
-                      bc_sets=(st.bone_set,), cast=cast, settings=st)
+        r = _solve(mesh, material=material, indenter=indenter, schedule=_Schedule(bone_motion, indenter),
+                   bc_sets=(st.bone_set,), cast=cast, settings=st)
+        # only the retry's settings carry shifts (there is no retry when the settings already do)
+        return replace(r, extra={**r.extra, "pinch_first": pinched, "shifted": bool(st.shift_scales),
+                                 "barrier_onset_rel": st.barrier_onset_rel, "linear_precision": st.linear_precision})
 
     t0 = time.perf_counter()
     s = settings
@@ -401,9 +404,6 @@ def solve_indentation(mesh: TetMesh, *, material, indenter: Indenter | None, bon
         log.info("the indenter ends %.3f mm from the bone (pinch_clearance_mm %g): solving first with the "
                  "retry's settings (%s)", clearance, s.pinch_clearance_mm, describe(again))
     first = run(tries[0])
-    first = replace(first, extra={**first.extra, "pinch_first": pinched, "shifted": tries[0] is again,
-                                  "barrier_onset_rel": tries[0].barrier_onset_rel,
-                                  "linear_precision": tries[0].linear_precision})
     if first.converged or first.extra["infeasible"] or tries[1] is None:
         return first
     st2 = tries[1]
@@ -417,9 +417,6 @@ def solve_indentation(mesh: TetMesh, *, material, indenter: Indenter | None, bon
     else:
         log.warning("not converged (%s): solving again from the start with %s", first.reason, describe(again))
     second = run(st2)
-    second = replace(second, extra={**second.extra, "pinch_first": pinched, "shifted": tries[1] is again,
-                                    "barrier_onset_rel": tries[1].barrier_onset_rel,
-                                  "linear_precision": tries[1].linear_precision})
     # both failed: keep the try that got further (its last converged state is the more useful)
     best = second if second.converged or second.load_reached >= first.load_reached else first
     other = first if best is second else second
