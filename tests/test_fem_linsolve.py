@@ -14,6 +14,17 @@ def _full(U):
     return (U + sp.triu(U, 1).T).tocsr()
 
 
+def _on_pattern(U, data):
+    """A matrix of U's sparsity pattern (explicit zeros kept, as the assembler's) with these values."""
+    return sp.csr_matrix((data, U.indices, U.indptr), shape=U.shape)
+
+
+def _plus_diagonal(U, d):
+    data = U.data.copy()
+    data[U.indptr[:-1]] += d  # sorted upper-triangle rows start at the diagonal
+    return _on_pattern(U, data)
+
+
 def _backward_error(U, x, b):
     K = _full(U)
     return np.abs(K @ x - b).max() / (abs(K).sum(axis=1).max() * np.abs(x).max() + np.abs(b).max())
@@ -90,3 +101,58 @@ def test_precision_is_validated():
     with pytest.raises(ValueError, match="retry_linear_precision"):
         SolverSettings(retry_linear_precision="single")
     assert SolverSettings(retry_linear_precision=None).retry_linear_precision is None
+
+
+def test_reuse_solves_a_nearby_matrix_by_conjugate_gradients_on_the_last_factor(elasticity):
+    U, b = elasticity
+    s = PardisoSymmetric("mixed", reuse_iterations=20, reuse_rtol=1e-8)
+    s.solve(U, b)
+    assert s.factorisations == 1
+    # a nearby matrix of the same pattern: two stiff "contact" springs switched on, the rest 2 % stiffer
+    d = np.zeros(U.shape[0])
+    d[np.random.default_rng(1).choice(U.shape[0], 2, replace=False)] = 10.0 * U.diagonal().max()
+    U2 = _plus_diagonal(_on_pattern(U, 1.02 * U.data), d)
+    x2 = s.solve(U2, b)
+    assert (s.reused, s.factorisations, s.last_mode) == (1, 1, "cg")
+    assert 1 <= s.cg_iterations <= 20
+    K2 = _full(U2)
+    assert np.linalg.norm(K2 @ x2 - b) <= 1e-8 * np.linalg.norm(b)
+    # a matrix far from the factor's: the conjugate gradients give up and it is factorised (and exact)
+    scale = np.exp(np.random.default_rng(2).uniform(-3, 3, U.shape[0]))
+    rows = np.repeat(np.arange(U.shape[0]), np.diff(U.indptr))
+    U3 = _on_pattern(U, U.data * scale[rows] * scale[U.indices])
+    x3 = s.solve(U3, b)
+    assert (s.reuse_failed, s.factorisations, s.last_mode) == (1, 2, 2)
+    assert _backward_error(U3, x3, b) < 1e-14
+    s.close()
+
+
+def test_reuse_finds_an_indefinite_matrix_without_a_failed_factorisation(elasticity):
+    U, b = elasticity
+    s = PardisoSymmetric("mixed", reuse_iterations=20)
+    s.solve(U, b)
+    # shift so that the first conjugate-gradient direction p0 = K^-1 b has negative curvature
+    p0 = PardisoSymmetric("double").solve(U, b)
+    c = 2.0 * float(p0 @ (_full(U) @ p0)) / float(p0 @ p0)
+    Ui = _plus_diagonal(U, -c)
+    with pytest.raises(NotPositiveDefinite, match="conjugate gradients"):
+        s.solve(Ui, b, spd_only=True)
+    assert (s.reuse_indefinite, s.factorisations) == (1, 1)
+    x = s.solve(Ui, b)  # not spd_only: straight to the LDL^T factorisation in double precision
+    assert s.last_mode == -2 and s.factorisations == 2
+    assert _backward_error(Ui, x, b) < 1e-12
+    # the SPD factor stays the preconditioner for the next matrix
+    s.solve(U, b)
+    assert s.last_mode == "cg" and s.factorisations == 2
+    s.close()
+
+
+def test_reuse_settings_are_validated():
+    with pytest.raises(ValueError, match="reuse_iterations -1"):
+        PardisoSymmetric("mixed", reuse_iterations=-1)
+    with pytest.raises(ValueError, match="reuse_rtol 0"):
+        PardisoSymmetric("mixed", reuse_iterations=5, reuse_rtol=0.0)
+    from deeptissue.fem.solver import SolverSettings
+
+    with pytest.raises(ValueError, match="linear_reuse_rtol 1.5"):
+        SolverSettings(linear_reuse_rtol=1.5)

@@ -412,6 +412,15 @@ def test_pinched_solve_starts_with_the_retry_settings_and_falls_back_to_plain(li
     assert plain.converged and not plain.extra["pinch_first"] and not plain.extra["shifted"]
     assert plain.extra["barrier_onset_rel"] is None and plain.extra["linear_precision"] == "mixed"
     assert r.indenter_force_N == pytest.approx(plain.indenter_force_N, rel=5e-3)
+    # mixed precision solves some Newton matrices by conjugate gradients on the last factor; the
+    # double-precision try factorises every one
+    assert plain.extra["reused"] > 0 and plain.extra["factorisations"] < plain.extra["linear_solves"]
+    assert r.extra["reused"] == 0 and r.extra["factorisations"] >= r.extra["linear_solves"]
+    every = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=BoneMotion(),
+                              settings=SolverSettings(linear_reuse_iterations=0))
+    assert every.converged and every.extra["reused"] == 0
+    assert every.extra["factorisations"] > plain.extra["factorisations"]
+    assert plain.indenter_force_N == pytest.approx(every.indenter_force_N, rel=1e-3)
     # a pinched first try that fails is followed by the plain one, which is what it then reports
     caplog.clear()
     few = replace(pinch, max_increments=2)

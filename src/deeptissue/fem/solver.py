@@ -136,6 +136,14 @@ class SolverSettings:
     the Newton direction's component along that mode is only as accurate as the solve (a backward error
     of 1e-14 leaves it far less accurate than a double factorisation); measured on the 30 deg bar's
     cheaper copy: the shifted retry converges in double and stops at t = 3.9869 in mixed precision.
+    linear_reuse_iterations, linear_reuse_rtol (mixed precision): a Newton matrix is first solved by up
+    to this many conjugate-gradient iterations preconditioned by the last single-precision factor, to a
+    relative residual of linear_reuse_rtol, and factorised only if that fails (0: factorise every
+    matrix); non-positive curvature met on the way proves the matrix indefinite without a failed
+    factorisation. Measured on the demo (45.5 k dofs): 392 of 1 947 Newton matrices solved without a
+    factorisation, every solve the same iterations and answer as without, 1.7 % less solve time (rat02
+    sphere -16 %). At rtol 1e-6, 7 % less on 17 solves, but rat02 sphere_rx-15 took another increment
+    path (219 instead of 99 iterations): the thresholds of the increment control see the inexactness.
     max_wall_s: wall-time budget of one solve, the retry included [s] (None: none); checked between
     increments, a solve that spends it ends unconverged with the load reached, like any other failure.
     pinch_clearance_mm: a solve whose indenter ends closer than this to the moved bone (but not closer
@@ -194,6 +202,8 @@ class SolverSettings:
     linear_solver: str = "pardiso"
     linear_precision: str = "mixed"
     retry_linear_precision: str | None = "double"
+    linear_reuse_iterations: int = 20
+    linear_reuse_rtol: float = 1e-10
     quadrature_order: int = 2
     contact_quadrature_order: int = 4
     end_penalty_passes: int = 3
@@ -208,6 +218,9 @@ class SolverSettings:
         for name, allowed in (("linear_precision", PRECISIONS), ("retry_linear_precision", (*PRECISIONS, None))):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"SolverSettings: {name} {getattr(self, name)!r}: expected one of {allowed}")
+        if self.linear_reuse_iterations < 0 or not 0 < self.linear_reuse_rtol < 1:
+            raise ValueError(f"SolverSettings: linear_reuse_iterations {self.linear_reuse_iterations} must be >= 0 "
+                             f"and linear_reuse_rtol {self.linear_reuse_rtol} in (0, 1)")
         for name in ("barrier_onset_rel", "retry_barrier_onset_rel"):
             onset = getattr(self, name)
             if onset is not None and not 0 <= onset < self.barrier_limit_rel:
@@ -512,9 +525,10 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
     for p in pairs:
         p.cand_dist = cand_dist if p.name == "indenter" else min(cand_dist, s.cast_candidate_distance_mm)
 
-    solver = make_solver(s.linear_solver, coords_mm=X, free=asm.free, precision=s.linear_precision)
+    solver = make_solver(s.linear_solver, coords_mm=X, free=asm.free, precision=s.linear_precision,
+                         reuse_iterations=s.linear_reuse_iterations, reuse_rtol=s.linear_reuse_rtol)
     timers = dict(assembly=0.0, solve=0.0, contact=0.0)
-    counts = dict(factorisations=0, not_positive_definite=0)
+    counts = dict(linear_solves=0, not_positive_definite=0)
 
     def contact_eval(u, tangent, near=False):
         tc = time.perf_counter()
@@ -666,7 +680,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
                     K_data[asm.indptr[:-1]] += shift * np.abs(K_data[asm.indptr[:-1]])
                 last = j == len(scales) - 1
                 ts = time.perf_counter()
-                counts["factorisations"] += 1
+                counts["linear_solves"] += 1
                 try:
                     x = solver.solve(asm.csr(K_data), rhs, **({} if last else {"spd_only": True}))
                 except NotPositiveDefinite:
@@ -921,7 +935,10 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
         if not done:
             break
     solver.close()
-    counts.update({k: getattr(solver, k) for k in ("double_fallbacks", "refinements") if hasattr(solver, k)})
+    counts.update({k: getattr(solver, k) for k in ("factorisations", "double_fallbacks", "refinements", "reused", "reuse_failed",
+                                                         "reuse_indefinite", "cg_iterations") if hasattr(solver, k)})
+    log.info("solve %s in %.1f s: %d Newton iterations, %s", "converged" if done else "unconverged",
+             time.perf_counter() - t_wall, n_iter_total, ", ".join(f"{k} {v}" for k, v in counts.items()))
     # final state
     F = asm.deformation_gradient(u)
     Fe = np.einsum("eqij,eq->eij", F, asm.w) / asm.w.sum(axis=1)[:, None, None]
