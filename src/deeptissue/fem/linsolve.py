@@ -65,10 +65,15 @@ def _pattern_key(U: sp.csr_matrix) -> tuple:
     return U.shape[0], U.nnz, hash(U.indptr.tobytes()), hash(U.indices.tobytes())
 
 
+def _symmetric_matvec(U: sp.csr_matrix, diag: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """K v for K = U + triu(U, 1)^T given by its upper triangle U and diag = U.diagonal()."""
+    return U @ v + U.T @ v - diag * v
+
+
 class _Factor:
     """One PARDISO handle for a sparsity pattern (upper triangle, 0-based CSR), matrix type and precision."""
 
-    def __init__(self, call, U: sp.csr_matrix, mtype: int, single: bool):
+    def __init__(self, call, U: sp.csr_matrix, mtype: int, single: bool, key: tuple):
         self._call = call
         self.mtype, self.dtype = mtype, (np.float32 if single else np.float64)
         self.pt = np.zeros(64, np.int64)
@@ -81,7 +86,7 @@ class _Factor:
         ip[34] = 1  # 0-based indices
         self.n = U.shape[0]
         self.ia, self.ja = U.indptr.astype(np.int32), U.indices.astype(np.int32)
-        self.key = _pattern_key(U)
+        self.key = key  # _pattern_key(U)
         self.a = None
         self._pardiso(11, U.data.astype(self.dtype), np.zeros(self.n, self.dtype))
 
@@ -139,12 +144,19 @@ class PardisoSymmetric:
         self.factorisations = self.double_fallbacks = self.refinements = 0
         self.reused = self.reuse_failed = self.reuse_indefinite = self.cg_iterations = 0
 
-    def _factor(self, name: str, U: sp.csr_matrix, mtype: int, single: bool) -> _Factor:
+    @property
+    def counters(self) -> dict:
+        """The counters of the class docstring, by name."""
+        return {k: getattr(self, k) for k in ("factorisations", "double_fallbacks", "refinements", "reused",
+                                              "reuse_failed", "reuse_indefinite", "cg_iterations")}
+
+    def _factor(self, name: str, U: sp.csr_matrix, mtype: int, single: bool, key: tuple) -> _Factor:
+        """The handle of this name, analysed again (and the old one freed) if U's pattern (key) changed."""
         f = self._factors.get(name)
-        if f is None or f.key != _pattern_key(U):
+        if f is None or f.key != key:
             if f is not None:
                 f.free()
-            f = self._factors[name] = _Factor(self._call, U, mtype, single)
+            f = self._factors[name] = _Factor(self._call, U, mtype, single, key)
         return f
 
     def _refined(self, f: _Factor, U: sp.csr_matrix, b: np.ndarray) -> np.ndarray | None:
@@ -159,7 +171,7 @@ class PardisoSymmetric:
         for _ in range(self.max_refinements + 1):
             if not np.all(np.isfinite(x)):
                 return None
-            r = b - (U @ x + U.T @ x - diag * x)
+            r = b - _symmetric_matvec(U, diag, x)
             eta = float(np.max(np.abs(r))) / (k_inf * float(np.max(np.abs(x))) + b_inf or 1.0)
             if eta <= self.refine_eta:
                 return x
@@ -183,7 +195,7 @@ class PardisoSymmetric:
         p = z.copy()
         rz = float(r @ z)
         for k in range(1, self.reuse_iterations + 1):
-            q = U @ p + U.T @ p - diag * p
+            q = _symmetric_matvec(U, diag, p)
             pq = float(p @ q)
             self.cg_iterations += 1
             if not pq > 0:
@@ -212,9 +224,10 @@ class PardisoSymmetric:
         alpha_j^2 p_j^T K p_j > 0 over the K-conjugate search directions.)"""
         b = np.asarray(b, dtype=np.float64).ravel()
         mtypes = (2,) if spd_only else (2, -2)
+        key = _pattern_key(U)
         if self.precision == "mixed" and self.reuse_iterations:
             f = self._factors.get("spd32")
-            if f is not None and f.a is not None and f.key == _pattern_key(U):
+            if f is not None and f.a is not None and f.key == key:
                 x = self._preconditioned_cg(f, U, b)
                 if isinstance(x, np.ndarray):
                     self.reused += 1
@@ -228,7 +241,7 @@ class PardisoSymmetric:
                 else:
                     self.reuse_failed += 1
         if self.precision == "mixed" and 2 in mtypes:
-            f = self._factor("spd32", U, 2, True)
+            f = self._factor("spd32", U, 2, True, key)
             self.factorisations += 1
             if f.factor(U):
                 x = self._refined(f, U, b)
@@ -239,7 +252,7 @@ class PardisoSymmetric:
             else:  # not positive definite (not retried in double: measured, it costs a second failed
                 mtypes = mtypes[1:]  # factorisation and changed nothing on the 30 deg bar)
         for mtype in mtypes:
-            f = self._factor(f"{mtype}", U, mtype, False)
+            f = self._factor(f"{mtype}", U, mtype, False, key)
             self.factorisations += 1
             if not f.factor(U):
                 continue

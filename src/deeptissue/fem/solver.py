@@ -935,8 +935,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
         if not done:
             break
     solver.close()
-    counts.update({k: getattr(solver, k) for k in ("factorisations", "double_fallbacks", "refinements", "reused", "reuse_failed",
-                                                         "reuse_indefinite", "cg_iterations") if hasattr(solver, k)})
+    counts.update(getattr(solver, "counters", {}))  # PardisoSymmetric's (the other solvers count nothing)
     log.info("solve %s in %.1f s: %d Newton iterations, %s", "converged" if done else "unconverged",
              time.perf_counter() - t_wall, n_iter_total, ", ".join(f"{k} {v}" for k, v in counts.items()))
     # final state
