@@ -292,6 +292,25 @@ def test_penetration_barrier_bounds_what_a_soft_penalty_lets_through(limb):
     assert walled.indenter_force_N > 2 * plain.indenter_force_N  # the skin is pushed, not passed through
 
 
+def test_energy_criterion_is_not_fooled_by_a_predictor_far_beyond_the_barrier(limb):
+    # found on rat02 bar (pinched: solved first with the barrier): an increment's predictor left skin
+    # beyond the barrier's limit, where its stiff continuation made the first Newton decrement 1e4 mJ;
+    # the energy criterion (decrement below energy_rtol x the first one) then accepted a crushed state
+    # at a residual of 0.4 N with 3-6 N on the indenter (0.05 N at equilibrium), and the solve spent
+    # ~90 iterations getting out of it. decrement_cap bounds that first decrement by the strain energy.
+    ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(4.0, 0.0, 3.0), end_mm=(2.0, 0.0, 3.0))
+    st = SolverSettings(barrier_onset_rel=0.03, first_touch_mm=0.5, max_increment=0.5, retry_shift_scales=())
+    forces = {}
+    for cap in (None, st.decrement_cap):
+        r = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=BoneMotion(), settings=replace(st, decrement_cap=cap))
+        assert r.converged, (cap, r.reason)
+        forces[cap] = [h.indenter_force_N for h in r.history if h.converged and h.step == 4 and h.t_end > h.t_start]
+    assert max(forces[None]) > 5 * forces[None][-1]  # without the cap: an intermediate state far from equilibrium
+    capped = forces[st.decrement_cap]
+    assert all(a <= b for a, b in zip(capped[:-1], capped[1:]))  # with it: the force grows with the indentation
+    assert capped[-1] == pytest.approx(forces[None][-1], rel=0.05)
+
+
 def test_indenter_starting_inside_the_skin_is_backed_off_and_reaches_the_same_end_state(limb):
     # a bar tilted 30 deg whose axis starts 0.8 mm clear still dips its lower end 0.3 mm into the skin
     # (the hard case "bar tilted 30 deg" started 1.3 mm deep): the solver moves the start back along
