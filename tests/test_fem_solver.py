@@ -297,16 +297,18 @@ def test_energy_criterion_is_not_fooled_by_a_predictor_far_beyond_the_barrier(li
     # beyond the barrier's limit, where its stiff continuation made the first Newton decrement 1e4 mJ;
     # the energy criterion (decrement below energy_rtol x the first one) then accepted a crushed state
     # at a residual of 0.4 N with 3-6 N on the indenter (0.05 N at equilibrium), and the solve spent
-    # ~90 iterations getting out of it. decrement_cap bounds that first decrement by the strain energy.
+    # ~90 iterations getting out of it. decrement_cap bounds that first decrement by the strain energy
+    # (not the default: measured, it lost the hard case of the bar tilted 30 deg).
     ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(4.0, 0.0, 3.0), end_mm=(2.0, 0.0, 3.0))
     st = SolverSettings(barrier_onset_rel=0.03, first_touch_mm=0.5, max_increment=0.5, retry_shift_scales=())
     forces = {}
-    for cap in (None, st.decrement_cap):
+    assert st.decrement_cap is None
+    for cap in (None, 10.0):
         r = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=BoneMotion(), settings=replace(st, decrement_cap=cap))
         assert r.converged, (cap, r.reason)
         forces[cap] = [h.indenter_force_N for h in r.history if h.converged and h.step == 4 and h.t_end > h.t_start]
     assert max(forces[None]) > 5 * forces[None][-1]  # without the cap: an intermediate state far from equilibrium
-    capped = forces[st.decrement_cap]
+    capped = forces[10.0]
     assert all(a <= b for a, b in zip(capped[:-1], capped[1:]))  # with it: the force grows with the indentation
     assert capped[-1] == pytest.approx(forces[None][-1], rel=0.05)
 
