@@ -88,7 +88,7 @@ class SolverSettings:
     getting out of it. Measured with decrement_cap 10 (session 14): rat02 bar 241 -> 185 iterations,
     511 -> 339 s, the same answer, the demo 18 min 42 s -> 15 min 40 s; but the bar tilted 30 deg of
     the hard cases (2.0 / 0.7 mm copy, pinched too), whose barrier increments start from decrements of
-    17-111 mJ, then no longer converged (t = 3.9137 and 3.8720 in its two tries; uncapped: 370 iterations
+    17-111 mJ, then no longer converged (t = 3.9923 and 3.8720 in its two tries; uncapped: 370 iterations
     to the end), and sphere to depth 2R needed its retry. Not the default until that is understood.
     first_touch_mm: at most this much indentation in the increment where contact starts.
     start_clearance_mm: an indenter that already touches or penetrates the skin at its start position
