@@ -121,8 +121,12 @@ def test_reuse_solves_a_nearby_matrix_by_conjugate_gradients_on_the_last_factor(
     scale = np.exp(np.random.default_rng(2).uniform(-3, 3, U.shape[0]))
     rows = np.repeat(np.arange(U.shape[0]), np.diff(U.indptr))
     U3 = _on_pattern(U, U.data * scale[rows] * scale[U.indices])
+    its = s.cg_iterations
     x3 = s.solve(U3, b)
     assert (s.reuse_failed, s.factorisations, s.last_mode) == (1, 2, 2)
+    # given up after the third iteration, the first at which progress is judged: slower than geometric
+    # progress to reuse_rtol in reuse_iterations iterations is not worth more conjugate gradients
+    assert s.cg_iterations - its == 3
     assert _backward_error(U3, x3, b) < 1e-14
     s.close()
 

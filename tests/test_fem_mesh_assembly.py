@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 from _standin_material import NeoHooke, NeoHookeLaw
 from scipy.spatial import cKDTree
 from skfem import Basis, ElementTetP2, ElementVector, asm
@@ -78,6 +79,28 @@ def test_tangent_at_rest_equals_skfem_linear_elasticity(block, law):
     x = np.random.default_rng(2).standard_normal(A.n_dofs)
     ref = Ksk @ x[mine]
     assert np.linalg.norm(ref - (A.full_matrix(data) @ x)[mine]) < 1e-12 * np.linalg.norm(ref)
+
+
+@pytest.mark.parametrize("order", [2, 1])
+def test_tangent_is_the_assembly_of_the_element_matrices_on_the_free_dofs(order):
+    # the tangent's CSR data (upper triangle of K_ff, scattered from element entries in their own layout)
+    # and the bc elements' matrices against a plain COO assembly of element_matrices
+    m = block_mesh((3.0, 2.0, 2.0), h_mm=0.8, order=order)
+    rng = np.random.default_rng(3)
+    constrained = np.zeros(3 * len(m.nodes_mm), bool)
+    constrained[rng.choice(len(constrained), len(constrained) // 5, replace=False)] = True
+    A = Assembler(m, LAW, constrained=constrained)
+    u = 0.01 * rng.standard_normal(A.n_dofs)
+    _, _, data, Ke_bc = A.tangent(u)
+    Ke = A.element_matrices(LAW.stress_tangent(A.deformation_gradient(u), LAW.params)[2])
+    assert Ke.shape == (len(m.tets), 3 * A.n_local, 3 * A.n_local)
+    np.testing.assert_allclose(Ke, Ke.transpose(0, 2, 1), atol=1e-12 * np.abs(Ke).max())
+    rows = np.repeat(A.edofs, A.edofs.shape[1], axis=1).ravel()
+    cols = np.tile(A.edofs, (1, A.edofs.shape[1])).ravel()
+    K = sp.coo_matrix((Ke.ravel(), (rows, cols)), shape=(A.n_dofs, A.n_dofs)).tocsr()[A.free][:, A.free]
+    assert abs(A.full_matrix(data) - K).max() < 1e-12 * abs(K).max()
+    assert len(A.bc_elems) and len(A.bc_elems) < len(m.tets)
+    np.testing.assert_array_equal(Ke_bc, Ke[A.bc_elems])
 
 
 def test_inverted_element_gives_infinite_energy(block):

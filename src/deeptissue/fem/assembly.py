@@ -2,8 +2,8 @@
 
 scikit-fem supplies the mesh, the P2 basis (P1 for a first-order TetMesh) and the quadrature (shape-function gradients in the
 reference configuration at every quadrature point of every element); the hot loop is ours:
-``einsum`` over all elements x quadrature points, a sparsity pattern computed once and a
-``bincount`` scatter into CSR data.
+batched products over all elements x quadrature points, a sparsity pattern computed once and a
+scatter of the element entries into CSR data by one sparse product.
 
 Degrees of freedom: ``3 * node + component`` in TetMesh node numbering (node order of
 ``TetMesh.nodes_mm``), displacements in mm, forces in N, energy in mJ (N mm).
@@ -92,6 +92,7 @@ class Assembler:
         self.w = np.ascontiguousarray(basis.dx)
         E, Q = self.w.shape
         self._dN_rows = np.ascontiguousarray(self.dN.transpose(0, 2, 1, 3).reshape(E, self.n_local, Q * 3))  # [e, a, (q, J)]
+        self._dNT = np.ascontiguousarray(np.swapaxes(self.dN, -1, -2))  # [e, q, L, b]
         self.conn = self.sk.element_nodes()  # (E, 10) TetMesh nodes
         self.n_nodes = len(mesh.nodes_mm)
         self.n_dofs = 3 * self.n_nodes
@@ -108,16 +109,20 @@ class Assembler:
         fidx = np.full(self.n_dofs, -1, dtype=np.int64)
         fidx[self.free] = np.arange(self.n_free)
         self.fidx = fidx
-        ef = fidx[self.edofs]  # (E, 30)
-        nd = self.edofs.shape[1]
-        r = np.repeat(ef, nd, axis=1)
-        c = np.tile(ef, (1, nd))
+        # element entries in the layout of _element_blocks, [e, a, i, k, b] (row dof (a, i), column dof (b, k))
+        E, n = self.conn.shape
+        ef = fidx[self.edofs].reshape(E, n, 3)  # [e, a, i]
+        r = np.broadcast_to(ef[:, :, :, None, None], (E, n, 3, 3, n)).reshape(E, -1)
+        c = np.broadcast_to(ef.transpose(0, 2, 1)[:, None, None, :, :], (E, n, 3, 3, n)).reshape(E, -1)
         valid = (r >= 0) & (c >= 0) & (r <= c)
         keys = r[valid] * self.n_free + c[valid]
         ukeys, inv = np.unique(keys, return_inverse=True)
         self._keys = ukeys
-        self._valid = valid.ravel()
-        self._map = inv.ravel()
+        # the scatter of element entries into CSR data as a sparse product (0/1 entries, columns in element
+        # order): the same sums as np.bincount, 2.6x faster (0.015 against 0.040 s at 9 305 P2 tets)
+        pos = np.flatnonzero(valid)
+        self._scatter = sp.csr_matrix((np.ones(len(pos)), (inv.ravel(), pos)), shape=(len(ukeys), valid.size))
+        self._scatter.sort_indices()
         rows = ukeys // self.n_free
         self.indices = (ukeys % self.n_free).astype(np.int32)
         self.indptr = np.zeros(self.n_free + 1, dtype=np.int32)
@@ -181,22 +186,34 @@ class Assembler:
         w = self.w
         fe = np.einsum("eqiJ,eqaJ->eai", P * w[..., None, None], self.dN, optimize=True)
         f = np.bincount(self.edofs.ravel(), weights=fe.ravel(), minlength=self.n_dofs)
-        Ke = self.element_matrices(A)
-        data = np.bincount(self._map, weights=Ke.reshape(-1)[self._valid], minlength=self.nnz)
-        return float(np.sum(W * w)), f, data, Ke[self.bc_elems]
+        Kb = self._element_blocks(A)
+        # each global entry gets one term per element, in element order: the same sums as from element_matrices
+        data = self._scatter @ Kb.reshape(-1)
+        return float(np.sum(W * w)), f, data, self._standard_layout(Kb[self.bc_elems])
 
     def element_matrices(self, A: np.ndarray) -> np.ndarray:
         """Ke (E, 30, 30) = sum_q w dN_aJ A_iJkL dN_bL, dofs ordered (node a, component i); (E, 12, 12) for P1."""
+        return self._standard_layout(self._element_blocks(A))
+
+    def _element_blocks(self, A: np.ndarray) -> np.ndarray:
+        """The entries of Ke in the order [e, a, i, k, b] (E, n * 9 * n), which two batched products give
+        without reordering an intermediate: 2.1x faster than in Ke's order (0.05 against 0.11 s at 9 305
+        P2 tets), each entry bit for bit the same."""
         E, Q = self.w.shape
         n = self.n_local
-        Aw = A * self.w[:, :, None, None, None, None]
-        # step 1: T[e,q,i,J,k,b] = sum_L A[e,q,i,J,k,L] dN[e,q,b,L]
-        T = np.matmul(Aw.reshape(E, Q, 27, 3), np.swapaxes(self.dN, -1, -2))  # (E,Q,27,10) = [iJk, b]
-        T = T.reshape(E, Q, 3, 3, 3, n)
-        # step 2: K[e,a,i,b,k] = sum_(q,J) dN[e,q,a,J] T[e,q,i,J,k,b]: one batched product over (q, J)
-        # (measured: 3.3x faster than a loop over q of (10 x 3) @ (3 x 90) products)
-        T2 = T.transpose(0, 1, 3, 2, 5, 4).reshape(E, Q * 3, 9 * n)  # [(q, J), (i, b, k)]
-        return np.matmul(self._dN_rows, T2).reshape(E, 3 * n, 3 * n)
+        # Aw[e, q, J, i, k, L] = w A_iJkL
+        Aw = np.empty((E, Q, 3, 3, 3, 3))
+        np.multiply(A.transpose(0, 1, 3, 2, 4, 5), self.w[:, :, None, None, None, None], out=Aw)
+        # step 1: T[e, q, J, (i, k), b] = sum_L Aw[e, q, J, i, k, L] dN[e, q, b, L]
+        T = np.matmul(Aw.reshape(E, Q, 3, 9, 3), self._dNT[:, :, None])
+        # step 2: K[e, a, (i, k, b)] = sum_(q, J) dN[e, q, a, J] T[e, q, J, (i, k), b]: one batched product
+        # over (q, J) (measured: 3.3x faster than a loop over q of (10 x 3) @ (3 x 90) products)
+        return np.matmul(self._dN_rows, T.reshape(E, Q * 3, 9 * n)).reshape(E, -1)
+
+    def _standard_layout(self, Kb: np.ndarray) -> np.ndarray:
+        """Element blocks [e, a, i, k, b] (from _element_blocks) as matrices (E, 3n, 3n) [e, (a, i), (b, k)]."""
+        n = self.n_local
+        return Kb.reshape(-1, n, 3, 3, n).transpose(0, 1, 2, 4, 3).reshape(-1, 3 * n, 3 * n)
 
     def full_matrix(self, data: np.ndarray) -> sp.csr_matrix:
         """Symmetric full K_ff from upper-triangle data (for tests and matvecs)."""

@@ -185,8 +185,8 @@ class PardisoSymmetric:
     def _preconditioned_cg(self, f: _Factor, U: sp.csr_matrix, b: np.ndarray):
         """Conjugate gradients on K x = b (K = U + triu(U, 1)^T) preconditioned by the factor f of an
         earlier matrix: x, or 'indefinite' (p^T K p <= 0 for a search direction p), or None (no
-        convergence to reuse_rtol, given up as soon as the residual lags behind a geometric decrease
-        from |b| to reuse_rtol |b| over reuse_iterations, by more than a factor of 10)."""
+        convergence to reuse_rtol, given up from the third iteration on as soon as the residual lags
+        behind a geometric decrease from |b| to reuse_rtol |b| over reuse_iterations)."""
         diag = U.diagonal()
         b_2 = float(np.linalg.norm(b)) or 1.0
         x = np.zeros_like(b)
@@ -207,8 +207,8 @@ class PardisoSymmetric:
             if eta <= self.reuse_rtol:
                 _log.debug("    conjugate gradients on the last factor: %d iterations", k)
                 return x
-            if k >= 4 and eta > 10.0 * self.reuse_rtol ** (k / self.reuse_iterations):
-                return None
+            if k >= 3 and eta > self.reuse_rtol ** (k / self.reuse_iterations):
+                return None  # slower than geometric progress to reuse_rtol in reuse_iterations: factorise
             z = f.solve(r)
             rz_new = float(r @ z)
             p = z + (rz_new / rz) * p

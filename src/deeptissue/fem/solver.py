@@ -150,8 +150,8 @@ class SolverSettings:
     cheaper copy: the shifted retry converges in double and stops at t = 3.9869 in mixed precision.
     linear_reuse_iterations, linear_reuse_rtol (mixed precision): a Newton matrix is first solved by up
     to this many conjugate-gradient iterations preconditioned by the last single-precision factor, to a
-    relative residual of linear_reuse_rtol, and factorised only if that fails (0: factorise every
-    matrix); non-positive curvature met on the way proves the matrix indefinite without a failed
+    relative residual of linear_reuse_rtol, and factorised as soon as they fall behind a geometric
+    decrease to it over that many iterations (checked from the 3rd on; 0: factorise every matrix); non-positive curvature met on the way proves the matrix indefinite without a failed
     factorisation. Measured on the demo (45.5 k dofs): 392 of 1 947 Newton matrices solved without a
     factorisation, every solve the same iterations and answer as without, 1.7 % less solve time (rat02
     sphere -16 %). At rtol 1e-6, 7 % less on 17 solves, but rat02 sphere_rx-15 took another increment
