@@ -451,3 +451,41 @@ def test_pinched_solve_starts_with_the_retry_settings_and_falls_back_to_plain(li
     assert not f.converged and f.extra["attempts"] == 2 and f.extra["pinch_first"]
     assert "the other try, with" in f.reason or "the other try, without shifts or barrier" in f.reason
     assert f.extra["barrier_onset_rel"] == (few.retry_barrier_onset_rel if f.extra["shifted"] else None)
+
+
+@pytest.mark.slow
+def test_variant_started_from_the_shared_bone_state_takes_the_same_path(limb, tmp_path):
+    # the bone-rotation steps (t 0 -> 3) do not involve the indenter (1 mm clear until its step): solved
+    # once per mesh (solve_bone_rotation) they start every variant, which then reports the same path,
+    # iterations and answer as a solve of its own (to the linear solver's 1e-10: the first Newton matrix
+    # of the indentation step is factorised instead of solved on step 3's factor)
+    from deeptissue.fem.solver import load_bone_state, save_bone_state, solve_bone_rotation
+
+    cast = _cylinder_cast(3.2, 6.0, hole_centre=np.array([3.2, 0.0, 3.0]), hole_radius=1.8)
+    motion = BoneMotion(rotation_deg=(6.0, -5.0, 4.0), centre_mm=(0.0, 0.0, 3.0), translation_mm=(0.1, 0.0, 0.0))
+    ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(4.2, 0.0, 3.0), end_mm=(2.3, 0.0, 3.0))
+    whole = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=motion, cast=cast)
+    assert whole.converged, whole.reason
+    rot, state = solve_bone_rotation(limb, material=LAW, bone_motion=motion, cast=cast)
+    assert rot.converged and rot.load_reached == 3.0 and state.newton_iterations > 0
+    assert np.linalg.norm(rot.cast_force_N) > 0 and state.cast_lam_mpa.shape == state.cast_eps.shape + (6,)  # the cast holds the skin
+    save_bone_state(tmp_path / "bone_state.npz", state)
+    back = load_bone_state(tmp_path / "bone_state.npz")
+    assert back.settings == state.settings and back.history == state.history
+    np.testing.assert_array_equal(back.cast_lam_mpa, state.cast_lam_mpa)
+    started = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=motion, cast=cast, start=back)
+    assert started.converged and started.extra["started_from_bone_state"] and not whole.extra["started_from_bone_state"]
+    assert started.newton_iterations == whole.newton_iterations
+    assert [(h.t_start, h.t_end, h.iterations) for h in started.history] == [(h.t_start, h.t_end, h.iterations) for h in whole.history]
+    np.testing.assert_allclose(started.displacement_mm, whole.displacement_mm, atol=1e-8)
+    assert started.indenter_force_N == pytest.approx(whole.indenter_force_N, rel=1e-8)
+    # a try with other settings (the retry's, a pinched variant's) solves the rotation itself
+    other = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=motion, cast=cast, start=back,
+                              settings=SolverSettings(rtol=1e-7))
+    assert not other.extra["started_from_bone_state"]
+    # a state of another mesh is refused, naming the mismatch; a file that is not a state names the file
+    with pytest.raises(ValueError, match="not this mesh's state"):
+        solve_indentation(block_mesh((2.0, 2.0, 2.0), h_mm=1.0), material=LAW, indenter=None, bone_motion=motion, start=back)
+    (tmp_path / "junk.npz").write_bytes(b"not a state")
+    with pytest.raises(ValueError, match="junk.npz: not a bone-state file"):
+        load_bone_state(tmp_path / "junk.npz")

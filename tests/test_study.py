@@ -6,7 +6,7 @@ import pytest
 from deeptissue.fem.shapes import cored_cylinder_mesh
 from deeptissue.mesh import save_tetmesh
 from deeptissue.pose import Pose, save_pose
-from deeptissue.study import run_solve, variant_indenter
+from deeptissue.study import run_bone_state, run_solve, variant_indenter
 from deeptissue.summary import read_result_vtu, read_summary
 
 R, L = 5.0, 10.0  # cylinder radius and length [mm]
@@ -44,6 +44,38 @@ def test_solve_job_writes_a_converged_summary_and_result(model_files, tmp_path):
     top = np.argmin(np.linalg.norm(mesh.nodes_mm - [0, R, L / 2], axis=1))
     assert u[top, 1] == pytest.approx(-0.4, abs=0.08)
     assert np.all(cells["converged"] == 1)
+
+
+@pytest.mark.slow
+def test_variants_start_from_the_bone_state_job_with_the_same_answer(model_files, tmp_path):
+    # rule bone_state solves the bone rotation once per mesh; rule solve starts each variant from it
+    d, mesh = model_files
+    state = run_bone_state(mesh_path=d / "mesh.npz", cast_path=None, pose_path=d / "pose.json",
+                           state_path=tmp_path / "bone_state.npz", fem_cfg={})
+    assert state is not None and state.history and all(h.step < 4 for h in state.history)
+    common = dict(animal="cyl", variant="sphere", mesh_path=d / "mesh.npz", cast_path=None, pose_path=d / "pose.json",
+                  during_contours_path=None, fem_cfg={}, study_cfg={"threshold": 0.05, "bin_edges": [0.05, 0.1, 0.2]})
+    own = run_solve(summary_path=tmp_path / "own.json", vtu_path=tmp_path / "own.vtu", **common)
+    shared = run_solve(summary_path=tmp_path / "shared.json", vtu_path=tmp_path / "shared.vtu",
+                       bone_state_path=tmp_path / "bone_state.npz", **common)
+    assert shared.converged and shared.extra["started_from_bone_state"] and not own.extra["started_from_bone_state"]
+    assert shared.newton_iterations == own.newton_iterations and shared.increments == own.increments
+    assert shared.voi_mm3 == pytest.approx(own.voi_mm3, rel=1e-9)
+    assert shared.indenter_force_N == pytest.approx(own.indenter_force_N, rel=1e-8)
+    # a bone-state job that fails says why in its file; the variants then solve the rotation themselves
+    bad = tmp_path / "pose_bad.json"
+    bad.write_text("{not json")
+    assert run_bone_state(mesh_path=d / "mesh.npz", cast_path=None, pose_path=bad,
+                          state_path=tmp_path / "failed_state.npz", fem_cfg={}) is None
+    alone = run_solve(summary_path=tmp_path / "alone.json", vtu_path=tmp_path / "alone.vtu",
+                      bone_state_path=tmp_path / "failed_state.npz", **common)
+    assert alone.converged and not alone.extra["started_from_bone_state"]
+    assert alone.newton_iterations == own.newton_iterations
+    # a file that is not a bone state: the variant is recorded as failed, naming the file
+    (tmp_path / "junk.npz").write_text("junk")
+    junk = run_solve(summary_path=tmp_path / "junk.json", vtu_path=tmp_path / "junk.vtu",
+                     bone_state_path=tmp_path / "junk.npz", **common)
+    assert not junk.converged and "junk.npz: not a bone-state file" in junk.reason
 
 
 def test_failed_job_is_recorded_with_its_reason(model_files, tmp_path):

@@ -19,7 +19,8 @@ from .contours import load_contours
 from .fem.cast import Cast
 from .fem.indenters import Indenter
 from .fem.material import Ogden, ogden_energy
-from .fem.solver import BoneMotion, SolverSettings, solve_indentation, solver_settings_from_config
+from .fem.solver import (BoneMotion, BoneState, SolverSettings, load_bone_state, save_bone_state, solve_bone_rotation,
+                         solve_indentation, solver_settings_from_config)
 from .mesh import TetMesh, load_tetmesh
 from .pose import Pose, load_pose
 from .strain import DEFAULT_BIN_EDGES, element_strain
@@ -72,8 +73,11 @@ def solve_variant(
     study: StudySettings = StudySettings(),
     skin_contours_mm: np.ndarray | None = None,
     bar_length_mm: float = 10.0,
+    start: BoneState | None = None,
 ):
     """Solve one variant and summarise it. Returns ``(summary, displacement_mm, strain)``.
+
+    start: the animal's shared bone-rotation state (:func:`run_bone_state`), or None to solve it here.
 
     For a solve that did not converge the summary says why, and the displacement is the last
     converged state (so its strain field can still be looked at, never counted).
@@ -83,7 +87,7 @@ def solve_variant(
     set_name = f"patch_{variant}" if f"patch_{variant}" in mesh.facets else "patch"
     settings = replace(settings, indenter_set=set_name)
     result = solve_indentation(mesh, material=material, indenter=indenter, bone_motion=bone_motion(pose),
-                               cast=cast, settings=settings)
+                               cast=cast, settings=settings, start=start)
     info = dict(
         indenter_force_N=result.indenter_force_N, n_dofs=result.n_dofs, increments=result.increments,
         newton_iterations=result.newton_iterations, wall_s=time.perf_counter() - t0,
@@ -93,6 +97,7 @@ def solve_variant(
         load_reached=result.load_reached, contact_set=set_name, attempts=result.extra.get("attempts", 1),
         bone_clearance_mm=result.extra.get("bone_clearance_mm"), pinch_first=result.extra.get("pinch_first", False),
         shifted=result.extra.get("shifted", False),
+        started_from_bone_state=result.extra.get("started_from_bone_state", False),
     )
     if not result.converged:
         log.warning("%s/%s did not converge: %s", animal, variant, result.reason)
@@ -112,8 +117,48 @@ def solve_variant(
     return summary, result.displacement_mm, strain
 
 
+def run_bone_state(*, mesh_path, cast_path, pose_path, state_path, fem_cfg: dict) -> BoneState | None:
+    """Rule ``bone_state``: the bone-rotation steps of one mesh, solved once for all its variants
+    (:func:`deeptissue.fem.solver.solve_bone_rotation`) -> ``bone_state.npz``. If they do not converge
+    (or the set-up fails) the file says so and every variant solves them itself; nothing is lost."""
+    state, why = None, ""
+    try:
+        mesh = load_tetmesh(mesh_path)
+        pose = load_pose(pose_path)
+        cast = Cast.load(cast_path) if cast_path else None
+        settings = solver_settings_from_config(fem_cfg.get("solver"))
+        r, state = solve_bone_rotation(mesh, material=Ogden(**fem_cfg.get("material", {})), bone_motion=bone_motion(pose),
+                                       cast=cast, settings=settings)
+        why = r.reason
+    except Exception as exc:  # the variants then solve the rotation themselves
+        log.error("bone state of %s failed:\n%s", mesh_path, traceback.format_exc())
+        why = f"{type(exc).__name__}: {exc}"
+    if state is None:
+        log.warning("%s: bone rotation not solved once for all variants (%s): each variant solves it", mesh_path, why)
+        with open(state_path, "wb") as f:
+            np.savez(f, failed=np.array(why or "not converged"))
+        return None
+    log.info("bone rotation of %s: %d increments, %d Newton iterations, %.1f s", mesh_path, len(state.history),
+             state.newton_iterations, state.wall_s)
+    save_bone_state(state_path, state)
+    return state
+
+
+def _load_start(path) -> BoneState | None:
+    """The shared bone state of ``path``, None if that solve failed (its file says why)."""
+    try:
+        with np.load(path) as d:
+            failed = str(d["failed"]) if "failed" in d else None
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{path}: not a bone-state file ({exc})") from exc
+    if failed is not None:
+        log.warning("%s: the shared bone rotation failed (%s): solving it for this variant", path, failed)
+        return None
+    return load_bone_state(path)
+
+
 def run_solve(*, animal: str, variant: str, mesh_path, cast_path, pose_path, during_contours_path,
-              summary_path, vtu_path, fem_cfg: dict, study_cfg: dict) -> Summary:
+              summary_path, vtu_path, fem_cfg: dict, study_cfg: dict, bone_state_path=None) -> Summary:
     """Rule ``solve``: read the model files, solve, write ``summary.json`` and ``result.vtu``.
 
     Both files are always written: a failure (set-up error or no convergence) gives a summary with
@@ -129,10 +174,11 @@ def run_solve(*, animal: str, variant: str, mesh_path, cast_path, pose_path, dur
         skin = load_contours(during_contours_path).skin if during_contours_path else None
         material = Ogden(**fem_cfg.get("material", {}))
         settings = solver_settings_from_config(fem_cfg.get("solver"))
+        start = _load_start(bone_state_path) if bone_state_path else None
         summary, u, strain = solve_variant(
             animal=animal, variant=variant, mesh=mesh, pose=pose, cast=cast, material=material,
             settings=settings, study=study, skin_contours_mm=skin,
-            bar_length_mm=float(fem_cfg.get("bar_length_mm", 10.0)),
+            bar_length_mm=float(fem_cfg.get("bar_length_mm", 10.0)), start=start,
         )
     except Exception as exc:  # recorded, never lost: the study goes on without this variant
         log.error("%s/%s failed:\n%s", animal, variant, traceback.format_exc())

@@ -92,6 +92,31 @@ wildcard_constraints:
     variant="|".join(re.escape(v) for v in VARIANTS),
 
 
+rule bone_state:
+    """The bone-rotation steps of one mesh (t 0 -> 3, before the indenter moves), solved once: every
+    variant on the mesh starts from this state instead of solving them again (Stage 4)."""
+    input:
+        mesh="results/{animal}/model/{group}/mesh.npz",
+        cast="results/{animal}/model/cast.npz",
+        pose="results/{animal}/pose.json",
+    output:
+        state="results/{animal}/model/{group}/bone_state.npz",
+    log:
+        "results/{animal}/logs/bone_state_{group}.log",
+    benchmark:
+        "results/{animal}/benchmarks/bone_state_{group}.tsv"
+    params:
+        fem=config["fem"],
+    priority: 100  # every solve of the mesh waits for it
+    resources:
+        mem_mb=4000,
+        runtime=30,
+    conda:
+        "../envs/deeptissue.yaml"
+    script:
+        "../scripts/bone_state.py"
+
+
 rule solve:
     """One FE job: the animal's model and pose, one indenter variant -> summary.json and result.vtu.
 
@@ -100,6 +125,7 @@ rule solve:
     """
     input:
         mesh=lambda wc: f"{mesh_of(wc.animal, wc.variant)}/mesh.npz",
+        bone_state=lambda wc: f"{mesh_of(wc.animal, wc.variant)}/bone_state.npz",
         cast="results/{animal}/model/cast.npz",
         pose="results/{animal}/pose.json",
         during_contours="results/{animal}/contours/during.npz",

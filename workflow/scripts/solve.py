@@ -8,6 +8,7 @@ with script_log(snakemake.log[0], "solve"):
         animal=snakemake.wildcards.animal,
         variant=snakemake.wildcards.variant,
         mesh_path=snakemake.input.mesh,
+        bone_state_path=snakemake.input.bone_state,
         cast_path=snakemake.input.cast,
         pose_path=snakemake.input.pose,
         during_contours_path=snakemake.input.during_contours,

@@ -305,6 +305,75 @@ class SolveResult:
     extra: dict = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class BoneState:
+    """The converged state at the end of the bone-rotation steps (t = 3), without an indenter: the start
+    of every variant of one mesh, bone motion and cast (the indenter, 1 mm clear, touches nothing before
+    its step), so that the variants need not each solve it again (:func:`solve_bone_rotation`).
+
+    displacement_mm (n_dofs,); the cast pair's multipliers lam_mpa (K, Q) and penalties eps (K,) (None
+    without a cast); strain_energy_mJ of the state; history, newton_iterations and the times [s] of
+    the steps that made it (a variant started from it reports them as its own, so its figures stay
+    those of a whole solve); settings: the SolverSettings it was solved with (a start is only used by
+    a try with the same settings, see :func:`solve_indentation`).
+    """
+
+    displacement_mm: np.ndarray
+    cast_lam_mpa: np.ndarray | None
+    cast_eps: np.ndarray | None
+    strain_energy_mJ: float
+    history: tuple
+    newton_iterations: int
+    wall_s: float
+    assembly_s: float
+    linear_solve_s: float
+    contact_s: float
+    settings: SolverSettings
+
+
+def save_bone_state(path, state: BoneState) -> None:
+    """Write a BoneState as .npz (arrays, and the rest as JSON)."""
+    import json
+    from dataclasses import asdict
+
+    meta = dict(strain_energy_mJ=state.strain_energy_mJ, newton_iterations=state.newton_iterations,
+                wall_s=state.wall_s, assembly_s=state.assembly_s, linear_solve_s=state.linear_solve_s,
+                contact_s=state.contact_s, history=[asdict(h) for h in state.history],
+                settings=asdict(state.settings))
+    arrays = dict(displacement_mm=state.displacement_mm, meta=np.array(json.dumps(meta)))
+    if state.cast_lam_mpa is not None:
+        arrays.update(cast_lam_mpa=state.cast_lam_mpa, cast_eps=state.cast_eps)
+    with open(path, "wb") as f:
+        np.savez(f, **arrays)
+
+
+def load_bone_state(path) -> BoneState:
+    """Read :func:`save_bone_state`'s file; ValueError naming the file if it is not one."""
+    import json
+
+    try:
+        with np.load(path) as d:
+            meta = json.loads(str(d["meta"]))
+            lam = d["cast_lam_mpa"] if "cast_lam_mpa" in d else None
+            eps = d["cast_eps"] if "cast_eps" in d else None
+            u = d["displacement_mm"]
+        history = tuple(IncrementRecord(**{k: tuple(v) if isinstance(v, list) else v for k, v in h.items()})
+                        for h in meta["history"])
+        settings = SolverSettings(**{k: tuple(v) if isinstance(v, list) else v for k, v in meta["settings"].items()})
+        return BoneState(displacement_mm=u, cast_lam_mpa=lam, cast_eps=eps, strain_energy_mJ=float(meta["strain_energy_mJ"]),
+                         history=history, newton_iterations=int(meta["newton_iterations"]), wall_s=float(meta["wall_s"]),
+                         assembly_s=float(meta["assembly_s"]), linear_solve_s=float(meta["linear_solve_s"]),
+                         contact_s=float(meta["contact_s"]), settings=settings)
+    except (KeyError, OSError, ValueError, TypeError) as exc:
+        raise ValueError(f"{path}: not a bone-state file ({type(exc).__name__}: {exc})") from exc
+
+
+def _same_start_settings(a: SolverSettings, b: SolverSettings) -> bool:
+    """Whether a bone state solved with settings a is the start a try with settings b would reach
+    (the indenter's facet set and the wall-time budget play no part before the indenter moves)."""
+    return replace(a, indenter_set="", max_wall_s=None) == replace(b, indenter_set="", max_wall_s=None)
+
+
 class _Schedule:
     def __init__(self, bone_motion: BoneMotion, indenter: Indenter | None):
         self.c = np.asarray(bone_motion.centre_mm, float)
@@ -384,8 +453,25 @@ def _restore_al(pairs, st):
         p.surf.lam[:] = lam
 
 
+def solve_bone_rotation(mesh: TetMesh, *, material, bone_motion: BoneMotion, cast: Cast | None = None,
+                        settings: SolverSettings = SolverSettings()) -> tuple[SolveResult, BoneState | None]:
+    """The bone-rotation steps alone (t 0 -> 3, no indenter): (result, BoneState), the state None if they
+    did not converge. Every variant on this mesh with these settings can start from the state
+    (``solve_indentation(..., start=state)``) and takes the same path as if it had solved them itself."""
+    r = _solve(mesh, material=material, indenter=None, schedule=_Schedule(bone_motion, None),
+               bc_sets=(settings.bone_set,), cast=cast, settings=settings, rotation_only=True)
+    if not r.converged:
+        return r, None
+    lam, eps = r.extra.get("contact_state", {}).get("cast", (None, None))
+    return r, BoneState(displacement_mm=r.displacement_mm.ravel().copy(), cast_lam_mpa=lam, cast_eps=eps,
+                        strain_energy_mJ=r.extra["last_energy_mJ"], history=r.history,
+                        newton_iterations=r.newton_iterations, wall_s=r.wall_s, assembly_s=r.assembly_s,
+                        linear_solve_s=r.linear_solve_s, contact_s=r.contact_s, settings=settings)
+
+
 def solve_indentation(mesh: TetMesh, *, material, indenter: Indenter | None, bone_motion: BoneMotion,
-                      cast: Cast | None = None, settings: SolverSettings = SolverSettings()) -> SolveResult:
+                      cast: Cast | None = None, settings: SolverSettings = SolverSettings(),
+                      start: BoneState | None = None) -> SolveResult:
     """Solve the indentation of ``mesh`` (TetMesh, mm) and return a :class:`SolveResult`.
 
     material: an Ogden parameter set (deeptissue.fem.material.Ogden) or an assembly.MaterialLaw.
@@ -399,13 +485,23 @@ def solve_indentation(mesh: TetMesh, *, material, indenter: Indenter | None, bon
     with wall and component times and Newton iterations summed over both tries and
     ``extra['attempts']`` = 2. A solve whose indenter ends closer to the bone than
     ``settings.pinch_clearance_mm`` is tried with the retry's settings first and plainly second.
-    ``extra``: 'shifted', 'barrier_onset_rel' and 'linear_precision' of the try returned, 'pinch_first'.
+    ``extra``: 'shifted', 'barrier_onset_rel' and 'linear_precision' of the try returned, 'pinch_first',
+    'started_from_bone_state'.
+    start: a BoneState of this mesh, bone motion and cast (:func:`solve_bone_rotation`): a try whose
+    settings are the state's starts from it at t = 3 instead of solving the bone rotation again (the
+    retry's settings, e.g. of a pinched variant, solve it themselves).
     """
+    if start is not None and start.displacement_mm.shape != (3 * len(mesh.nodes_mm),):
+        raise ValueError(f"solve_indentation: the bone state has {start.displacement_mm.size} displacement dofs, "
+                         f"the mesh {3 * len(mesh.nodes_mm)}: not this mesh's state")
+
     def run(st):
+        use = start if start is not None and _same_start_settings(start.settings, st) else None
         r = _solve(mesh, material=material, indenter=indenter, schedule=_Schedule(bone_motion, indenter),
-                   bc_sets=(st.bone_set,), cast=cast, settings=st)
+                   bc_sets=(st.bone_set,), cast=cast, settings=st, start=use)
         # only the retry's settings carry shifts (there is no retry when the settings already do)
         return replace(r, extra={**r.extra, "pinch_first": pinched, "shifted": bool(st.shift_scales),
+                                 "started_from_bone_state": use is not None,
                                  "barrier_onset_rel": st.barrier_onset_rel, "linear_precision": st.linear_precision})
 
     t0 = time.perf_counter()
@@ -495,7 +591,8 @@ def solve_prescribed(mesh: TetMesh, *, material, bc_sets, displacement_mm,
                   cast=None, settings=settings)
 
 
-def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> SolveResult:
+def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings, start: BoneState | None = None,
+           rotation_only: bool = False) -> SolveResult:
     t_wall = time.perf_counter()
     s = settings
     for name, need in [*((b, True) for b in bc_sets), (s.indenter_set, indenter is not None), (s.cast_set, cast is not None)]:
@@ -771,6 +868,25 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
     u = np.zeros(asm.n_dofs)
     history = []
     n_iter_total = 0
+    steps = sched.active_steps()
+    if rotation_only:
+        steps = [k for k in steps if k < 3]
+    w_conv = None  # strain energy of the last converged state [mJ]
+    if start is not None:
+        # the bone-rotation steps were solved once for every variant (solve_bone_rotation): go on from there
+        steps = [k for k in steps if k >= 3]
+        u = start.displacement_mm.astype(float).copy()
+        history = list(start.history)
+        n_iter_total = start.newton_iterations
+        w_conv = start.strain_energy_mJ
+        for p in pairs:
+            if p.name == "cast" and start.cast_lam_mpa is not None:
+                if start.cast_lam_mpa.shape != p.surf.lam.shape or start.cast_eps.shape != p.eps.shape:
+                    raise ValueError("solve_indentation: the bone state's cast multipliers do not fit this mesh's skin facets")
+                p.surf.lam[:] = start.cast_lam_mpa
+                p.eps[:] = start.cast_eps
+        for name, v in (("assembly", start.assembly_s), ("solve", start.linear_solve_s), ("contact", start.contact_s)):
+            timers[name] += v
     reason_fail = ""
     last_outs = [None] * len(pairs)
     t = 0.0
@@ -778,7 +894,6 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
     axis = indenter.unit_axis if indenter is not None else np.zeros(3)
     travel = 0.0
     start_backoff_mm = 0.0
-    w_conv = None  # strain energy of the last converged state [mJ]
     energy_floor = 1e-2 * law.mu_mpa * asm.volume_mm3  # [mJ]
     done = True
     prev = None  # (t, t_before, u_before) of the last converged increment of the indentation step
@@ -796,7 +911,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
             reason_fail = (f"infeasible: the indenter ends {where} (min_bone_clearance_mm "
                            f"{s.min_bone_clearance_mm:g}): no tissue state fits between them")
             log.warning(reason_fail)
-    for k in () if infeasible else sched.active_steps():
+    for k in () if infeasible else steps:
         t = float(k)
         if k == 3 and indenter is not None:
             start_backoff_mm = clear_start(u)
@@ -969,7 +1084,8 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
     ft, fc = forces(last_outs)
     pm, pr = penetration(last_outs)
     W = asm.energy(u)
-    wall = time.perf_counter() - t_wall
+    wall = time.perf_counter() - t_wall + (start.wall_s if start is not None else 0.0)
+    contact_state = {p.name: (p.surf.lam.copy(), p.eps.copy()) for p in pairs}
     return SolveResult(
         converged=done, reason=reason_fail, displacement_mm=u.reshape(-1, 3).copy(), deformation_gradient=Fe,
         history=tuple(history), indenter_force_N=float(ft @ axis), force_on_tissue_N=ft, cast_force_N=fc,
@@ -978,5 +1094,6 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings) -> So
         load_reached=t, wall_s=wall, assembly_s=timers["assembly"], linear_solve_s=timers["solve"],
         contact_s=timers["contact"], extra={"attempts": 1, "straightened_tets": n_straightened, "start_backoff_mm": start_backoff_mm,
                                             "bone_clearance_mm": bone_clearance_mm, "infeasible": infeasible, "end_passes": end_passes,
+                                            "contact_state": contact_state, "last_energy_mJ": w_conv,
                                             **counts},
     )

@@ -1,0 +1,13 @@
+"""Glue of rule bone_state: one mesh's bone-rotation steps, solved once for all its variants."""
+
+from deeptissue.io import script_log
+from deeptissue.study import run_bone_state
+
+with script_log(snakemake.log[0], "bone_state"):
+    run_bone_state(
+        mesh_path=snakemake.input.mesh,
+        cast_path=snakemake.input.cast,
+        pose_path=snakemake.input.pose,
+        state_path=snakemake.output.state,
+        fem_cfg=snakemake.params.fem,
+    )
