@@ -489,3 +489,49 @@ def test_variant_started_from_the_shared_bone_state_takes_the_same_path(limb, tm
     (tmp_path / "junk.npz").write_bytes(b"not a state")
     with pytest.raises(ValueError, match="junk.npz: not a bone-state file"):
         load_bone_state(tmp_path / "junk.npz")
+
+
+@pytest.mark.slow
+def test_turned_variant_solved_from_the_base_end_state_reaches_the_same_end_state(limb, tmp_path):
+    # hyperelastic and frictionless: the end state does not depend on the path, so a variant whose indenter
+    # is the base's turned about the same final tip is solved by turning it from the base's end state
+    from deeptissue.fem.solver import end_state, load_end_state, save_end_state, solve_turned
+    from deeptissue.rigid import rotation_matrix
+
+    cast = _cylinder_cast(3.2, 6.0, hole_centre=np.array([3.2, 0.0, 3.0]), hole_radius=1.8)
+    motion = BoneMotion(rotation_deg=(3.0, 0.0, 0.0), centre_mm=(0.0, 0.0, 3.0), translation_mm=(0.05, 0.0, 0.0))
+    end = np.array([2.3, 0.0, 3.0])
+    base_ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(4.2, 0.0, 3.0), end_mm=tuple(end))
+    axis = rotation_matrix(np.array([0.0, 15.0, 0.0])) @ np.array([-1.0, 0.0, 0.0])
+    turned_ind = replace(base_ind, axis=tuple(axis), start_mm=tuple(end - 1.9 * axis))
+    base = solve_indentation(limb, material=LAW, indenter=base_ind, bone_motion=motion, cast=cast)
+    direct = solve_indentation(limb, material=LAW, indenter=turned_ind, bone_motion=motion, cast=cast)
+    assert base.converged and direct.converged, (base.reason, direct.reason)
+    state = end_state(base, limb, indenter=base_ind, bone_motion=motion, settings=SolverSettings())
+    save_end_state(tmp_path / "end_state.npz", state)
+    back = load_end_state(tmp_path / "end_state.npz")
+    assert back.indenter == base_ind and back.bone_motion == motion and back.settings == SolverSettings()
+    assert set(back.contact) == {"indenter", "cast"}
+    np.testing.assert_array_equal(back.contact["indenter"][1], state.contact["indenter"][1])
+    assert np.any(back.contact["indenter"][1] > 0)  # the multipliers carried over
+    turned = solve_turned(limb, material=LAW, base=back, indenter=turned_ind, cast=cast)
+    assert turned.converged and turned.extra["turned"], turned.reason
+    # only the turn was solved: one load step, the tip held at the common final tip
+    assert all(h.step == 4 for h in turned.history) and all(np.allclose(h.tip_mm, end) for h in turned.history)
+    assert turned.newton_iterations < direct.newton_iterations
+    assert turned.indenter_force_N == pytest.approx(direct.indenter_force_N, rel=5e-3)
+    np.testing.assert_allclose(turned.force_on_tissue_N, direct.force_on_tissue_N, atol=5e-3 * np.linalg.norm(direct.force_on_tissue_N))
+    # the two end states differ by what the contact tolerance leaves open: about the penetration it allows
+    # (measured: 0.0077 mm at most, with 0.0079 mm penetration in both and 0.74 mm largest displacement)
+    pen = max(turned.max_penetration_mm, direct.max_penetration_mm)
+    assert np.max(np.abs(turned.displacement_mm - direct.displacement_mm)) < 2.0 * pen
+    # a different end tip or shape is no turn; a state of another mesh is refused; junk names the file
+    with pytest.raises(ValueError, match="is not a turn of"):
+        solve_turned(limb, material=LAW, base=back, indenter=replace(turned_ind, end_mm=(2.2, 0.0, 3.0)), cast=cast)
+    with pytest.raises(ValueError, match="is not a turn of"):
+        solve_turned(limb, material=LAW, base=back, indenter=replace(turned_ind, kind="bar"), cast=cast)
+    with pytest.raises(ValueError, match="not this mesh's state"):
+        solve_turned(block_mesh((2.0, 2.0, 2.0), h_mm=1.0), material=LAW, base=back, indenter=turned_ind)
+    (tmp_path / "junk.npz").write_bytes(b"not a state")
+    with pytest.raises(ValueError, match="junk.npz: not an end-state file"):
+        load_end_state(tmp_path / "junk.npz")

@@ -78,6 +78,55 @@ def test_variants_start_from_the_bone_state_job_with_the_same_answer(model_files
     assert not junk.converged and "junk.npz: not a bone-state file" in junk.reason
 
 
+@pytest.mark.slow
+def test_turned_variant_job_starts_from_the_base_end_state(model_files, tmp_path):
+    # rule solve of 'sphere' writes its end state; 'sphere_rz+15' turns the indenter from it (study.turn_from_base)
+    d, mesh = model_files
+    common = dict(animal="cyl", mesh_path=d / "mesh.npz", cast_path=None, pose_path=d / "pose.json",
+                  during_contours_path=None, fem_cfg={}, study_cfg={"threshold": 0.05, "bin_edges": [0.05, 0.1, 0.2]})
+    base = run_solve(variant="sphere", summary_path=tmp_path / "b.json", vtu_path=tmp_path / "b.vtu",
+                     end_state_path=tmp_path / "sphere_end.npz", **common)
+    assert base.converged and (tmp_path / "sphere_end.npz").exists()
+    own = run_solve(variant="sphere_rz+15", summary_path=tmp_path / "own.json", vtu_path=tmp_path / "own.vtu", **common)
+    turned = run_solve(variant="sphere_rz+15", summary_path=tmp_path / "t.json", vtu_path=tmp_path / "t.vtu",
+                       base_state_path=tmp_path / "sphere_end.npz", base_variant="sphere", **common)
+    assert own.converged and turned.converged
+    assert turned.extra["turned_from"] == "sphere" and own.extra["turned_from"] is None
+    assert turned.newton_iterations < own.newton_iterations
+    assert turned.indenter_force_N == pytest.approx(own.indenter_force_N, rel=5e-3)
+    assert turned.voi_mm3 == pytest.approx(own.voi_mm3, rel=2e-2)
+    assert read_summary(tmp_path / "t.json").extra["turned_from"] == "sphere"
+    # a base that failed leaves a file saying why: the turned variant is solved from the start
+    bad = tmp_path / "pose_bad.json"
+    bad.write_text("{not json")
+    failed = run_solve(**{**common, "pose_path": bad}, variant="sphere", summary_path=tmp_path / "f.json",
+                       vtu_path=tmp_path / "f.vtu", end_state_path=tmp_path / "failed_end.npz")
+    assert not failed.converged and (tmp_path / "failed_end.npz").exists()
+    alone = run_solve(variant="sphere_rz+15", summary_path=tmp_path / "a.json", vtu_path=tmp_path / "a.vtu",
+                      base_state_path=tmp_path / "failed_end.npz", base_variant="sphere", **common)
+    assert alone.converged and alone.extra["turned_from"] is None
+    assert alone.newton_iterations == own.newton_iterations
+    # a file that is not an end state: recorded as failed, naming the file
+    (tmp_path / "junk.npz").write_text("junk")
+    junk = run_solve(variant="sphere_rz+15", summary_path=tmp_path / "j.json", vtu_path=tmp_path / "j.vtu",
+                     base_state_path=tmp_path / "junk.npz", base_variant="sphere", **common)
+    assert not junk.converged and "junk.npz: not an end-state file" in junk.reason
+
+
+def test_turn_base_is_the_unturned_variant_of_the_same_shape_on_the_same_mesh():
+    from deeptissue.variants import mesh_groups, turn_base
+
+    variants = ["sphere", "bar", "sphere_rx+15", "bar_rz-10", "sphere_ry+0"]
+    assert turn_base("sphere_rx+15", variants) == "sphere"
+    assert turn_base("bar_rz-10", variants) == "bar"
+    assert turn_base("sphere", variants) is None and turn_base("bar", variants) is None
+    assert turn_base("sphere_ry+0", variants) is None  # no turn
+    assert turn_base("sphere_rx+15", ["bar", "sphere_rx+15"]) is None  # its base is not solved
+    assert turn_base("sphere_rx+15", variants, mesh_groups(variants, by="indenter")) == "sphere"
+    split = {"a": ["sphere", "bar"], "b": ["sphere_rx+15", "bar_rz-10", "sphere_ry+0"]}
+    assert turn_base("sphere_rx+15", variants, split) is None  # not on its base's mesh
+
+
 def test_failed_job_is_recorded_with_its_reason(model_files, tmp_path):
     d, mesh = model_files
     bad = tmp_path / "pose.json"

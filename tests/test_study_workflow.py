@@ -41,7 +41,7 @@ def test_paper_config_spans_the_study_variation():
 
 def test_test_config_and_study_defaults():
     c = _load("test.yaml")
-    assert list(c["animals"]) == ["rat01"] and c["study"]["variants"] == ["sphere", "bar"]
+    assert list(c["animals"]) == ["rat01"] and c["study"]["variants"] == ["sphere", "bar", "sphere_rz+15"]
     assert c["study"]["threshold"] == 0.3
     assert c["study"]["bin_edges"] == [0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0]
     assert c["study"]["strain_measure"] == "green_lagrange" and c["study"]["figure_animal"] is None
@@ -66,7 +66,7 @@ def _snakemake(workdir, *targets_then_options):
 
 def test_the_solve_rule_schedules_the_longest_solves_first(tmp_path):
     # the dry run shows each solve job with its priority (deeptissue.variants.solve_priority): 10 for a bar
-    # plus the phantom's depth
+    # plus the phantom's depth, and 50 more for a variant others are turned from (they wait for it)
     import re
 
     r = _snakemake(tmp_path, "-n", "--cores", "2")
@@ -76,16 +76,20 @@ def test_the_solve_rule_schedules_the_longest_solves_first(tmp_path):
     depth = {a: c["phantom"]["depth_mm"] for a, c in cfg["animals"].items()}
     assert sorted((a, v) for a, v, _ in jobs) == sorted((a, v) for a in depth for v in cfg["study"]["variants"])
     for animal, variant, prio in jobs:
-        assert float(prio) == pytest.approx((10.0 if variant.startswith("bar") else 0.0) + depth[animal])
+        base = 50.0 if variant == "sphere" else 0.0
+        assert float(prio) == pytest.approx((10.0 if variant.startswith("bar") else 0.0) + depth[animal] + base)
+    # the turned variant waits for its base's end state
+    turned = re.search(r"rule solve:\n\s+input: ([^\n]+)\n(?:.*\n){0,6}?\s+wildcards: animal=rat01, variant=sphere_rz\+15", r.stdout)
+    assert turned and "results/rat01/sphere/end_state.npz" in turned.group(1)
 
 
 @pytest.mark.slow
 def test_rule_aggregate_runs_on_hand_made_summaries(tmp_path):
-    """sphere converged, bar failed (its summary says why): the animal is excluded, the study completes,
+    """sphere and sphere_rz+15 converged, bar failed (its summary says why): the animal is excluded, the study completes,
     and a second run has nothing to do."""
     m = box_tet10(np.linspace(-3, 3, 7), np.linspace(0, 5, 6), np.linspace(-3, 3, 7))
     y = m.nodes_mm[:, 1]
-    for variant, k in [("sphere", 0.9), ("bar", 1.3)]:
+    for variant, k in [("sphere", 0.9), ("bar", 1.3), ("sphere_rz+15", 1.0)]:
         u = np.column_stack([k * y**2 / 10, 0 * y, 0 * y])
         s, strain = summarize_solution(m, u, animal="rat01", variant=variant, indenter_force_N=0.1)
         if variant == "bar":
@@ -99,11 +103,11 @@ def test_rule_aggregate_runs_on_hand_made_summaries(tmp_path):
     r = _snakemake(tmp_path, *targets, "--cores", "1", "--allowed-rules", "aggregate")
     assert r.returncode == 0, r.stderr[-3000:]
     voi = pd.read_csv(tmp_path / "results" / "summary" / "voi.csv")
-    assert list(voi["variant"]) == ["sphere", "bar"] and voi["converged"].tolist() == [True, False]
+    assert list(voi["variant"]) == ["sphere", "bar", "sphere_rz+15"] and voi["converged"].tolist() == [True, False, True]
     assert voi["excluded"].all()
     assert voi["exclusion_reason"].iloc[0] == "not converged: bar: no convergence at 85% depth"
     bins = pd.read_csv(tmp_path / "results" / "summary" / "bins.csv").groupby("variant", sort=False)["percent"]
-    assert bins.sum(min_count=1).round(9).tolist()[0] == 100.0 and bins.count().tolist() == [8, 0]
+    assert bins.sum(min_count=1).round(9).tolist()[0] == 100.0 and bins.count().tolist() == [8, 0, 8]
     for name in ["bins.csv", "voi.png", "bins.png", "voi_change.png", "sections.png", "orientations.png"]:
         assert (tmp_path / "results" / "summary" / name).stat().st_size > 0
     r = _snakemake(tmp_path, *targets, "-n", "--allowed-rules", "aggregate")

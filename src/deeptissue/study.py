@@ -19,8 +19,9 @@ from .contours import load_contours
 from .fem.cast import Cast
 from .fem.indenters import Indenter
 from .fem.material import Ogden, ogden_energy
-from .fem.solver import (BoneMotion, BoneState, SolverSettings, load_bone_state, save_bone_state, solve_bone_rotation,
-                         solve_indentation, solver_settings_from_config)
+from .fem.solver import (BoneMotion, BoneState, EndState, SolverSettings, end_state, load_bone_state, load_end_state,
+                         save_bone_state, save_end_state, solve_bone_rotation, solve_indentation, solve_turned,
+                         solver_settings_from_config)
 from .mesh import TetMesh, load_tetmesh
 from .pose import Pose, load_pose
 from .strain import DEFAULT_BIN_EDGES, element_strain
@@ -74,10 +75,19 @@ def solve_variant(
     skin_contours_mm: np.ndarray | None = None,
     bar_length_mm: float = 10.0,
     start: BoneState | None = None,
+    base: EndState | None = None,
+    base_variant: str | None = None,
+    end_state_path=None,
 ):
     """Solve one variant and summarise it. Returns ``(summary, displacement_mm, strain)``.
 
     start: the animal's shared bone-rotation state (:func:`run_bone_state`), or None to solve it here.
+    base: the converged end state of ``base_variant`` on this mesh, whose indenter this variant's turns
+    about the same final tip (:func:`turn_base`): the variant is solved by turning the indenter from
+    there (:func:`deeptissue.fem.solver.solve_turned`), and from ``start`` as usual if that fails (the
+    times and iterations of both are reported).
+    end_state_path: where to write the converged end state (:func:`deeptissue.fem.solver.save_end_state`),
+    the start of the variants turned from this one; a solve that does not converge writes nothing there.
 
     For a solve that did not converge the summary says why, and the displacement is the last
     converged state (so its strain field can still be looked at, never counted).
@@ -86,8 +96,24 @@ def solve_variant(
     indenter = variant_indenter(pose, variant, bar_length_mm=bar_length_mm)
     set_name = f"patch_{variant}" if f"patch_{variant}" in mesh.facets else "patch"
     settings = replace(settings, indenter_set=set_name)
-    result = solve_indentation(mesh, material=material, indenter=indenter, bone_motion=bone_motion(pose),
-                               cast=cast, settings=settings, start=start)
+    result, turned = None, None
+    if base is not None:
+        result = solve_turned(mesh, material=material, base=base, indenter=indenter, cast=cast, settings=settings)
+        if result.converged:
+            turned = base_variant
+        else:
+            log.warning("%s/%s: turning the indenter from the end state of %s did not converge (%s): solving from the "
+                        "start", animal, variant, base_variant, result.reason)
+    if turned is None:
+        first = result
+        result = solve_indentation(mesh, material=material, indenter=indenter, bone_motion=bone_motion(pose),
+                                   cast=cast, settings=settings, start=start)
+        if first is not None:  # the failed turn's cost is part of this variant's
+            result = replace(result, newton_iterations=result.newton_iterations + first.newton_iterations,
+                             wall_s=result.wall_s + first.wall_s, assembly_s=result.assembly_s + first.assembly_s,
+                             linear_solve_s=result.linear_solve_s + first.linear_solve_s,
+                             contact_s=result.contact_s + first.contact_s,
+                             extra={**result.extra, "turn_failed": first.reason})
     info = dict(
         indenter_force_N=result.indenter_force_N, n_dofs=result.n_dofs, increments=result.increments,
         newton_iterations=result.newton_iterations, wall_s=time.perf_counter() - t0,
@@ -98,6 +124,7 @@ def solve_variant(
         bone_clearance_mm=result.extra.get("bone_clearance_mm"), pinch_first=result.extra.get("pinch_first", False),
         shifted=result.extra.get("shifted", False),
         started_from_bone_state=result.extra.get("started_from_bone_state", False),
+        turned_from=turned, turn_failed=result.extra.get("turn_failed"),
     )
     if not result.converged:
         log.warning("%s/%s did not converge: %s", animal, variant, result.reason)
@@ -107,6 +134,9 @@ def solve_variant(
                                  gamma_sampling=study.gamma_sampling,
                                  n_elements=int(mesh.n_tets), **info)
         return summary, result.displacement_mm, strain
+    if end_state_path is not None:
+        save_end_state(end_state_path, end_state(result, mesh, indenter=indenter, bone_motion=bone_motion(pose),
+                                                 settings=settings))
     energy = ogden_energy(result.deformation_gradient, material)
     summary, strain = summarize_solution(
         mesh, result.displacement_mm, animal=animal, variant=variant, strain_measure=study.strain_measure,
@@ -144,27 +174,44 @@ def run_bone_state(*, mesh_path, cast_path, pose_path, state_path, fem_cfg: dict
     return state
 
 
-def _load_start(path) -> BoneState | None:
-    """The shared bone state of ``path``, None if that solve failed (its file says why)."""
+def _failed_marker(path, what: str) -> str | None:
+    """Why the job that writes ``path`` failed (its file says so), or None if the file holds a state."""
     try:
         with np.load(path) as d:
-            failed = str(d["failed"]) if "failed" in d else None
+            return str(d["failed"]) if "failed" in d else None
     except (OSError, ValueError) as exc:
-        raise ValueError(f"{path}: not a bone-state file ({exc})") from exc
-    if failed is not None:
+        raise ValueError(f"{path}: not {what} file ({exc})") from exc
+
+
+def _load_start(path) -> BoneState | None:
+    """The shared bone state of ``path``, None if that solve failed (its file says why)."""
+    if (failed := _failed_marker(path, "a bone-state")) is not None:
         log.warning("%s: the shared bone rotation failed (%s): solving it for this variant", path, failed)
         return None
     return load_bone_state(path)
 
 
+def _load_base(path, base_variant) -> EndState | None:
+    """The end state of the base variant in ``path``, None if that solve did not converge (its file says why)."""
+    if (failed := _failed_marker(path, "an end-state")) is not None:
+        log.warning("%s: %s did not converge (%s): solving this variant from the start", path, base_variant, failed)
+        return None
+    return load_end_state(path)
+
+
 def run_solve(*, animal: str, variant: str, mesh_path, cast_path, pose_path, during_contours_path,
-              summary_path, vtu_path, fem_cfg: dict, study_cfg: dict, bone_state_path=None) -> Summary:
+              summary_path, vtu_path, fem_cfg: dict, study_cfg: dict, bone_state_path=None,
+              end_state_path=None, base_state_path=None, base_variant: str | None = None) -> Summary:
     """Rule ``solve``: read the model files, solve, write ``summary.json`` and ``result.vtu``.
 
     Both files are always written: a failure (set-up error or no convergence) gives a summary with
     ``converged = False`` and the reason, and a VTU of the last converged state (or the undeformed
-    mesh when nothing was solved).
+    mesh when nothing was solved). end_state_path: the converged end state (the start of the variants
+    turned from this one), or, after a failure, a file saying why. base_state_path: the end state of
+    ``base_variant`` (:func:`turn_base`), the start of this one.
     """
+    if end_state_path is not None:
+        Path(end_state_path).unlink(missing_ok=True)
     study = StudySettings.from_config(study_cfg)
     mesh = load_tetmesh(mesh_path)
     u = np.zeros_like(mesh.nodes_mm)
@@ -175,10 +222,12 @@ def run_solve(*, animal: str, variant: str, mesh_path, cast_path, pose_path, dur
         material = Ogden(**fem_cfg.get("material", {}))
         settings = solver_settings_from_config(fem_cfg.get("solver"))
         start = _load_start(bone_state_path) if bone_state_path else None
+        base = _load_base(base_state_path, base_variant) if base_state_path else None
         summary, u, strain = solve_variant(
             animal=animal, variant=variant, mesh=mesh, pose=pose, cast=cast, material=material,
             settings=settings, study=study, skin_contours_mm=skin,
-            bar_length_mm=float(fem_cfg.get("bar_length_mm", 10.0)), start=start,
+            bar_length_mm=float(fem_cfg.get("bar_length_mm", 10.0)), start=start, base=base,
+            base_variant=base_variant, end_state_path=end_state_path,
         )
     except Exception as exc:  # recorded, never lost: the study goes on without this variant
         log.error("%s/%s failed:\n%s", animal, variant, traceback.format_exc())
@@ -187,6 +236,9 @@ def run_solve(*, animal: str, variant: str, mesh_path, cast_path, pose_path, dur
                                  gamma_sampling=study.gamma_sampling,
                                  n_elements=int(mesh.n_tets))
         strain = element_strain(mesh, u)
+    if end_state_path is not None and not Path(end_state_path).exists():
+        with open(end_state_path, "wb") as f:
+            np.savez(f, failed=np.array(summary.reason or "not converged"))
     write_result_vtu(vtu_path, mesh, u, strain, cell_data={"converged": np.full(mesh.n_tets, int(summary.converged))})
     write_summary(summary_path, summary)
     return summary

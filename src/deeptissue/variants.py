@@ -89,6 +89,25 @@ def mesh_group_of(variant: str, groups: dict) -> str:
     raise ValueError(f"variant {variant!r} is in no mesh group {groups}")
 
 
+def turn_base(variant: str, variants, groups: dict | None = None) -> str | None:
+    """The variant whose converged end state ``variant`` is solved from (None: solved from the start).
+
+    A turned variant (``sphere_rx+15``) differs from the unturned one of the same shape (``sphere``) only
+    by the indenter's axis, turned about the same final tip: if that one is among ``variants`` and on the
+    same mesh (``groups``: :func:`mesh_groups`; None: one mesh), the solver turns the indenter from its end
+    state (:func:`deeptissue.fem.solver.solve_turned`) instead of indenting from the start.
+    """
+    v = parse_variant(variant)
+    if v.turn_axis is None or v.turn_deg == 0:
+        return None
+    base = v.indenter
+    if base not in list(variants):
+        return None
+    if groups is not None and mesh_group_of(base, groups) != mesh_group_of(variant, groups):
+        return None
+    return base
+
+
 def solve_priority(variant: str, depth_mm: float | None = None) -> float:
     """Scheduling priority of the solve job of ``variant`` (higher starts first): the longest solves first.
 

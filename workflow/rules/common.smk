@@ -2,7 +2,7 @@
 from pathlib import Path
 
 from deeptissue.config import validate_config
-from deeptissue.variants import mesh_group_of, mesh_groups, solve_priority
+from deeptissue.variants import mesh_group_of, mesh_groups, solve_priority, turn_base
 
 config = validate_config(config, workflow.source_path("../schemas/config.schema.yaml"), base_dir=Path(workflow.basedir))
 
@@ -33,10 +33,25 @@ def animal_states(animal):
     return STATES if has_during(animal) else ["pre"]
 
 
+def turn_base_of(variant):
+    """The variant whose end state ``variant`` is turned from (study.turn_from_base), or None."""
+    if not config["study"]["turn_from_base"]:
+        return None
+    return turn_base(variant, config["study"]["variants"], MESH_GROUPS)
+
+
+def base_state_of(animal, variant):
+    """The end state a turned variant starts from ([] if it is solved from the start)."""
+    base = turn_base_of(variant)
+    return [] if base is None else f"results/{animal}/{base}/end_state.npz"
+
+
 def solve_job_priority(wildcards):
-    """Longest solves first (bars, then deeper phantoms): deeptissue.variants.solve_priority."""
+    """Longest solves first (bars, then deeper phantoms): deeptissue.variants.solve_priority; a variant that
+    others are turned from before all (they wait for it)."""
     depth = animal_cfg(wildcards.animal).get("phantom", {}).get("depth_mm")
-    return solve_priority(wildcards.variant, depth)
+    bases = {turn_base_of(v) for v in config["study"]["variants"]}
+    return solve_priority(wildcards.variant, depth) + (50.0 if wildcards.variant in bases else 0.0)
 
 
 def mesh_of(animal, variant):

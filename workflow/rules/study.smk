@@ -129,9 +129,11 @@ rule solve:
         cast="results/{animal}/model/cast.npz",
         pose="results/{animal}/pose.json",
         during_contours="results/{animal}/contours/during.npz",
+        base_state=lambda wc: base_state_of(wc.animal, wc.variant),
     output:
         summary="results/{animal}/{variant}/summary.json",
         vtu="results/{animal}/{variant}/result.vtu",
+        end_state="results/{animal}/{variant}/end_state.npz",
     log:
         "results/{animal}/logs/solve_{variant}.log",
     benchmark:
@@ -139,6 +141,7 @@ rule solve:
     params:
         fem=config["fem"],
         study=STUDY,
+        base_variant=lambda wc: turn_base_of(wc.variant),
     priority: solve_job_priority  # the longest solves first, so none runs alone at the end
     resources:
         mem_mb=4000,

@@ -164,6 +164,10 @@ class SolverSettings:
     escape mode the retry is for, and the plain first try only spends time (measured: every solve of the
     demo and config/paper.yaml that needed the retry ended within 0.65 mm of the bone, four of six
     within 0.56 mm; none that converged plainly within 0.57 mm). None: always plain first.
+    turn_initial_increment: the first increment of a turn from a base variant's end state
+    (:func:`solve_turned`), as a fraction of the turn (initial_increment is the indentation's). Measured with
+    the 15 deg turns of the demo's spheres: rat01 sphere_rx+15 27 / 22 / 21 Newton iterations and rat02
+    sphere_rz+15 101 / 94 / 87 with 0.25 / 0.5 / 1 (the whole turn at once, cut back where it fails).
     min_bone_clearance_mm: a solve whose indenter, at the end of its travel, comes closer than this to
     the moved bone's nodes (negative: overlaps the bone) is not started: it ends at once, unconverged,
     with the reason "infeasible" (no tissue state fits between two overlapping rigid bodies; measured:
@@ -222,6 +226,7 @@ class SolverSettings:
     end_penalty_passes: int = 3
     max_wall_s: float | None = None
     min_bone_clearance_mm: float = 0.0
+    turn_initial_increment: float = 1.0
     pinch_clearance_mm: float | None = 0.6
     bone_set: str = "bone"
     indenter_set: str = "patch"
@@ -368,6 +373,67 @@ def load_bone_state(path) -> BoneState:
         raise ValueError(f"{path}: not a bone-state file ({type(exc).__name__}: {exc})") from exc
 
 
+@dataclass(frozen=True)
+class EndState:
+    """The converged end state (t = 4) of one variant: the start of a variant that differs from it only by
+    a turn of the indenter about the same final tip (:func:`solve_turned`).
+
+    displacement_mm (n_dofs,); contact: pair name ('indenter', 'cast') -> (facets (K, n) node ids of the
+    pair's skin facets, lam_mpa (K, Q) multipliers, eps (K,) penalties); indenter: the Indenter it was
+    solved with; bone_motion: its BoneMotion; settings: its SolverSettings.
+    """
+
+    displacement_mm: np.ndarray
+    contact: dict
+    indenter: Indenter
+    bone_motion: BoneMotion
+    settings: SolverSettings
+
+
+def end_state(result: SolveResult, mesh: TetMesh, *, indenter: Indenter, bone_motion: BoneMotion,
+              settings: SolverSettings) -> EndState | None:
+    """The EndState of a converged :func:`solve_indentation` result (None if it did not converge)."""
+    if not result.converged:
+        return None
+    sets = {"indenter": settings.indenter_set, "cast": settings.cast_set}
+    contact = {name: (np.asarray(mesh.facets[sets[name]]), lam, eps)
+               for name, (lam, eps) in result.extra.get("contact_state", {}).items()}
+    return EndState(displacement_mm=result.displacement_mm.ravel().copy(), contact=contact, indenter=indenter,
+                    bone_motion=bone_motion, settings=settings)
+
+
+def save_end_state(path, state: EndState) -> None:
+    """Write an EndState as .npz (arrays, and the rest as JSON)."""
+    import json
+    from dataclasses import asdict
+
+    meta = dict(indenter=asdict(state.indenter), bone_motion=asdict(state.bone_motion), settings=asdict(state.settings),
+                pairs=sorted(state.contact))
+    arrays = dict(displacement_mm=state.displacement_mm, meta=np.array(json.dumps(meta)))
+    for name, (facets, lam, eps) in state.contact.items():
+        arrays.update({f"{name}_facets": facets, f"{name}_lam_mpa": lam, f"{name}_eps": eps})
+    with open(path, "wb") as f:
+        np.savez(f, **arrays)
+
+
+def load_end_state(path) -> EndState:
+    """Read :func:`save_end_state`'s file; ValueError naming the file if it is not one."""
+    import json
+
+    def tup(d):
+        return {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+
+    try:
+        with np.load(path) as d:
+            meta = json.loads(str(d["meta"]))
+            contact = {n: (d[f"{n}_facets"], d[f"{n}_lam_mpa"], d[f"{n}_eps"]) for n in meta["pairs"]}
+            u = d["displacement_mm"]
+        return EndState(displacement_mm=u, contact=contact, indenter=Indenter(**tup(meta["indenter"])),
+                        bone_motion=BoneMotion(**tup(meta["bone_motion"])), settings=SolverSettings(**tup(meta["settings"])))
+    except (KeyError, OSError, ValueError, TypeError) as exc:
+        raise ValueError(f"{path}: not an end-state file ({type(exc).__name__}: {exc})") from exc
+
+
 def _same_start_settings(a: SolverSettings, b: SolverSettings) -> bool:
     """Whether a bone state solved with settings a is the start a try with settings b would reach
     (the indenter's facet set and the wall-time budget play no part before the indenter moves)."""
@@ -412,6 +478,42 @@ class _Schedule:
     def active_steps(self):
         steps = [k for k in range(3) if abs(self.ang[k]) > 0]
         return steps + [3]
+
+    def indenter(self, t):
+        """The indenter (its shape and axis) at load t; its tip is :meth:`tip`."""
+        return self.ind
+
+
+class _TurnSchedule(_Schedule):
+    """The bone at its final pose; in the one step (t 3 -> 4) the indenter turns about its final tip from
+    the axis of ``ind_from`` to the axis of ``ind_to`` (the shortest rotation, at a uniform rate)."""
+
+    turn = True
+
+    def __init__(self, bone_motion: BoneMotion, ind_from: Indenter, ind_to: Indenter):
+        super().__init__(bone_motion, ind_to)
+        self.a0, a1 = ind_from.unit_axis, ind_to.unit_axis
+        k = np.cross(self.a0, a1)
+        self.angle = float(np.arctan2(np.linalg.norm(k), self.a0 @ a1))
+        self.k = k / np.linalg.norm(k) if self.angle > 0 else np.zeros(3)
+        self.tip_end = np.asarray(ind_to.end_mm, float)
+
+    def bone(self, X, t):
+        return super().bone(X, 4.0)
+
+    def tip(self, t):
+        return self.tip_end
+
+    def predict(self, X, x, t0, t1):
+        return x
+
+    def active_steps(self):
+        return [3]
+
+    def indenter(self, t):
+        s = float(np.clip(t - 3.0, 0.0, 1.0)) * self.angle
+        a = self.a0 * np.cos(s) + np.cross(self.k, self.a0) * np.sin(s) + self.k * (self.k @ self.a0) * (1 - np.cos(s))
+        return replace(self.ind, axis=tuple(a))
 
 
 class _Pair:
@@ -554,6 +656,28 @@ def solve_indentation(mesh: TetMesh, *, material, indenter: Indenter | None, bon
                           "first_attempt_iterations": first.newton_iterations})
 
 
+def solve_turned(mesh: TetMesh, *, material, base: EndState, indenter: Indenter, cast: Cast | None = None,
+                 settings: SolverSettings = SolverSettings()) -> SolveResult:
+    """Solve a variant whose indenter differs from the one of ``base`` (a converged end state on this mesh,
+    :func:`end_state`) only by a turn about the same final tip: from that state, with the bone at its final
+    pose, the indenter is turned about its final tip to ``indenter``'s axis in increments (one load step).
+    Hyperelastic and frictionless, the end state does not depend on the path, so this is the variant's end
+    state, reached without solving its indentation from the start. Never raises for non-convergence (the
+    caller then solves the variant from the start); ValueError if ``indenter`` is not such a turn of
+    ``base.indenter`` or the state is not of this mesh."""
+    a, b = base.indenter, indenter
+    if (a.kind, a.radius_mm, a.bar_length_mm) != (b.kind, b.radius_mm, b.bar_length_mm) or not np.allclose(
+            a.end_mm, b.end_mm, rtol=0.0, atol=1e-9):
+        raise ValueError(f"solve_turned: {b} is not a turn of {a} about its final tip")
+    if base.displacement_mm.shape != (3 * len(mesh.nodes_mm),):
+        raise ValueError(f"solve_turned: the end state has {base.displacement_mm.size} displacement dofs, the mesh "
+                         f"{3 * len(mesh.nodes_mm)}: not this mesh's state")
+    r = _solve(mesh, material=material, indenter=indenter, schedule=_TurnSchedule(base.bone_motion, a, b),
+               bc_sets=(settings.bone_set,), cast=cast, settings=replace(settings, initial_increment=settings.turn_initial_increment),
+               start=base)
+    return replace(r, extra={**r.extra, "turned": True})
+
+
 def _bone_clearance_mm(sched: _Schedule, Xb: np.ndarray) -> float | None:
     """Smallest gap [mm] between the indenter at the end of its travel and the bone's nodes Xb (n, 3) at
     their final (moved) position; None without an indenter or bone nodes."""
@@ -622,7 +746,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings, start
         eps = s.penalty_factor * E_mod / surf.h_mm
 
         def ind_gap(t):
-            tip, ind = sched.tip(t), sched.ind  # sched.ind: the start may be moved back (clear_start)
+            tip, ind = sched.tip(t), sched.indenter(t)  # sched.ind: the start may be moved back (clear_start)
             return lambda x: ind.gap(x, tip)
 
         pairs.append(_Pair("indenter", surf, ind_gap, eps, asm))
@@ -872,7 +996,24 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings, start
     if rotation_only:
         steps = [k for k in steps if k < 3]
     w_conv = None  # strain energy of the last converged state [mJ]
-    if start is not None:
+    if isinstance(start, EndState):
+        # a turned variant: from the end state of its base variant (solve_turned), multipliers and penalties
+        # carried over facet by facet where the two contact sets share a facet
+        u = start.displacement_mm.astype(float)
+        for p in pairs:
+            if p.name not in start.contact:
+                continue
+            facets, lam, eps = start.contact[p.name]
+            where = {f.tobytes(): i for i, f in enumerate(np.asarray(facets, dtype=np.int64))}
+            mine = np.asarray(mesh.facets[s.indenter_set if p.name == "indenter" else s.cast_set], dtype=np.int64)
+            pairs_ij = [(j, where[f.tobytes()]) for j, f in enumerate(mine) if f.tobytes() in where]
+            if pairs_ij:
+                j, i = np.array(pairs_ij).T
+                if lam.shape[1:] != p.surf.lam.shape[1:]:
+                    raise ValueError("solve_turned: the end state's multipliers do not fit this mesh's contact facets")
+                p.surf.lam[j] = lam[i]
+                p.eps[j] = np.maximum(p.eps[j], eps[i])
+    elif start is not None:
         # the bone-rotation steps were solved once for every variant (solve_bone_rotation): go on from there
         steps = [k for k in steps if k >= 3]
         u = start.displacement_mm.astype(float).copy()
@@ -913,7 +1054,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings, start
             log.warning(reason_fail)
     for k in () if infeasible else steps:
         t = float(k)
-        if k == 3 and indenter is not None:
+        if k == 3 and indenter is not None and not getattr(sched, "turn", False):
             start_backoff_mm = clear_start(u)
             if start_backoff_mm > 0:
                 log.warning("the indenter touches the skin at its start position: start moved %.3f mm back along "
@@ -1084,7 +1225,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings, start
     ft, fc = forces(last_outs)
     pm, pr = penetration(last_outs)
     W = asm.energy(u)
-    wall = time.perf_counter() - t_wall + (start.wall_s if start is not None else 0.0)
+    wall = time.perf_counter() - t_wall + (start.wall_s if isinstance(start, BoneState) else 0.0)
     contact_state = {p.name: (p.surf.lam.copy(), p.eps.copy()) for p in pairs}
     return SolveResult(
         converged=done, reason=reason_fail, displacement_mm=u.reshape(-1, 3).copy(), deformation_gradient=Fe,
