@@ -1,6 +1,8 @@
 """Quasi-static indentation of a hyperelastic limb: rigid bone motion, rigid indenter and cast contact.
 
-Entry point: :func:`solve_indentation`. Load parameter t runs through four steps of one unit each:
+Entry points: :func:`solve_indentation`, :func:`solve_bone_rotation` (steps 1-3 once for all variants of a
+mesh) and :func:`solve_turned` (a variant turned from another's end state). Load parameter t runs through
+four steps of one unit each:
 rotation of the bone about world x (t in [0, 1]), y ([1, 2]), z ([2, 3]) by the Euler angles of
 ``bone_motion.rotation_deg`` (deeptissue.rigid.euler_xyz_deg, so the bone ends exactly at R), then
 ([3, 4]) the translation together with the indenter travel from ``start_mm`` to ``end_mm``.
