@@ -76,7 +76,7 @@ def _barrier(s, s_hat, kappa, s_min_rel=0.01):
     b = -k * r * r * lg
     b1 = -k * (2 * r * lg + r * r / x)
     b2 = -k * (2 * lg + 4 * r / x - r * r / (x * x))
-    ds = s - x  # < 0 only below s_min
+    ds = np.minimum(s - x, 0.0)  # < 0 only below s_min (0 beyond s_hat, where b is 0: no inf * 0 for a gap of inf)
     b, b1 = b + b1 * ds + 0.5 * b2 * ds * ds, b1 + b2 * ds
     on = s < sh
     return np.where(on, b, 0.0), np.where(on, b1, 0.0), np.where(on, b2, 0.0)
