@@ -21,7 +21,7 @@ from .fem.indenters import Indenter
 from .fem.material import Ogden, ogden_energy
 from .fem.solver import (BoneMotion, BoneState, EndState, SolverSettings, end_state, load_bone_state, load_end_state,
                          save_bone_state, save_end_state, solve_bone_rotation, solve_indentation, solve_turned,
-                         solver_settings_from_config)
+                         solver_settings_from_config, summed_costs)
 from .mesh import TetMesh, load_tetmesh
 from .pose import Pose, load_pose
 from .strain import DEFAULT_BIN_EDGES, element_strain
@@ -109,10 +109,7 @@ def solve_variant(
         result = solve_indentation(mesh, material=material, indenter=indenter, bone_motion=bone_motion(pose),
                                    cast=cast, settings=settings, start=start)
         if first is not None:  # the failed turn's cost is part of this variant's
-            result = replace(result, newton_iterations=result.newton_iterations + first.newton_iterations,
-                             wall_s=result.wall_s + first.wall_s, assembly_s=result.assembly_s + first.assembly_s,
-                             linear_solve_s=result.linear_solve_s + first.linear_solve_s,
-                             contact_s=result.contact_s + first.contact_s,
+            result = replace(result, **summed_costs(result, first), wall_s=result.wall_s + first.wall_s,
                              extra={**result.extra, "turn_failed": first.reason})
     info = dict(
         indenter_force_N=result.indenter_force_N, n_dofs=result.n_dofs, increments=result.increments,

@@ -46,12 +46,15 @@ def base_state_of(animal, variant):
     return [] if base is None else f"results/{animal}/{base}/end_state.npz"
 
 
+# the variants others are turned from
+TURN_BASES = {turn_base_of(v) for v in config["study"]["variants"]} - {None}
+
+
 def solve_job_priority(wildcards):
     """Longest solves first (bars, then deeper phantoms): deeptissue.variants.solve_priority; a variant that
     others are turned from before all (they wait for it)."""
     depth = animal_cfg(wildcards.animal).get("phantom", {}).get("depth_mm")
-    bases = {turn_base_of(v) for v in config["study"]["variants"]}
-    return solve_priority(wildcards.variant, depth) + (50.0 if wildcards.variant in bases else 0.0)
+    return solve_priority(wildcards.variant, depth) + (50.0 if wildcards.variant in TURN_BASES else 0.0)
 
 
 def mesh_of(animal, variant):

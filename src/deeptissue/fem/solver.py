@@ -397,7 +397,7 @@ def end_state(result: SolveResult, mesh: TetMesh, *, indenter: Indenter, bone_mo
     """The EndState of a converged :func:`solve_indentation` result (None if it did not converge)."""
     if not result.converged:
         return None
-    sets = {"indenter": settings.indenter_set, "cast": settings.cast_set}
+    sets = _pair_sets(settings)
     contact = {name: (np.asarray(mesh.facets[sets[name]]), lam, eps)
                for name, (lam, eps) in result.extra.get("contact_state", {}).items()}
     return EndState(displacement_mm=result.displacement_mm.ravel().copy(), contact=contact, indenter=indenter,
@@ -434,6 +434,17 @@ def load_end_state(path) -> EndState:
                         bone_motion=BoneMotion(**tup(meta["bone_motion"])), settings=SolverSettings(**tup(meta["settings"])))
     except (KeyError, OSError, ValueError, TypeError) as exc:
         raise ValueError(f"{path}: not an end-state file ({type(exc).__name__}: {exc})") from exc
+
+
+def summed_costs(*results: SolveResult) -> dict:
+    """The Newton iterations and the assembly, linear-solve and contact seconds of several tries of one solve,
+    summed (for ``dataclasses.replace`` of the result reported; its wall time is the caller's)."""
+    return {k: sum(getattr(r, k) for r in results) for k in ("newton_iterations", "assembly_s", "linear_solve_s", "contact_s")}
+
+
+def _pair_sets(settings: SolverSettings) -> dict:
+    """The skin facet set of each contact pair, by pair name."""
+    return {"indenter": settings.indenter_set, "cast": settings.cast_set}
 
 
 def _same_start_settings(a: SolverSettings, b: SolverSettings) -> bool:
@@ -489,8 +500,6 @@ class _Schedule:
 class _TurnSchedule(_Schedule):
     """The bone at its final pose; in the one step (t 3 -> 4) the indenter turns about its final tip from
     the axis of ``ind_from`` to the axis of ``ind_to`` (the shortest rotation, at a uniform rate)."""
-
-    turn = True
 
     def __init__(self, bone_motion: BoneMotion, ind_from: Indenter, ind_to: Indenter):
         super().__init__(bone_motion, ind_to)
@@ -651,9 +660,7 @@ def solve_indentation(mesh: TetMesh, *, material, indenter: Indenter | None, bon
                   else f"without shifts{' or barrier' if with_barrier else ''}")
     reason = second.reason if second.converged else (
         f"{best.reason} (at t = {best.load_reached:.4f} of 4; the other try, {other_desc}, reached t = {other.load_reached:.4f})")
-    return replace(best, reason=reason, newton_iterations=first.newton_iterations + second.newton_iterations,
-                   wall_s=time.perf_counter() - t0, assembly_s=first.assembly_s + second.assembly_s,
-                   linear_solve_s=first.linear_solve_s + second.linear_solve_s, contact_s=first.contact_s + second.contact_s,
+    return replace(best, reason=reason, **summed_costs(first, second), wall_s=time.perf_counter() - t0,
                    extra={**best.extra, "attempts": 2, "first_attempt_reason": first.reason,
                           "first_attempt_iterations": first.newton_iterations})
 
@@ -748,7 +755,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings, start
         eps = s.penalty_factor * E_mod / surf.h_mm
 
         def ind_gap(t):
-            tip, ind = sched.tip(t), sched.indenter(t)  # sched.ind: the start may be moved back (clear_start)
+            tip, ind = sched.tip(t), sched.indenter(t)  # looked up at t: clear_start may move the start back, a turn turns it
             return lambda x: ind.gap(x, tip)
 
         pairs.append(_Pair("indenter", surf, ind_gap, eps, asm))
@@ -1007,7 +1014,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings, start
                 continue
             facets, lam, eps = start.contact[p.name]
             where = {f.tobytes(): i for i, f in enumerate(np.asarray(facets, dtype=np.int64))}
-            mine = np.asarray(mesh.facets[s.indenter_set if p.name == "indenter" else s.cast_set], dtype=np.int64)
+            mine = np.asarray(mesh.facets[_pair_sets(s)[p.name]], dtype=np.int64)
             pairs_ij = [(j, where[f.tobytes()]) for j, f in enumerate(mine) if f.tobytes() in where]
             if pairs_ij:
                 j, i = np.array(pairs_ij).T
@@ -1018,7 +1025,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings, start
     elif start is not None:
         # the bone-rotation steps were solved once for every variant (solve_bone_rotation): go on from there
         steps = [k for k in steps if k >= 3]
-        u = start.displacement_mm.astype(float).copy()
+        u = start.displacement_mm.astype(float)
         history = list(start.history)
         n_iter_total = start.newton_iterations
         w_conv = start.strain_energy_mJ
@@ -1056,7 +1063,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings, start
             log.warning(reason_fail)
     for k in () if infeasible else steps:
         t = float(k)
-        if k == 3 and indenter is not None and not getattr(sched, "turn", False):
+        if k == 3 and indenter is not None and not isinstance(sched, _TurnSchedule):
             start_backoff_mm = clear_start(u)
             if start_backoff_mm > 0:
                 log.warning("the indenter touches the skin at its start position: start moved %.3f mm back along "
