@@ -160,3 +160,13 @@ def test_script_log_captures_logging_stderr_and_the_failure(tmp_path):
     # the handler is removed again: later logging does not write to the closed file
     logging.getLogger("deeptissue.x").info("after")
     assert "after" not in log.read_text()
+
+
+def test_schema_solver_defaults_are_the_solvers_own():
+    # a study run from the config and a solve called from Python use the same settings
+    from deeptissue.fem.solver import SolverSettings, solver_settings_from_config
+
+    cfg = validate_config(_demo(), SCHEMA, base_dir=ROOT)
+    solver_cfg = cfg["fem"]["solver"]
+    assert {"easy_iterations", "max_iterations", "penalty_factor", "pinch_clearance_mm"} <= set(solver_cfg)
+    assert solver_settings_from_config(solver_cfg) == SolverSettings()

@@ -91,7 +91,15 @@ class SolverSettings:
     511 -> 339 s, the same answer, the demo 18 min 42 s -> 15 min 40 s; but the bar tilted 30 deg of
     the hard cases (2.0 / 0.7 mm copy, pinched too), whose barrier increments start from decrements of
     17-111 mJ, then no longer converged (t = 3.9923 and 3.8720 in its two tries; uncapped: 370 iterations
-    to the end), and sphere to depth 2R needed its retry. Not the default until that is understood.
+    to the end), and sphere to depth 2R needed its retry. Session 17: caps of 100 and 1000 do the same on
+    rat02 bar (183 / 184 iterations instead of 239, VOI within 0.012 %) and the same harm (the 30 deg copy
+    stops at t = 3.9923 with either, sphere to 2R needs its retry with 1000): not the default.
+    easy_iterations: an increment that converged in at most this many Newton iterations lets the next one grow
+    by grow_factor. Session 17 (demo): 6 instead of 4 takes 987 instead of 1 033 iterations (the bars -3 to
+    -15 %, rat02 bar 239 -> 203; the spheres unchanged), answers within 0.03 % VOI, 0.05 % force;
+    config/paper.yaml 60 of 60 converged, 4 652 instead of 5 144 iterations, but 41 min 58 s against
+    38 min 1 s (session 16) of wall time on a shared machine whose run-to-run spread is as large: not the
+    default (the hard cases were not solved with it).
     first_touch_mm: at most this much indentation in the increment where contact starts.
     start_clearance_mm: an indenter that already touches or penetrates the skin at its start position
     (a tilted bar's end dips below the point where its axis meets the skin) is moved back along its
