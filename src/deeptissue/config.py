@@ -20,6 +20,8 @@ import jsonschema
 import yaml
 
 __all__ = [
+    "REGENERATE_COMMAND",
+    "SCHEMA_PATH",
     "ConfigError",
     "check_config",
     "convergence_animal",
@@ -31,9 +33,8 @@ __all__ = [
     "validate_config",
 ]
 
-#: the schema's path inside the repository and the reference page generated from it
+#: the schema's path inside the repository, and the command that renders it into docs/config.md
 SCHEMA_PATH = Path("workflow") / "schemas" / "config.schema.yaml"
-DOCS_PATH = Path("docs") / "config.md"
 REGENERATE_COMMAND = "python -m deeptissue.config docs/config.md"
 
 
@@ -42,6 +43,7 @@ class ConfigError(ValueError):
 
 
 def _key_path(path) -> str:
+    """A validation error's path as the dotted key a user writes (``animals.rat01.phantom``, ``x[0]``)."""
     parts = []
     for p in path:
         parts.append(f"[{p}]" if isinstance(p, int) else (f".{p}" if parts else str(p)))
@@ -66,6 +68,7 @@ _DefaultFilling = _extend_with_default(jsonschema.Draft7Validator)
 
 
 def _message(err: jsonschema.ValidationError) -> str:
+    """One line for a schema violation that names the key."""
     where = _key_path(err.absolute_path)
     if err.validator == "additionalProperties":
         allowed = sorted(err.schema.get("properties", {}))
@@ -143,7 +146,7 @@ def _check_files(config: dict, base_dir: Path) -> None:
 
 
 def has_during_scan(animal: dict[str, Any]) -> bool:
-    """Whether an animal's configuration has a during scan (a phantom has one, a real animal one if ``during`` is given).
+    """Whether an animal has a during scan: a phantom always, a real animal if ``during`` is given.
 
     Parameters
     ----------
@@ -208,7 +211,9 @@ def _check_bin_edges(config: dict[str, Any]) -> None:
     study = config["study"]
     edges = study["bin_edges"]
     if abs(edges[0] - study["threshold"]) > 1e-12:
-        raise ConfigError(f"config key study.bin_edges: must start at study.threshold ({study['threshold']}), got {edges[0]}")
+        raise ConfigError(
+            f"config key study.bin_edges: must start at study.threshold ({study['threshold']}), got {edges[0]}"
+        )
     if any(b <= a for a, b in zip(edges, edges[1:])):
         raise ConfigError(f"config key study.bin_edges: not strictly increasing: {edges}")
 
@@ -270,10 +275,12 @@ def _text(value: Any) -> str:
 
 
 def _literal(value: Any) -> str:
+    """A value as JSON in backticks (null, true, lists as written in YAML's flow style)."""
     return f"`{json.dumps(value, ensure_ascii=False)}`"
 
 
 def _type(node: dict) -> str:
+    """The JSON type(s) of a key, with the item type of an array."""
     kind = node.get("type")
     if kind is None:
         return "enum" if "enum" in node else ""
@@ -289,6 +296,7 @@ _BOUNDS = (("minimum", "≥"), ("exclusiveMinimum", ">"), ("maximum", "≤"), ("
 
 
 def _range(node: dict) -> str:
+    """The allowed values of a key: enum, bounds, list length and bounds of the items."""
     parts = []
     if "enum" in node:
         parts.append("one of " + ", ".join(_literal(v) for v in node["enum"]))
@@ -315,6 +323,7 @@ def _range(node: dict) -> str:
 
 
 def _is_section(node: dict) -> bool:
+    """Whether a schema node is an object with its own keys (rendered as a section of its own)."""
     return isinstance(node.get("properties"), dict)
 
 
@@ -381,11 +390,13 @@ def schema_markdown(schema: dict) -> str:
         lines += ["| key | type | default | unit | range | description |", "|---|---|---|---|---|---|"]
         required = set(node.get("required", ()))
         for key, sub in rows:
-            default = _literal(sub["default"]) if "default" in sub else ("required" if key.rsplit(".", 1)[-1] in required else "")
+            if "default" in sub:
+                default = _literal(sub["default"])
+            else:
+                default = "required" if key.rsplit(".", 1)[-1] in required else ""
             unit = f"`{sub['unit']}`" if "unit" in sub else ""
-            lines.append(
-                f"| `{key}` | {_type(sub)} | {_text(default)} | {unit} | {_text(_range(sub))} | {_text(sub.get('description', ''))} |"
-            )
+            cells = [f"`{key}`", _type(sub), _text(default), unit, _text(_range(sub)), _text(sub.get("description", ""))]
+            lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
