@@ -23,6 +23,7 @@ include: "workflow/rules/material.smk"
 include: "workflow/rules/fem.smk"
 include: "workflow/rules/study.smk"
 include: "workflow/rules/convergence.smk"
+include: "workflow/rules/docs.smk"
 
 
 rule all:

@@ -1,18 +1,41 @@
-"""Validation of the workflow configuration against its JSON schema.
+"""Validation of the workflow configuration against its JSON schema, and the schema's reference page.
 
 The schema (``workflow/schemas/config.schema.yaml``) gives every key a description, unit and
-default. Validation fills in defaults and turns the first problem into a one-line error that
-names the key, so a typo in a 40-line config is found at once.
+default. Validation fills in defaults, checks the rules that span several keys, and turns the
+first problem into a one-line error that names the key, so a typo in a 40-line config is found at
+once. ``docs/config.md`` is rendered from the same schema; regenerate it with::
+
+    python -m deeptissue.config docs/config.md
 """
 
 from __future__ import annotations
 
+import argparse
 import copy
+import json
 from pathlib import Path
 from typing import Any
 
 import jsonschema
 import yaml
+
+__all__ = [
+    "REGENERATE_COMMAND",
+    "SCHEMA_PATH",
+    "ConfigError",
+    "check_config",
+    "convergence_animal",
+    "figure_animal",
+    "has_during_scan",
+    "load_schema",
+    "main",
+    "schema_markdown",
+    "validate_config",
+]
+
+#: the schema's path inside the repository, and the command that renders it into docs/config.md
+SCHEMA_PATH = Path("workflow") / "schemas" / "config.schema.yaml"
+REGENERATE_COMMAND = "python -m deeptissue.config docs/config.md"
 
 
 class ConfigError(ValueError):
@@ -20,6 +43,7 @@ class ConfigError(ValueError):
 
 
 def _key_path(path) -> str:
+    """A validation error's path as the dotted key a user writes (``animals.rat01.phantom``, ``x[0]``)."""
     parts = []
     for p in path:
         parts.append(f"[{p}]" if isinstance(p, int) else (f".{p}" if parts else str(p)))
@@ -44,6 +68,7 @@ _DefaultFilling = _extend_with_default(jsonschema.Draft7Validator)
 
 
 def _message(err: jsonschema.ValidationError) -> str:
+    """One line for a schema violation that names the key."""
     where = _key_path(err.absolute_path)
     if err.validator == "additionalProperties":
         allowed = sorted(err.schema.get("properties", {}))
@@ -57,14 +82,43 @@ def _message(err: jsonschema.ValidationError) -> str:
 
 
 def load_schema(schema_path: str | Path) -> dict:
+    """Read the configuration schema.
+
+    Parameters
+    ----------
+    schema_path : str or Path
+        The YAML file of the JSON schema (draft 7, with an extra ``unit`` keyword per key).
+
+    Returns
+    -------
+    dict
+        The schema as loaded by ``yaml.safe_load``.
+    """
     with open(schema_path) as fh:
         return yaml.safe_load(fh)
 
 
 def validate_config(config: dict[str, Any], schema_path: str | Path, *, base_dir: str | Path = ".") -> dict:
-    """Validate ``config`` in place (defaults filled) and check that every named input file exists.
+    """Validate a configuration in place: schema, defaults, named input files and cross-key rules.
 
-    Returns the same dict. Raises :class:`ConfigError` with a one-line message naming the key.
+    Parameters
+    ----------
+    config : dict
+        The configuration as loaded from YAML; missing keys get the schema's defaults.
+    schema_path : str or Path
+        The YAML file of the configuration schema.
+    base_dir : str or Path, optional
+        Directory the input files of ``animals.<name>.pre``, ``during`` and ``overrides`` are relative to.
+
+    Returns
+    -------
+    dict
+        The same ``config``, with defaults filled in.
+
+    Raises
+    ------
+    ConfigError
+        On the first problem, with a one-line message that names the key.
     """
     schema = load_schema(schema_path)
     validator = _DefaultFilling(schema)
@@ -75,8 +129,8 @@ def validate_config(config: dict[str, Any], schema_path: str | Path, *, base_dir
         if err.context:
             err = max(err.context, key=lambda e: len(e.absolute_path))
         raise ConfigError(_message(err))
-    # a second pass: defaults inside oneOf branches are not filled by the first
     _check_files(config, Path(base_dir))
+    check_config(config)
     return config
 
 
@@ -89,3 +143,279 @@ def _check_files(config: dict, base_dir: Path) -> None:
             val = cfg.get(key)
             if isinstance(val, str) and not (base_dir / val).is_file():
                 raise ConfigError(f"config key animals.{animal}.{key}: file not found: {val}")
+
+
+def has_during_scan(animal: dict[str, Any]) -> bool:
+    """Whether an animal has a during scan: a phantom always, a real animal if ``during`` is given.
+
+    Parameters
+    ----------
+    animal : dict
+        One entry of ``config["animals"]``.
+
+    Returns
+    -------
+    bool
+    """
+    return "phantom" in animal or "during" in animal
+
+
+def figure_animal(config: dict[str, Any]) -> str:
+    """The animal drawn in the study's section figures: ``study.figure_animal``, or the first configured animal.
+
+    Parameters
+    ----------
+    config : dict
+        A validated configuration.
+
+    Returns
+    -------
+    str
+    """
+    return config["study"]["figure_animal"] or next(iter(config["animals"]))
+
+
+def convergence_animal(config: dict[str, Any], *, required: bool = False) -> str | None:
+    """The animal of the speed-against-error ladder.
+
+    Parameters
+    ----------
+    config : dict
+        A validated configuration.
+    required : bool, optional
+        Raise instead of returning None (for the inputs of the ``convergence`` target).
+
+    Returns
+    -------
+    str or None
+        ``convergence.animal``, or the first configured animal with a during scan; None if no
+        animal has one.
+
+    Raises
+    ------
+    ConfigError
+        If ``required`` and no animal qualifies.
+    """
+    named = config["convergence"]["animal"]
+    if named is not None:
+        return named
+    found = next((a for a, cfg in config["animals"].items() if has_during_scan(cfg)), None)
+    if found is None and required:
+        raise ConfigError(
+            f"config key convergence.animal: null, and no configured animal has a during scan {list(config['animals'])}"
+        )
+    return found
+
+
+def _check_bin_edges(config: dict[str, Any]) -> None:
+    study = config["study"]
+    edges = study["bin_edges"]
+    if abs(edges[0] - study["threshold"]) > 1e-12:
+        raise ConfigError(
+            f"config key study.bin_edges: must start at study.threshold ({study['threshold']}), got {edges[0]}"
+        )
+    if any(b <= a for a, b in zip(edges, edges[1:])):
+        raise ConfigError(f"config key study.bin_edges: not strictly increasing: {edges}")
+
+
+def _check_figure_animal(config: dict[str, Any]) -> None:
+    name = config["study"]["figure_animal"]
+    animals = list(config["animals"])
+    if name is not None and name not in animals:
+        raise ConfigError(f"config key study.figure_animal: {name!r} is not a configured animal {animals}")
+
+
+def _check_convergence_animal(config: dict[str, Any]) -> None:
+    name = config["convergence"]["animal"]
+    animals = config["animals"]
+    if name is not None and (name not in animals or not has_during_scan(animals[name])):
+        raise ConfigError(
+            f"config key convergence.animal: {name!r} is not a configured animal with a during scan {list(animals)}"
+        )
+
+
+def check_config(config: dict[str, Any]) -> None:
+    """Check the rules of a configuration that span several keys (the schema checks each key alone).
+
+    ``study.bin_edges`` starts at ``study.threshold`` and increases strictly; ``study.figure_animal``
+    is a configured animal; ``convergence.animal`` is a configured animal with a during scan.
+
+    Parameters
+    ----------
+    config : dict
+        A configuration whose defaults are filled in (as :func:`validate_config` leaves it).
+
+    Raises
+    ------
+    ConfigError
+        Naming the key whose value breaks a rule.
+    """
+    _check_bin_edges(config)
+    _check_figure_animal(config)
+    _check_convergence_animal(config)
+
+
+# --- the reference page docs/config.md, rendered from the schema ---
+
+
+def _resolve(node: dict, schema: dict) -> dict:
+    """``node`` with a local ``$ref`` (``#/definitions/x``) replaced by its target."""
+    ref = node.get("$ref")
+    if ref is None:
+        return node
+    target = schema
+    for part in ref.lstrip("#/").split("/"):
+        target = target[part]
+    return _resolve(target, schema)
+
+
+def _text(value: Any) -> str:
+    """A description on one line, safe inside a Markdown table cell."""
+    return " ".join(str(value).split()).replace("|", "\\|")
+
+
+def _literal(value: Any) -> str:
+    """A value as JSON in backticks (null, true, lists as written in YAML's flow style)."""
+    return f"`{json.dumps(value, ensure_ascii=False)}`"
+
+
+def _type(node: dict) -> str:
+    """The JSON type(s) of a key, with the item type of an array."""
+    kind = node.get("type")
+    if kind is None:
+        return "enum" if "enum" in node else ""
+    kinds = kind if isinstance(kind, list) else [kind]
+    text = " or ".join(kinds)
+    items = node.get("items")
+    if "array" in kinds and isinstance(items, dict) and "type" in items:
+        text = text.replace("array", f"array of {items['type']}")
+    return text
+
+
+_BOUNDS = (("minimum", "≥"), ("exclusiveMinimum", ">"), ("maximum", "≤"), ("exclusiveMaximum", "<"))
+
+
+def _range(node: dict) -> str:
+    """The allowed values of a key: enum, bounds, list length and bounds of the items."""
+    parts = []
+    if "enum" in node:
+        parts.append("one of " + ", ".join(_literal(v) for v in node["enum"]))
+    parts.extend(f"{sign} {node[key]}" for key, sign in _BOUNDS if key in node)
+    if isinstance(node.get("not"), dict) and "const" in node["not"]:
+        parts.append(f"≠ {node['not']['const']}")
+    n_min, n_max = node.get("minItems"), node.get("maxItems")
+    if n_min is not None and n_min == n_max:
+        parts.append(f"{n_min} items")
+    elif n_min is not None and n_max is not None:
+        parts.append(f"{n_min}-{n_max} items")
+    elif n_min is not None:
+        parts.append(f"≥ {n_min} items")
+    elif n_max is not None:
+        parts.append(f"≤ {n_max} items")
+    items = node.get("items")
+    if isinstance(items, dict):
+        inner = [f"{sign} {items[key]}" for key, sign in _BOUNDS if key in items]
+        if "enum" in items:
+            inner.append("one of " + ", ".join(_literal(v) for v in items["enum"]))
+        if inner:
+            parts.append("each " + ", ".join(inner))
+    return "; ".join(parts)
+
+
+def _is_section(node: dict) -> bool:
+    """Whether a schema node is an object with its own keys (rendered as a section of its own)."""
+    return isinstance(node.get("properties"), dict)
+
+
+def _sections(node: dict, path: str, schema: dict):
+    """Yield ``(path, node, rows)`` for ``node`` and every object with properties below it."""
+    rows, below = [], []
+    for key, sub in node["properties"].items():
+        sub = _resolve(sub, schema)
+        child = f"{path}.{key}" if path else key
+        if _is_section(sub):
+            below.append((child, sub))
+            continue
+        items = sub.get("items")
+        if isinstance(items, dict) and _is_section(items):
+            rows.append((child, sub))
+            below.append((f"{child}[]", items))
+            continue
+        extra = sub.get("additionalProperties")
+        if isinstance(extra, dict):
+            extra = _resolve(extra, schema)
+            if _is_section(extra):
+                rows.append((child, sub))
+                below.append((f"{child}.<name>", extra))
+                continue
+        rows.append((child, sub))
+    yield path, node, rows
+    for child, sub in below:
+        yield from _sections(sub, child, schema)
+
+
+def schema_markdown(schema: dict) -> str:
+    """Render a configuration schema as a Markdown reference page.
+
+    Every object with properties becomes a section (heading = its dotted path, ``<name>`` for a
+    map's key, ``[]`` for a list's items) with its description and one table row per key:
+    dotted path, type, default, unit, allowed range and description.
+
+    Parameters
+    ----------
+    schema : dict
+        A JSON schema as loaded by :func:`load_schema`; local ``$ref`` s are followed.
+
+    Returns
+    -------
+    str
+        The page, ending with a newline.
+    """
+    lines = [
+        "# Configuration reference",
+        "",
+        f"Generated from `{SCHEMA_PATH.as_posix()}` by `{REGENERATE_COMMAND}`; do not edit by hand.",
+        "",
+        _text(schema.get("description", "")),
+        "",
+        "Unit `1` is a dimensionless number, `-` a name or a switch. A key left out takes its default.",
+    ]
+    for path, node, rows in _sections(schema, "", schema):
+        lines += ["", f"## `{path}`" if path else "## Top level", ""]
+        if path and node.get("description"):
+            lines += [_text(node["description"]), ""]
+        if not rows:
+            lines.append("Only the sections below.")
+            continue
+        lines += ["| key | type | default | unit | range | description |", "|---|---|---|---|---|---|"]
+        required = set(node.get("required", ()))
+        for key, sub in rows:
+            if "default" in sub:
+                default = _literal(sub["default"])
+            else:
+                default = "required" if key.rsplit(".", 1)[-1] in required else ""
+            unit = f"`{sub['unit']}`" if "unit" in sub else ""
+            cells = [f"`{key}`", _type(sub), _text(default), unit, _text(_range(sub)), _text(sub.get("description", ""))]
+            lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Write the reference page rendered from the schema (``python -m deeptissue.config docs/config.md``).
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        Command-line arguments: the output file and ``--schema PATH`` (default
+        ``workflow/schemas/config.schema.yaml``, relative to the working directory).
+    """
+    parser = argparse.ArgumentParser(prog="python -m deeptissue.config", description=main.__doc__.splitlines()[0])
+    parser.add_argument("output", type=Path, help="the Markdown file to write, e.g. docs/config.md")
+    parser.add_argument("--schema", type=Path, default=SCHEMA_PATH, help="the configuration schema (YAML)")
+    args = parser.parse_args(argv)
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(schema_markdown(load_schema(args.schema)))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,7 +1,7 @@
 # Configuration validation, input functions and wildcard constraints shared by all rules.
 from pathlib import Path
 
-from deeptissue.config import validate_config
+from deeptissue.config import has_during_scan, validate_config
 from deeptissue.variants import mesh_group_of, mesh_groups, solve_priority, turn_base
 
 config = validate_config(config, workflow.source_path("../schemas/config.schema.yaml"), base_dir=Path(workflow.basedir))
@@ -26,7 +26,7 @@ def is_phantom(animal):
 
 
 def has_during(animal):
-    return is_phantom(animal) or "during" in animal_cfg(animal)
+    return has_during_scan(animal_cfg(animal))
 
 
 def animal_states(animal):

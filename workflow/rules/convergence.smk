@@ -1,16 +1,13 @@
-# Speed against error (issue 7): one animal x a few variants solved at a ladder of discretisations,
-# errors against the finest converged run, Pareto front and scaling. Target `convergence`, not in `all`.
+# Speed against error: one animal x a few variants solved at a ladder of discretisations, errors against
+# the finest converged run, Pareto front and scaling. Target `convergence`, not in `all`.
 import re
 
-from deeptissue.config import ConfigError
+from deeptissue.config import convergence_animal
 from deeptissue.convergence import default_ladder
 
 CONV = config["convergence"]
-CONV_ANIMAL = CONV["animal"] or next((a for a in ANIMALS if has_during(a)), ANIMALS[0])
-if CONV_ANIMAL not in ANIMALS or not has_during(CONV_ANIMAL):
-    raise ConfigError(
-        f"config key convergence.animal: {CONV_ANIMAL!r} is not a configured animal with a during scan {ANIMALS}"
-    )
+# None when no animal has a during scan: the other targets stay available, `convergence` stops with a ConfigError
+CONV_ANIMAL = convergence_animal(config)
 CONV_VARIANTS = list(CONV["variants"])
 CONV_LADDER = default_ladder(CONV, model_cfg=config["model"], solver_cfg=config["fem"]["solver"])
 CONV_SETTINGS = CONV_LADDER.names
@@ -54,15 +51,15 @@ rule convergence_run:
 rule convergence_aggregate:
     """Every row and benchmark -> convergence.csv, the error-vs-time figure and summary.md."""
     input:
-        rows=expand(
+        rows=lambda wc: expand(
             "results/convergence/{animal}/{conv_variant}/{setting}.json",
-            animal=[CONV_ANIMAL],
+            animal=[convergence_animal(config, required=True)],
             conv_variant=CONV_VARIANTS,
             setting=CONV_SETTINGS,
         ),
-        benchmarks=expand(
+        benchmarks=lambda wc: expand(
             "results/convergence/benchmarks/{animal}/{conv_variant}_{setting}.tsv",
-            animal=[CONV_ANIMAL],
+            animal=[convergence_animal(config, required=True)],
             conv_variant=CONV_VARIANTS,
             setting=CONV_SETTINGS,
         ),

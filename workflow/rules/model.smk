@@ -1,4 +1,4 @@
-# Rules of the model stage: rigid cast, limb mesh with contact patches (issue 5).
+# Rules of the model stage: rigid cast, limb mesh with contact patches.
 # The model settings get the FE section's bar length (if set) for the bar's contact patch.
 # One cast per animal (its hole clears every variant); one mesh per group of variants
 # (model.mesh_groups: by default one mesh "all" per animal; "indenter": one per indenter shape,

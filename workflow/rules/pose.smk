@@ -1,4 +1,4 @@
-# Rules of the pose stage: indenter axis, travel and depth, tibia rigid motion (issue 3).
+# Rules of the pose stage: indenter axis, travel and depth, tibia rigid motion.
 from argparse import Namespace
 
 

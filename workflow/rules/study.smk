@@ -1,20 +1,12 @@
 # Rules of the study stage: one FE solve per animal x variant, then tables and figures of the whole study.
 import re
 
-from deeptissue.config import ConfigError
+from deeptissue.config import figure_animal
 from deeptissue.variants import parse_variant
 
 STUDY = config["study"]
 VARIANTS = list(STUDY["variants"])
-if abs(STUDY["bin_edges"][0] - STUDY["threshold"]) > 1e-12:
-    raise ConfigError(
-        f"config key study.bin_edges: must start at study.threshold ({STUDY['threshold']}), got {STUDY['bin_edges'][0]}"
-    )
-if any(b <= a for a, b in zip(STUDY["bin_edges"], STUDY["bin_edges"][1:])):
-    raise ConfigError(f"config key study.bin_edges: not strictly increasing: {STUDY['bin_edges']}")
-FIGURE_ANIMAL = STUDY["figure_animal"] or ANIMALS[0]
-if FIGURE_ANIMAL not in ANIMALS:
-    raise ConfigError(f"config key study.figure_animal: {FIGURE_ANIMAL!r} is not a configured animal {ANIMALS}")
+FIGURE_ANIMAL = figure_animal(config)
 # variants drawn in the section figures: sphere vs bar, and every sphere orientation
 SECTION_VARIANTS = [v for v in VARIANTS if v == "bar" or parse_variant(v).indenter == "sphere"]
 
