@@ -328,7 +328,7 @@ def _fmt(x: float) -> str:
 
 
 def bin_labels(bin_edges: Sequence[float]) -> list[str]:
-    """``(0.3, 0.4, …, 1.0)`` -> ``['0.3-0.4', …, '0.9-1.0', '>1.0']``."""
+    """Labels of the bins of :func:`voi_statistics`: ``(0.3, 0.4, …, 1.0)`` -> ``['0.3-0.4', …, '0.9-1.0', '>1.0']``."""
     e = list(bin_edges)
     return [f"{_fmt(a)}-{_fmt(b)}" for a, b in zip(e[:-1], e[1:])] + [f">{_fmt(e[-1])}"]
 

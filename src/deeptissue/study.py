@@ -1,8 +1,9 @@
 """One study job: an animal's model, pose and one variant -> FE solution, strain statistics, files.
 
-:func:`solve_variant` never raises for a failed solve: a variant that does not converge, or whose
-set-up fails, is returned as a summary with ``converged = False`` and the reason, so the study
-goes on and the aggregate step can mark the animal excluded.
+A variant that does not converge is returned by :func:`solve_variant` as a summary with
+``converged = False`` and the reason; :func:`run_solve` records any error after the mesh is read
+(reading the pose, cast or contours, setting up, solving) the same way, so the study goes on and the
+aggregate step can mark the animal excluded.
 """
 
 from __future__ import annotations
@@ -274,9 +275,9 @@ def run_solve(*, animal: str, variant: str, mesh_path, cast_path, pose_path, dur
               end_state_path=None, base_state_path=None, base_variant: str | None = None) -> Summary:
     """Rule ``solve``: read the model files, solve, write ``summary.json`` and ``result.vtu``.
 
-    Both files are always written: a failure (set-up error or no convergence) gives a summary with
-    ``converged = False`` and the reason, and a VTU of the last converged state (or the undeformed
-    mesh when nothing was solved).
+    Once the mesh is read, both files are always written: a failure (set-up error or no convergence)
+    gives a summary with ``converged = False`` and the reason, and a VTU of the last converged state
+    (or the undeformed mesh when nothing was solved).
 
     Parameters
     ----------

@@ -152,7 +152,7 @@ def failed_summary(*, animal: str, variant: str, reason: str, strain_measure: st
     reason : str
         Why it did not converge or failed (must not be empty).
     strain_measure, threshold, gamma_sampling
-        As configured for the study (recorded so the aggregate sees one setting per study).
+        As configured for the study (recorded in the summary).
     **known
         Fields of :class:`Summary` that are known; other keys go to ``extra``.
 
@@ -201,7 +201,7 @@ def summarize_solution(
     threshold : float
         γmax threshold of the VOI [-].
     bin_edges : sequence of float
-        γmax bin edges above the threshold (:data:`deeptissue.strain.DEFAULT_BIN_EDGES`).
+        γmax bin edges, the first equal to ``threshold`` (:data:`deeptissue.strain.DEFAULT_BIN_EDGES`).
     gamma_sampling : {'points', 'centroid'}
         Which estimate (:data:`GAMMA_SAMPLINGS`) ``voi_mm3``, ``bins_percent``,
         ``below_threshold_percent``, ``strain_energy_mJ`` and ``voi_by_measure_mm3`` are; both are
@@ -266,9 +266,21 @@ def summarize_solution(
 # --- result.vtu ------------------------------------------------------------------------------------
 
 def write_result_vtu(path: str | Path, mesh: TetMesh, displacement_mm, strain: ElementStrain, *, cell_data: dict | None = None) -> None:
-    """``result.vtu`` for ParaView: reference nodes, point data ``displacement_mm``, cell data
-    ``gamma_gl``, ``gamma_log``, ``volume_mm3``, ``principal_gl`` (n, 3) and any extra ``cell_data``.
-    Cells are VTK quadratic tetra (``tetra10``), or ``tetra`` for a linear mesh."""
+    """Write ``result.vtu`` for ParaView, atomically.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output ``.vtu``.
+    mesh : TetMesh
+        Reference mesh [mm]; cells are VTK quadratic tetra (``tetra10``), or ``tetra`` for a linear mesh.
+    displacement_mm : (n_nodes, 3) array_like
+        Nodal displacement [mm], written as point data ``displacement_mm``.
+    strain : ElementStrain
+        Written as cell data ``gamma_gl``, ``gamma_log`` [-], ``volume_mm3`` [mm³] and ``principal_gl`` (n_tets, 3).
+    cell_data : dict or None
+        Further cell data by name, (n_tets, ...) arrays.
+    """
     from .fem.output import write_tet_vtu
 
     cd = {"gamma_gl": strain.gamma_gl, "gamma_log": strain.gamma_log, "volume_mm3": strain.volume_mm3,
@@ -278,7 +290,27 @@ def write_result_vtu(path: str | Path, mesh: TetMesh, displacement_mm, strain: E
 
 
 def read_result_vtu(path: str | Path) -> tuple[TetMesh, np.ndarray, dict]:
-    """Inverse of :func:`write_result_vtu`: (reference TetMesh, displacement (n, 3) [mm], cell data)."""
+    """Read a file written by :func:`write_result_vtu`.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``result.vtu``.
+
+    Returns
+    -------
+    mesh : TetMesh
+        Reference mesh [mm] in gmsh node order, without facet sets.
+    displacement_mm : (n_nodes, 3) ndarray
+        Nodal displacement [mm].
+    cell_data : dict
+        Cell data by name, (n_tets, ...) arrays.
+
+    Raises
+    ------
+    ValueError
+        If the file is not a result VTU (names the file).
+    """
     import meshio
 
     try:

@@ -138,7 +138,25 @@ def mesh_groups(variants, by: str = "animal") -> dict:
 
 
 def mesh_group_of(variant: str, groups: dict) -> str:
-    """The name of the mesh (a key of :func:`mesh_groups`) that ``variant`` is solved on."""
+    """The name of the mesh (a key of :func:`mesh_groups`) that ``variant`` is solved on.
+
+    Parameters
+    ----------
+    variant : str
+        Variant name.
+    groups : dict
+        ``{mesh name: [variant names]}`` from :func:`mesh_groups`.
+
+    Returns
+    -------
+    str
+        The first group that lists ``variant``.
+
+    Raises
+    ------
+    ValueError
+        If no group lists it.
+    """
     for g, members in groups.items():
         if variant in members:
             return g
@@ -152,6 +170,21 @@ def turn_base(variant: str, variants, groups: dict | None = None) -> str | None:
     by the indenter's axis, turned about the same final tip: if that one is among ``variants`` and on the
     same mesh (``groups``: :func:`mesh_groups`; None: one mesh), the solver turns the indenter from its end
     state (:func:`deeptissue.fem.solver.solve_turned`) instead of indenting from the start.
+
+    Parameters
+    ----------
+    variant : str
+        Variant name.
+    variants : iterable of str
+        The study's variants.
+    groups : dict or None
+        ``{mesh name: [variant names]}`` from :func:`mesh_groups`; None: every variant on one mesh.
+
+    Returns
+    -------
+    str or None
+        The unturned variant of the same shape (``'sphere'`` or ``'bar'``), or None for an unturned
+        variant (or a turn of 0 deg), a base missing from ``variants`` or a base on another mesh.
     """
     v = parse_variant(variant)
     if v.turn_axis is None or v.turn_deg == 0:
