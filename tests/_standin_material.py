@@ -1,4 +1,5 @@
-"""Test-only stand-in material: compressible neo-Hookean with the Ogden API of CONTRACTS.md.
+"""Test-only stand-in material: compressible neo-Hookean with the API of deeptissue.fem.material
+(energy, stress and stress_tangent as functions of (F, params); params with mu_mpa and bulk_mpa).
 
 W = mu/2 (J^(-2/3) I1 - 3) + (J - 1)^2 / D  (= the uncoupled Ogden law with alpha = 2).
 Used to test the FE core independently of deeptissue.fem.material.

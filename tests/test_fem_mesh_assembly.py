@@ -15,7 +15,7 @@ from deeptissue.fem.skmesh import GMSH_TO_SKFEM_TET10, to_skfem
 from deeptissue.mesh import TetMesh
 
 LAW = as_material_law(Ogden())
-# any law with the CONTRACTS API works: a compressible neo-Hookean (test-only)
+# any law with the API of deeptissue.fem.material works: a compressible neo-Hookean (test-only)
 NEO = MaterialLaw(NeoHooke(), NeoHookeLaw.energy, NeoHookeLaw.stress, NeoHookeLaw.stress_tangent)
 
 

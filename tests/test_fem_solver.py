@@ -188,11 +188,11 @@ def test_vtu_output_round_trip(limb, tmp_path):
 
 
 def test_rigid_predictor_is_not_mistaken_for_a_prescribed_increment(limb):
-    # regression: the rigid predictor and the Dirichlet target of the bone are computed by
-    # different formulas and differ by round-off (~1e-16 mm); that difference was treated as a
-    # prescribed increment, which switched off the Armijo line search, the descent check and the
-    # convergence test of the first Newton iteration of every increment (one wasted, unguarded
-    # iteration per increment; on rat01 it let an indefinite contact tangent take a full step).
+    # the rigid predictor and the Dirichlet target of the bone are computed by different formulas and
+    # differ by round-off (~1e-16 mm); taken for a prescribed increment, that difference would switch
+    # off the Armijo line search, the descent check and the convergence test of the first Newton
+    # iteration of every increment (one wasted, unguarded iteration per increment, in which an
+    # indefinite contact tangent could take a full step).
     # A rigid motion of the whole limb is an exact equilibrium: the predictor solves it, so no
     # Newton iteration is needed.
     motion = BoneMotion(rotation_deg=(1.0, -0.5, 0.5), centre_mm=(0.1, -0.2, 3.0), translation_mm=(0.05, -0.1, 0.0))
@@ -204,12 +204,11 @@ def test_rigid_predictor_is_not_mistaken_for_a_prescribed_increment(limb):
 
 @pytest.mark.slow
 def test_sphere_with_bone_motion_reaches_full_depth_without_cutbacks(limb):
-    # regression (rat01 'sphere' barely progressed after first touch): bone rotation + translation
-    # with 1 mm of sphere indentation. Before the fixes the increments after first touch were cut
-    # 7 times ("too many iterations", "line search failed") and took ~200 Newton iterations: the
-    # first iteration of each increment ran without a line search (round-off Dirichlet increment) and
-    # the stabilised ("near") contact tangent, switched on after 4 iterations, was not the derivative
-    # of the residual, so Newton converged only linearly once the contact set was settling.
+    # bone rotation + translation with 1 mm of sphere indentation: no increment after first touch is
+    # cut. This needs the line search in the first iteration of each increment (also when its
+    # Dirichlet increment is only round-off) and a contact tangent that is the derivative of the
+    # residual: a tangent that is not converges only linearly while the contact set settles, and the
+    # increments are cut ("too many iterations", "line search failed").
     motion = BoneMotion(rotation_deg=(1.0, -0.5, 0.5), centre_mm=(0.1, -0.2, 3.0), translation_mm=(0.05, -0.1, 0.0))
     ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(4.0, 0.0, 3.0), end_mm=(1.5, 0.0, 3.0))
     r = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=motion)
@@ -224,7 +223,7 @@ def test_sphere_with_bone_motion_reaches_full_depth_without_cutbacks(limb):
 def test_state_violating_contact_is_never_accepted(limb):
     # the AL / final-solve fallbacks keep penalty or loosely converged states; one that still
     # penetrates more than penetration_accept x facet size must be cut back, not reported converged
-    # (found on a demo animal: "converged" with 0.37 mm penetration). A bound below what AL can reach
+    # (else a state with, e.g., 0.37 mm penetration could be reported converged). A bound below what AL can reach
     # on this coarse limb makes every contact increment fail.
     ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(4.0, 0.0, 3.0), end_mm=(2.6, 0.0, 3.0))
     strict = SolverSettings(penetration_accept=1e-9, min_increment=0.02, max_al_updates=0)
@@ -293,12 +292,12 @@ def test_penetration_barrier_bounds_what_a_soft_penalty_lets_through(limb):
 
 
 def test_energy_criterion_is_not_fooled_by_a_predictor_far_beyond_the_barrier(limb):
-    # found on rat02 bar (pinched: solved first with the barrier): an increment's predictor left skin
-    # beyond the barrier's limit, where its stiff continuation made the first Newton decrement 1e4 mJ;
-    # the energy criterion (decrement below energy_rtol x the first one) then accepted a crushed state
-    # at a residual of 0.4 N with 3-6 N on the indenter (0.05 N at equilibrium), and the solve spent
-    # ~90 iterations getting out of it. decrement_cap bounds that first decrement by the strain energy
-    # (not the default: measured, it lost the hard case of the bar tilted 30 deg).
+    # an increment's predictor can leave skin beyond the barrier's limit (a pinched solve, solved first
+    # with the barrier), where the barrier's stiff continuation makes the first Newton decrement huge;
+    # the energy criterion (decrement below energy_rtol x the first one) then accepts a crushed state
+    # far from equilibrium, and the solve spends many iterations getting out of it. decrement_cap
+    # bounds that first decrement by the strain energy (off by default: with it the hard case of the
+    # bar tilted 30 deg does not converge).
     ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(4.0, 0.0, 3.0), end_mm=(2.0, 0.0, 3.0))
     st = SolverSettings(barrier_onset_rel=0.03, first_touch_mm=0.5, max_increment=0.5, retry_shift_scales=())
     forces = {}
@@ -315,7 +314,7 @@ def test_energy_criterion_is_not_fooled_by_a_predictor_far_beyond_the_barrier(li
 
 def test_indenter_starting_inside_the_skin_is_backed_off_and_reaches_the_same_end_state(limb):
     # a bar tilted 30 deg whose axis starts 0.8 mm clear still dips its lower end 0.3 mm into the skin
-    # (the hard case "bar tilted 30 deg" started 1.3 mm deep): the solver moves the start back along
+    # (the hard case "bar tilted 30 deg" starts 1.3 mm deep): the solver moves the start back along
     # the axis until the skin is start_clearance_mm clear; the end state does not depend on the path
     a = np.radians(30.0)
     axis = np.array([-np.cos(a), 0.0, np.sin(a)])
@@ -373,7 +372,7 @@ def test_indenter_ending_inside_the_bone_is_reported_infeasible_without_solving(
     assert not r.converged and r.reason.startswith("infeasible") and r.extra["infeasible"]
     assert -0.2 - 1e-9 <= r.extra["bone_clearance_mm"] < -0.1
     assert r.newton_iterations == 0 and r.extra["attempts"] == 1  # neither solved nor retried
-    # a clear end is solved as before, and its clearance reported
+    # a clear end is solved, and its clearance reported
     ok_ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(3.5, 0.0, 3.0), end_mm=(2.9, 0.0, 3.0))
     ok = solve_indentation(limb, material=LAW, indenter=ok_ind, bone_motion=BoneMotion())
     assert ok.converged and 2.1 - 1e-9 <= ok.extra["bone_clearance_mm"] < 2.2
@@ -428,7 +427,7 @@ def test_pinched_solve_starts_with_the_retry_settings_and_falls_back_to_plain(li
     assert r.extra["pinch_first"] and r.extra["shifted"] and r.extra["barrier_onset_rel"] == pinch.retry_barrier_onset_rel
     assert r.extra["linear_precision"] == "double"  # the retry's settings solve in double precision
     # the default threshold (0.6 mm) solves it plainly first; path independent: the same end state, to
-    # within what the 1 % penetration tolerance leaves open (0.2 % in force measured)
+    # within what the 1 % penetration tolerance leaves open (the forces differ by about 0.2 %)
     plain = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=BoneMotion())
     assert plain.converged and not plain.extra["pinch_first"] and not plain.extra["shifted"]
     assert plain.extra["barrier_onset_rel"] is None and plain.extra["linear_precision"] == "mixed"
@@ -522,7 +521,7 @@ def test_turned_variant_solved_from_the_base_end_state_reaches_the_same_end_stat
     assert turned.indenter_force_N == pytest.approx(direct.indenter_force_N, rel=5e-3)
     np.testing.assert_allclose(turned.force_on_tissue_N, direct.force_on_tissue_N, atol=5e-3 * np.linalg.norm(direct.force_on_tissue_N))
     # the two end states differ by what the contact tolerance leaves open: about the penetration it allows
-    # (measured: 0.0077 mm at most, with 0.0079 mm penetration in both and 0.74 mm largest displacement)
+    # (0.0077 mm at most here, with 0.0079 mm penetration in both and 0.74 mm largest displacement)
     pen = max(turned.max_penetration_mm, direct.max_penetration_mm)
     assert np.max(np.abs(turned.displacement_mm - direct.displacement_mm)) < 2.0 * pen
     # a different end tip or shape is no turn; a state of another mesh is refused; junk names the file

@@ -1,4 +1,4 @@
-"""Model stage: limb mesh, cast with hole, contact patches, quality gate, bad input (issue 5).
+"""Model stage: limb mesh, cast with hole, contact patches, quality gate, bad input.
 
 Inputs are synthetic (tests/model_synth.py): tapered wobbly elliptical legs 8-11 mm across with an
 eccentric ~2.2 mm tibia and an indenter axis from +y tilted a few degrees. Truths: analytic volumes,

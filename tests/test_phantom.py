@@ -139,7 +139,7 @@ def test_tibia_is_a_tapering_rounded_triangle():
     # three corners: local maxima of the radius
     n_max = np.sum((r > np.roll(r, 1)) & (r > np.roll(r, -1)))
     assert n_max == 3
-    # a 0.5 deg turn about the centre moves the boundary by up to 0.0059 mm (the earlier elliptic tibia: 0.0016)
+    # a 0.5 deg turn about the centre moves the boundary by up to 0.0059 mm: the corners make a turn visible
     th = np.radians(0.5)
     c = np.array(an.tib_centre(0.0))
     rot = (xy - c) @ np.array([[np.cos(th), np.sin(th)], [-np.sin(th), np.cos(th)]]) + c

@@ -1,6 +1,7 @@
 """Pose stage end to end on digital phantoms: rendered scans -> segmentation stage -> pose.
 
-Measures what the whole chain gives against the phantom truth, with the issue's tolerances on the
+Measures what the whole chain gives against the phantom truth, with the pose stage's accuracy
+tolerances (``deeptissue.pose.ACCURACY_TOLERANCES``) on the
 full rotation (about the leg axis too: the phantom's tibia is a rounded triangle, and the fibula
 beside it moves across the slice under a turn about z) and on the full translation vector, along
 the leg too: shifts of 0.02, 0.15 and -0.12 mm along z, which the default fit (``bone_dof: auto``,
@@ -44,7 +45,7 @@ def test_pose_from_segmented_phantom(name, caplog):
                 "bone_translation_error_mm"):
         assert err[key] <= TOL[key], (key, err[key])
     if not np.any(ph.truth.bone_rotation_deg):
-        # a zero rotation comes back close to zero (measured 0.01-0.03 deg), not as a fit of noise
+        # a zero rotation comes back close to zero (0.01-0.03 deg on these phantoms), not as a fit of noise
         assert np.linalg.norm(pose.bone_rotation_deg) <= 0.1
     # the same scans without the fibula contours (a scan where it is not seen): 5 DOF, a log line,
     # rotation and the translation across the leg still within tolerance; along z only the centroid's

@@ -107,7 +107,7 @@ def test_no_fibula_falls_back_to_the_tibia_alone(ph):
     c, info = segment_volume(Volume(data=filled, affine=ph.affine), state="pre")
     assert c.fibula is None and info["fibula_slices"] == 0
     assert [r["fibula_source"] for r in info["slices"]] == ["none"] * 4 + ["dropped", "none"]
-    # the tibia as before (filling the fibula changes the coil fit a little)
+    # the tibia as without the filling (filling the fibula changes the coil fit a little)
     assert np.abs(c.bone - auto.bone).max() < 0.01
     off, _ = segment_volume(vol, state="pre", settings=SegmentationSettings(fibula=False))
     assert off.fibula is None

@@ -19,9 +19,14 @@ import numpy as np
 
 from .io import save_npz
 
+__all__ = ["Contours", "load_contours", "point_to_polygon_distance", "points_in_polygon", "polygon_area_centroid",
+           "resample_closed", "resample_contour_3d", "save_contours", "slices_with_contour"]
+
 
 @dataclass(frozen=True)
 class Contours:
+    """Skin, tibia and (optionally) fibula contours of every axial slice of one state (see the module)."""
+
     skin: np.ndarray  # (n_slices, n_points, 3) world mm
     bone: np.ndarray  # (n_slices, n_points, 3) world mm: the tibia
     fibula: np.ndarray | None = None  # (n_slices, n_points_f, 3) world mm, NaN rows where absent; None: none
@@ -64,6 +69,7 @@ class Contours:
 
     @property
     def n_slices(self) -> int:
+        """Number of slices (first axis of every array)."""
         return self.skin.shape[0]
 
     @property
@@ -80,6 +86,16 @@ def slices_with_contour(stack: np.ndarray) -> np.ndarray:
 
 
 def save_contours(path: str | Path, contours: Contours) -> None:
+    """Write ``contours`` to ``path`` (``.npz``), atomically.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output file.
+    contours : Contours
+        Written as arrays ``skin`` and ``bone`` (n_slices, n_points, 3) [mm], and ``fibula``
+        (n_slices, n_points_f, 3) [mm, NaN rows where absent] when there is one.
+    """
     arrays = dict(skin=contours.skin, bone=contours.bone)
     if contours.fibula is not None:
         arrays["fibula"] = contours.fibula
@@ -87,6 +103,23 @@ def save_contours(path: str | Path, contours: Contours) -> None:
 
 
 def load_contours(path: str | Path) -> Contours:
+    """Read a file written by :func:`save_contours`.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``.npz`` with arrays ``skin``, ``bone`` and optionally ``fibula``.
+
+    Returns
+    -------
+    Contours
+        Validated as on construction (shapes, finite coordinates, whole-or-NaN fibula rows).
+
+    Raises
+    ------
+    ValueError
+        If the file is unreadable, lacks an array or holds invalid contours; the message names the file.
+    """
     try:
         with np.load(path) as data:
             skin, bone = data["skin"], data["bone"]
@@ -123,12 +156,32 @@ def polygon_area_centroid(xy: np.ndarray) -> tuple[float, np.ndarray]:
 def resample_closed(xy, *, n_points: int = 100, start_angle_deg: float = 90.0, oversample: int = 16) -> np.ndarray:
     """Resample a closed planar curve to ``n_points`` circumferentially equidistant points.
 
-    ``xy`` (m, 2) mm: the curve's vertices in order (either orientation; a repeated closing point
-    is dropped). A shape-preserving piecewise cubic (PCHIP, periodic by wrapping) interpolates
-    x and y over the polyline's arc length; the interpolant is evaluated densely, its arc length
-    recomputed, and ``n_points`` stations equally spaced in that arc length are returned (n_points, 2),
-    counter-clockwise, the first where the ray from the area centroid at polar angle
-    ``start_angle_deg`` (from +x toward +y) crosses the curve (the outermost crossing).
+    A shape-preserving piecewise cubic (PCHIP, periodic by wrapping) interpolates x and y over the
+    polyline's arc length; the interpolant is evaluated densely, its arc length recomputed, and
+    ``n_points`` stations equally spaced in that arc length are returned.
+
+    Parameters
+    ----------
+    xy : (m, 2) array_like
+        The curve's vertices in order [mm], either orientation; a repeated closing point and
+        zero-length steps are dropped; at least 4 distinct points.
+    n_points : int
+        Number of output points.
+    start_angle_deg : float
+        Polar angle [deg] (from +x toward +y) of the ray from the area centroid whose outermost
+        crossing with the curve is the first output point.
+    oversample : int
+        Dense evaluation points per output (or input) point, at least 2000 in all.
+
+    Returns
+    -------
+    (n_points, 2) ndarray
+        Counter-clockwise points [mm], equally spaced in arc length.
+
+    Raises
+    ------
+    ValueError
+        Bad shape, fewer than 4 distinct points, or a start ray that misses the curve.
     """
     from scipy.interpolate import PchipInterpolator
 

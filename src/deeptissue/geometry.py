@@ -22,6 +22,12 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 from scipy.spatial import cKDTree
 
+__all__ = ["ModelInputError", "axis_distance_mm", "bar_direction", "build_cast", "check_contours",
+           "closest_point_on_triangles", "extend_rings", "footprint_distance_mm", "grid_normals", "grid_triangles",
+           "is_star_shaped", "limb_volume_mm3", "loft_rings", "offset_rings", "point_triangle_distance",
+           "polygon_area_mm2", "prismatoid_volume_mm3", "resample_arclength", "select_patch", "surface_distance_mm",
+           "triangle_areas", "triangle_normals"]
+
 log = logging.getLogger(__name__)
 
 
@@ -269,6 +275,7 @@ def triangle_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 
 
 def triangle_areas(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Areas (T,) of triangles (T, 3) on vertices (V, 3) [mm^2 for vertices in mm]."""
     p = vertices[triangles]
     return 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
 

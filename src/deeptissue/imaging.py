@@ -14,6 +14,8 @@ import numpy as np
 
 from .io import atomic_path
 
+__all__ = ["ImagingError", "Volume", "check_matching", "crop_volume", "load_nifti", "write_nifti"]
+
 
 class ImagingError(ValueError):
     """A bad input image; the message names animal, file, slice and problem."""
@@ -35,10 +37,12 @@ class Volume:
 
     @property
     def n_slices(self) -> int:
+        """Number of axial slices (``data.shape[2]``)."""
         return self.data.shape[2]
 
     @property
     def pixel_mm(self) -> tuple[float, float]:
+        """In-plane voxel size (along i, along j) [mm]."""
         return float(np.linalg.norm(self.affine[:3, 0])), float(np.linalg.norm(self.affine[:3, 1]))
 
     def world(self, ijk: np.ndarray) -> np.ndarray:
@@ -52,6 +56,7 @@ class Volume:
         return np.asarray(xyz, float) @ inv[:3, :3].T + inv[:3, 3]
 
     def where(self, k: int | None = None) -> str:
+        """"animal .., file ..[, slice k]" for error messages (k counted in the uncropped file)."""
         s = f"animal {self.animal or '?'}, file {self.path or '?'}"
         return s + (f", slice {k + self.index_offset[2]}" if k is not None else "")
 
@@ -70,6 +75,24 @@ def load_nifti(path: str | Path, *, animal: str = "") -> Volume:
 
     A 4D image with a single volume is accepted (squeezed); anything else not 3D, a degenerate
     affine (singular or non-finite voxel axes), or non-finite voxel values are errors.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``.nii`` or ``.nii.gz`` file.
+    animal : str
+        Animal name, used in error messages only.
+
+    Returns
+    -------
+    Volume
+        ``data`` (ni, nj, nk) float32 and ``affine`` (4, 4) voxel index -> world mm, ``index_offset``
+        (0, 0, 0).
+
+    Raises
+    ------
+    ImagingError
+        Unreadable file, not 3D, smaller than 4 x 4 in-plane, degenerate affine, non-finite values.
     """
     where = f"animal {animal or '?'}, file {path}"
     try:

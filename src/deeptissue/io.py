@@ -12,6 +12,8 @@ from typing import Any, Iterator
 
 import numpy as np
 
+__all__ = ["atomic_path", "read_json", "save_npz", "script_log", "write_json"]
+
 
 @contextlib.contextmanager
 def script_log(log_path: str | Path, job: str) -> Iterator[None]:
@@ -79,6 +81,7 @@ def write_json(path: str | Path, data: dict) -> None:
 
 
 def read_json(path: str | Path) -> dict:
+    """Read a JSON file; invalid JSON raises a ValueError naming the file."""
     try:
         return json.loads(Path(path).read_text())
     except json.JSONDecodeError as exc:

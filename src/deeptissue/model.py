@@ -2,8 +2,8 @@
 
 :func:`build_cast` and :func:`build_model` are the two entry points used by the rules ``cast`` and
 ``mesh``; :func:`save_cast` / :func:`load_cast` and :func:`write_model` write the files of
-``results/{animal}/model/`` (see CONTRACTS: ``mesh.npz``, ``mesh.msh``, ``mesh.vtu``, ``cast.npz``,
-``model.json``); :func:`plot_model_qc` draws the QC figure.
+``results/{animal}/model/`` (``mesh.npz``, ``mesh.msh``, ``mesh.vtu``, ``cast.npz``, ``model.json``);
+:func:`plot_model_qc` draws the QC figure.
 """
 
 from __future__ import annotations
@@ -23,9 +23,13 @@ from .mesh import MeshQualityError, PatchSpec, RefineSegment, TetMesh, mesh_limb
 from .pose import Pose
 from .variants import parse_variant, variant_travel
 
+__all__ = ["SPHERE_RADIUS_MM", "AnimalModel", "Cast", "ModelSettings", "build_cast", "build_model", "cast_hole_boundary",
+           "load_cast", "plot_model_qc", "run_cast", "run_mesh", "save_cast", "variant_axes", "write_model", "write_vtu"]
+
 log = logging.getLogger(__name__)
 
-SPHERE_RADIUS_MM = 1.5  # indenter head and bar radius (CONTRACTS: indenters)
+# indenter head and bar radius: the default Indenter.radius_mm (deeptissue.fem.indenters), 3 mm diameter
+SPHERE_RADIUS_MM = 1.5
 
 
 @dataclass(frozen=True)
@@ -58,6 +62,7 @@ class ModelSettings:
 
     @classmethod
     def from_dict(cls, d: dict | None) -> "ModelSettings":
+        """Settings from the config section ``model`` (None: defaults); an unknown key is a ValueError."""
         d = dict(d or {})
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(d) - names)
@@ -66,6 +71,7 @@ class ModelSettings:
         return cls(**d)
 
     def to_dict(self) -> dict:
+        """The settings as a plain dict (written to model.json)."""
         return dataclasses.asdict(self)
 
 
@@ -80,11 +86,13 @@ class Cast:
 
 @dataclass(frozen=True)
 class AnimalModel:
+    """One animal's model as built by :func:`build_model`: mesh, cast, facts and the gmsh file."""
+
     animal: str
     mesh: TetMesh
     cast: Cast
     info: dict  # the content of model.json
-    msh_bytes: bytes = b""
+    msh_bytes: bytes = b""  # the gmsh .msh file as written by gmsh
     log: tuple = field(default_factory=tuple)
 
 
@@ -103,7 +111,32 @@ def build_cast(contours: Contours, pose: Pose, *, variants=("sphere",), settings
 
     With ``settings.hole_for_variants`` the hole is the union of the variants' circles (each
     projected along its own axis, a bar's swept along the bar), so no variant's indenter presses
-    the skin against the cast; otherwise the circle about the estimated axis only."""
+    the skin against the cast; otherwise the circle about the estimated axis only.
+
+    Parameters
+    ----------
+    contours : Contours
+        Pre-state contours, ``skin`` and ``bone`` (n_slices, n_points, 3) [mm, world].
+    pose : Pose
+        Indenter axis and tip travel (:mod:`deeptissue.pose`).
+    variants : sequence of str
+        Variant names (:func:`deeptissue.variants.parse_variant`).
+    settings : ModelSettings or dict or None
+        Config section ``model`` (None: defaults).
+    animal : str
+        For messages.
+
+    Returns
+    -------
+    Cast
+        ``vertices_mm`` (V, 3) [mm], ``triangles`` (T, 3) with normals toward the leg, ``log`` of
+        what was done to offset it and cut the hole.
+
+    Raises
+    ------
+    deeptissue.geometry.ModelInputError
+        For contours that cannot make a cast.
+    """
     s = settings if isinstance(settings, ModelSettings) else ModelSettings.from_dict(settings)
     geo.check_contours(contours.skin, contours.bone, animal=animal, min_gap_mm=s.min_gap_mm)
     contours = _equidistant(contours)
@@ -135,10 +168,12 @@ def build_cast(contours: Contours, pose: Pose, *, variants=("sphere",), settings
 
 
 def save_cast(path: str | Path, cast: Cast) -> None:
+    """Write ``cast`` as ``.npz`` (``vertices_mm``, ``triangles``, ``log``), atomically."""
     save_npz(path, vertices_mm=cast.vertices_mm, triangles=cast.triangles, log=np.array(cast.log, dtype=str))
 
 
 def load_cast(path: str | Path) -> Cast:
+    """Read a file written by :func:`save_cast`; ValueError naming the file if it is not one."""
     try:
         with np.load(path) as d:
             return Cast(vertices_mm=d["vertices_mm"].astype(float), triangles=d["triangles"].astype(np.int64), log=tuple(d["log"].tolist()) if "log" in d.files else ())
@@ -179,6 +214,7 @@ def _bar_sweep(v, axis, s: ModelSettings):
 
 
 def _patch_specs(pose: Pose, variants, s: ModelSettings) -> dict:
+    """{``patch_<variant>``: PatchSpec}: each variant's contact patch about its final tip."""
     specs = {}
     for name, (axis, _, end, v) in variant_axes(pose, variants).items():
         half, long_dir = _bar_sweep(v, axis, s)
@@ -203,12 +239,38 @@ def build_model(
 ) -> AnimalModel:
     """Limb mesh with bone/skin/proximal/distal facet sets and contact patches, plus cast and facts.
 
-    contours: pre-state skin and bone stacks (n_slices, n_points, 3) world mm; pose: indenter axis and
-    travel; variants: names (``deeptissue.variants``) whose patches ``patch_<name>`` are tagged on the
-    one shared mesh, with their union ``patch``. The mesh is refined around each variant's travel.
-    The cast is built here unless given. Raises :class:`deeptissue.geometry.ModelInputError` for
-    contours or a pose that cannot make a model and :class:`deeptissue.mesh.MeshQualityError` for a
-    mesh with inverted/degenerate elements (both name the animal).
+    The mesh is refined around each variant's travel (a bar's swept along the bar). If gmsh's 3D
+    algorithm gives a mesh that fails the quality gate, the other one (hxt / delaunay) is tried once.
+
+    Parameters
+    ----------
+    contours : Contours
+        Pre-state ``skin`` and ``bone`` stacks (n_slices, n_points, 3) [mm, world].
+    pose : Pose
+        Indenter axis and tip travel.
+    variants : sequence of str
+        Variant names (:mod:`deeptissue.variants`) whose patches ``patch_<name>`` are tagged on the
+        mesh, with their union ``patch``.
+    settings : ModelSettings or dict or None
+        Config section ``model`` (None: defaults).
+    animal : str
+        For messages.
+    cast : Cast or None
+        The cast; built with :func:`build_cast` when None.
+
+    Returns
+    -------
+    AnimalModel
+        ``mesh`` (TetMesh, nodes in mm; facet sets ``bone``, ``skin``, ``proximal``, ``distal``,
+        ``patch``, ``patch_<variant>``), ``cast``, ``info`` (the content of model.json: volumes
+        [mm³], mesh statistics, skin-cast gap [mm], patches, ``wall_s``), ``msh_bytes``, ``log``.
+
+    Raises
+    ------
+    deeptissue.geometry.ModelInputError
+        Contours or a pose that cannot make a model (names the animal).
+    deeptissue.mesh.MeshQualityError
+        A mesh with inverted or degenerate elements with both 3D algorithms.
     """
     t0 = time.perf_counter()
     s = settings if isinstance(settings, ModelSettings) else ModelSettings.from_dict(settings)
@@ -344,7 +406,9 @@ def write_vtu(path: str | Path, mesh: TetMesh) -> None:
 
 
 def write_model(model: AnimalModel, *, mesh_npz, mesh_msh, mesh_vtu, model_json) -> None:
-    """Write the model files (each atomically)."""
+    """Write the model files, each atomically: ``mesh_npz`` (:func:`deeptissue.mesh.save_tetmesh`),
+    ``mesh_msh`` (gmsh), ``mesh_vtu`` (:func:`write_vtu`) and ``model_json`` (``model.info`` plus the
+    VTU group names)."""
     save_tetmesh(mesh_npz, model.mesh)
     with atomic_path(mesh_msh) as tmp:
         tmp.write_bytes(model.msh_bytes)
@@ -404,7 +468,22 @@ def plot_model_qc(path, model: AnimalModel, pose: Pose) -> None:
 
 
 def run_cast(*, contours_npz, pose_json, cast_npz, variants=("sphere",), settings: dict | None = None, animal: str = "?") -> Cast:
-    """Rule ``cast``: read the pre contours and the pose, write ``cast.npz``."""
+    """Rule ``cast``: read the pre contours and the pose, write ``cast.npz``.
+
+    Parameters
+    ----------
+    contours_npz, pose_json : str or Path
+        Pre contours (:func:`deeptissue.contours.load_contours`) and pose (:func:`deeptissue.pose.load_pose`).
+    cast_npz : str or Path
+        Output (:func:`save_cast`).
+    variants, settings, animal
+        As in :func:`build_cast`.
+
+    Returns
+    -------
+    Cast
+        What was written.
+    """
     from .contours import load_contours
     from .pose import load_pose
 
@@ -427,7 +506,26 @@ def run_mesh(
     settings: dict | None = None,
     animal: str = "?",
 ) -> AnimalModel:
-    """Rule ``mesh``: read pre contours, pose and cast; write the mesh files, model.json and the QC figure."""
+    """Rule ``mesh``: read pre contours, pose and cast; write the mesh files, model.json and the QC figure.
+
+    Parameters
+    ----------
+    contours_npz, pose_json, cast_npz : str or Path
+        Inputs: pre contours, pose, cast (:func:`run_cast`).
+    mesh_npz, mesh_msh, mesh_vtu, model_json : str or Path
+        Outputs of :func:`write_model`.
+    qc_png : str or Path
+        QC figure (:func:`plot_model_qc`).
+    variants : sequence of str
+        Variants tagged and refined for on this mesh.
+    settings, animal
+        As in :func:`build_model`.
+
+    Returns
+    -------
+    AnimalModel
+        The model written.
+    """
     from .contours import load_contours
     from .pose import load_pose
 

@@ -31,15 +31,16 @@ The anatomy is analytic, so every boundary is known exactly:
   40 % of that.
 - **noise**: Rician (magnitude of the signal plus complex Gaussian noise), ``sigma = 1 / snr``
   (muscle in the well-lit region has signal 1).
-- **indenter** (during): a hollow cylinder of radius 1.5 mm ending in a hemispherical head
-  (``deeptissue`` CONTRACTS), dark wall ``indenter_wall_mm`` thick, filled with bright contrast
-  fluid. Its axis points nominally along −y (from the coil side into the leg) through the tibia
-  centre at ``indenter_z_mm``, tilted by ``tilt_deg = (about X, about Z)``. The tip travels from
-  1 mm outside the skin to ``depth_mm`` beyond the skin point on the axis. The skin conforms to
-  the head: the tissue is ``max(φ_pre + dimple, −sd_indenter) < 0`` with ``φ_pre`` the radial
-  distance outside the pre skin, ``dimple`` a smooth axisymmetric sag (shallower than the head,
-  so the head defines the surface where it touches) and ``sd_indenter`` the indenter's signed
-  distance; tissue in the indenter's place is displaced, the skin layer follows the surface.
+- **indenter** (during): a hollow cylinder of radius ``indenter_radius_mm`` (1.5 mm, the FE
+  indenter's default, :class:`deeptissue.fem.indenters.Indenter`) ending in a hemispherical head,
+  dark wall ``indenter_wall_mm`` thick, filled with bright contrast fluid. Its axis points nominally
+  along −y (from the coil side into the leg) through the tibia centre at ``indenter_z_mm``, tilted
+  by ``tilt_deg = (about X, about Z)``. The tip travels from 1 mm outside the skin to ``depth_mm``
+  beyond the skin point on the axis. The skin conforms to the head: the tissue is ``max(φ_pre +
+  dimple, −sd_indenter) < 0`` with ``φ_pre`` the radial distance outside the pre skin, ``dimple`` a
+  smooth axisymmetric sag (shallower than the head, so the head defines the surface where it
+  touches) and ``sd_indenter`` the indenter's signed distance; tissue in the indenter's place is
+  displaced, the skin layer follows the surface.
 - **tibia motion** (during): rigid, ``x -> R (x - c) + c + t`` about the pre tibia centre of mass
   ``c`` (:mod:`deeptissue.rigid`); the fibula moves with it.
 
@@ -60,6 +61,8 @@ from .contours import Contours, polygon_area_centroid, resample_closed, save_con
 from .io import atomic_path, write_json
 from .pose import Pose, save_pose
 from .rigid import rotation_matrix
+
+__all__ = ["Phantom", "PhantomSpec", "make_phantom", "write_phantom"]
 
 
 @dataclass(frozen=True)
@@ -86,7 +89,7 @@ class PhantomSpec:
     tibia_taper: float = 0.012  # relative change of the size per mm of z (wider proximally, +z)
     tibia_flare: float = 0.0006  # relative quadratic term per mm² (the proximal flare)
     cortex_thickness_mm: float = 0.3
-    fibula: bool = True  # False: no fibula (the tibia alone, as in earlier phantoms)
+    fibula: bool = True  # False: no fibula (the tibia alone)
     fibula_radius_mm: float = 0.42  # radius of its circular z-sections (seeded +-5 %)
     fibula_cortex_mm: float = 0.2
     fibula_angle_deg: float = -20.0  # direction from the tibia centre, from +x (lateral-posterior; seeded +-5 deg)
@@ -142,6 +145,7 @@ class Phantom:
 
     @property
     def z_mm(self) -> np.ndarray:
+        """Slice positions (n_slices,) [mm]."""
         return self.affine[2, 2] * np.arange(self.pre.shape[2]) + self.affine[2, 3]
 
 
@@ -557,12 +561,30 @@ class _Scene:
 def make_phantom(spec: PhantomSpec, *, n_points: int = 100, start_angle_deg: float = 90.0) -> Phantom:
     """Render the pre and during volumes of ``spec`` and their exact truth.
 
-    Returns a :class:`Phantom`: ``pre``/``during`` (n_pixels, n_pixels, n_slices) float32 magnitude
-    images (muscle in the well-lit region = 1, Rician noise sigma = 1/snr), ``affine`` (4, 4) RAS mm,
-    ``truth`` (:class:`~deeptissue.pose.Pose`; bone_com_mm is the area-weighted mean of the pre
-    tibia's slice centroids), ``truth_pre``/``truth_during`` (:class:`~deeptissue.contours.Contours`
-    resampled to ``n_points`` as the segmentation does; with ``fibula`` contours unless
-    ``spec.fibula`` is False) and ``dense`` exact boundaries per slice.
+    Parameters
+    ----------
+    spec : PhantomSpec
+        Anatomy, motion, noise and image grid (seeded: the same spec gives the same phantom).
+    n_points : int
+        Points per truth contour, resampled as the segmentation does.
+    start_angle_deg : float
+        Polar angle of each truth contour's first point (:func:`deeptissue.contours.resample_closed`).
+
+    Returns
+    -------
+    Phantom
+        ``pre``/``during`` (n_pixels, n_pixels, n_slices) float32 magnitude images (muscle in the
+        well-lit region = 1, Rician noise sigma = 1/snr), ``affine`` (4, 4) RAS mm, ``truth``
+        (:class:`~deeptissue.pose.Pose`; ``bone_com_mm`` is the area-weighted mean of the pre
+        tibia's slice centroids), ``truth_pre``/``truth_during`` (:class:`~deeptissue.contours.Contours`
+        (n_slices, n_points, 3) [mm]; with ``fibula`` contours unless ``spec.fibula`` is False),
+        ``noise_sigma`` and ``dense`` exact boundaries per slice.
+
+    Raises
+    ------
+    ValueError
+        For a spec that cannot make a valid phantom (a bone too thin to hold marrow, an indenter
+        that reaches the tibia, a fibula within 0.3 mm of the tibia or of the skin layer, ...).
     """
     scene = _Scene(spec)
     rng = np.random.default_rng([spec.seed, 11])
@@ -608,7 +630,26 @@ def make_phantom(spec: PhantomSpec, *, n_points: int = 100, start_angle_deg: flo
 
 def write_phantom(spec: PhantomSpec, *, pre_path, during_path, truth_path, truth_pre_path, truth_during_path,
                   n_points: int = 100, start_angle_deg: float = 90.0) -> Phantom:
-    """Make the phantom and write its files (NIfTI volumes, truth.json, truth contours), each atomically."""
+    """Make the phantom and write its files, each atomically.
+
+    Parameters
+    ----------
+    spec : PhantomSpec
+        As in :func:`make_phantom`.
+    pre_path, during_path : str or Path
+        NIfTI volumes.
+    truth_path : str or Path
+        True pose (:func:`deeptissue.pose.save_pose`, JSON).
+    truth_pre_path, truth_during_path : str or Path
+        True contours (:func:`deeptissue.contours.save_contours`).
+    n_points, start_angle_deg
+        As in :func:`make_phantom`.
+
+    Returns
+    -------
+    Phantom
+        What was written.
+    """
     from .imaging import write_nifti
 
     ph = make_phantom(spec, n_points=n_points, start_angle_deg=start_angle_deg)

@@ -8,6 +8,8 @@ from .contours import Contours
 from .imaging import Volume
 from .io import atomic_path
 
+__all__ = ["plot_segmentation"]
+
 
 def plot_segmentation(vol: Volume, contours: Contours, path, *, truth: Contours | None = None,
                       accuracy: list[dict] | None = None, title: str = "") -> None:

@@ -26,7 +26,11 @@ from .mesh import TetMesh
 from .strain import DEFAULT_BIN_EDGES, bin_labels
 from .summary import Summary
 
-EXCLUDED_COLOUR = "0.75"
+__all__ = ["EXCLUDED_COLOUR", "EXCLUDED_HATCH", "MEASURE_LABELS", "Sections", "aggregate_study", "exclusions",
+           "figure_sections", "locate_points", "plot_bins", "plot_sections", "plot_voi", "plot_voi_change",
+           "sample_sections", "section_frame", "summary_tables", "voi_change_percent", "write_csv"]
+
+EXCLUDED_COLOUR = "0.75"  # grey of an excluded animal's bars
 EXCLUDED_HATCH = "///"
 
 
@@ -99,6 +103,7 @@ def _labels_from_any(summaries) -> list[str]:
 
 
 def write_csv(path: str | Path, df: pd.DataFrame) -> None:
+    """Write ``df`` as CSV without its index, atomically."""
     with atomic_path(path) as tmp:
         df.to_csv(tmp, index=False)
 
@@ -476,11 +481,37 @@ def aggregate_study(
     bin_edges: Sequence[float] = DEFAULT_BIN_EDGES,
     reference: str = "sphere",
 ) -> None:
-    """Read every summary, write the tables and the figures of the study.
+    """Rule ``aggregate``: read every summary, write the tables and the figures of the study.
 
-    ``outputs`` keys: ``voi_csv``, ``bins_csv``, ``voi_png``, ``bins_png``, ``voi_change_png``,
-    ``sections_png`` (sphere vs bar, seven sections) and ``orientations_png`` (slices 3–5 of every sphere
-    variant). ``figure_results``: variant -> result.vtu of ``figure_animal`` for the section figures.
+    Parameters
+    ----------
+    summary_paths : sequence of str or Path
+        Every ``summary.json`` of the study (:func:`deeptissue.summary.read_summary`).
+    animals, variants : sequence of str
+        The configured order of the tables and figures; each pair must have a summary.
+    outputs : mapping
+        Output paths by key: ``voi_csv``, ``bins_csv`` (:func:`summary_tables`), ``voi_png``,
+        ``bins_png``, ``voi_change_png``, ``sections_png`` (sphere vs bar, seven sections) and
+        ``orientations_png`` (sections 3–5 of every sphere variant).
+    figure_animal : str
+        The animal of the section figures.
+    figure_results : mapping
+        Variant -> ``result.vtu`` of ``figure_animal``, for the section figures.
+    pose_path : str or Path
+        Pose of ``figure_animal`` (indenter axis and tip of the section planes).
+    strain_measure : {'green_lagrange', 'log'}
+        Which γmax the section figures show (and the axis labels name).
+    threshold : float
+        γmax threshold drawn as a contour line in the sections [-].
+    bin_edges : sequence of float
+        Bin edges, for the labels of the bins table when no run converged.
+    reference : str
+        Variant the VOI changes are relative to.
+
+    Raises
+    ------
+    ValueError
+        If an animal × variant has no summary.
     """
     from .pose import load_pose
     from .summary import read_summary

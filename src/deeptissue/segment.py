@@ -51,6 +51,9 @@ from scipy import ndimage
 from .contours import Contours, point_to_polygon_distance, points_in_polygon, polygon_area_centroid, resample_closed
 from .imaging import ImagingError, Volume
 
+__all__ = ["STRUCTURES", "SegmentationError", "SegmentationSettings", "contour_accuracy", "load_overrides",
+           "segment_files", "segment_volume", "write_accuracy"]
+
 STRUCTURES = ("skin", "bone", "fibula")
 # the skin plateau is read in a 1-pixel band starting this many blur widths (+ pixels) inside the edge
 _BAND_SIGMAS, _BAND_PX = 1.5, 0.0
@@ -288,13 +291,37 @@ def _pick_fibula(N, contours, skin, bone, bone_area_px, level, *, px_mm, setting
 
 def segment_volume(vol: Volume, *, settings: SegmentationSettings = SegmentationSettings(), state: str = "pre",
                    overrides: dict | None = None) -> tuple[Contours, dict]:
-    """Skin, tibia and (where found) fibula contours on every slice of ``vol``.
+    """Skin, tibia and (where found) fibula contours on every slice of ``vol`` (steps in the module docstring).
 
-    Returns :class:`~deeptissue.contours.Contours` (n_slices, n_points, 3) world mm, its ``fibula``
-    NaN on the slices without one and None when no slice has one, and an info dict (background,
-    noise, per-slice levels, which slices/structures came from the manual override or were found,
-    ``fibula_slices``). Raises :class:`SegmentationError` naming animal, file and slice if a slice
-    has no closed skin or bone contour, or if a bone or fibula contour lies outside the skin.
+    Parameters
+    ----------
+    vol : Volume
+        The (cropped) image; axial slices ``data[:, :, k]``.
+    settings : SegmentationSettings
+        Smoothing, levels, coil-fit and fibula options.
+    state : {'pre', 'during'}
+        Which part of ``overrides`` applies.
+    overrides : dict or None
+        From :func:`load_overrides`: hand-drawn contours that replace the automatic ones on the
+        slices and structures they name.
+
+    Returns
+    -------
+    contours : Contours
+        ``skin``, ``bone`` (n_slices, n_points, 3) [mm, world], each slice at the z of its centre;
+        ``fibula`` the same shape with NaN rows on the slices without one, None when no slice has one.
+    info : dict
+        ``background`` and ``noise`` (image units), ``slices`` (one row per slice: ``slice`` index in
+        the file, ``z_mm``, ``skin_level`` / ``bone_level`` in N units, ``*_source`` auto / manual /
+        none / dropped), ``settings``, ``fibula_slices`` (count).
+
+    Raises
+    ------
+    SegmentationError
+        Naming animal, file and slice, if a slice has no closed skin or bone contour, or a bone or
+        fibula contour lies outside the skin.
+    ValueError
+        For an unknown ``bone_select``.
     """
     s = settings
     if s.bone_select not in ("largest", "anterior"):
@@ -386,12 +413,21 @@ def segment_volume(vol: Volume, *, settings: SegmentationSettings = Segmentation
 
 
 def contour_accuracy(seg: Contours, truth: Contours | dict) -> list[dict]:
-    """Distances (mm) from segmented points to the true contour, per slice and structure.
+    """In-plane distances from segmented points to the true contour, per slice and structure.
 
-    ``truth`` is a :class:`Contours` (the true curve taken as the closed polygon through its
-    points) or a dict ``structure -> list of (m, 2|3) dense polylines per slice``.
-    Returns rows ``{slice, structure, mean_mm, max_mm}``; the fibula's only on the slices where
-    both the segmentation and the truth have one.
+    Parameters
+    ----------
+    seg : Contours
+        Segmented contours.
+    truth : Contours or dict
+        The true contours (each curve taken as the closed polygon through its points), or a dict
+        ``structure -> list of (m, 2|3) dense polylines per slice`` [mm].
+
+    Returns
+    -------
+    list of dict
+        Rows ``{slice, structure, mean_mm, max_mm}`` (slice counted in ``seg``); the fibula's only
+        on the slices where both the segmentation and the truth have one.
     """
     rows = []
     for st in STRUCTURES:
@@ -412,9 +448,31 @@ def segment_files(image, *, contours_out, qc_out, animal: str, state: str, setti
                   crop_mm=None, reference=None, overrides=None, truth=None) -> Contours:
     """The rule ``segment``: load and check the image, segment, write contours and the QC figure.
 
-    ``image``/``reference`` are NIfTI paths (``reference`` is the pre image the during image must
-    match slice by slice); ``overrides`` a manual-override YAML; ``truth`` a truth contour file
-    (phantom), drawn in the QC figure with the distances to it in the title.
+    Parameters
+    ----------
+    image : str or Path
+        NIfTI to segment.
+    contours_out, qc_out : str or Path
+        Contour file (:func:`deeptissue.contours.save_contours`) and QC figure (PNG) to write.
+    animal : str
+        Animal name, for messages.
+    state : {'pre', 'during'}
+        State of ``image`` (selects the overrides).
+    settings : dict or SegmentationSettings
+        Config ``segmentation`` mapping (merged by :meth:`SegmentationSettings.from_config`) or settings.
+    crop_mm : (3, 2) array_like or None
+        World box [[xmin, xmax], [ymin, ymax], [zmin, zmax]] [mm] to crop to before segmenting.
+    reference : str or Path or None
+        The pre image that a during ``image`` must match slice by slice.
+    overrides : str or Path or None
+        Manual-override YAML (:func:`load_overrides`).
+    truth : str or Path or None
+        Truth contour file (phantom), drawn in the QC figure with the distances to it in the title.
+
+    Returns
+    -------
+    Contours
+        What was written to ``contours_out``.
     """
     from .contours import load_contours, save_contours
     from .imaging import check_matching, crop_volume, load_nifti
@@ -450,7 +508,20 @@ def segment_files(image, *, contours_out, qc_out, animal: str, state: str, setti
 
 
 def write_accuracy(contours_path, truth_path, csv_path) -> list[dict]:
-    """CSV of :func:`contour_accuracy` (slice, structure, mean_mm, max_mm) of a contour file vs a truth file."""
+    """Write the CSV of :func:`contour_accuracy` (slice, structure, mean_mm, max_mm) of a contour file vs a truth file.
+
+    Parameters
+    ----------
+    contours_path, truth_path : str or Path
+        Contour files (:func:`deeptissue.contours.load_contours`), segmented and true.
+    csv_path : str or Path
+        Output CSV, distances [mm].
+
+    Returns
+    -------
+    list of dict
+        The rows written.
+    """
     import pandas as pd
 
     from .contours import load_contours

@@ -33,12 +33,17 @@ import numpy as np
 
 from .mesh import TetMesh
 
+__all__ = ["DEFAULT_BIN_EDGES", "GMSH_TET10_EDGES", "STRAIN_MEASURES", "ElementStrain", "StrainError", "VoiStatistics",
+           "bin_labels", "deformation_gradient_at_centroids", "element_strain", "element_volumes_mm3", "gamma_at_points",
+           "green_lagrange", "max_shear", "principal_log_stretches", "principal_values", "tet10_shape_functions",
+           "tet10_shape_gradients", "tet_quadrature", "tet_subdivision", "voi_statistics"]
+
 log = logging.getLogger(__name__)
 
 # local node pairs of the mid-edge nodes 4..9 (gmsh Tetrahedron10 order)
 GMSH_TET10_EDGES = ((0, 1), (1, 2), (0, 2), (0, 3), (2, 3), (1, 3))
 STRAIN_MEASURES = ("green_lagrange", "log")
-DEFAULT_BIN_EDGES = (0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
+DEFAULT_BIN_EDGES = (0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)  # γmax bins from the threshold 0.3 up, last '>1.0'
 
 # gradients of the barycentric coordinates L0..L3 with respect to (ξ, η, ζ): (4, 3)
 _DL = np.array([[-1.0, -1.0, -1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
@@ -203,6 +208,7 @@ class ElementStrain:
         return max_shear(self.principal_log)
 
     def gamma(self, strain_measure: str = "green_lagrange") -> np.ndarray:
+        """γmax (n,) [-] of ``strain_measure`` (one of :data:`STRAIN_MEASURES`)."""
         if strain_measure == "green_lagrange":
             return self.gamma_gl
         if strain_measure == "log":
@@ -211,7 +217,26 @@ class ElementStrain:
 
 
 def element_strain(mesh: TetMesh, displacement_mm) -> ElementStrain:
-    """Deformation gradient, principal Green–Lagrange and log strains at centroids, reference volumes."""
+    """Deformation gradient, principal Green–Lagrange and log strains at centroids, reference volumes.
+
+    Parameters
+    ----------
+    mesh : TetMesh
+        Reference mesh, 10-node (gmsh order) or 4-node tetrahedra, nodes in mm.
+    displacement_mm : (n_nodes, 3) array_like
+        Nodal displacement [mm].
+
+    Returns
+    -------
+    ElementStrain
+        Arrays over the n_tets elements: ``F`` (n, 3, 3), ``principal_gl`` and ``principal_log``
+        (n, 3) descending [-], ``volume_mm3`` (n,) reference volume [mm³].
+
+    Raises
+    ------
+    StrainError
+        For a displacement of the wrong shape or an element inverted (det F <= 0) or folded at its centroid.
+    """
     F = deformation_gradient_at_centroids(mesh, displacement_mm)
     return ElementStrain(
         F=F,
@@ -223,8 +248,7 @@ def element_strain(mesh: TetMesh, displacement_mm) -> ElementStrain:
 
 def gamma_at_points(mesh: TetMesh, displacement_mm, *, levels: int = 2, strain_measures: Sequence[str] = ("green_lagrange",),
                     chunk: int = 8000) -> tuple[dict, np.ndarray, int]:
-    """γmax sampled inside every element: ({measure: gamma (n_tets, q)}, volume weights (n_tets, q) [mm³],
-    number of elements sampled at their centroid only).
+    """γmax sampled at ``q`` points inside every element, with the volume each point stands for.
 
     The points are the centroids of :func:`tet_subdivision` (``levels=2``: 64 equal sub-tetrahedra per
     element); each point carries its share ``w·det J`` of the element's reference volume (the weights
@@ -239,6 +263,28 @@ def gamma_at_points(mesh: TetMesh, displacement_mm, *, levels: int = 2, strain_m
     at a curved surface that is fine at the solver's quadrature points) or the displacement inverts it
     (det F <= 0 between the quadrature points of a coarse element). Their number is returned; an element
     whose centroid itself is folded or inverted raises :class:`StrainError` (as :func:`element_strain`).
+
+    Parameters
+    ----------
+    mesh : TetMesh
+        Reference mesh, 10- or 4-node tetrahedra, nodes in mm.
+    displacement_mm : (n_nodes, 3) array_like
+        Nodal displacement [mm].
+    levels : int
+        Subdivision levels: q = 8**levels points per element.
+    strain_measures : sequence of str
+        Measures to return (of :data:`STRAIN_MEASURES`).
+    chunk : int
+        Elements per batch (bounds the memory of the (chunk, q, 3, 3) temporaries).
+
+    Returns
+    -------
+    gamma : dict
+        ``{measure: (n_tets, q) ndarray}`` γmax [-].
+    volume_mm3 : (n_tets, q) ndarray
+        Reference volume of each point's share [mm³]; a row sums to the element's volume.
+    n_centroid : int
+        Number of elements sampled at their centroid only.
     """
     bad_measures = [m for m in strain_measures if m not in STRAIN_MEASURES]
     if bad_measures:
@@ -282,7 +328,7 @@ def _fmt(x: float) -> str:
 
 
 def bin_labels(bin_edges: Sequence[float]) -> list[str]:
-    """``(0.3, 0.4, …, 1.0)`` -> ``['0.3-0.4', …, '0.9-1.0', '>1.0']``."""
+    """Labels of the bins of :func:`voi_statistics`: ``(0.3, 0.4, …, 1.0)`` -> ``['0.3-0.4', …, '0.9-1.0', '>1.0']``."""
     e = list(bin_edges)
     return [f"{_fmt(a)}-{_fmt(b)}" for a, b in zip(e[:-1], e[1:])] + [f">{_fmt(e[-1])}"]
 
@@ -310,11 +356,34 @@ def voi_statistics(
 ) -> VoiStatistics:
     """VOI, bin percentages, below-threshold percentage, peak γ and VOI strain energy.
 
-    ``gamma`` (n,) per-element γmax [-]; ``volume_mm3`` (n,) reference element volumes [mm³];
-    ``energy_density_mpa`` (n,) optional strain-energy density per reference volume [MPa = mJ/mm³].
-    The VOI is the elements with ``γ > threshold``. Bins are right-closed: ``'0.3-0.4'`` holds
-    ``0.3 < γ <= 0.4``; the last bin ``'>1.0'`` holds ``γ > 1.0``. ``bin_edges[0]`` must equal
-    ``threshold`` so that the bins partition the VOI (percentages sum to 100).
+    The VOI is the volume with ``γ > threshold``. Bins are right-closed: ``'0.3-0.4'`` holds
+    ``0.3 < γ <= 0.4``; the last bin ``'>1.0'`` holds ``γ > 1.0``.
+
+    Parameters
+    ----------
+    gamma : (n,) array_like
+        γmax [-] per element (or per sample point, :func:`gamma_at_points`).
+    volume_mm3 : (n,) array_like
+        Reference volume of each element or point [mm³], > 0.
+    threshold : float
+        VOI threshold on γmax [-].
+    bin_edges : sequence of float
+        Strictly increasing; ``bin_edges[0]`` must equal ``threshold`` so that the bins partition the
+        VOI (percentages sum to 100).
+    energy_density_mpa : (n,) array_like or None
+        Strain-energy density per reference volume [MPa = mJ/mm³].
+
+    Returns
+    -------
+    VoiStatistics
+        ``voi_mm3``, ``total_mm3``, ``bins_percent`` (label -> % of the VOI, all 0 for an empty VOI),
+        ``below_threshold_percent`` (% of the total), ``peak_gamma``, ``strain_energy_mJ`` (None
+        without an energy density).
+
+    Raises
+    ------
+    ValueError
+        Mismatched or empty inputs, non-finite values, non-positive volumes, bad bin edges.
     """
     g = np.asarray(gamma, float).ravel()
     v = np.asarray(volume_mm3, float).ravel()

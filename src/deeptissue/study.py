@@ -1,8 +1,9 @@
 """One study job: an animal's model, pose and one variant -> FE solution, strain statistics, files.
 
-:func:`solve_variant` never raises for a failed solve: a variant that does not converge, or whose
-set-up fails, is returned as a summary with ``converged = False`` and the reason, so the study
-goes on and the aggregate step can mark the animal excluded.
+A variant that does not converge is returned by :func:`solve_variant` as a summary with
+``converged = False`` and the reason; :func:`run_solve` records any error after the mesh is read
+(reading the pose, cast or contours, setting up, solving) the same way, so the study goes on and the
+aggregate step can mark the animal excluded.
 """
 
 from __future__ import annotations
@@ -30,6 +31,8 @@ from .variants import parse_variant, variant_travel
 
 log = logging.getLogger(__name__)
 
+__all__ = ["StudySettings", "bone_motion", "run_bone_state", "run_solve", "solve_variant", "variant_indenter"]
+
 
 @dataclass(frozen=True)
 class StudySettings:
@@ -50,7 +53,24 @@ class StudySettings:
 
 
 def variant_indenter(pose: Pose, variant_name: str, *, radius_mm: float = 1.5, bar_length_mm: float = 10.0) -> Indenter:
-    """The rigid indenter of a variant: shape from the name, axis turned about the final tip."""
+    """The rigid indenter of a variant: shape from the name, axis turned about the final tip.
+
+    Parameters
+    ----------
+    pose : Pose
+        Estimated indenter axis and tip travel [mm].
+    variant_name : str
+        :func:`deeptissue.variants.parse_variant` name.
+    radius_mm : float
+        Head, shaft and bar radius [mm] (1.5: the 3 mm indenter).
+    bar_length_mm : float
+        Bar length end to end [mm] (config ``fem.bar_length_mm``).
+
+    Returns
+    -------
+    Indenter
+        Tip travelling from the variant's start to its end tip [mm].
+    """
     v = parse_variant(variant_name)
     axis, start, end = variant_travel(v, axis=pose.indenter_axis, tip_start_mm=pose.tip_start_mm, tip_end_mm=pose.tip_end_mm)
     return Indenter(kind=v.indenter, axis=tuple(axis), start_mm=tuple(start), end_mm=tuple(end),
@@ -58,6 +78,7 @@ def variant_indenter(pose: Pose, variant_name: str, *, radius_mm: float = 1.5, b
 
 
 def bone_motion(pose: Pose) -> BoneMotion:
+    """The rigid bone motion of ``pose``: rotation [deg] about the bone centre of mass [mm], then translation [mm]."""
     return BoneMotion(rotation_deg=tuple(pose.bone_rotation_deg), centre_mm=tuple(pose.bone_com_mm),
                       translation_mm=tuple(pose.bone_translation_mm))
 
@@ -79,18 +100,54 @@ def solve_variant(
     base_variant: str | None = None,
     end_state_path=None,
 ):
-    """Solve one variant and summarise it. Returns ``(summary, displacement_mm, strain)``.
-
-    start: the animal's shared bone-rotation state (:func:`run_bone_state`), or None to solve it here.
-    base: the converged end state of ``base_variant`` on this mesh, whose indenter this variant's turns
-    about the same final tip (:func:`turn_base`): the variant is solved by turning the indenter from
-    there (:func:`deeptissue.fem.solver.solve_turned`), and from ``start`` as usual if that fails (the
-    times and iterations of both are reported).
-    end_state_path: where to write the converged end state (:func:`deeptissue.fem.solver.save_end_state`),
-    the start of the variants turned from this one; a solve that does not converge writes nothing there.
+    """Solve one variant and summarise it.
 
     For a solve that did not converge the summary says why, and the displacement is the last
-    converged state (so its strain field can still be looked at, never counted).
+    converged state (so its strain field can still be looked at, never counted). Exceptions of
+    the set-up or solver are not caught here (:func:`run_solve` records them).
+
+    Parameters
+    ----------
+    animal, variant : str
+        The run; ``variant`` is a :func:`deeptissue.variants.parse_variant` name.
+    mesh : TetMesh
+        Reference mesh [mm] with facet sets ``bone``, ``skin`` and ``patch_<variant>`` (or ``patch``).
+    pose : Pose
+        Indenter travel and bone motion.
+    cast : Cast or None
+        Rigid cast (None: no cast contact).
+    material : Ogden
+        Tissue law.
+    settings : SolverSettings
+        Solver settings; the contact set is set here to the variant's patch.
+    study : StudySettings
+        Threshold, bins, strain measure and sampling of the summary.
+    skin_contours_mm : (..., 3) array_like or None
+        During-scan skin contour points [mm] for the skin agreement.
+    bar_length_mm : float
+        Bar length end to end [mm].
+    start : BoneState or None
+        The mesh's shared bone-rotation state (:func:`run_bone_state`); None: solved here.
+    base : EndState or None
+        The converged end state of ``base_variant`` on this mesh, whose indenter this variant's
+        turns about the same final tip (:func:`deeptissue.variants.turn_base`): the variant is solved
+        by turning the indenter from there (:func:`deeptissue.fem.solver.solve_turned`), and from
+        ``start`` as usual if that fails (the times and iterations of both are reported).
+    base_variant : str or None
+        Name of the variant ``base`` belongs to (reported as ``turned_from``).
+    end_state_path : str or Path or None
+        Where to write the converged end state (:func:`deeptissue.fem.solver.save_end_state`), the
+        start of the variants turned from this one; a solve that does not converge writes nothing.
+
+    Returns
+    -------
+    summary : Summary
+        :func:`deeptissue.summary.summarize_solution` or :func:`deeptissue.summary.failed_summary`,
+        with the solver's costs and contact diagnostics.
+    displacement_mm : (n_nodes, 3) ndarray
+        Nodal displacement [mm] (the last converged state if not converged).
+    strain : ElementStrain
+        Centroid strain of that displacement.
     """
     t0 = time.perf_counter()
     indenter = variant_indenter(pose, variant, bar_length_mm=bar_length_mm)
@@ -145,9 +202,26 @@ def solve_variant(
 
 
 def run_bone_state(*, mesh_path, cast_path, pose_path, state_path, fem_cfg: dict) -> BoneState | None:
-    """Rule ``bone_state``: the bone-rotation steps of one mesh, solved once for all its variants
-    (:func:`deeptissue.fem.solver.solve_bone_rotation`) -> ``bone_state.npz``. If they do not converge
-    (or the set-up fails) the file says so and every variant solves them itself; nothing is lost."""
+    """Rule ``bone_state``: the bone-rotation steps of one mesh, solved once for all its variants.
+
+    The steps are :func:`deeptissue.fem.solver.solve_bone_rotation`. If they do not converge (or the
+    set-up fails) the file says so (an array ``failed`` with the reason) and every variant solves
+    them itself; nothing is lost. Never raises for a failed solve.
+
+    Parameters
+    ----------
+    mesh_path, cast_path, pose_path : str or Path
+        Model mesh (:func:`deeptissue.mesh.load_tetmesh`), cast (``cast.npz``; falsy: no cast) and pose.
+    state_path : str or Path
+        Output ``bone_state.npz`` (:func:`deeptissue.fem.solver.save_bone_state`).
+    fem_cfg : dict
+        Config section ``fem`` (``material``, ``solver``).
+
+    Returns
+    -------
+    BoneState or None
+        The state written, None if the rotation was not solved.
+    """
     state, why = None, ""
     try:
         mesh = load_tetmesh(mesh_path)
@@ -201,11 +275,40 @@ def run_solve(*, animal: str, variant: str, mesh_path, cast_path, pose_path, dur
               end_state_path=None, base_state_path=None, base_variant: str | None = None) -> Summary:
     """Rule ``solve``: read the model files, solve, write ``summary.json`` and ``result.vtu``.
 
-    Both files are always written: a failure (set-up error or no convergence) gives a summary with
-    ``converged = False`` and the reason, and a VTU of the last converged state (or the undeformed
-    mesh when nothing was solved). end_state_path: the converged end state (the start of the variants
-    turned from this one), or, after a failure, a file saying why. base_state_path: the end state of
-    ``base_variant`` (:func:`turn_base`), the start of this one.
+    Once the mesh is read, both files are always written: a failure (set-up error or no convergence)
+    gives a summary with ``converged = False`` and the reason, and a VTU of the last converged state
+    (or the undeformed mesh when nothing was solved).
+
+    Parameters
+    ----------
+    animal, variant : str
+        The run.
+    mesh_path, cast_path, pose_path : str or Path
+        Model mesh, cast (falsy: no cast) and pose.
+    during_contours_path : str or Path or None
+        During-scan contours, whose skin is compared with the deformed model (None: no comparison).
+    summary_path, vtu_path : str or Path
+        Outputs (:func:`deeptissue.summary.write_summary`, :func:`deeptissue.summary.write_result_vtu`
+        with cell data ``converged``).
+    fem_cfg : dict
+        Config section ``fem`` (``material``, ``solver``, ``bar_length_mm``).
+    study_cfg : dict
+        Config section ``study`` (:class:`StudySettings`).
+    bone_state_path : str or Path or None
+        The mesh's shared bone state (:func:`run_bone_state`); a file that records a failure means
+        this variant solves the rotation itself.
+    end_state_path : str or Path or None
+        Output: the converged end state (the start of the variants turned from this one), or, after
+        a failure, a file saying why.
+    base_state_path : str or Path or None
+        The end state of ``base_variant`` (:func:`deeptissue.variants.turn_base`), the start of this one.
+    base_variant : str or None
+        Its name.
+
+    Returns
+    -------
+    Summary
+        What was written to ``summary_path``.
     """
     if end_state_path is not None:
         Path(end_state_path).unlink(missing_ok=True)

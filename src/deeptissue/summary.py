@@ -24,13 +24,17 @@ from .io import atomic_path, read_json, write_json
 from .mesh import TetMesh
 from .strain import DEFAULT_BIN_EDGES, STRAIN_MEASURES, ElementStrain, element_strain, gamma_at_points, voi_statistics
 
+__all__ = ["GAMMA_SAMPLINGS", "SAMPLING_LEVELS", "Summary", "deformed_surface", "failed_summary", "point_triangle_distance",
+           "read_result_vtu", "read_summary", "skin_agreement_mm", "summarize_solution", "surface_distance_mm",
+           "tri6_to_tri3", "write_result_vtu", "write_summary"]
+
 # How γmax is sampled for the VOI and its bins (config study.gamma_sampling):
 # 'points': at the centroids of 64 equal sub-tetrahedra of every element (strain.tet_subdivision(2)),
-#   each with its share of the element's volume (on a 2.0 / 1.0 mm bar solution 512 points per element
-#   moved the VOI by 0.25 % and the bins by 0.3 pp against 64);
+#   each with its share of the element's volume; 64 points suffice: 512 per element change the VOI by
+#   about 0.25 % and the bins by about 0.3 pp on a 2.0 / 1.0 mm bar solution;
 # 'centroid': one γmax per element at its centroid, the whole element counted in one bin (the paper's).
 GAMMA_SAMPLINGS = ("points", "centroid")
-SAMPLING_LEVELS = 2
+SAMPLING_LEVELS = 2  # 'points' sampling: 8**2 = 64 sub-tetrahedra per element
 
 
 @dataclass(frozen=True)
@@ -76,6 +80,7 @@ class Summary:
             raise ValueError(f"summary {self.animal}/{self.variant}: a run that did not converge needs a reason")
 
     def to_dict(self) -> dict:
+        """The fields as a flat dict (the ``extra`` entries merged in at the top level), as in summary.json."""
         d = asdict(self)
         extra = d.pop("extra")
         d.update(extra)
@@ -83,6 +88,7 @@ class Summary:
 
     @classmethod
     def from_dict(cls, d: dict, *, source: str = "summary") -> "Summary":
+        """Inverse of :meth:`to_dict`: unknown keys go to ``extra``; ValueError naming ``source`` if invalid."""
         names = {f.name for f in fields(cls)} - {"extra"}
         missing = [k for k in ("animal", "variant", "converged") if k not in d]
         if missing:
@@ -96,11 +102,37 @@ class Summary:
 
 
 def write_summary(path: str | Path, summary: Summary) -> None:
+    """Write ``summary`` as JSON (:meth:`Summary.to_dict`), atomically.
+
+    Parameters
+    ----------
+    path : str or Path
+        Usually ``results/{animal}/{variant}/summary.json``.
+    summary : Summary
+        Written with its ``extra`` entries at the top level; NaN written as ``NaN``.
+    """
     write_json(path, summary.to_dict())
 
 
 def read_summary(path: str | Path) -> Summary:
-    """Read ``results/{animal}/{variant}/summary.json``; ``animal``/``variant`` default to the path's."""
+    """Read a summary written by :func:`write_summary`.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``results/{animal}/{variant}/summary.json``; ``animal`` and ``variant`` default to the names
+        of the two parent directories when the file lacks them.
+
+    Returns
+    -------
+    Summary
+        Keys that are not fields of :class:`Summary` are in ``extra``.
+
+    Raises
+    ------
+    ValueError
+        Invalid JSON, a missing ``converged``, or an invalid field (names the file).
+    """
     path = Path(path)
     d = read_json(path)
     d.setdefault("variant", path.parent.name)
@@ -111,7 +143,24 @@ def read_summary(path: str | Path) -> Summary:
 def failed_summary(*, animal: str, variant: str, reason: str, strain_measure: str = "green_lagrange",
                    threshold: float = 0.3, gamma_sampling: str = "points", **known) -> Summary:
     """Summary of a run that did not converge or failed: ``converged`` false, the reason, and any
-    numbers that are still known (``n_elements``, ``n_dofs``, ``increments``, ``wall_s``, ...)."""
+    numbers that are still known (``n_elements``, ``n_dofs``, ``increments``, ``wall_s``, ...).
+
+    Parameters
+    ----------
+    animal, variant : str
+        The run.
+    reason : str
+        Why it did not converge or failed (must not be empty).
+    strain_measure, threshold, gamma_sampling
+        As configured for the study (recorded in the summary).
+    **known
+        Fields of :class:`Summary` that are known; other keys go to ``extra``.
+
+    Returns
+    -------
+    Summary
+        With ``converged`` False.
+    """
     if not reason:
         raise ValueError(f"failed_summary {animal}/{variant}: give the reason")
     names = {f.name for f in fields(Summary)}
@@ -136,15 +185,42 @@ def summarize_solution(
     skin_contours_mm=None,
     **solver_info,
 ) -> tuple[Summary, ElementStrain]:
-    """Summary of a converged solution from the reference mesh and nodal displacement (n_nodes, 3) [mm].
+    """Summary of a converged solution from the reference mesh and its nodal displacement.
 
-    ``energy_density_mpa`` (n_tets,) strain-energy density per reference volume [MPa]; ``skin_contours_mm``
-    (..., 3) skin contour points of the during scan [mm] (compared with the deformed ``skin`` facets);
-    ``solver_info``: indenter_force_N, n_dofs, increments, newton_iterations, wall_s and any extra
-    diagnostics; ``gamma_sampling`` (:data:`GAMMA_SAMPLINGS`) says which estimate ``voi_mm3``,
-    ``bins_percent``, ``below_threshold_percent``, ``strain_energy_mJ`` and ``voi_by_measure_mm3`` are;
-    both are always in ``voi_sampled_mm3`` / ``voi_centroid_mm3`` and their bins. ``peak_gamma`` is the
-    largest centroid value. Returns the summary and the element strain (for ``result.vtu``).
+    Parameters
+    ----------
+    mesh : TetMesh
+        Reference mesh (nodes in mm, 10- or 4-node tetrahedra, facet set ``skin`` when
+        ``skin_contours_mm`` is given).
+    displacement_mm : (n_nodes, 3) array_like
+        Nodal displacement [mm].
+    animal, variant : str
+        The run.
+    strain_measure : {'green_lagrange', 'log'}
+        Which γmax ``voi_mm3`` and the bins use (both measures' VOI are in ``voi_by_measure_mm3``).
+    threshold : float
+        γmax threshold of the VOI [-].
+    bin_edges : sequence of float
+        γmax bin edges, the first equal to ``threshold`` (:data:`deeptissue.strain.DEFAULT_BIN_EDGES`).
+    gamma_sampling : {'points', 'centroid'}
+        Which estimate (:data:`GAMMA_SAMPLINGS`) ``voi_mm3``, ``bins_percent``,
+        ``below_threshold_percent``, ``strain_energy_mJ`` and ``voi_by_measure_mm3`` are; both are
+        always in ``voi_sampled_mm3`` / ``voi_centroid_mm3`` and their bins.
+    energy_density_mpa : (n_tets,) array_like or None
+        Strain-energy density per reference volume [MPa] (= mJ/mm³), for ``strain_energy_mJ``.
+    skin_contours_mm : (..., 3) array_like or None
+        Skin contour points of the during scan [mm], compared with the deformed ``skin`` facets
+        (``skin_mean_mm``, ``skin_p95_mm``).
+    **solver_info
+        ``indenter_force_N``, ``n_dofs``, ``increments``, ``newton_iterations``, ``wall_s`` and any
+        further diagnostics (kept in ``extra``).
+
+    Returns
+    -------
+    summary : Summary
+        ``converged`` True; ``peak_gamma`` is the largest centroid γmax.
+    strain : ElementStrain
+        Per-element strain at the centroids (for ``result.vtu``).
     """
     if gamma_sampling not in GAMMA_SAMPLINGS:
         raise ValueError(f"gamma_sampling {gamma_sampling!r}: expected one of {GAMMA_SAMPLINGS}")
@@ -190,9 +266,21 @@ def summarize_solution(
 # --- result.vtu ------------------------------------------------------------------------------------
 
 def write_result_vtu(path: str | Path, mesh: TetMesh, displacement_mm, strain: ElementStrain, *, cell_data: dict | None = None) -> None:
-    """``result.vtu`` for ParaView: reference nodes, point data ``displacement_mm``, cell data
-    ``gamma_gl``, ``gamma_log``, ``volume_mm3``, ``principal_gl`` (n, 3) and any extra ``cell_data``.
-    Cells are VTK quadratic tetra (``tetra10``), or ``tetra`` for a linear mesh."""
+    """Write ``result.vtu`` for ParaView, atomically.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output ``.vtu``.
+    mesh : TetMesh
+        Reference mesh [mm]; cells are VTK quadratic tetra (``tetra10``), or ``tetra`` for a linear mesh.
+    displacement_mm : (n_nodes, 3) array_like
+        Nodal displacement [mm], written as point data ``displacement_mm``.
+    strain : ElementStrain
+        Written as cell data ``gamma_gl``, ``gamma_log`` [-], ``volume_mm3`` [mm³] and ``principal_gl`` (n_tets, 3).
+    cell_data : dict or None
+        Further cell data by name, (n_tets, ...) arrays.
+    """
     from .fem.output import write_tet_vtu
 
     cd = {"gamma_gl": strain.gamma_gl, "gamma_log": strain.gamma_log, "volume_mm3": strain.volume_mm3,
@@ -202,7 +290,27 @@ def write_result_vtu(path: str | Path, mesh: TetMesh, displacement_mm, strain: E
 
 
 def read_result_vtu(path: str | Path) -> tuple[TetMesh, np.ndarray, dict]:
-    """Inverse of :func:`write_result_vtu`: (reference TetMesh, displacement (n, 3) [mm], cell data)."""
+    """Read a file written by :func:`write_result_vtu`.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``result.vtu``.
+
+    Returns
+    -------
+    mesh : TetMesh
+        Reference mesh [mm] in gmsh node order, without facet sets.
+    displacement_mm : (n_nodes, 3) ndarray
+        Nodal displacement [mm].
+    cell_data : dict
+        Cell data by name, (n_tets, ...) arrays.
+
+    Raises
+    ------
+    ValueError
+        If the file is not a result VTU (names the file).
+    """
     import meshio
 
     try:

@@ -1,4 +1,4 @@
-"""Glue of rule mesh: the quadratic tet mesh of one animal's limb with its facet sets and patches."""
+"""Glue of rule mesh: the tetrahedral mesh (quadratic by default) of one animal's limb with its facet sets and patches."""
 
 from deeptissue.io import script_log
 from deeptissue.model import run_mesh

@@ -1,4 +1,4 @@
-"""Glue: segment skin and tibia on every slice of one state; write contours and the QC figure."""
+"""Glue: segment skin, tibia and fibula on every slice of one state; write contours and the QC figure."""
 
 from deeptissue.io import script_log
 from deeptissue.segment import segment_files

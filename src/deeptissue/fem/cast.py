@@ -16,6 +16,8 @@ from scipy.spatial import cKDTree
 
 from ..geometry import closest_point_on_triangles
 
+__all__ = ["Cast", "closest_point_on_triangles"]
+
 
 class Cast:
     """A rigid triangulated cast. vertices_mm (V, 3), triangles (T, 3) oriented toward the leg."""
@@ -57,7 +59,23 @@ class Cast:
             raise ValueError(f"{path}: not a cast file ({exc})") from exc
 
     def gap(self, x: np.ndarray):
-        """(g (n,), normal (n, 3), None): signed distance to the cast, +inf where no contact is possible."""
+        """Signed distance of points to the cast, its gradient and the gradient of that normal.
+
+        Parameters
+        ----------
+        x : (n, 3) array_like
+            Points [mm].
+
+        Returns
+        -------
+        g : (n,) ndarray
+            Signed distance [mm], positive on the leg's side; +inf where no contact is possible
+            (beyond a free edge or vertex: the open ends and the hole).
+        normal : (n, 3) ndarray
+            Unit gradient of g (the contact normal).
+        H : (n, 3, 3) ndarray or None
+            Gradient of the normal [1/mm] (zero on faces), None when built with ``curvature=False``.
+        """
         x = np.asarray(x, float).reshape(-1, 3)
         n = len(x)
         _, cand = self.tree.query(x, k=self.k)

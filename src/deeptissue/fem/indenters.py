@@ -21,6 +21,8 @@ import numpy as np
 
 from ..geometry import bar_direction as _bar_direction
 
+__all__ = ["Indenter", "indenter_gap"]
+
 
 @dataclass(frozen=True)
 class Indenter:
@@ -52,6 +54,7 @@ class Indenter:
 
     @property
     def unit_axis(self) -> np.ndarray:
+        """``axis`` normalised, (3,)."""
         a = np.asarray(self.axis, float)
         return a / np.linalg.norm(a)
 
@@ -81,6 +84,25 @@ class Indenter:
 
 
 def indenter_gap(ind: Indenter, x: np.ndarray, tip_mm: np.ndarray):
+    """Signed distance, outward normal and normal gradient of ``ind`` with its tip at ``tip_mm``.
+
+    Parameters
+    ----------
+    ind : Indenter
+    x : (n, 3) array_like
+        Points [mm].
+    tip_mm : (3,) array_like
+        Tip position [mm].
+
+    Returns
+    -------
+    g : (n,) ndarray
+        Signed distance to the surface [mm], negative inside.
+    n : (n, 3) ndarray
+        Outward unit normal (gradient of g).
+    H : (n, 3, 3) ndarray
+        Gradient of n (Hessian of g) [1/mm].
+    """
     x = np.asarray(x, float).reshape(-1, 3)
     a = ind.unit_axis
     R = float(ind.radius_mm)

@@ -11,18 +11,20 @@ factorisation reaches ~1e-16); a matrix whose refinement does not halve that err
 ill-conditioned one: single precision carries ~7 digits) is factorised again in double. A small
 backward error does not make the component along a nearly singular mode accurate (at a bifurcation,
 where the solver's retry works), so the retry solves in double (SolverSettings.retry_linear_precision).
-Measured at 41.6 k free dofs (a rat's limb in contact, 21.6 M factor entries, one core): 0.65 s
-against 1.1-1.3 s for the double factorisation; 2 refinement steps of ~0.03 s each.
+Mixed precision is the default because the single-precision factorisation takes 55-60 % of the time
+of the double one on a rat's limb in contact (41.6 k free dofs, 21.6 M factor entries, one core),
+and its refinement steps (typically two) cost about 5 % of it each.
 reuse_iterations > 0 (mixed precision): a matrix of the same pattern as the last one factorised is
-first solved by conjugate gradients preconditioned by that factor (one single-precision solve, 0.019 s,
-and one matvec, 0.003 s, per iteration at 41.6 k dofs: ~32 of them cost one factorisation), to a
+first solved by conjugate gradients preconditioned by that factor (one single-precision solve and one
+matvec per iteration: about 30 of them cost one factorisation at 41.6 k dofs), to a
 relative residual |b - K x|_2 <= reuse_rtol |b|_2 within reuse_iterations; a direction of
 non-positive curvature proves the matrix indefinite without a failed factorisation; otherwise (slower
 than geometric progress to reuse_rtol over reuse_iterations) the matrix is factorised and that factor
 becomes the preconditioner. Newton itself needs no exact direction, but its path does: increments
 are cut, contact facets stiffened and multipliers updated on thresholds, and a direction inexact at
-1e-6 moved rat02 sphere_rx-15 onto another path (22 increments instead of 11, same answer); at 1e-10
-(the solver's default) all 18 solves of the demo took exactly the Newton iterations of exact solves.
+1e-6 can move a solve onto another path (the demo's rat02 sphere_rx-15: 22 increments instead of 11,
+same answer); at reuse_rtol 1e-10 (the solver's default) the demo's solves take the Newton iterations
+of exact solves.
 'amg': pyamg smoothed aggregation with rigid-body modes + CG (low memory).
 'superlu': scipy (slow, reference).
 """
@@ -36,6 +38,8 @@ import numpy as np
 import scipy.sparse as sp
 
 _log = logging.getLogger(__name__)
+
+__all__ = ["PRECISIONS", "AMGSolver", "NotPositiveDefinite", "PardisoSymmetric", "SuperLUSolver", "make_solver"]
 
 
 PRECISIONS = ("mixed", "double")  # of PardisoSymmetric
@@ -113,9 +117,11 @@ class _Factor:
         return True
 
     def solve(self, b: np.ndarray) -> np.ndarray:
+        """x (n,) float64 from the current factor (phase 33)."""
         return self._pardiso(33, self.a, np.ascontiguousarray(b, dtype=self.dtype)).astype(np.float64)
 
     def free(self):
+        """Release PARDISO's memory of this handle (phase -1)."""
         if self.a is not None or np.any(self.pt):
             self._pardiso(-1, np.zeros(1, self.dtype), np.zeros(1, self.dtype))
         self.a = None
@@ -249,8 +255,8 @@ class PardisoSymmetric:
                     self.last_mode = 2
                     return x
                 self.double_fallbacks += 1
-            else:  # not positive definite (not retried in double: measured, it costs a second failed
-                mtypes = mtypes[1:]  # factorisation and changed nothing on the 30 deg bar)
+            else:  # not positive definite: not retried as SPD in double (that would cost a second
+                mtypes = mtypes[1:]  # factorisation that fails the same way): indefinite mode next
         for mtype in mtypes:
             f = self._factor(f"{mtype}", U, mtype, False, key)
             self.factorisations += 1
@@ -265,12 +271,16 @@ class PardisoSymmetric:
         raise np.linalg.LinAlgError("PARDISO failed in SPD and symmetric-indefinite mode")
 
     def close(self):
+        """Free every factor."""
         for f in self._factors.values():
             f.free()
         self._factors = {}
 
 
 class AMGSolver:
+    """K x = b by conjugate gradients preconditioned by pyamg smoothed aggregation with rigid-body modes
+    (low memory; relative tolerance ``rtol``, at most 500 iterations, LinAlgError if not converged)."""
+
     def __init__(self, coords_mm: np.ndarray | None = None, free: np.ndarray | None = None, rtol: float = 1e-8):
         self.coords = coords_mm
         self.free = free
@@ -278,6 +288,7 @@ class AMGSolver:
         self.last_mode = "amg"
 
     def solve(self, U, b, spd_only: bool = False):
+        """Solve K x = b, K given by its upper triangle U (CSR); ``spd_only`` is ignored."""
         import pyamg
         from scipy.sparse.linalg import cg
 
@@ -301,20 +312,23 @@ class AMGSolver:
         return x
 
     def close(self):
-        pass
+        """Nothing to free."""
 
 
 class SuperLUSolver:
+    """K x = b by scipy's SuperLU on the full matrix (slow; a reference)."""
+
     last_mode = "superlu"
 
     def solve(self, U, b, spd_only: bool = False):
+        """Solve K x = b, K given by its upper triangle U (CSR); ``spd_only`` is ignored."""
         from scipy.sparse.linalg import spsolve
 
         K = (U + sp.triu(U, 1).T).tocsc()
         return spsolve(K, b)
 
     def close(self):
-        pass
+        """Nothing to free."""
 
 
 def make_solver(name: str, *, coords_mm: np.ndarray | None = None, free: np.ndarray | None = None,

@@ -49,7 +49,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Ogden", "ogden_energy", "ogden_stress", "ogden_stress_tangent"]
+__all__ = ["Ogden", "ogden_energy", "ogden_stress", "ogden_stress_tangent", "sym_eig3"]
 
 _SMALL_LOG_RATIO = 1e-8  # |ln(x_a/x_b)| below which the divided difference uses its limit
 
@@ -98,7 +98,7 @@ class Ogden:
         )
 
 
-_CHUNK = 2048  # points per chunk: temporaries stay in cache (fastest measured: 1024-4096)
+_CHUNK = 2048  # points per chunk: temporaries stay in cache (1024-4096 are about equally fast)
 _JACOBI_TOL = 1e-16  # stop when sum |offdiag| <= tol * trace
 _JACOBI_MAX_SWEEPS = 12
 _PAIRS = ((0, 1), (0, 2), (1, 2))
@@ -125,6 +125,7 @@ def _jacobi(a00, a11, a22, a01, a02, a12, *, vectors: bool):
     tol = _JACOBI_TOL * (np.abs(a00) + np.abs(a11) + np.abs(a22))
 
     def rotation(app, aqq, apq):
+        """(t, c, s) of the plane rotation that zeroes apq: tangent, cosine and sine of its angle."""
         d = aqq - app
         den = np.abs(d) + np.hypot(d, 2.0 * apq)
         den[den == 0.0] = 1.0  # apq = 0 and d = 0: no rotation (t = 0)
@@ -133,6 +134,7 @@ def _jacobi(a00, a11, a22, a01, a02, a12, *, vectors: bool):
         return t, c, t * c
 
     def rotate_vectors(p, q, c, s):
+        """Apply the rotation to columns p and q of the eigenvector matrix."""
         for k in range(3):
             vp, vq = v[3 * k + p], v[3 * k + q]
             v[3 * k + p], v[3 * k + q] = c * vp - s * vq, s * vp + c * vq

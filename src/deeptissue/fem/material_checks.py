@@ -9,7 +9,7 @@ Finite differences: fourth-order central stencils, f'(x) ~ [f(x-2h) - 8 f(x-h) +
 truncation error ~ h^4 f^(5) / 30, rounding error ~ 1.5 eps |f| / h. With entries of F of order 1,
 
 * P vs dW/dF and A vs dP/dF use h = 1e-3: truncation ~ 1e-12 relative (f^(5) of lam^5 is 120 lam^0,
-  times the 1/30), rounding ~ 1e-13; observed errors ~ 1e-12. Tolerance 1e-9: three orders above
+  times the 1/30), rounding ~ 1e-13; the errors come out ~ 1e-12. Tolerance 1e-9: three orders above
   the expected error, and far below what a wrong or perturbation-based tangent gives (a naive
   divided difference (tau_a - tau_b)/(lam_a^2 - lam_b^2) at stretches 1e-9 apart is off by
   ~ eps / 1e-9 ~ 1e-7 relative; a stretch perturbation of 1e-6 by ~ 1e-6).
@@ -34,6 +34,10 @@ import pandas as pd
 from ..io import atomic_path
 from . import analytic
 from .material import Ogden, ogden_energy, ogden_stress, ogden_stress_tangent
+
+__all__ = ["FD_STEP_SECOND", "FD_STEP_STRESS", "TOL_CONTINUITY", "TOL_EXACT", "TOL_FD", "TOL_FD_SECOND", "TOL_HOMOGENEOUS",
+           "deformation_cases", "fd_gradient", "fd_hessian", "fd_steps", "homogeneous_responses", "material_point_checks",
+           "plot_homogeneous", "random_rotations", "run_material_verification", "small_strain_tangent", "time_material"]
 
 log = logging.getLogger(__name__)
 
@@ -68,6 +72,7 @@ def deformation_cases(rng: np.random.Generator | None = None, *, n_random: int =
     rng = np.random.default_rng(20261122) if rng is None else rng
 
     def spectral(stretches):
+        """F = R1 diag(stretches) R2^T with random rotations R1, R2: (k, 3, 3) for stretches (k, 3)."""
         stretches = np.asarray(stretches, float)
         k = len(stretches)
         R1, R2 = random_rotations(k, rng), random_rotations(k, rng)

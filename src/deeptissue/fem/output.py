@@ -10,6 +10,8 @@ from ..io import atomic_path
 from ..mesh import TetMesh
 from .skmesh import GMSH_TO_SKFEM_TET10
 
+__all__ = ["GMSH_TO_VTK_TET10", "write_result_vtu", "write_tet_vtu"]
+
 # VTK_QUADRATIC_TETRA edge order (0,1),(1,2),(2,0),(0,3),(1,3),(2,3) = gmsh with nodes 8/9 swapped
 GMSH_TO_VTK_TET10 = GMSH_TO_SKFEM_TET10
 

@@ -6,6 +6,8 @@ import numpy as np
 
 from ..mesh import TetMesh, extract_tetmesh
 
+__all__ = ["block_mesh", "cored_cylinder_mesh", "distort_interior"]
+
 
 def _start(name: str):
     import gmsh

@@ -17,6 +17,8 @@ from skfem import MeshTet1, MeshTet2
 
 from ..mesh import TetMesh
 
+__all__ = ["GMSH_TET_EDGES", "GMSH_TO_SKFEM_TET10", "SkMesh", "reference_jacobians", "straighten_invalid", "to_skfem"]
+
 # gmsh Tetrahedron10 local edges (mid-node 4 + k is on edge k)
 GMSH_TET_EDGES = ((0, 1), (1, 2), (0, 2), (0, 3), (2, 3), (1, 3))
 # gmsh -> skfem local node permutation of a 10-node tet (swap 8 and 9)
@@ -42,6 +44,7 @@ class SkMesh:
 
     @property
     def order(self) -> int:
+        """Element order: 2 for MeshTet2, 1 for MeshTet1."""
         return 2 if isinstance(self.mesh, MeshTet2) else 1  # (MeshTet2 is a subclass of MeshTet1)
 
     def element_nodes(self) -> np.ndarray:
