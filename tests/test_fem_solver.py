@@ -9,9 +9,9 @@ from deeptissue.fem.cast import Cast
 from deeptissue.fem.contact import ContactSurface
 from deeptissue.fem.indenters import Indenter
 from deeptissue.fem.shapes import block_mesh, cored_cylinder_mesh, distort_interior
-from deeptissue.fem.solver import BoneMotion, SolverSettings, solve_indentation, solve_prescribed
+from deeptissue.fem.solver import SolverSettings, solve_indentation, solve_prescribed
 from deeptissue.mesh import TetMesh
-from deeptissue.rigid import apply_rigid
+from deeptissue.rigid import BoneMotion, apply_rigid
 
 from deeptissue.fem.material import Ogden
 

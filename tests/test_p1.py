@@ -19,9 +19,9 @@ from deeptissue.fem.indenters import Indenter
 from deeptissue.fem.material import Ogden
 from deeptissue.fem.shapes import block_mesh, cored_cylinder_mesh, distort_interior
 from deeptissue.fem.skmesh import to_skfem
-from deeptissue.fem.solver import BoneMotion, solve_indentation, solve_prescribed
+from deeptissue.fem.solver import solve_indentation, solve_prescribed
 from deeptissue.mesh import TetMesh, load_tetmesh, save_tetmesh
-from deeptissue.rigid import apply_rigid
+from deeptissue.rigid import BoneMotion, apply_rigid
 from deeptissue.strain import element_strain
 from deeptissue.summary import deformed_surface, read_result_vtu, summarize_solution, write_result_vtu
 

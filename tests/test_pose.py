@@ -25,7 +25,7 @@ from deeptissue.pose import (
     run_pose,
     run_pose_accuracy,
 )
-from deeptissue.rigid import apply_rigid, rotation_matrix
+from deeptissue.rigid import BoneMotion, apply_rigid, rotation_matrix
 
 import pose_synth as ps
 
@@ -150,13 +150,14 @@ def test_bone_motion_surface_fit_recovers_truth(rotation, translation):
     c = bone_centroid_mm(pre)
     dur = ps.bone_stack(rotation_deg=rotation, centre_mm=c, translation_mm=translation)
     m = fit_bone_motion(pre, dur, dof=6)  # the synthetic bone tapers and bends: z shift observable
-    assert np.linalg.norm(m.rotation_deg - rotation) < 0.01
-    assert np.linalg.norm(m.translation_mm - translation) < 0.002
+    assert np.linalg.norm(np.subtract(m.motion.rotation_deg, rotation)) < 0.01
+    assert np.linalg.norm(np.subtract(m.motion.translation_mm, translation)) < 0.002
     # the centroid shift alone is biased: the slab cuts a different piece of the moved bone
     assert np.linalg.norm(m.com_shift_mm - translation) > 0.05
     # nearest-vertex distances between stacks at the same z planes are biased by through-plane motion
     v = fit_bone_motion(pre, dur, method="vertex", dof=3)
-    assert np.linalg.norm(v.rotation_deg - rotation) > 3 * np.linalg.norm(m.rotation_deg - rotation)
+    assert (np.linalg.norm(np.subtract(v.motion.rotation_deg, rotation))
+            > 3 * np.linalg.norm(np.subtract(m.motion.rotation_deg, rotation)))
     assert v.rms_final_mm > 10 * m.rms_final_mm
 
 
@@ -171,25 +172,25 @@ def test_fibula_resolves_the_shift_along_a_prismatic_tibia():
     dur_f = ps.bone_stack(body=ps.fibula_body, rotation_deg=rot, centre_mm=c, translation_mm=tr)
     m = fit_bone_motion(pre_t, dur_t, fibula_pre_mm=pre_f, fibula_during_mm=dur_f, dof=6)
     assert m.fibula_slices == (20, 20)
-    np.testing.assert_allclose(m.com_mm, c)  # the centre stays the tibia's
-    assert np.linalg.norm(m.rotation_deg - rot) < 0.01
-    assert np.linalg.norm(m.translation_mm - tr) < 0.002
+    np.testing.assert_allclose(m.motion.centre_mm, c)  # the centre stays the tibia's
+    assert np.linalg.norm(m.motion.rotation_deg - rot) < 0.01
+    assert np.linalg.norm(m.motion.translation_mm - tr) < 0.002
     # the tibia alone leaves the shift along z where the centroid put it (a prism's centroid hardly moves)
     alone = fit_bone_motion(pre_t, dur_t, dof=6)
     assert alone.fibula_slices == (0, 0)
-    assert abs(alone.translation_mm[2] - tr[2]) > 0.05
+    assert abs(alone.motion.translation_mm[2] - tr[2]) > 0.05
     # slices without a fibula (NaN rows) are left out, and during sections the pre fibula does not
     # reach are not matched to its end: on 14 common slices the fibula still resolves z
     pre_gap, dur_gap = pre_f.copy(), dur_f.copy()
     pre_gap[:3], dur_gap[-3:] = np.nan, np.nan
     m = fit_bone_motion(pre_t, dur_t, fibula_pre_mm=pre_gap, fibula_during_mm=dur_gap, dof=6)
     assert m.fibula_slices == (17, 14)  # pre slices, common slices
-    assert np.linalg.norm(m.translation_mm - tr) < 0.003
+    assert np.linalg.norm(m.motion.translation_mm - tr) < 0.003
     # with 0.005 mm of contour noise the shift along z stays well within the 0.03 mm tolerance
     rng = np.random.default_rng(8)
     noisy = [a + rng.normal(0, 0.005, a.shape) * [1, 1, 0] for a in (pre_t, dur_t, pre_f, dur_f)]
     m = fit_bone_motion(noisy[0], noisy[1], fibula_pre_mm=noisy[2], fibula_during_mm=noisy[3], dof=6)
-    assert np.linalg.norm(m.translation_mm - tr) < 0.015
+    assert np.linalg.norm(m.motion.translation_mm - tr) < 0.015
 
 
 def test_bone_dof_auto_uses_the_fibula_or_falls_back(caplog):
@@ -229,8 +230,8 @@ def test_zero_bone_rotation_comes_back_as_zero_with_noise():
     pre = ps.bone_stack() + rng.normal(0, 0.01, (20, 100, 3)) * [1, 1, 0]
     dur = ps.bone_stack() + rng.normal(0, 0.01, (20, 100, 3)) * [1, 1, 0]
     m = fit_bone_motion(pre, dur)
-    assert np.linalg.norm(m.rotation_deg) < 0.2
-    assert np.linalg.norm(m.translation_mm) < 0.01
+    assert np.linalg.norm(m.motion.rotation_deg) < 0.2
+    assert np.linalg.norm(m.motion.translation_mm) < 0.01
 
 
 def test_pose_errors_compare_motions_not_parameters():
@@ -245,6 +246,24 @@ def test_pose_errors_compare_motions_not_parameters():
     e = pose_errors(Pose(**base, bone_com_mm=c2, bone_translation_mm=t2), Pose(**base, bone_com_mm=c, bone_translation_mm=t))
     assert e["bone_translation_error_mm"] < 1e-12 and e["bone_rotation_error_deg"] < 1e-9
 
+
+
+def test_bone_motion_of_a_pose_moves_points_as_pose_json_says():
+    """x -> R (x - bone_com_mm) + bone_com_mm + bone_translation_mm, R from the rotation vector (scipy)."""
+    from scipy.spatial.transform import Rotation
+
+    rot, c, t = np.array([2.0, -1.0, 0.5]), np.array([0.5, -1.0, 4.0]), np.array([0.05, 0.02, -0.03])
+    pose = Pose(indenter_axis=[0, -1, 0], tip_start_mm=[0, 6, 0], tip_end_mm=[0, 3, 0], depth_mm=2.0,
+                bone_com_mm=c, bone_rotation_deg=rot, bone_translation_mm=t)
+    motion = pose.bone_motion
+    assert motion == BoneMotion(rotation_deg=tuple(rot), centre_mm=tuple(c), translation_mm=tuple(t))
+    assert all(type(x) is float for x in motion.rotation_deg + motion.centre_mm + motion.translation_mm)
+    pts = np.random.default_rng(1).normal(size=(4, 5, 3))
+    R = Rotation.from_rotvec(np.radians(rot)).as_matrix()
+    np.testing.assert_allclose(motion.apply(pts), np.einsum("ij,abj->abi", R, pts - c) + c + t, atol=1e-12)
+    np.testing.assert_allclose(BoneMotion().apply(pts), pts)
+    with pytest.raises(ValueError, match=r"BoneMotion\.centre_mm: expected 3 numbers"):
+        BoneMotion(centre_mm=(1.0, 2.0))
 
 # ---- files, rule glue and config -----------------------------------------------------------------
 

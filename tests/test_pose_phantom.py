@@ -41,8 +41,8 @@ def test_pose_on_phantom_within_issue_tolerances(name):
     # with exact contours the tapering, flaring, twisting tibia alone shows its shift along the leg
     # too: the 6-DOF fit on it recovers the full translation vector and the full rotation
     m = fit_bone_motion(ph.truth_pre.bone, ph.truth_during.bone, dof=6)
-    R = rotation_matrix(m.rotation_deg)
-    t6 = m.translation_mm + (R - np.eye(3)) @ (truth.bone_com_mm - m.com_mm)
+    R = rotation_matrix(m.motion.rotation_deg)
+    t6 = m.motion.translation_mm + (R - np.eye(3)) @ (truth.bone_com_mm - m.motion.centre_mm)
     assert np.linalg.norm(t6 - truth.bone_translation_mm) <= TOL["bone_translation_error_mm"]
     rel = Rotation.from_matrix(R @ rotation_matrix(truth.bone_rotation_deg).T).magnitude()
     assert np.degrees(rel) <= TOL["bone_rotation_error_deg"]

@@ -20,11 +20,12 @@ from .contours import load_contours
 from .fem.cast import Cast
 from .fem.indenters import Indenter
 from .fem.material import Ogden, ogden_energy
-from .fem.solver import (BoneMotion, BoneState, EndState, SolverSettings, end_state, load_bone_state, load_end_state,
+from .fem.solver import (BoneState, EndState, SolverSettings, end_state, load_bone_state, load_end_state,
                          save_bone_state, save_end_state, solve_bone_rotation, solve_indentation, solve_turned,
                          solver_settings_from_config, summed_costs)
 from .mesh import TetMesh, load_tetmesh
 from .pose import Pose, load_pose
+from .rigid import BoneMotion
 from .strain import DEFAULT_BIN_EDGES, element_strain
 from .summary import Summary, failed_summary, summarize_solution, write_result_vtu, write_summary
 from .variants import parse_variant, variant_travel
@@ -78,9 +79,13 @@ def variant_indenter(pose: Pose, variant_name: str, *, radius_mm: float = 1.5, b
 
 
 def bone_motion(pose: Pose) -> BoneMotion:
+<<<<<<< HEAD
     """The rigid bone motion of ``pose``: rotation [deg] about the bone centre of mass [mm], then translation [mm]."""
     return BoneMotion(rotation_deg=tuple(pose.bone_rotation_deg), centre_mm=tuple(pose.bone_com_mm),
                       translation_mm=tuple(pose.bone_translation_mm))
+=======
+    return pose.bone_motion
+>>>>>>> wt-pose
 
 
 def solve_variant(

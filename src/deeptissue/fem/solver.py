@@ -26,7 +26,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..mesh import TetMesh
-from ..rigid import euler_xyz_deg
+from ..rigid import BoneMotion, euler_xyz_deg
 from .assembly import Assembler, as_material_law
 from .cast import Cast
 from .contact import ContactSurface
@@ -34,18 +34,6 @@ from .indenters import Indenter
 from .linsolve import PRECISIONS, NotPositiveDefinite, make_solver
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class BoneMotion:
-    """Rigid motion of the bone, pre -> during: x' = R (x - centre) + centre + translation.
-
-    rotation_deg: (3,) rotation vector [deg]; centre_mm: (3,) [mm]; translation_mm: (3,) [mm].
-    """
-
-    rotation_deg: tuple = (0.0, 0.0, 0.0)
-    centre_mm: tuple = (0.0, 0.0, 0.0)
-    translation_mm: tuple = (0.0, 0.0, 0.0)
 
 
 @dataclass(frozen=True)

@@ -13,11 +13,11 @@ import numpy as np
 import pandas as pd
 
 from ..mesh import TetMesh
-from ..rigid import apply_rigid
+from ..rigid import BoneMotion
 from .assembly import as_material_law
 from .indenters import Indenter
 from .shapes import block_mesh, cored_cylinder_mesh, distort_interior
-from .solver import BoneMotion, SolverSettings, solve_indentation, solve_prescribed
+from .solver import SolverSettings, solve_indentation, solve_prescribed
 
 # states inside the load step are recorded as points of a curve: converge them like end states (the
 # default intermediate energy criterion, 1e-4 of the first Newton decrement, leaves them up to 4 % off
@@ -104,8 +104,7 @@ def rigid_motion_cases(material) -> pd.DataFrame:
         motion = BoneMotion(rotation_deg=tuple(angle * np.array([0.6, -0.48, 0.64])), centre_mm=(0.5, -0.2, 3.0),
                             translation_mm=(0.3, -0.4, 0.2))
         r = solve_indentation(m, material=material, indenter=None, bone_motion=motion)
-        exact = apply_rigid(m.nodes_mm, rotation_deg=motion.rotation_deg, centre_mm=motion.centre_mm,
-                            translation_mm=motion.translation_mm)
+        exact = motion.apply(m.nodes_mm)
         F = r.deformation_gradient
         E = 0.5 * (np.swapaxes(F, -1, -2) @ F - np.eye(3))
         rows.append(dict(case=f"rigid bone {angle:g} deg", converged=r.converged, max_abs_green_strain=float(np.abs(E).max()),

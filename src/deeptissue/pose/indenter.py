@@ -1,0 +1,479 @@
+"""The indenter in the during scan: its axis from the contrast fluid, its final tip from the deformed skin.
+
+Pure functions on arrays: a volume ``(I, J, K)`` with its 4x4 affine (voxel index -> world mm,
+axial slices = constant K), and contour stacks ``(n_slices, n_points, 3)`` in world mm.
+The fluid column is found as the largest bright component outside the skin
+(:func:`find_fluid_component`), its axis is the inertia axis refined by a cylinder fit
+(:func:`refine_axis_cylinder`), the final tip is where the axis meets the deformed skin, refined by
+a fit of the indenter's head sphere (:func:`tip_end_mm`), and the start of the travel is where the
+axis meets the undeformed skin (:func:`skin_entry_mm`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .result import PoseError, _where
+
+__all__ = [
+    "FluidComponent",
+    "find_fluid_component",
+    "fluid_threshold",
+    "inertia_axis",
+    "inside_skin_mask",
+    "line_triangle_hits",
+    "orient_axis",
+    "refine_axis_cylinder",
+    "skin_entry_mm",
+    "skin_triangles",
+    "tip_end_mm",
+    "voxel_centres_mm",
+]
+
+
+@dataclass(frozen=True)
+class FluidComponent:
+    """The connected component of contrast fluid inside the indenter.
+
+    ``points_mm`` (n, 3) voxel centres [mm] used for the axis; ``com_mm`` (3,) centre of mass [mm]
+    (on the fitted axis line when the axis is refined); ``axis`` (3,) unit axis (sign not yet fixed);
+    ``moments_mm2`` (3,) principal moments of inertia per unit mass [mm^2], ascending; ``volume_mm3``;
+    ``candidate_volumes_mm3`` volumes of all candidate components, largest first; ``threshold`` the
+    intensity threshold used; ``axis_inertia`` (3,) the inertia axis before the cylinder refinement.
+    """
+
+    points_mm: np.ndarray
+    com_mm: np.ndarray
+    axis: np.ndarray
+    moments_mm2: np.ndarray
+    volume_mm3: float
+    candidate_volumes_mm3: tuple
+    threshold: float
+    axis_inertia: np.ndarray | None = None
+
+
+def voxel_centres_mm(affine: np.ndarray, ijk: np.ndarray) -> np.ndarray:
+    """World coordinates [mm] (n, 3) of voxel indices ``ijk`` (n, 3) through the 4x4 ``affine``."""
+    ijk = np.asarray(ijk, dtype=float)
+    return ijk @ np.asarray(affine, float)[:3, :3].T + np.asarray(affine, float)[:3, 3]
+
+
+def inside_skin_mask(shape: tuple, affine: np.ndarray, skin_mm: np.ndarray) -> np.ndarray:
+    """Boolean mask (I, J, K): voxel centre inside the skin contour of its axial slice.
+
+    ``skin_mm`` (n_slices, n_points, 3) world mm; each contour is assigned to the volume slice K
+    nearest its mean z. Slices without a contour are all False.
+    """
+    from matplotlib.path import Path as MplPath
+
+    affine = np.asarray(affine, float)
+    inv = np.linalg.inv(affine)
+    mask = np.zeros(shape, dtype=bool)
+    ii, jj = np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij")
+    for contour in np.asarray(skin_mm, float):
+        ijk = contour @ inv[:3, :3].T + inv[:3, 3]
+        k = int(round(float(ijk[:, 2].mean())))
+        if not 0 <= k < shape[2]:
+            continue
+        # voxel centres of slice k in world mm, tested against the contour in world x, y
+        centres = voxel_centres_mm(affine, np.column_stack([ii.ravel(), jj.ravel(), np.full(ii.size, k)]))
+        inside = MplPath(contour[:, :2]).contains_points(centres[:, :2])
+        mask[:, :, k] = inside.reshape(ii.shape)
+    return mask
+
+
+def fluid_threshold(volume: np.ndarray, inside_mask: np.ndarray, *, ratio: float) -> float:
+    """Automatic contrast-fluid threshold: ``ratio`` x the median intensity of the leg (voxels inside the skin)."""
+    leg = np.asarray(volume, float)[inside_mask]
+    if leg.size == 0:
+        raise PoseError("no voxel inside the skin contours: cannot set the fluid threshold")
+    return float(ratio * np.median(leg))
+
+
+def inertia_axis(points_mm: np.ndarray, *, voxel_edges_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Centre of mass, principal axis and principal moments of a set of equal voxels.
+
+    ``points_mm`` (n, 3) voxel centres [mm]; ``voxel_edges_mm`` (3, 3) the voxel's edge vectors as
+    columns (the affine's 3x3 block), so that each voxel counts as a solid parallelepiped (its own
+    inertia J J^T / 12 is added; this matters with 1 mm slices and 0.1 mm pixels).
+    Returns ``com_mm`` (3,), ``axis`` (3,) the eigenvector of the smallest moment of inertia (the long
+    axis), ``moments_mm2`` (3,) ascending moments per unit mass [mm^2].
+    """
+    p = np.asarray(points_mm, float)
+    J = np.asarray(voxel_edges_mm, float)
+    com = p.mean(axis=0)
+    d = p - com
+    cov = d.T @ d / len(p) + J @ J.T / 12.0
+    inertia = np.trace(cov) * np.eye(3) - cov
+    moments, vecs = np.linalg.eigh(inertia)
+    return com, vecs[:, 0] / np.linalg.norm(vecs[:, 0]), moments
+
+
+def find_fluid_component(
+    volume: np.ndarray,
+    affine: np.ndarray,
+    *,
+    threshold: float,
+    exclude_mask: np.ndarray | None = None,
+    min_volume_mm3: float = 1.0,
+    ambiguity_ratio: float = 0.5,
+    refine_axis: bool = True,
+    animal: str = "",
+) -> FluidComponent:
+    """The connected component of contrast fluid: voxels above ``threshold`` (26-connected).
+
+    ``volume`` (I, J, K) intensities; ``affine`` 4x4; ``exclude_mask`` (I, J, K) voxels that cannot be
+    fluid (inside the deformed skin: bright tissue). Components smaller than ``min_volume_mm3`` are
+    noise. The largest remaining one is the indenter's fluid unless the runner-up reaches
+    ``ambiguity_ratio`` of its volume (then :class:`PoseError`: several similar candidates).
+    The axis is the inertia axis (after cutting the column perpendicular to it where it leaves the
+    field of view), refined by :func:`refine_axis_cylinder` when ``refine_axis``.
+    """
+    from scipy import ndimage
+
+    vol = np.asarray(volume, float)
+    if vol.ndim != 3:
+        raise PoseError(f"{_where(animal)}during volume is not 3D (shape {vol.shape})")
+    affine = np.asarray(affine, float)
+    bright = vol > threshold
+    if exclude_mask is not None:
+        bright &= ~exclude_mask
+    labels, n = ndimage.label(bright, structure=np.ones((3, 3, 3), bool))
+    voxel_mm3 = abs(float(np.linalg.det(affine[:3, :3])))
+    counts = np.bincount(labels.ravel(), minlength=n + 1)[1:]
+    volumes = counts * voxel_mm3
+    order = np.argsort(volumes)[::-1]
+    cands = [int(i) for i in order if volumes[i] >= min_volume_mm3]
+    if not cands:
+        biggest = f"{volumes.max():.3g} mm^3" if n else "none"
+        raise PoseError(
+            f"{_where(animal)}no contrast fluid found in the during scan: no bright component outside the skin "
+            f">= {min_volume_mm3} mm^3 above threshold {threshold:.4g} (largest: {biggest}); "
+            "give pose_override.indenter_axis and tip_end_mm to proceed by hand"
+        )
+    cand_vols = tuple(float(volumes[i]) for i in cands)
+    if len(cands) > 1 and cand_vols[1] >= ambiguity_ratio * cand_vols[0]:
+        raise PoseError(
+            f"{_where(animal)}several candidate contrast-fluid components of similar size "
+            f"({', '.join(f'{v:.3g}' for v in cand_vols[:4])} mm^3): cannot tell which is the indenter; "
+            "give pose_override.indenter_axis and tip_end_mm, or adjust pose.fluid_threshold"
+        )
+    ijk = np.argwhere(labels == cands[0] + 1)
+    pts = voxel_centres_mm(affine, ijk)
+    com, axis, moments = inertia_axis(pts, voxel_edges_mm=affine[:3, :3])
+    # The fluid column usually leaves the field of view: the border cuts it obliquely, which tilts
+    # the inertia axis (~0.5 deg for a 12 deg obliquity). Cut it instead by a plane perpendicular to
+    # the axis just inside the border voxels, and iterate.
+    shape = np.array(vol.shape)
+    at_border = np.any((ijk[:, :2] == 0) | (ijk[:, :2] == shape[:2] - 1), axis=1)
+    if at_border.any():
+        for _ in range(4):
+            s = (pts - com) @ axis
+            head_side = -np.sign(np.mean(s[at_border]))  # the border cuts the back end
+            sb = s[at_border] * head_side
+            keep = s * head_side > sb.max() + 0.5
+            if keep.sum() < 0.3 * len(pts):
+                break
+            com, new_axis, moments = inertia_axis(pts[keep], voxel_edges_mm=affine[:3, :3])
+            new_axis = new_axis if new_axis @ axis >= 0 else -new_axis
+            done = np.degrees(np.arccos(min(1.0, abs(float(new_axis @ axis))))) < 1e-3
+            axis = new_axis
+            if done:
+                break
+        pts_used = pts[keep] if keep.sum() >= 0.3 * len(pts) else pts
+    else:
+        pts_used = pts
+    axis_inertia = axis
+    if refine_axis:
+        background = np.median(vol[~bright & ~exclude_mask]) if exclude_mask is not None else np.median(vol[~bright])
+        fluid_level = float(np.median(vol[labels == cands[0] + 1]))
+        level = 0.5 * (fluid_level + float(background))
+        axis, com = refine_axis_cylinder(vol, affine, pts_used, com_mm=com, axis=axis, level=level,
+                                         exclude_mask=exclude_mask, fluid_level=fluid_level)
+    return FluidComponent(
+        points_mm=pts_used, com_mm=com, axis=axis, moments_mm2=moments, volume_mm3=cand_vols[0],
+        candidate_volumes_mm3=cand_vols, threshold=float(threshold), axis_inertia=axis_inertia,
+    )
+
+
+def refine_axis_cylinder(
+    volume: np.ndarray, affine: np.ndarray, points_mm: np.ndarray, *, com_mm: np.ndarray, axis: np.ndarray,
+    level: float, exclude_mask: np.ndarray | None = None, exclude_margin_mm: float = 0.5,
+    end_margin_mm: float = 1.5, max_change_deg: float = 5.0, fluid_level: float | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Axis (3,) of the fluid column refined by a cylinder fit to its in-plane edges, and the COM (3,)
+    moved onto the fitted axis line.
+
+    The inertia axis of voxels 1 mm thick is off by up to ~2 deg (the slices quantise the column
+    across z). Within each axial slice the column's edge is known to a fraction of the 0.1 mm pixel:
+    sub-pixel iso-contours of ``volume`` at ``level`` (half-way between fluid and background) near the
+    component ``points_mm`` (n, 3) are points on a cylinder; the ones more than ``end_margin_mm`` from
+    both ends of the column (head sphere, truncation) and more than ``exclude_margin_mm`` in-plane
+    from ``exclude_mask`` (I, J, K) (the leg: there the edge is against tissue, not background) are
+    fitted by a cylinder (axis direction,
+    position, radius; robust soft-L1 loss). The fitted direction is returned if it is within
+    ``max_change_deg`` of ``axis``, else ``axis`` and ``com_mm`` unchanged (the sign of ``axis`` is
+    kept). The voxel COM is off the axis by up to ~0.2 mm across the slices (quantisation); its
+    projection on the fitted line is returned instead.
+    Slices that only graze the column (95th-percentile intensity below 90 % of ``fluid_level``, the
+    fluid's intensity; partial volume) are left out: their edges depend on the slice profile.
+    """
+    from scipy import ndimage
+    from scipy.optimize import least_squares
+    from scipy.spatial import cKDTree
+    from skimage.measure import find_contours
+
+    a0 = np.asarray(axis, float) / np.linalg.norm(axis)
+    c0 = np.asarray(com_mm, float)
+    affine = np.asarray(affine, float)
+    pts = np.asarray(points_mm, float)
+    s = (pts - c0) @ a0
+    lo, hi = s.min() + end_margin_mm, s.max() - end_margin_mm
+    if hi - lo < 2.0:
+        return a0, c0
+    inv = np.linalg.inv(affine)
+    if fluid_level is None:
+        fluid_level = 2.0 * level  # background ~ 0
+    ks = np.unique(np.round((pts @ inv[:3, :3].T + inv[:3, 3])[:, 2]).astype(int))
+    edge = []
+    for k in ks:
+        if not 0 <= k < volume.shape[2]:
+            continue
+        in_k = pts[np.abs((pts @ inv[:3, :3].T + inv[:3, 3])[:, 2] - k) < 0.5]
+        if len(in_k) < 3:
+            continue
+        ijk_k = np.round(in_k @ inv[:3, :3].T + inv[:3, 3]).astype(int)
+        peak = float(np.percentile(volume[ijk_k[:, 0], ijk_k[:, 1], k], 95))
+        background = 2.0 * level - fluid_level
+        if peak < background + 0.9 * (fluid_level - background):  # the slice only grazes the column
+            continue
+        tree = cKDTree(in_k)
+        near_leg = None
+        if exclude_mask is not None:
+            pixel = float(np.min(np.linalg.norm(affine[:3, :2], axis=0)))
+            n_dil = max(1, int(np.ceil(exclude_margin_mm / pixel)))
+            near_leg = ndimage.binary_dilation(exclude_mask[:, :, k], iterations=n_dil)
+        for c in find_contours(np.asarray(volume[:, :, k], float), level):
+            w = voxel_centres_mm(affine, np.column_stack([c, np.full(len(c), k)]))
+            d, _ = tree.query(w)
+            sw = (w - c0) @ a0
+            ok = (d <= 0.3) & (sw >= lo) & (sw <= hi)
+            if near_leg is not None:
+                ij = np.clip(np.round(c).astype(int), 0, np.array(near_leg.shape) - 1)
+                ok &= ~near_leg[ij[:, 0], ij[:, 1]]
+            edge.append(w[ok])
+    edge = np.concatenate(edge) if edge else np.zeros((0, 3))
+    if len(edge) < 20:
+        return a0, c0
+    e1, e2 = _perpendicular_basis(a0)
+    r0 = float(np.median(np.linalg.norm((edge - c0) - np.outer((edge - c0) @ a0, a0), axis=1)))
+
+    def residual(x):
+        a = a0 + x[0] * e1 + x[1] * e2
+        a = a / np.linalg.norm(a)
+        d = edge - (c0 + x[2] * e1 + x[3] * e2)
+        return np.linalg.norm(d - np.outer(d @ a, a), axis=1) - x[4]
+
+    fit = least_squares(residual, np.array([0.0, 0.0, 0.0, 0.0, r0]), loss="soft_l1", f_scale=0.05)
+    a = a0 + fit.x[0] * e1 + fit.x[1] * e2
+    a /= np.linalg.norm(a)
+    if np.degrees(np.arccos(min(1.0, float(a @ a0)))) > max_change_deg:
+        return a0, c0
+    p = c0 + fit.x[2] * e1 + fit.x[3] * e2
+    return a, p + ((c0 - p) @ a) * a
+
+
+def orient_axis(axis: np.ndarray, *, from_mm: np.ndarray, toward_mm: np.ndarray) -> np.ndarray:
+    """``axis`` (3,) normalised and signed to point from ``from_mm`` toward ``toward_mm`` (e.g. the leg)."""
+    a = np.asarray(axis, float)
+    a = a / np.linalg.norm(a)
+    return a if np.dot(a, np.asarray(toward_mm, float) - np.asarray(from_mm, float)) >= 0 else -a
+
+
+def _perpendicular_basis(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    a = axis / np.linalg.norm(axis)
+    helper = np.array([0.0, 0.0, 1.0]) if abs(a[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    u = np.cross(a, helper)
+    u /= np.linalg.norm(u)
+    return u, np.cross(a, u)
+
+
+def tip_end_mm(
+    skin_during_mm: np.ndarray,
+    *,
+    axis: np.ndarray,
+    com_mm: np.ndarray,
+    front_mm: float,
+    roi_diameter_mm: float = 5.0,
+    reach_mm: float = 1.5,
+    head_radius_mm: float = 1.5,
+    cap_radius_mm: float = 1.2,
+    max_fit_rms_mm: float = 0.05,
+    method: str = "sphere",
+    animal: str = "",
+) -> tuple[np.ndarray, dict]:
+    """Final tip position [mm] from the deformed skin.
+
+    The region of interest (ROI) is a cylinder of ``roi_diameter_mm`` about the axis, from the fluid's
+    COM to ``reach_mm`` beyond the fluid front: it holds the skin under the head, not the far side of
+    the leg.
+
+    ``method='vertex'``: the deepest ROI vertex along the axis, projected on the axis through the COM
+    (the paper's method; it fails when the axis is oblique to the skin and the depth small: the
+    undeformed skin at the ROI rim then lies deeper along the axis than the tip).
+    ``method='sphere'`` (default): the first crossing of the axis with the deformed skin surface
+    (within the ROI length) seeds the cap of skin vertices within ``cap_radius_mm``; where the skin
+    conforms to the indenter head they lie on a sphere of ``head_radius_mm`` whose centre is on the
+    axis. Its position along the axis is fitted to them (robustly: vertices farther than
+    ``max_fit_rms_mm`` from the sphere, where the skin leaves the head, are dropped) and the tip is
+    the centre + radius * axis. This interpolates between the 1 mm slices, where the skin surface
+    triangulated between slices cuts a chord under the curved dimple (up to ~0.1 mm). The crossing
+    is kept (or the deepest vertex, if the axis misses the skin surface) if fewer than 8 cap
+    vertices lie on the head, or the fit's RMS exceeds ``max_fit_rms_mm``, or it moves the tip more
+    than 0.5 mm.
+
+    Parameters
+    ----------
+    skin_during_mm : (n_slices, n_points, 3) array
+        Deformed skin contours [mm].
+    axis : (3,) array
+        Indenter axis, into the leg (normalised here).
+    com_mm : (3,) array
+        The fluid's centre of mass [mm], a point of the axis.
+    front_mm : float
+        The fluid's farthest extent along the axis from ``com_mm`` [mm].
+    roi_diameter_mm, reach_mm : float
+        The ROI's diameter and its reach beyond the fluid front [mm].
+    head_radius_mm, cap_radius_mm : float
+        Radius of the indenter's head sphere, and of the skin cap around the axis crossing fitted by it [mm].
+    max_fit_rms_mm : float
+        Largest distance [mm] of a fitted vertex from the head sphere, and largest RMS of the fit.
+    method : {'sphere', 'vertex'}
+        See above.
+    animal : str
+        Named in error messages.
+
+    Returns
+    -------
+    tip_mm : (3,) array
+        The final tip [mm].
+    info : dict
+        Diagnostics for ``pose.json``: ``tip_method`` (``deepest_vertex``, ``axis_skin_crossing`` or
+        ``head_sphere_fit``), the ROI's vertex count, the candidate points and the fit's RMS.
+
+    Raises
+    ------
+    PoseError
+        If no skin vertex lies in the ROI (the axis misses the leg).
+    """
+    from scipy.optimize import least_squares
+
+    if method not in ("sphere", "vertex"):
+        raise ValueError(f"tip_end_mm: method must be 'sphere' or 'vertex', got {method!r}")
+    a = np.asarray(axis, float)
+    a = a / np.linalg.norm(a)
+    c = np.asarray(com_mm, float)
+    v = np.asarray(skin_during_mm, float).reshape(-1, 3)
+    d = v - c
+    s = d @ a
+    r = np.linalg.norm(d - s[:, None] * a, axis=1)
+    roi = (r <= roi_diameter_mm / 2) & (s >= 0) & (s <= front_mm + reach_mm)
+    if not roi.any():
+        raise PoseError(
+            f"{_where(animal)}the indenter axis does not meet the deformed skin: no skin vertex within "
+            f"{roi_diameter_mm / 2:g} mm of the axis up to {reach_mm:g} mm beyond the fluid; "
+            "give pose_override.indenter_axis / tip_end_mm"
+        )
+    s_deep = float(s[roi].max())
+    tip_vertex = c + s_deep * a
+    info = {"tip_roi_vertices": int(roi.sum()), "tip_method": "deepest_vertex",
+            "tip_deepest_vertex_mm": tip_vertex.tolist()}
+    if method == "vertex":
+        return tip_vertex, info
+    t_hit = line_triangle_hits(c, a, skin_triangles(skin_during_mm))
+    t_hit = t_hit[(t_hit >= 0) & (t_hit <= front_mm + reach_mm)]
+    seed = c + t_hit[0] * a if t_hit.size else tip_vertex
+    if t_hit.size:
+        info.update(tip_method="axis_skin_crossing", tip_axis_crossing_mm=seed.tolist())
+    cap = np.linalg.norm(v - seed, axis=1) <= cap_radius_mm
+    if cap.sum() < 8:
+        return seed, info
+    pts = v[cap]
+    s0 = float((seed - c) @ a) - head_radius_mm  # head centre on the axis: c + s a
+
+    def head_residual(x, p):
+        return np.linalg.norm(p - (c + x[0] * a), axis=1) - head_radius_mm
+
+    keep = np.abs(head_residual([s0], pts)) <= 0.25  # near the head's sphere
+    if keep.sum() < 8:
+        return seed, info
+    x = np.array([s0])
+    for _ in range(5):  # fit, drop vertices off the head (skin leaving the indenter), refit
+        fit = least_squares(head_residual, x, args=(pts[keep],))
+        x = fit.x
+        new_keep = np.abs(head_residual(x, pts)) <= max_fit_rms_mm
+        if new_keep.sum() < 8 or np.array_equal(new_keep, keep):
+            break
+        keep = new_keep
+    tip = c + (x[0] + head_radius_mm) * a
+    rms_fit = float(np.sqrt(np.mean(head_residual(x, pts[keep]) ** 2)))
+    if keep.sum() < 8 or rms_fit > max_fit_rms_mm or np.linalg.norm(tip - seed) > 0.5:
+        info["tip_sphere_fit_rejected_rms_mm"] = rms_fit
+        return seed, info
+    info.update(tip_method="head_sphere_fit", tip_fit_vertices=int(keep.sum()), tip_fit_rms_mm=rms_fit)
+    return tip, info
+
+
+def skin_triangles(skin_mm: np.ndarray) -> np.ndarray:
+    """Triangles (T, 3, 3) [mm] of the surface through a contour stack (n_slices, n_points, 3).
+
+    Point j of slice k is joined to point j of slice k+1 (the contours share start angle and
+    direction), each quad split in two; the ends are left open.
+    """
+    s = np.asarray(skin_mm, float)
+    a, b = s[:-1], s[1:]
+    a1, b1 = np.roll(a, -1, axis=1), np.roll(b, -1, axis=1)
+    t1 = np.stack([a, a1, b1], axis=2).reshape(-1, 3, 3)
+    t2 = np.stack([a, b1, b], axis=2).reshape(-1, 3, 3)
+    return np.concatenate([t1, t2])
+
+
+def line_triangle_hits(point_mm: np.ndarray, direction: np.ndarray, triangles_mm: np.ndarray) -> np.ndarray:
+    """Parameters t of the points ``point + t * direction`` where the line crosses the triangles (T, 3, 3).
+
+    Möller–Trumbore, vectorised; returns a sorted 1D array (empty if the line misses).
+    """
+    o = np.asarray(point_mm, float)
+    dvec = np.asarray(direction, float)
+    v0, v1, v2 = triangles_mm[:, 0], triangles_mm[:, 1], triangles_mm[:, 2]
+    e1, e2 = v1 - v0, v2 - v0
+    p = np.cross(dvec, e2)
+    det = np.einsum("ij,ij->i", e1, p)
+    ok = np.abs(det) > 1e-12
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    tv = o - v0
+    u = np.einsum("ij,ij->i", tv, p) * inv
+    q = np.cross(tv, e1)
+    w = (q @ dvec) * inv
+    t = np.einsum("ij,ij->i", e2, q) * inv
+    hit = ok & (u >= 0) & (w >= 0) & (u + w <= 1)
+    return np.sort(t[hit])
+
+
+def skin_entry_mm(
+    skin_pre_mm: np.ndarray, *, axis: np.ndarray, point_mm: np.ndarray, animal: str = ""
+) -> np.ndarray:
+    """Where the line through ``point_mm`` along ``axis`` meets the undeformed skin, nearest ``point_mm``.
+
+    ``skin_pre_mm`` (n_slices, n_points, 3). Raises :class:`PoseError` if the line misses the skin.
+    """
+    a = np.asarray(axis, float)
+    t = line_triangle_hits(point_mm, a, skin_triangles(skin_pre_mm))
+    if t.size == 0:
+        raise PoseError(
+            f"{_where(animal)}the indenter axis does not meet the undeformed (pre) skin surface; "
+            "give pose_override.tip_start_mm or indenter_axis"
+        )
+    return np.asarray(point_mm, float) + t[np.argmin(np.abs(t))] * a
