@@ -79,13 +79,8 @@ def variant_indenter(pose: Pose, variant_name: str, *, radius_mm: float = 1.5, b
 
 
 def bone_motion(pose: Pose) -> BoneMotion:
-<<<<<<< HEAD
     """The rigid bone motion of ``pose``: rotation [deg] about the bone centre of mass [mm], then translation [mm]."""
-    return BoneMotion(rotation_deg=tuple(pose.bone_rotation_deg), centre_mm=tuple(pose.bone_com_mm),
-                      translation_mm=tuple(pose.bone_translation_mm))
-=======
     return pose.bone_motion
->>>>>>> wt-pose
 
 
 def solve_variant(
