@@ -1,4 +1,4 @@
-# Speed against error (issue 7): one animal x a few variants solved at a ladder of discretisations,
+# Speed against error: one animal x a few variants solved at a ladder of discretisations,
 # errors against the finest converged run, Pareto front and scaling. Target `convergence`, not in `all`.
 import re
 
