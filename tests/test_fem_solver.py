@@ -221,6 +221,7 @@ def test_sphere_with_bone_motion_reaches_full_depth_without_cutbacks(limb):
     assert r.indenter_force_N > 0.0
 
 
+@pytest.mark.slow
 def test_state_violating_contact_is_never_accepted(limb):
     # the AL / final-solve fallbacks keep penalty or loosely converged states; one that still
     # penetrates more than penetration_accept x facet size must be cut back, not reported converged
@@ -379,6 +380,7 @@ def test_indenter_ending_inside_the_bone_is_reported_infeasible_without_solving(
     assert ok.converged and 2.1 - 1e-9 <= ok.extra["bone_clearance_mm"] < 2.2
 
 
+@pytest.mark.slow
 def test_end_state_is_solved_again_with_stiffer_facets_until_within_the_penetration_tolerance(limb):
     # multiplier updates that stall (here: switched off) leave the penalty state of the last increment
     # penetrating; the facets concerned are stiffened, and the end state is solved again with them
@@ -416,6 +418,7 @@ def test_end_passes_never_cost_a_converged_solve_its_convergence(limb):
     assert capped.max_penetration_rel > full.max_penetration_rel
 
 
+@pytest.mark.slow
 def test_pinched_solve_starts_with_the_retry_settings_and_falls_back_to_plain(limb, caplog):
     # the sphere's tip ends at x = 1.6: 0.8 mm from the rigid core (radius 0.8 mm about z)
     ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(3.5, 0.0, 3.0), end_mm=(1.6, 0.0, 3.0))
