@@ -36,6 +36,7 @@ def test_patch_test_on_distorted_mesh(curved):
     np.testing.assert_allclose(r.deformation_gradient, np.broadcast_to(F0, r.deformation_gradient.shape), atol=1e-9)
 
 
+@pytest.mark.slow
 def test_newton_out_of_iterations_within_the_stall_tolerance_keeps_its_best_iterate():
     # a Newton matrix 2.5 x too stiff converges only linearly (error x 0.6 per iteration), like Newton with the
     # contact curvature term dropped: 14 iterations reach the stall tolerance but not rtol
@@ -293,6 +294,7 @@ def test_penetration_barrier_bounds_what_a_soft_penalty_lets_through(limb):
     assert walled.indenter_force_N > 2 * plain.indenter_force_N  # the skin is pushed, not passed through
 
 
+@pytest.mark.slow
 def test_energy_criterion_is_not_fooled_by_a_predictor_far_beyond_the_barrier(limb):
     # found on rat02 bar (pinched: solved first with the barrier): an increment's predictor left skin
     # beyond the barrier's limit, where its stiff continuation made the first Newton decrement 1e4 mJ;
@@ -314,6 +316,7 @@ def test_energy_criterion_is_not_fooled_by_a_predictor_far_beyond_the_barrier(li
     assert capped[-1] == pytest.approx(forces[None][-1], rel=0.05)
 
 
+@pytest.mark.slow
 def test_indenter_starting_inside_the_skin_is_backed_off_and_reaches_the_same_end_state(limb):
     # a bar tilted 30 deg whose axis starts 0.8 mm clear still dips its lower end 0.3 mm into the skin
     # (the hard case "bar tilted 30 deg" started 1.3 mm deep): the solver moves the start back along
