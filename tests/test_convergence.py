@@ -1,4 +1,4 @@
-"""Speed against error (issue 7): errors, Richardson, Pareto, goal, scaling, summary; one tiny run;
+"""Speed against error: errors, Richardson, Pareto, goal, scaling, summary; one tiny run;
 the SLURM profile's dry run. Known answers come from closed forms (c + k h^p), not from the code."""
 
 import os

@@ -36,6 +36,7 @@ def test_patch_test_on_distorted_mesh(curved):
     np.testing.assert_allclose(r.deformation_gradient, np.broadcast_to(F0, r.deformation_gradient.shape), atol=1e-9)
 
 
+@pytest.mark.slow
 def test_newton_out_of_iterations_within_the_stall_tolerance_keeps_its_best_iterate():
     # a Newton matrix 2.5 x too stiff converges only linearly (error x 0.6 per iteration), like Newton with the
     # contact curvature term dropped: 14 iterations reach the stall tolerance but not rtol
@@ -220,6 +221,7 @@ def test_sphere_with_bone_motion_reaches_full_depth_without_cutbacks(limb):
     assert r.indenter_force_N > 0.0
 
 
+@pytest.mark.slow
 def test_state_violating_contact_is_never_accepted(limb):
     # the AL / final-solve fallbacks keep penalty or loosely converged states; one that still
     # penetrates more than penetration_accept x facet size must be cut back, not reported converged
@@ -291,6 +293,7 @@ def test_penetration_barrier_bounds_what_a_soft_penalty_lets_through(limb):
     assert walled.indenter_force_N > 2 * plain.indenter_force_N  # the skin is pushed, not passed through
 
 
+@pytest.mark.slow
 def test_energy_criterion_is_not_fooled_by_a_predictor_far_beyond_the_barrier(limb):
     # an increment's predictor can leave skin beyond the barrier's limit (a pinched solve, solved first
     # with the barrier), where the barrier's stiff continuation makes the first Newton decrement huge;
@@ -312,6 +315,7 @@ def test_energy_criterion_is_not_fooled_by_a_predictor_far_beyond_the_barrier(li
     assert capped[-1] == pytest.approx(forces[None][-1], rel=0.05)
 
 
+@pytest.mark.slow
 def test_indenter_starting_inside_the_skin_is_backed_off_and_reaches_the_same_end_state(limb):
     # a bar tilted 30 deg whose axis starts 0.8 mm clear still dips its lower end 0.3 mm into the skin
     # (the hard case "bar tilted 30 deg" starts 1.3 mm deep): the solver moves the start back along
@@ -378,6 +382,7 @@ def test_indenter_ending_inside_the_bone_is_reported_infeasible_without_solving(
     assert ok.converged and 2.1 - 1e-9 <= ok.extra["bone_clearance_mm"] < 2.2
 
 
+@pytest.mark.slow
 def test_end_state_is_solved_again_with_stiffer_facets_until_within_the_penetration_tolerance(limb):
     # multiplier updates that stall (here: switched off) leave the penalty state of the last increment
     # penetrating; the facets concerned are stiffened, and the end state is solved again with them
@@ -415,6 +420,7 @@ def test_end_passes_never_cost_a_converged_solve_its_convergence(limb):
     assert capped.max_penetration_rel > full.max_penetration_rel
 
 
+@pytest.mark.slow
 def test_pinched_solve_starts_with_the_retry_settings_and_falls_back_to_plain(limb, caplog):
     # the sphere's tip ends at x = 1.6: 0.8 mm from the rigid core (radius 0.8 mm about z)
     ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(3.5, 0.0, 3.0), end_mm=(1.6, 0.0, 3.0))

@@ -149,6 +149,7 @@ def synthetic_study(tmp_path):
     return paths, vtus, outs, tmp_path
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("figure_animal", ["ratA"])
 def test_aggregate_study_writes_tables_and_figures(synthetic_study, figure_animal):
     paths, vtus, outs, root = synthetic_study

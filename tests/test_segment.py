@@ -125,6 +125,7 @@ def test_posterior_side_is_poorly_lit(ph):
     assert post < 0.6 * ant
 
 
+@pytest.mark.slow
 def test_contrast_fluid_does_not_leak_into_skin(ph, segmented):
     sc = _Scene(SPEC)
     skin = segmented["during"].skin
@@ -137,6 +138,7 @@ def test_contrast_fluid_does_not_leak_into_skin(ph, segmented):
         assert a_seg == pytest.approx(a_true, rel=0.01)
 
 
+@pytest.mark.slow
 def test_contour_convention(segmented):
     c = segmented["pre"]
     assert c.skin.shape == c.bone.shape == (20, 100, 3)

@@ -246,6 +246,7 @@ def _slab_volume(k, t):
     return 1.0 - np.sqrt(np.sqrt(4 + 16 * t**2) - 2) / k
 
 
+@pytest.mark.slow
 def test_gamma_sampled_at_points_measures_the_volume_above_a_threshold_inside_elements():
     """u_x = k y²/2 is exact in P2: simple shear of amount s = k y, γ_GL = s sqrt(s² + 4)/4 grows with y.
     On a mesh one element thick in y the volume with γ > t is the slab y > y_t; the 64 points per

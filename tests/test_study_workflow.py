@@ -64,6 +64,7 @@ def _snakemake(workdir, *targets_then_options):
     return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
 
 
+@pytest.mark.slow
 def test_the_solve_rule_schedules_the_longest_solves_first(tmp_path):
     # the dry run shows each solve job with its priority (deeptissue.variants.solve_priority): 10 for a bar
     # plus the phantom's depth, and 50 more for a variant others are turned from (they wait for it)

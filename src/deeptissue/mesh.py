@@ -441,36 +441,66 @@ def mesh_limb(
     animal: str = "?",
     msh_path=None,
 ) -> tuple[TetMesh, dict]:
-    """Quadratic (``order=2``, default) or linear (``order=1``) tetrahedral mesh of the limb between a
-    skin and a bone contour stack.
+    """Quadratic (default) or linear tetrahedral mesh of the limb between a skin and a bone contour stack.
 
-    skin, bone (n_slices, n_points, 3) world mm (checked by :func:`deeptissue.geometry.check_contours`).
-    Skin and tibia are lofted (OpenCASCADE ``addThruSections`` through closed splines of at most
-    ``spline_points`` points per contour; ``loft="ruled"``: straight between slices, the surface whose
-    volume is the prismatoid sum; ``"smooth"``: one smooth surface) and closed into the limb by the
-    two annular end faces; the ends are the planes of the
-    first (``distal``, lowest z) and last (``proximal``) slice. Element size ``element_size_mm``,
-    refined to ``refine_size_mm`` within ``refine_radius_mm`` of each refine segment, growing back over
-    ``refine_transition_mm``. Second order: with ``curved`` the boundary mid-edge nodes are placed on
-    the geometry (parametric midpoint), and straightened again in any element where that would make
-    the scaled Jacobian fall below ``min_scaled_jacobian``. First order (``order=1``): the same
-    geometry and size field, 4-node tets and 3-node facets, no mid-nodes (``curved`` and
-    ``min_curved_ratio`` do not apply; the gate checks the corner tets).
+    The steps: the limb solid (:func:`_occ_limb`) and its face groups (:func:`_boundary_groups`), the
+    size field (:func:`_mesh_size_field`), meshing and curving of the boundary mid-edge nodes
+    (:func:`_generate_and_curve`), the contact patches (:func:`_tag_patches`), extraction
+    (:func:`extract_tetmesh`) and the quality gate (:func:`_quality_gate`).
 
-    Facet sets: ``bone``, ``skin``, ``proximal``, ``distal``, and for each ``patches`` entry
-    (name -> :class:`PatchSpec`) the skin facets of that patch, and their union as ``patch_union``. Raises :class:`MeshQualityError`
-    (naming the animal) if an element is inverted or degenerate: a Jacobian determinant <= 0 anywhere
-    sampled in a curved element, a corner-tet scaled Jacobian below ``min_scaled_jacobian``, a
-    dihedral angle below ``min_dihedral_deg``, or gmsh's curved-element Jacobian ratio (minSJ, 1 for
-    straight elements) below ``min_curved_ratio`` (order 2 only). ``algorithm_3d``: "hxt" (fast) or "delaunay".
-    Returns the mesh and statistics (element count, quality, volumes, timings). Writes the gmsh
-    ``.msh`` (with physical groups, patches included) to ``msh_path`` if given.
+    Parameters
+    ----------
+    skin, bone : (n_slices, n_points, 3) array
+        Contour stacks [world mm] (checked by :func:`deeptissue.geometry.check_contours`). Skin and
+        tibia are lofted (OpenCASCADE ``addThruSections`` through closed splines of at most
+        ``spline_points`` points per contour) and closed into the limb by the two annular end faces,
+        the planes of the first (``distal``, lowest z) and last (``proximal``) slice.
+    element_size_mm : float
+        Element size away from the indenter [mm].
+    refine_size_mm, refine_radius_mm, refine_transition_mm : float
+        Element size within ``refine_radius_mm`` of each of ``refine_segments``
+        (:class:`RefineSegment`), growing back to ``element_size_mm`` over ``refine_transition_mm`` [mm].
+    patches : dict, optional
+        Name -> :class:`PatchSpec`: each becomes the facet set of its skin facets; their union is
+        the set ``patch_union`` (none if ``patch_union`` is None).
+    loft : {"ruled", "smooth"}
+        "ruled": straight between slices, the surface whose volume is the prismatoid sum; "smooth":
+        one smooth surface through all rings.
+    curved : bool
+        Second order only: place the boundary mid-edge nodes on the geometry (parametric midpoint),
+        straightened again in any element whose Jacobian ratio would fall below ``min_curved_ratio``.
+    min_scaled_jacobian, min_dihedral_deg, min_curved_ratio : float
+        Limits of the quality gate: corner-tet scaled Jacobian, dihedral angle [deg], and gmsh's
+        curved-element Jacobian ratio (minSJ, 1 for straight elements; order 2 only).
+    algorithm_3d : {"hxt", "delaunay"}
+        gmsh's 3-D algorithm ("hxt" is fast).
+    order : {2, 1}
+        10-node tets and 6-node facets, or 4-node tets and 3-node facets on the same geometry and size
+        field (no mid-nodes; the gate checks the corner tets).
+    animal : str
+        Named in every error message.
+    msh_path : path, optional
+        Where to write the gmsh ``.msh`` (physical groups, patches included).
+
+    Returns
+    -------
+    mesh : TetMesh
+        Facet sets ``bone``, ``skin``, ``proximal``, ``distal``, the patches and their union.
+    stats : dict
+        Element count, quality, volumes [mm^3], timings [s].
+
+    Raises
+    ------
+    MeshQualityError
+        If an element is inverted or degenerate (a Jacobian determinant <= 0 anywhere sampled in a
+        curved element, or a value below one of the gate's limits), a patch is empty, or gmsh fails.
+    ValueError
+        For an unknown ``loft``, ``order`` or ``algorithm_3d``.
     """
     import time
 
     import gmsh
 
-    from .geometry import select_patch
     from .io import atomic_path
 
     t_start = time.perf_counter()
@@ -479,7 +509,6 @@ def mesh_limb(
     if order not in TET_NODES:
         raise ValueError(f"animal {animal}: element order {order!r}: expected 1 (4-node) or 2 (10-node tetrahedra)")
     curved = bool(curved) and order == 2
-    tet_type, tri_type, n_fn = (GMSH_TET10, GMSH_TRI6, 6) if order == 2 else (GMSH_TET4, GMSH_TRI3, 3)
     stats: dict = {"element_order": int(order)}
     own_init = not gmsh.isInitialized()
     if own_init:
@@ -494,140 +523,14 @@ def mesh_limb(
             raise MeshQualityError(f"animal {animal}: the lofted limb is not one closed volume")
         stats["occ_volume_mm3"] = float(occ.getMass(3, vol))
         stats["occ_s"] = time.perf_counter() - t_start
-        z_lo, z_hi = float(np.mean(skin[0, :, 2])), float(np.mean(skin[-1, :, 2]))
-        groups = {"skin": [], "bone": [], "distal": [], "proximal": []}
-        skin_pts = np.asarray(skin, float).reshape(-1, 3)
-        bone_pts = np.asarray(bone, float).reshape(-1, 3)
-        for _, s in gmsh.model.getBoundary([(3, vol)], oriented=False):
-            bb = gmsh.model.getBoundingBox(2, s)
-            if bb[5] - bb[2] < 1e-6:
-                groups["distal" if abs(bb[2] - z_lo) < abs(bb[2] - z_hi) else "proximal"].append(s)
-                continue
-            lo, hi = gmsh.model.getParametrizationBounds(2, s)
-            x = np.asarray(gmsh.model.getValue(2, s, 0.5 * (np.asarray(lo) + np.asarray(hi))))
-            ds = np.min(np.linalg.norm(skin_pts - x, axis=1))
-            db = np.min(np.linalg.norm(bone_pts - x, axis=1))
-            groups["skin" if ds < db else "bone"].append(s)
-        for name, ents in groups.items():
-            if not ents:
-                raise MeshQualityError(f"animal {animal}: the limb solid has no {name} surface")
-        gmsh.model.addPhysicalGroup(3, [vol], name="limb")
-        for name, ents in groups.items():
-            gmsh.model.addPhysicalGroup(2, ents, name=name)
-
-        # mesh size: global, refined around the indenter travel
-        gmsh.option.setNumber("Mesh.MeshSizeMax", element_size_mm)
-        gmsh.option.setNumber("Mesh.MeshSizeMin", min(refine_size_mm, element_size_mm) * 0.5)
-        gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
-        gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)
-        gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
-        gmsh.option.setNumber("Mesh.Algorithm", 6)
-        if algorithm_3d not in _ALGORITHMS_3D:
-            raise ValueError(f"animal {animal}: algorithm_3d {algorithm_3d!r}: expected one of {sorted(_ALGORITHMS_3D)}")
-        gmsh.option.setNumber("Mesh.Algorithm3D", _ALGORITHMS_3D[algorithm_3d])
-        gmsh.option.setNumber("General.NumThreads", 1)
-        gmsh.option.setNumber("Mesh.OptimizeNetgen", 1)
-        gmsh.option.setNumber("Mesh.ElementOrder", 1)
-        gmsh.option.setNumber("Mesh.SecondOrderLinear", 1)
-        h, hr = float(element_size_mm), float(min(refine_size_mm, element_size_mm))
-        if refine_segments and hr < h:
-            # distance to points every refine_size/4 along each segment (free geometry points, not meshed
-            # into the limb), then a linear ramp from refine_size to element_size
-            pts = []
-            for seg in refine_segments:
-                a, b = np.asarray(seg.start_mm, float), np.asarray(seg.end_mm, float)
-                n = max(2, int(np.ceil(np.linalg.norm(b - a) / (0.25 * hr))) + 1)
-                pts += [occ.addPoint(*(a + t * (b - a))) for t in np.linspace(0, 1, n)]
-            occ.synchronize()
-            fd = gmsh.model.mesh.field.add("Distance")
-            gmsh.model.mesh.field.setNumbers(fd, "PointsList", pts)
-            ft = gmsh.model.mesh.field.add("Threshold")
-            gmsh.model.mesh.field.setNumber(ft, "InField", fd)
-            gmsh.model.mesh.field.setNumber(ft, "SizeMin", hr)
-            gmsh.model.mesh.field.setNumber(ft, "SizeMax", h)
-            gmsh.model.mesh.field.setNumber(ft, "DistMin", refine_radius_mm)
-            gmsh.model.mesh.field.setNumber(ft, "DistMax", refine_radius_mm + refine_transition_mm)
-            gmsh.model.mesh.field.setAsBackgroundMesh(ft)
-        t0 = time.perf_counter()
-        gmsh.model.mesh.generate(3)
-        stats["generate_s"] = time.perf_counter() - t0
-        ents = sorted(set((1, t) for d, t in gmsh.model.getEntities(1))) + [(2, s) for e2 in groups.values() for s in e2]
-        corner_params = _corner_params(gmsh, ents) if curved else {}
-        if order == 2:
-            gmsh.model.mesh.setOrder(2)
-        stats["order2_s"] = time.perf_counter() - t0 - stats["generate_s"]
-        t0 = time.perf_counter()
-
-        # curve boundary mid-edge nodes onto the geometry
-        tet_tags, tet_nodes = gmsh.model.mesh.getElementsByType(tet_type, vol)
-        tet_nodes = np.asarray(tet_nodes, np.int64).reshape(-1, TET_NODES[order])
-        n_curved = n_straightened = 0
-        if curved:
-            moved, n_bad = _curve_mid_nodes(gmsh, ents, corner_params)
-            straight = {}
-            for t in moved:
-                x, _, _, _ = gmsh.model.mesh.getNode(t)
-                straight[t] = np.asarray(x, float)
-            for t, (x, p) in moved.items():
-                gmsh.model.mesh.setNode(t, list(x), list(p))
-            n_curved = len(moved)
-            stats["mid_nodes_left_straight_implausible"] = n_bad
-            # straighten where curving spoils an element
-            for _ in range(5):
-                q = np.asarray(gmsh.model.mesh.getElementQualities(tet_tags, "minSJ"), float)
-                bad = q < min_curved_ratio
-                if not bad.any():
-                    break
-                fix = [t for t in np.unique(tet_nodes[bad][:, 4:]) if int(t) in straight and int(t) in moved]
-                if not fix:
-                    break
-                for t in fix:
-                    gmsh.model.mesh.setNode(int(t), list(straight[int(t)]), [])
-                    moved.pop(int(t))
-                n_straightened += len(fix)
-        stats["mid_nodes_curved"] = n_curved - n_straightened
-        stats["mid_nodes_straightened_for_quality"] = n_straightened
-        # gmsh's curved-element Jacobian ratio; straight (first-order) tets: 1
-        q = np.asarray(gmsh.model.mesh.getElementQualities(tet_tags, "minSJ"), float) if order == 2 else np.ones(len(tet_tags))
-        stats["curve_s"] = time.perf_counter() - t0
-
-        # patches: copies of the selected skin triangles as discrete surfaces with their own group
+        groups = _boundary_groups(gmsh, vol, skin, bone, animal=animal)
+        _mesh_size_field(gmsh, element_size_mm=element_size_mm, refine_size_mm=refine_size_mm,
+                         refine_radius_mm=refine_radius_mm, refine_transition_mm=refine_transition_mm,
+                         refine_segments=refine_segments, algorithm_3d=algorithm_3d, animal=animal)
+        q = _generate_and_curve(gmsh, vol, groups, order=order, curved=curved, min_curved_ratio=min_curved_ratio,
+                                stats=stats)
         if patches:
-            sk_el, sk_nodes = [], []
-            for s in groups["skin"]:
-                et_, en_ = gmsh.model.mesh.getElementsByType(tri_type, s)
-                sk_el.append(np.asarray(et_, np.int64))
-                sk_nodes.append(np.asarray(en_, np.int64).reshape(-1, n_fn))
-            sk_nodes = np.concatenate(sk_nodes)
-            ntags, ncoord, _ = gmsh.model.mesh.getNodes()
-            coords = np.zeros((int(np.max(ntags)) + 1, 3))
-            coords[np.asarray(ntags, np.int64)] = np.asarray(ncoord, float).reshape(-1, 3)
-            p = coords[sk_nodes[:, :3]]
-            cen = p.mean(axis=1)
-            nrm = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-            nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-            # make the normals point out of the limb: skin faces are outward if they point away from the bone axis
-            bone_c = np.asarray(bone, float).mean(axis=1)
-            zc = cen[:, 2]
-            bc = np.stack([np.interp(zc, bone_c[:, 2], bone_c[:, 0]), np.interp(zc, bone_c[:, 2], bone_c[:, 1])], axis=1)
-            outward = np.einsum("ij,ij->i", nrm[:, :2], cen[:, :2] - bc)
-            if np.median(np.sign(outward)) < 0:
-                nrm = -nrm
-            next_el = int(gmsh.model.mesh.getMaxElementTag()) + 1
-            sels = {}
-            for name, spec in patches.items():
-                sels[name] = select_patch(cen, nrm, point_mm=spec.point_mm, axis=spec.axis, radius_mm=spec.radius_mm,
-                                          half_length_mm=spec.half_length_mm, long_dir=spec.long_dir)
-                if not sels[name].any():
-                    raise MeshQualityError(f"animal {animal}: patch {name!r} is empty: no skin facet within {spec.radius_mm} mm of the axis faces the indenter")
-            if patch_union and patch_union not in sels:
-                sels[patch_union] = np.any(list(sels.values()), axis=0)
-            for name, sel in sels.items():
-                ent = gmsh.model.addDiscreteEntity(2)
-                tags = np.arange(next_el, next_el + int(sel.sum()))
-                next_el += len(tags)
-                gmsh.model.mesh.addElementsByType(ent, tri_type, tags.tolist(), sk_nodes[sel].ravel().tolist())
-                gmsh.model.addPhysicalGroup(2, [ent], name=name)
+            _tag_patches(gmsh, groups, bone, patches, patch_union=patch_union, order=order, animal=animal)
         mesh = extract_tetmesh(gmsh, order=order)
         if msh_path is not None:
             with atomic_path(msh_path) as tmp:
@@ -642,7 +545,200 @@ def mesh_limb(
         else:
             gmsh.model.remove()
 
-    # quality gate (independent numpy checks too)
+    _quality_gate(mesh, q, min_scaled_jacobian=min_scaled_jacobian, min_dihedral_deg=min_dihedral_deg,
+                  min_curved_ratio=min_curved_ratio, algorithm_3d=algorithm_3d, animal=animal, stats=stats,
+                  t_start=t_start)
+    return mesh, stats
+
+
+def _boundary_groups(g, vol: int, skin: np.ndarray, bone: np.ndarray, *, animal: str) -> dict:
+    """Sort the boundary faces of the limb volume into physical groups.
+
+    Flat faces are the ends (``distal`` nearer the first slice, ``proximal`` the last); a curved face is
+    ``skin`` or ``bone`` by which contour stack is closer to its parametric centre. Adds the volume
+    group ``limb`` and the four face groups to the gmsh model.
+
+    Returns
+    -------
+    dict
+        Face tags of each group {"skin", "bone", "distal", "proximal"}.
+    """
+    z_lo, z_hi = float(np.mean(skin[0, :, 2])), float(np.mean(skin[-1, :, 2]))
+    groups = {"skin": [], "bone": [], "distal": [], "proximal": []}
+    skin_pts = np.asarray(skin, float).reshape(-1, 3)
+    bone_pts = np.asarray(bone, float).reshape(-1, 3)
+    for _, s in g.model.getBoundary([(3, vol)], oriented=False):
+        bb = g.model.getBoundingBox(2, s)
+        if bb[5] - bb[2] < 1e-6:
+            groups["distal" if abs(bb[2] - z_lo) < abs(bb[2] - z_hi) else "proximal"].append(s)
+            continue
+        lo, hi = g.model.getParametrizationBounds(2, s)
+        x = np.asarray(g.model.getValue(2, s, 0.5 * (np.asarray(lo) + np.asarray(hi))))
+        ds = np.min(np.linalg.norm(skin_pts - x, axis=1))
+        db = np.min(np.linalg.norm(bone_pts - x, axis=1))
+        groups["skin" if ds < db else "bone"].append(s)
+    for name, ents in groups.items():
+        if not ents:
+            raise MeshQualityError(f"animal {animal}: the limb solid has no {name} surface")
+    g.model.addPhysicalGroup(3, [vol], name="limb")
+    for name, ents in groups.items():
+        g.model.addPhysicalGroup(2, ents, name=name)
+    return groups
+
+
+def _mesh_size_field(g, *, element_size_mm: float, refine_size_mm: float, refine_radius_mm: float,
+                     refine_transition_mm: float, refine_segments, algorithm_3d: str, animal: str) -> None:
+    """Set the meshing options and the size field: ``element_size_mm`` everywhere, ``refine_size_mm``
+    within ``refine_radius_mm`` of each refine segment, a linear ramp back over ``refine_transition_mm``."""
+    g.option.setNumber("Mesh.MeshSizeMax", element_size_mm)
+    g.option.setNumber("Mesh.MeshSizeMin", min(refine_size_mm, element_size_mm) * 0.5)
+    g.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
+    g.option.setNumber("Mesh.MeshSizeFromPoints", 0)
+    g.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
+    g.option.setNumber("Mesh.Algorithm", 6)
+    if algorithm_3d not in _ALGORITHMS_3D:
+        raise ValueError(f"animal {animal}: algorithm_3d {algorithm_3d!r}: expected one of {sorted(_ALGORITHMS_3D)}")
+    g.option.setNumber("Mesh.Algorithm3D", _ALGORITHMS_3D[algorithm_3d])
+    g.option.setNumber("General.NumThreads", 1)
+    g.option.setNumber("Mesh.OptimizeNetgen", 1)
+    g.option.setNumber("Mesh.ElementOrder", 1)
+    g.option.setNumber("Mesh.SecondOrderLinear", 1)
+    h, hr = float(element_size_mm), float(min(refine_size_mm, element_size_mm))
+    if refine_segments and hr < h:
+        # distance to points every refine_size/4 along each segment (free geometry points, not meshed
+        # into the limb), then a linear ramp from refine_size to element_size
+        occ = g.model.occ
+        pts = []
+        for seg in refine_segments:
+            a, b = np.asarray(seg.start_mm, float), np.asarray(seg.end_mm, float)
+            n = max(2, int(np.ceil(np.linalg.norm(b - a) / (0.25 * hr))) + 1)
+            pts += [occ.addPoint(*(a + t * (b - a))) for t in np.linspace(0, 1, n)]
+        occ.synchronize()
+        fd = g.model.mesh.field.add("Distance")
+        g.model.mesh.field.setNumbers(fd, "PointsList", pts)
+        ft = g.model.mesh.field.add("Threshold")
+        g.model.mesh.field.setNumber(ft, "InField", fd)
+        g.model.mesh.field.setNumber(ft, "SizeMin", hr)
+        g.model.mesh.field.setNumber(ft, "SizeMax", h)
+        g.model.mesh.field.setNumber(ft, "DistMin", refine_radius_mm)
+        g.model.mesh.field.setNumber(ft, "DistMax", refine_radius_mm + refine_transition_mm)
+        g.model.mesh.field.setAsBackgroundMesh(ft)
+
+
+def _generate_and_curve(g, vol: int, groups: dict, *, order: int, curved: bool, min_curved_ratio: float,
+                        stats: dict) -> np.ndarray:
+    """Mesh the volume (first order, then ``order``) and, if ``curved``, move the boundary mid-edge
+    nodes onto the geometry, straightening them again in elements whose Jacobian ratio (minSJ) falls
+    below ``min_curved_ratio`` (at most five rounds). Records timings and node counts in ``stats``.
+
+    Returns
+    -------
+    (n_tets,) array
+        gmsh's curved-element Jacobian ratio of each tetrahedron (1 for first-order tets).
+    """
+    import time
+
+    tet_type = GMSH_TET10 if order == 2 else GMSH_TET4
+    t0 = time.perf_counter()
+    g.model.mesh.generate(3)
+    stats["generate_s"] = time.perf_counter() - t0
+    ents = sorted(set((1, t) for d, t in g.model.getEntities(1))) + [(2, s) for e2 in groups.values() for s in e2]
+    corner_params = _corner_params(g, ents) if curved else {}
+    if order == 2:
+        g.model.mesh.setOrder(2)
+    stats["order2_s"] = time.perf_counter() - t0 - stats["generate_s"]
+    t0 = time.perf_counter()
+
+    tet_tags, tet_nodes = g.model.mesh.getElementsByType(tet_type, vol)
+    tet_nodes = np.asarray(tet_nodes, np.int64).reshape(-1, TET_NODES[order])
+    n_curved = n_straightened = 0
+    if curved:
+        moved, n_bad = _curve_mid_nodes(g, ents, corner_params)
+        straight = {}
+        for t in moved:
+            x, _, _, _ = g.model.mesh.getNode(t)
+            straight[t] = np.asarray(x, float)
+        for t, (x, p) in moved.items():
+            g.model.mesh.setNode(t, list(x), list(p))
+        n_curved = len(moved)
+        stats["mid_nodes_left_straight_implausible"] = n_bad
+        # straighten where curving spoils an element
+        for _ in range(5):
+            q = np.asarray(g.model.mesh.getElementQualities(tet_tags, "minSJ"), float)
+            bad = q < min_curved_ratio
+            if not bad.any():
+                break
+            fix = [t for t in np.unique(tet_nodes[bad][:, 4:]) if int(t) in straight and int(t) in moved]
+            if not fix:
+                break
+            for t in fix:
+                g.model.mesh.setNode(int(t), list(straight[int(t)]), [])
+                moved.pop(int(t))
+            n_straightened += len(fix)
+    stats["mid_nodes_curved"] = n_curved - n_straightened
+    stats["mid_nodes_straightened_for_quality"] = n_straightened
+    q = np.asarray(g.model.mesh.getElementQualities(tet_tags, "minSJ"), float) if order == 2 else np.ones(len(tet_tags))
+    stats["curve_s"] = time.perf_counter() - t0
+    return q
+
+
+def _tag_patches(g, groups: dict, bone: np.ndarray, patches: dict, *, patch_union: str | None, order: int,
+                 animal: str) -> None:
+    """Add each contact patch (name -> :class:`PatchSpec`), and their union as ``patch_union``, as a
+    discrete surface holding copies of the selected skin triangles, with a physical group of its name.
+
+    Skin normals are turned to point away from the bone's axis (interpolated along z); a patch
+    without a facet raises :class:`MeshQualityError`.
+    """
+    from .geometry import select_patch
+
+    tri_type, n_fn = (GMSH_TRI6, 6) if order == 2 else (GMSH_TRI3, 3)
+    sk_nodes = []
+    for s in groups["skin"]:
+        _, en_ = g.model.mesh.getElementsByType(tri_type, s)
+        sk_nodes.append(np.asarray(en_, np.int64).reshape(-1, n_fn))
+    sk_nodes = np.concatenate(sk_nodes)
+    ntags, ncoord, _ = g.model.mesh.getNodes()
+    coords = np.zeros((int(np.max(ntags)) + 1, 3))
+    coords[np.asarray(ntags, np.int64)] = np.asarray(ncoord, float).reshape(-1, 3)
+    p = coords[sk_nodes[:, :3]]
+    cen = p.mean(axis=1)
+    nrm = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    # make the normals point out of the limb: skin faces are outward if they point away from the bone axis
+    bone_c = np.asarray(bone, float).mean(axis=1)
+    zc = cen[:, 2]
+    bc = np.stack([np.interp(zc, bone_c[:, 2], bone_c[:, 0]), np.interp(zc, bone_c[:, 2], bone_c[:, 1])], axis=1)
+    outward = np.einsum("ij,ij->i", nrm[:, :2], cen[:, :2] - bc)
+    if np.median(np.sign(outward)) < 0:
+        nrm = -nrm
+    next_el = int(g.model.mesh.getMaxElementTag()) + 1
+    sels = {}
+    for name, spec in patches.items():
+        sels[name] = select_patch(cen, nrm, point_mm=spec.point_mm, axis=spec.axis, radius_mm=spec.radius_mm,
+                                  half_length_mm=spec.half_length_mm, long_dir=spec.long_dir)
+        if not sels[name].any():
+            raise MeshQualityError(f"animal {animal}: patch {name!r} is empty: no skin facet within {spec.radius_mm} mm of the axis faces the indenter")
+    if patch_union and patch_union not in sels:
+        sels[patch_union] = np.any(list(sels.values()), axis=0)
+    for name, sel in sels.items():
+        ent = g.model.addDiscreteEntity(2)
+        tags = np.arange(next_el, next_el + int(sel.sum()))
+        next_el += len(tags)
+        g.model.mesh.addElementsByType(ent, tri_type, tags.tolist(), sk_nodes[sel].ravel().tolist())
+        g.model.addPhysicalGroup(2, [ent], name=name)
+
+
+def _quality_gate(mesh: TetMesh, q: np.ndarray, *, min_scaled_jacobian: float, min_dihedral_deg: float,
+                  min_curved_ratio: float, algorithm_3d: str, animal: str, stats: dict, t_start: float) -> None:
+    """Check the extracted mesh with numpy (independently of gmsh) and record its quality in ``stats``.
+
+    Raises :class:`MeshQualityError` naming every violated limit: a Jacobian determinant <= 0 in a
+    (curved) element, a corner-tet scaled Jacobian below ``min_scaled_jacobian``, a dihedral angle
+    below ``min_dihedral_deg``, or a gmsh Jacobian ratio ``q`` below ``min_curved_ratio``.
+    """
+    import time
+
     corners = mesh.nodes_mm[mesh.tets[:, :4]]
     dih = _tet_dihedral_deg(corners)
     sj = tet_scaled_jacobian(corners)
@@ -672,7 +768,6 @@ def mesh_limb(
         problems.append(f"{int(np.sum(q < min_curved_ratio))} curved element(s) with a Jacobian ratio below {min_curved_ratio} (min {q.min():.3g})")
     if problems:
         raise MeshQualityError(f"animal {animal}: mesh refused: " + "; ".join(problems))
-    return mesh, stats
 
 
 def tet10_volume_mm3(mesh: TetMesh) -> float:

@@ -1,4 +1,5 @@
-# Rules of the fem stage: verification and benchmark of the FE core (target `verify`, not part of `all`).
+# Rules of the fem stage: verification and benchmark of the FE core (target `verify`, not part of `all`);
+# verify_summary writes one row per check, and `verify` fails if any of them has status `fail`.
 
 
 rule verify_hertz:
@@ -76,6 +77,26 @@ rule verify_locking:
         "../scripts/verify_fem_locking.py"
 
 
+rule verify_summary:
+    input:
+        points=rules.verify_material.output.points,
+        hertz=rules.verify_hertz.output.hertz,
+        curve=rules.verify_hertz_curve.output.curve,
+        locking=rules.verify_locking.output.locking,
+        checks=rules.verify_fem_cases.output.checks,
+        hard=rules.verify_fem_cases.output.hard,
+        benchmark=rules.verify_fem_benchmark.output.benchmark,
+    output:
+        summary="results/verification/summary.csv",
+    log:
+        "results/logs/verify_summary.log",
+    conda:
+        "../envs/deeptissue.yaml"
+    script:
+        "../scripts/verify_summary.py"
+
+
+# the target: every verification output, and a failure naming the checks whose status is `fail`
 rule verify:
     input:
         rules.verify_material.output,
@@ -84,3 +105,10 @@ rule verify:
         rules.verify_fem_cases.output,
         rules.verify_fem_benchmark.output,
         rules.verify_locking.output,
+        summary=rules.verify_summary.output.summary,
+    log:
+        "results/logs/verify.log",
+    conda:
+        "../envs/deeptissue.yaml"
+    script:
+        "../scripts/verify_check.py"

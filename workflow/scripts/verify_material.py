@@ -1,4 +1,4 @@
-"""Glue of rule verify_material: material-point checks, homogeneous responses, speed."""
+"""Glue of rule verify_material: material-point checks, homogeneous responses, speed (failures recorded, not raised)."""
 
 from deeptissue.fem.material import Ogden
 from deeptissue.fem.material_checks import run_material_verification
@@ -11,4 +11,5 @@ with script_log(snakemake.log[0], "verify_material"):
         homogeneous_csv=snakemake.output.homogeneous,
         figure_png=snakemake.output.figure,
         speed_csv=snakemake.output.speed,
+        raise_on_failure=False,  # rule verify_summary judges the checks
     )

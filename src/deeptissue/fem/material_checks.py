@@ -313,10 +313,12 @@ def _write_csv(df: pd.DataFrame, path) -> None:
         df.to_csv(tmp, index=False, float_format="%.10g")
 
 
-def run_material_verification(material: Ogden, *, point_csv, homogeneous_csv, figure_png, speed_csv) -> pd.DataFrame:
+def run_material_verification(material: Ogden, *, point_csv, homogeneous_csv, figure_png, speed_csv,
+                              raise_on_failure: bool = True) -> pd.DataFrame:
     """Write the material-point checks, the homogeneous responses and their plot, and the speed table.
 
-    Raises RuntimeError naming the failed checks (after writing the files) if any check fails.
+    Raises RuntimeError naming the failed checks (after writing the files) if any check fails and
+    ``raise_on_failure``; the rule verify_material passes False and leaves the verdict to the summary.
     """
     hom = homogeneous_responses(material)
     _write_csv(hom, homogeneous_csv)
@@ -327,6 +329,6 @@ def run_material_verification(material: Ogden, *, point_csv, homogeneous_csv, fi
     _write_csv(speed, speed_csv)
     log.info("material %s\n%s\n%s", material, checks.to_string(index=False), speed.to_string(index=False))
     failed = checks[~checks["pass"]]
-    if len(failed):
+    if raise_on_failure and len(failed):
         raise RuntimeError("material verification failed: " + "; ".join(f"{r.case}: {r.quantity} error {r.max_error:.3g} > {r.tolerance:.3g}" for r in failed.itertuples()))
     return checks

@@ -1,0 +1,41 @@
+"""Speed against error: one animal and variant solved at a ladder of discretisations.
+
+The settings and the accuracy goal are in :mod:`.ladder`; one timed run (mesh, solve,
+post-processing and a linear-elastic reference) in :mod:`.runs`; the errors against the finest
+converged run, Richardson extrapolation, the Pareto front and the scaling fits in :mod:`.analysis`;
+summary.md, the error-vs-time figure and rule ``convergence_aggregate`` in :mod:`.report`.
+
+Units: mm, N, s, MB (resident memory, 2**20 bytes); percentages in %, bin errors in percentage
+points (pp).
+"""
+
+from .analysis import (
+    ESTIMATES,
+    Richardson,
+    ScalingFit,
+    convergence_table,
+    goal_error,
+    pareto_mask,
+    reference_rows,
+    richardson_by_family,
+    richardson_extrapolation,
+    scaling_fit,
+    scaling_fits,
+    setting_table,
+    size_measure,
+)
+from .ladder import SUPPORTED_ELEMENT_ORDERS, AccuracyGoal, Discretisation, Ladder, default_ladder, setting_name
+from .report import aggregate_convergence, plot_error_vs_time, read_benchmark, summary_markdown, write_summary_md
+from .runs import ROW_COLUMNS, linear_reference_solve, run_convergence_job, run_discretisation
+
+__all__ = [
+    # ladder
+    "SUPPORTED_ELEMENT_ORDERS", "AccuracyGoal", "Discretisation", "Ladder", "default_ladder", "setting_name",
+    # runs
+    "ROW_COLUMNS", "linear_reference_solve", "run_convergence_job", "run_discretisation",
+    # analysis
+    "ESTIMATES", "Richardson", "ScalingFit", "convergence_table", "goal_error", "pareto_mask", "reference_rows",
+    "richardson_by_family", "richardson_extrapolation", "scaling_fit", "scaling_fits", "setting_table", "size_measure",
+    # report
+    "aggregate_convergence", "plot_error_vs_time", "read_benchmark", "summary_markdown", "write_summary_md",
+]

@@ -1,0 +1,103 @@
+"""The verification summary: one row per check from the tables of the ``verify`` rules, and the failures."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from deeptissue.fem.verification import (
+    HERTZ_REL_LIMIT,
+    KNOWN_FAILURES,
+    SUMMARY_COLUMNS,
+    failed_checks,
+    verification_summary,
+    write_verification_summary,
+)
+
+
+def _tables(*, hertz_error=0.002, hard_30_converged=False, patch_error=1e-12, curve_stopped=False):
+    points = pd.DataFrame(dict(case=["reference F=I", "uniaxial"], quantity=["|W| / mu", "nominal_stress_kpa vs analytic"],
+                               max_error=[0.0, 3e-12], tolerance=[1e-12, 1e-10], **{"pass": [True, True]}))
+    hertz = pd.DataFrame(dict(depth_mm=[0.05, 0.1, 0.15], force_N=[1.0, 2.0, 3.0], hertz_N=[1.0, 2.0, 3.0],
+                              rel_error=[-0.001, hertz_error, -0.0027]))
+    curve = pd.DataFrame(dict(depth_mm=[1.5, 3.0], force_N=[0.04, 0.0975], hertz_N=[0.04, 0.1126], rel_error=[-0.05, -0.134],
+                              status=["converged", "converged"]))
+    if curve_stopped:
+        curve.loc[1] = dict(depth_mm=3.0, force_N=np.nan, hertz_N=0.1126, rel_error=np.nan,
+                            status="not converged: line search failed")
+    locking = pd.DataFrame(dict(d_mm2_per_n=[57.0, 0.57], nu=[0.45, 0.4995], depth_mm=[0.15, 0.15], force_N=[1.0, 1.0],
+                                hertz_N=[1.0, 1.0], rel_error=[-0.008, 0.022], n_dofs=[16065, 16065], converged=[True, True]))
+    checks = pd.DataFrame([
+        dict(case="patch test, straight distorted", converged=True, max_displacement_error_mm=patch_error, max_F_error=1e-13,
+             max_abs_green_strain=np.nan, max_position_error_mm=np.nan),
+        dict(case="rigid bone 15 deg", converged=True, max_displacement_error_mm=np.nan, max_F_error=np.nan,
+             max_abs_green_strain=2e-9, max_position_error_mm=3e-9),
+    ])
+    solve = dict(attempts=1, increments=9, newton_iterations=122, indenter_force_N=0.2, max_penetration_rel=0.009,
+                 n_dofs=20373, wall_s=63.0)
+    hard = pd.DataFrame([
+        dict(case="sphere to depth 2R (3 mm)", converged=True, reason="converged", load_reached=4.0, **solve),
+        dict(case="bar tilted 30 deg, 2 mm", converged=hard_30_converged, reason="line search failed",
+             load_reached=4.0 if hard_30_converged else 3.6051, **solve),
+    ])
+    bench = pd.DataFrame([dict(case="reference sphere 2 mm", linear_solver="pardiso", converged=True, load_reached=4.0,
+                               increments=3, newton_iterations=25, wall_s=45.0)])
+    return dict(points=points, hertz=hertz, curve=curve, locking=locking, checks=checks, hard=hard, benchmark=bench)
+
+
+def _status(summary, check):
+    return summary.set_index("check").loc[check, "status"]
+
+
+def test_a_passing_set_of_tables_has_only_passing_and_known_failures():
+    s = verification_summary(**_tables())
+    assert list(s.columns) == SUMMARY_COLUMNS
+    assert s["check"].is_unique
+    # 2 material + 2 Hertz + 1 curve + 2 locking + 4 fem checks + 2 hard cases + 1 benchmark
+    assert len(s) == 14
+    assert set(s["status"]) == {"pass", "known-failure"}
+    assert failed_checks(s) == []
+    assert _status(s, "homogeneous: uniaxial: nominal_stress_kpa vs analytic") == "pass"
+    assert _status(s, "material point: reference F=I: |W| / mu") == "pass"
+    row = s.set_index("check").loc["hard case: bar tilted 30 deg, 2 mm"]
+    assert row["status"] == "known-failure"
+    assert row["value"] == pytest.approx(3.6051) and row["limit"] == 4.0
+    assert KNOWN_FAILURES["hard case: bar tilted 30 deg, 2 mm"] in row["note"] and "line search failed" in row["note"]
+
+
+def test_a_check_beyond_its_limit_fails_and_is_named():
+    s = verification_summary(**_tables(hertz_error=HERTZ_REL_LIMIT + 0.001, patch_error=1e-6))
+    assert failed_checks(s) == ["Hertz: max |F / F_Hertz - 1| to 0.1 R",
+                                "fem check: patch test, straight distorted: max_displacement_error_mm"]
+    assert _status(s, "hard case: sphere to depth 2R (3 mm)") == "pass"
+
+
+def test_a_curve_that_stops_short_fails():
+    s = verification_summary(**_tables(curve_stopped=True))
+    assert failed_checks(s) == ["Hertz curve: depth reached [mm]"]
+    assert "line search failed" in s.set_index("check").loc["Hertz curve: depth reached [mm]", "note"]
+
+
+def test_a_known_failure_that_converges_passes_and_an_unlisted_one_fails():
+    assert _status(verification_summary(**_tables(hard_30_converged=True)), "hard case: bar tilted 30 deg, 2 mm") == "pass"
+    s = verification_summary(**_tables(), known_failures={})
+    assert failed_checks(s) == ["hard case: bar tilted 30 deg, 2 mm"]
+
+
+def test_a_failed_material_row_fails_whatever_its_pass_column_says():
+    t = _tables()
+    t["points"].loc[0, "max_error"] = 1e-6  # the row keeps pass=True: the summary compares value and limit itself
+    assert failed_checks(verification_summary(**t)) == ["material point: reference F=I: |W| / mu"]
+
+
+def test_the_summary_is_written_from_the_csv_files(tmp_path):
+    paths = {}
+    for name, df in _tables(patch_error=1.0).items():
+        paths[name] = tmp_path / f"{name}.csv"
+        df.to_csv(paths[name], index=False)
+    out = tmp_path / "summary.csv"
+    s = write_verification_summary(point_csv=paths["points"], hertz_csv=paths["hertz"], curve_csv=paths["curve"],
+                                   locking_csv=paths["locking"], checks_csv=paths["checks"], hard_csv=paths["hard"],
+                                   benchmark_csv=paths["benchmark"], summary_csv=out)
+    back = pd.read_csv(out)
+    assert list(back.columns) == SUMMARY_COLUMNS and len(back) == len(s)
+    assert failed_checks(back) == ["fem check: patch test, straight distorted: max_displacement_error_mm"]

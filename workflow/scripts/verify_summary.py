@@ -1,0 +1,19 @@
+"""Glue of rule verify_summary: one row per check of the verification tables (written even if checks fail)."""
+
+import logging
+
+from deeptissue.fem.verification import write_verification_summary
+from deeptissue.io import script_log
+
+with script_log(snakemake.log[0], "verify_summary"):  # noqa: F821
+    summary = write_verification_summary(
+        point_csv=snakemake.input.points,  # noqa: F821
+        hertz_csv=snakemake.input.hertz,  # noqa: F821
+        curve_csv=snakemake.input.curve,  # noqa: F821
+        locking_csv=snakemake.input.locking,  # noqa: F821
+        checks_csv=snakemake.input.checks,  # noqa: F821
+        hard_csv=snakemake.input.hard,  # noqa: F821
+        benchmark_csv=snakemake.input.benchmark,  # noqa: F821
+        summary_csv=snakemake.output.summary,  # noqa: F821
+    )
+    logging.info("verification summary\n%s", summary.to_string(index=False))
