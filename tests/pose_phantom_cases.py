@@ -1,4 +1,4 @@
-"""The six digital phantoms behind the README's pose accuracy numbers (Stage 2), and a script that
+"""The six digital phantoms behind the pose accuracy numbers of docs/verification.md, and a script that
 measures them.
 
 The three demo animals of ``config/config.yaml`` plus three hard cases: tilts of (25, 0), (0, 25)

@@ -26,7 +26,7 @@ CASES = {
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", list(CASES))
-def test_pose_on_phantom_within_issue_tolerances(name):
+def test_pose_on_phantom_within_the_accuracy_tolerances(name):
     ph = make_phantom(PhantomSpec(**CASES[name], supersample=4))
     pose, _ = estimate_pose(ph.during, ph.affine, ph.truth_pre, ph.truth_during, animal=name)
     truth = ph.truth

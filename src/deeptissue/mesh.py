@@ -177,7 +177,7 @@ def _occ_loft(occ, rings: np.ndarray, n_spline: int, ruled: bool = False) -> int
     """Solid through closed splines of every ring (n_slices, n_points, 3); returns the volume tag.
 
     ``ruled``: straight rulings between consecutive rings (one face per slice gap); else one smooth
-    OpenCASCADE surface through all rings (which can bulge between noisy slices, see README)."""
+    OpenCASCADE surface through all rings (which can bulge between noisy slices)."""
     step = max(1, int(np.ceil(rings.shape[1] / n_spline)))
     wires = []
     for r in rings:

@@ -107,7 +107,7 @@ def mesh_groups(variants, by: str = "animal") -> dict:
     sweep), each refined only where its own indenter goes. ``'animal'`` is the default because the
     smaller per-indenter meshes, though faster (on rat02 of config/paper.yaml at 1.6 / 0.8 mm the sphere
     mesh has 34 422 DOFs against 45 633 for the shared one, and its solves take about half the time),
-    miss the 1 pp accuracy goal on the bin percentages (README, Speed against error).
+    miss the 1 pp accuracy goal on the bin percentages (docs/performance.md).
 
     Parameters
     ----------

@@ -19,7 +19,7 @@ s_hat = limit - onset, the IPC-type potential b(s) = -kappa (s - s_hat)^2 ln(s /
 second-order Taylor polynomial so that every state keeps a finite energy (an increment's predictor may
 start beyond the limit). Its pressure -b'(s) adds to p and its stiffness b''(s) (about kappa s_hat^2 /
 s^2 near the limit) to the normal tangent. A finite penalty lets pinched tissue lower its energy by
-pushing through a curved indenter (measured on the bar tilted 30 deg, Stage 4 of the README); the
+pushing through a curved indenter (the bar tilted 30 deg of the hard cases, docs/verification.md); the
 barrier makes that way out cost more the deeper it goes, and is zero in the states the multiplier
 updates deliver (penetration below penetration_tol < onset).
 """

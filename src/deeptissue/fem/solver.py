@@ -43,51 +43,35 @@ class SolverSettings:
     rtol: residual norm over the free dofs relative to the internal-force norm at the end of each
     step (rtol_intermediate inside a step: the problem is path independent, so only converged end
     states need full accuracy; to record accurate curves set rtol_intermediate = rtol and
-    energy_rtol_intermediate = energy_rtol); energy_rtol: alternatively
-    converged when the Newton decrement |r . du| falls below this fraction of the first one of the
-    increment (FEBio-style energy norm; ends stagnation caused by active-set chatter; decrement_cap below
-    bounds that first one); atol_mu_rel: absolute
-    floor, as a fraction of mu * V^(2/3) [N]; atol_intermediate_mu_rel: the same in the bone-rotation
-    steps when loose_rotation_steps (their forces are tiny, so a purely relative tolerance asks those
-    states for digits nobody reads; measured: the same floor inside the indentation step made the
-    reference benchmark take 39 instead of 25 iterations through a different increment path). Increments are fractions of a load step.
+    energy_rtol_intermediate = energy_rtol); energy_rtol: alternatively converged when the Newton
+    decrement |r . du| falls below this fraction of the first one of the increment (FEBio-style
+    energy norm; ends stagnation caused by active-set chatter); atol_mu_rel: absolute floor, as a
+    fraction of mu * V^(2/3) [N]; atol_intermediate_mu_rel: the same in the bone-rotation steps when
+    loose_rotation_steps (their forces are tiny; inside the indentation step the floor would change
+    the increment path). Increments are fractions of a load step.
     penalty_factor: penalty = factor * E / h (E small-strain Young's modulus, h facet size).
     penetration_tol: allowed penetration / facet size after the augmented-Lagrangian updates at the
     end of each step (penetration_tol_intermediate inside a step); penetration_accept: an increment whose
-    state still penetrates more than this x facet size (the augmented-Lagrangian passes or the final
-    tight solve did not converge) is cut back, never accepted.
+    state still penetrates more than this x facet size is cut back, never accepted.
     penalty_growth, max_penalty_growth: facets still penetrating more than the tolerance when an
     increment ends (the multiplier updates stalled: high pressure on a curved indenter makes the
     discrete contact soft in sliding) get their penalty multiplied by penalty_growth, up to
     max_penalty_growth x the initial one, for the following increments and the retry of a cut one.
     barrier_onset_rel, barrier_limit_rel, barrier_stiffness: the contact penetration barrier
     (deeptissue.fem.contact): it starts at a penetration of barrier_onset_rel x facet size, its
-    potential would be infinite at barrier_limit_rel x facet size (by default penetration_accept's bound), and
-    kappa = barrier_stiffness x the facet's initial penalty; barrier_onset_rel None (the default of the
-    first try) switches it off, retry_barrier_onset_rel below sets it for the retry. States within
-    penetration_tol never feel it. Not in the first try because an increment's predictor moves the
-    indenter a whole increment into skin not yet in contact, beyond the limit, where the barrier's
-    stiff continuation is balanced by crushed elements for a while (measured on rat01 sphere: 132
-    instead of 61 Newton iterations, the same answer).
+    potential would be infinite at barrier_limit_rel x facet size (by default penetration_accept's bound),
+    and kappa = barrier_stiffness x the facet's initial penalty; barrier_onset_rel None (the default of
+    the first try) switches it off, retry_barrier_onset_rel sets it for the retry. States within
+    penetration_tol never feel it. It is off in the first try because an increment's predictor moves
+    the indenter a whole increment into skin not yet in contact, beyond the limit, where the barrier's
+    stiff continuation costs many iterations.
     decrement_cap: the energy criterion's reference, the increment's first Newton decrement, is capped at
-    decrement_cap x the strain energy of the last converged state (at least 1 % of mu V, the strain energy
-    of a 0.14 shear strain through the whole limb) [mJ]; None (default): uncapped. A predictor that leaves
-    skin beyond the penetration barrier's limit makes that first decrement huge (rat02 bar, solved
-    pinched: 1.3e4 mJ against a strain energy of 2.5e-4 mJ), and measured against it a crushed state with
-    3.2 N on the indenter (0.05 N at equilibrium) passed as converged; the solve then spent ~90 iterations
-    getting out of it. Measured with decrement_cap 10 (session 14): rat02 bar 241 -> 185 iterations,
-    511 -> 339 s, the same answer, the demo 18 min 42 s -> 15 min 40 s; but the bar tilted 30 deg of
-    the hard cases (2.0 / 0.7 mm copy, pinched too), whose barrier increments start from decrements of
-    17-111 mJ, then no longer converged (t = 3.9923 and 3.8720 in its two tries; uncapped: 370 iterations
-    to the end), and sphere to depth 2R needed its retry. Session 17: caps of 100 and 1000 do the same on
-    rat02 bar (183 / 184 iterations instead of 239, VOI within 0.012 %) and the same harm (the 30 deg copy
-    stops at t = 3.9923 with either, sphere to 2R needs its retry with 1000): not the default.
-    easy_iterations: an increment that converged in at most this many Newton iterations lets the next one grow
-    by grow_factor. Session 17 (demo): 6 instead of 4 takes 987 instead of 1 033 iterations (the bars -3 to
-    -15 %, rat02 bar 239 -> 203; the spheres unchanged), answers within 0.03 % VOI, 0.05 % force;
-    config/paper.yaml 60 of 60 converged, 4 652 instead of 5 144 iterations, but 41 min 58 s against
-    38 min 1 s (session 16) of wall time on a shared machine whose run-to-run spread is as large: not the
-    default (the hard cases were not solved with it).
+    decrement_cap x the strain energy of the last converged state (at least 1 % of mu V) [mJ]; None
+    (default): uncapped. A cap guards against a predictor far beyond the barrier's limit whose huge first
+    decrement would let a crushed state pass as converged; it is off by default because it changes the
+    increment path of pinched bars so that the 30 deg hard case no longer converges.
+    easy_iterations: an increment that converged in at most this many Newton iterations lets the next one
+    grow by grow_factor.
     first_touch_mm: at most this much indentation in the increment where contact starts.
     start_clearance_mm: an indenter that already touches or penetrates the skin at its start position
     (a tilted bar's end dips below the point where its axis meets the skin) is moved back along its
@@ -97,8 +81,7 @@ class SolverSettings:
     contact_smoothing_rel: width of the rounded pressure kink as a penetration / facet size.
     contact_near_rel: points with a gap below this x facet size get penalty stiffness in the Newton
     matrix once an increment needs more than easy_iterations. Default 0 (off): that matrix is not the
-    derivative of the residual, and on rat01 and a small limb it made Newton converge only linearly
-    after first touch (increments cut for too many iterations); the consistent tangent does better.
+    derivative of the residual and makes Newton converge only linearly after first touch.
     candidate_distance_mm: facets within this gap of the indenter are contact candidates (None: 2 x
     largest facet size). cast_candidate_distance_mm: the same for the cast (the skin starts a cast
     offset, 0.2 mm, away from it everywhere, so 2 facet sizes would make the whole skin a candidate);
@@ -115,22 +98,16 @@ class SolverSettings:
     independent).
     shift_scales: diagonal shifts s tried (K + s |diag K|, consistent curvature kept) after the plain
     consistent matrix fails to be positive definite and before the curvature factors below; empty
-    by default (measured: fewer iterations on the small cored limb, none fewer on rat01, worse on
-    the bar tilted 30 deg).
+    by default (the first try stays on the consistent matrix).
     retry_shift_scales: when a solve with shift_scales empty ends unconverged, it is solved once more
     from the start with shift_scales = these (empty: no retry). The shifted matrix gives a descent
     direction that follows an unstable mode (tissue pinched between indenter and bone escaping
-    sideways, where even the material tangent is indefinite) instead of stalling at the saddle;
-    measured: rat10 bar and rat07 sphere of config/paper.yaml converge with the shifts and not
-    without, while the shifts as the first try cost the easy benchmark 32 instead of 25 iterations
-    and, switched on only after the first cut, lost the sphere at depth 2R. A retry leaves every
-    solve that converges unshifted exactly as it was. retry_max_iterations: max_iterations of the
-    retry (if larger): near full depth a shifted Newton iteration crawls along the soft mode (energy
-    falling by ~1e-6 mJ per iteration, residual flat), and rat07 sphere_rx-15 reached t = 3.9951 with 14
-    per increment but converges with 30. retry_barrier_onset_rel: the retry also switches the
-    penetration barrier on (barrier_onset_rel = this, if the first try had none; None: not): the
-    shifted directions follow the unstable mode, and where a finite penalty lets that mode run
-    through the indenter (the bar tilted 30 deg) the barrier closes that way out.
+    sideways, where even the material tangent is indefinite) instead of stalling at the saddle; a
+    retry leaves every solve that converges unshifted exactly as it was. retry_max_iterations:
+    max_iterations of the retry (if larger): near full depth a shifted Newton iteration crawls along
+    the soft mode. retry_barrier_onset_rel: the retry also switches the penetration barrier on
+    (barrier_onset_rel = this, if the first try had none; None: not): where a finite penalty lets the
+    unstable mode run through the indenter, the barrier closes that way out.
     curvature_scales: factors tried in turn on the contact curvature term of the Newton matrix until
     the matrix is positive definite (the last one is used regardless; 0 drops the term).
     end_penalty_passes: when the last increment ends with a penetration above penetration_tol (the
@@ -143,33 +120,25 @@ class SolverSettings:
     about half the factorisation time) | 'double'.
     retry_linear_precision: the precision of the retry (and of a pinched variant's first try), None: as
     linear_precision. Default 'double': the retry follows a near-singular mode at a bifurcation, where
-    the Newton direction's component along that mode is only as accurate as the solve (a backward error
-    of 1e-14 leaves it far less accurate than a double factorisation); measured on the 30 deg bar's
-    cheaper copy: the shifted retry converges in double and stops at t = 3.9869 in mixed precision.
+    the Newton direction's component along that mode is only as accurate as the solve.
     linear_reuse_iterations, linear_reuse_rtol (mixed precision): a Newton matrix is first solved by up
     to this many conjugate-gradient iterations preconditioned by the last single-precision factor, to a
     relative residual of linear_reuse_rtol, and factorised as soon as they fall behind a geometric
-    decrease to it over that many iterations (checked from the 3rd on; 0: factorise every matrix); non-positive curvature met on the way proves the matrix indefinite without a failed
-    factorisation. Measured on the demo (45.5 k dofs): 392 of 1 947 Newton matrices solved without a
-    factorisation, every solve the same iterations and answer as without, 1.7 % less solve time (rat02
-    sphere -16 %). At rtol 1e-6, 7 % less on 17 solves, but rat02 sphere_rx-15 took another increment
-    path (219 instead of 99 iterations): the thresholds of the increment control see the inexactness.
+    decrease to it over that many iterations (checked from the 3rd on; 0: factorise every matrix);
+    non-positive curvature met on the way proves the matrix indefinite without a failed factorisation.
+    The tolerance is tight so that the increment control sees the same Newton path as with exact solves.
     max_wall_s: wall-time budget of one solve, the retry included [s] (None: none); checked between
     increments, a solve that spends it ends unconverged with the load reached, like any other failure.
     pinch_clearance_mm: a solve whose indenter ends closer than this to the moved bone (but not closer
     than min_bone_clearance_mm) is tried first with the retry's settings (shifts, retry_max_iterations,
     the barrier) and, if that fails, plainly: tissue pinched between indenter and bone has the sideways
-    escape mode the retry is for, and the plain first try only spends time (measured: every solve of the
-    demo and config/paper.yaml that needed the retry ended within 0.65 mm of the bone, four of six
-    within 0.56 mm; none that converged plainly within 0.57 mm). None: always plain first.
+    escape mode the retry is for, and the plain first try there mostly spends time. None: always plain first.
     turn_initial_increment: the first increment of a turn from a base variant's end state
-    (:func:`solve_turned`), as a fraction of the turn (initial_increment is the indentation's). Measured with
-    the 15 deg turns of the demo's spheres: rat01 sphere_rx+15 27 / 22 / 21 Newton iterations and rat02
-    sphere_rz+15 101 / 94 / 87 with 0.25 / 0.5 / 1 (the whole turn at once, cut back where it fails).
+    (:func:`solve_turned`), as a fraction of the turn (initial_increment is the indentation's); 1 tries
+    the whole turn at once and cuts back where it fails.
     min_bone_clearance_mm: a solve whose indenter, at the end of its travel, comes closer than this to
     the moved bone's nodes (negative: overlaps the bone) is not started: it ends at once, unconverged,
-    with the reason "infeasible" (no tissue state fits between two overlapping rigid bodies; measured:
-    rat04 `bar` of config/paper.yaml, 0.25 mm into the tibia, spent 384 s cutting increments before).
+    with the reason "infeasible" (no tissue state fits between two overlapping rigid bodies).
     """
 
     rtol: float = 1e-6
