@@ -2,11 +2,16 @@
 # This file only wires: configuration, the rule files, and the final targets.
 from snakemake.utils import min_version
 
+from deeptissue.config import check_config_files
+
 min_version("9.0")
 
 
 # the demo study, unless a config file is given on the command line (`--configfile config/paper.yaml`):
 # then that file alone is the configuration (its animals are not merged with the demo's)
+CONFIG_FILES = [str(f) for f in workflow.overwrite_configfiles] or ["config/config.yaml"]
+# YAML syntax errors (file, line, column), keys given twice and unquoted numeric animal names
+check_config_files(CONFIG_FILES)
 if not workflow.overwrite_configfiles:
 
     configfile: "config/config.yaml"

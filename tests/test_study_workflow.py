@@ -100,17 +100,18 @@ def test_rule_aggregate_runs_on_hand_made_summaries(tmp_path):
     save_pose(tmp_path / "results" / "rat01" / "pose.json",
               Pose(indenter_axis=[0, -1, 0], tip_start_mm=[0, 5, 0], tip_end_mm=[0, 3, 0], depth_mm=2.0,
                    bone_com_mm=[0, 1, 0], bone_rotation_deg=[0, 0, 0], bone_translation_mm=[0, 0, 0]))
-    targets = ["results/summary/voi.csv", "results/summary/sections.png", "results/summary/orientations.png"]
+    # the study's tables go to results/summary/<study.name>, here "test" from config/test.yaml
+    targets = ["results/summary/test/voi.csv", "results/summary/test/sections.png", "results/summary/test/orientations.png"]
     r = _snakemake(tmp_path, *targets, "--cores", "1", "--allowed-rules", "aggregate")
     assert r.returncode == 0, r.stderr[-3000:]
-    voi = pd.read_csv(tmp_path / "results" / "summary" / "voi.csv")
+    voi = pd.read_csv(tmp_path / "results" / "summary" / "test" / "voi.csv")
     assert list(voi["variant"]) == ["sphere", "bar", "sphere_rz+15"] and voi["converged"].tolist() == [True, False, True]
     assert voi["excluded"].all()
     assert voi["exclusion_reason"].iloc[0] == "not converged: bar: no convergence at 85% depth"
-    bins = pd.read_csv(tmp_path / "results" / "summary" / "bins.csv").groupby("variant", sort=False)["percent"]
+    bins = pd.read_csv(tmp_path / "results" / "summary" / "test" / "bins.csv").groupby("variant", sort=False)["percent"]
     assert bins.sum(min_count=1).round(9).tolist()[0] == 100.0 and bins.count().tolist() == [8, 0, 8]
     for name in ["bins.csv", "voi.png", "bins.png", "voi_change.png", "sections.png", "orientations.png"]:
-        assert (tmp_path / "results" / "summary" / name).stat().st_size > 0
+        assert (tmp_path / "results" / "summary" / "test" / name).stat().st_size > 0
     r = _snakemake(tmp_path, *targets, "-n", "--allowed-rules", "aggregate")
     assert r.returncode == 0 and "Nothing to be done" in r.stdout + r.stderr
 

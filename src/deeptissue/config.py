@@ -22,14 +22,18 @@ import yaml
 __all__ = [
     "REGENERATE_COMMAND",
     "SCHEMA_PATH",
+    "RESERVED_ANIMAL_NAMES",
     "ConfigError",
     "check_config",
+    "check_config_files",
     "convergence_animal",
     "figure_animal",
     "has_during_scan",
+    "load_config_file",
     "load_schema",
     "main",
     "schema_markdown",
+    "study_name",
     "validate_config",
 ]
 
@@ -38,8 +42,113 @@ SCHEMA_PATH = Path("workflow") / "schemas" / "config.schema.yaml"
 REGENERATE_COMMAND = "python -m deeptissue.config docs/config.md"
 
 
+#: folders of results/ that hold the study's own outputs, not an animal's: no animal may be named so
+RESERVED_ANIMAL_NAMES = ("convergence", "logs", "summary", "verification")
+
+
 class ConfigError(ValueError):
     """A configuration problem; the message is one line and names the key."""
+
+
+class _StrictLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that refuses a key given twice in one mapping (YAML would keep the last)."""
+
+    def construct_mapping(self, node, deep=False):
+        first_line = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            line = key_node.start_mark.line + 1
+            try:
+                seen = first_line.get(key)
+            except TypeError:  # an unhashable key: the base class reports it
+                break
+            if seen is not None:
+                raise ConfigError(
+                    f"config file {self.name}, line {line}: key {key_node.value!r} is given twice "
+                    f"(lines {seen} and {line}); YAML would keep only the second"
+                )
+            first_line[key] = line
+        return super().construct_mapping(node, deep=deep)
+
+
+_StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _StrictLoader.construct_mapping)
+
+
+def _numeric_animal_names(node: yaml.Node, path: str) -> None:
+    """Refuse an animal name that YAML reads as a number (``01``, ``1e3``), with its line and the quoted form."""
+    if not isinstance(node, yaml.MappingNode):
+        return
+    for key_node, value_node in node.value:
+        if key_node.value == "animals" and isinstance(value_node, yaml.MappingNode):
+            for name_node, _ in value_node.value:
+                if isinstance(name_node, yaml.ScalarNode) and name_node.tag != "tag:yaml.org,2002:str":
+                    kind = name_node.tag.rsplit(":", 1)[-1]
+                    raise ConfigError(
+                        f"config file {path}, line {name_node.start_mark.line + 1}: animal name {name_node.value} "
+                        f"is read by YAML as a {kind}, not a name; quote it: '{name_node.value}'"
+                    )
+
+
+def load_config_file(path: str | Path) -> dict:
+    """Read a YAML (or JSON) config file, refusing what YAML would read silently or report without a place.
+
+    Parameters
+    ----------
+    path : str or Path
+        The config file.
+
+    Returns
+    -------
+    dict
+        Its contents (an empty file gives an empty dict).
+
+    Raises
+    ------
+    ConfigError
+        A YAML syntax error (with file, line and column), a key given twice in one mapping (with the key and
+        both lines), or an animal name that YAML reads as a number (with the line and the quoted form).
+    """
+    loader = _StrictLoader(Path(path).read_text(encoding="utf-8"))
+    loader.name = str(path)
+    try:
+        node = loader.get_single_node()
+        data = None if node is None else loader.construct_document(node)
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark or exc.context_mark
+        where = f", line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        raise ConfigError(f"config file {path}{where}: YAML syntax error: {exc.problem or exc.context}") from exc
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"config file {path}: YAML syntax error: {exc}") from exc
+    finally:
+        loader.dispose()
+    if node is not None:
+        _numeric_animal_names(node, str(path))
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"config file {path}: the top level must be a mapping of keys, got {type(data).__name__}")
+    return data
+
+
+def check_config_files(paths) -> None:
+    """Read every config file of a run with :func:`load_config_file`, so that the first problem is refused.
+
+    Snakemake reads the files itself (and keeps the last of two equal keys); the workflow calls this
+    before it uses the configuration. A path that does not exist is skipped (Snakemake reports it).
+
+    Parameters
+    ----------
+    paths : iterable of str or Path
+        The config files, in the order given.
+
+    Raises
+    ------
+    ConfigError
+        See :func:`load_config_file`.
+    """
+    for path in paths:
+        if Path(path).is_file():
+            load_config_file(path)
 
 
 def _key_path(path) -> str:
@@ -98,7 +207,9 @@ def load_schema(schema_path: str | Path) -> dict:
         return yaml.safe_load(fh)
 
 
-def validate_config(config: dict[str, Any], schema_path: str | Path, *, base_dir: str | Path = ".") -> dict:
+def validate_config(
+    config: dict[str, Any], schema_path: str | Path, *, base_dir: str | Path = ".", config_files=()
+) -> dict:
     """Validate a configuration in place: schema, defaults, named input files and cross-key rules.
 
     Parameters
@@ -109,6 +220,9 @@ def validate_config(config: dict[str, Any], schema_path: str | Path, *, base_dir
         The YAML file of the configuration schema.
     base_dir : str or Path, optional
         Directory the input files of ``animals.<name>.pre``, ``during`` and ``overrides`` are relative to.
+    config_files : sequence of str or Path, optional
+        The config files the configuration was read from; a ``study.name`` left null becomes the first
+        one's name without its suffix (``config/paper.yaml`` -> ``paper``), else ``config``.
 
     Returns
     -------
@@ -120,6 +234,7 @@ def validate_config(config: dict[str, Any], schema_path: str | Path, *, base_dir
     ConfigError
         On the first problem, with a one-line message that names the key.
     """
+    _check_animal_keys(config)
     schema = load_schema(schema_path)
     validator = _DefaultFilling(schema)
     errors = sorted(validator.iter_errors(config), key=lambda e: (len(e.absolute_path), list(map(str, e.absolute_path))))
@@ -130,8 +245,39 @@ def validate_config(config: dict[str, Any], schema_path: str | Path, *, base_dir
             err = max(err.context, key=lambda e: len(e.absolute_path))
         raise ConfigError(_message(err))
     _check_files(config, Path(base_dir))
+    if config["study"]["name"] is None:
+        config["study"]["name"] = study_name(config_files)
     check_config(config)
     return config
+
+
+def study_name(config_files) -> str:
+    """The default name of a study: its first config file's name without the suffix, else ``config``.
+
+    Parameters
+    ----------
+    config_files : sequence of str or Path
+        The config files of the run, in the order given (overlays come after the study's file).
+
+    Returns
+    -------
+    str
+    """
+    files = list(config_files)
+    return Path(files[0]).stem if files else "config"
+
+
+def _check_animal_keys(config: dict[str, Any]) -> None:
+    """Refuse an animal name that is not a string (YAML reads ``01`` as the number 1)."""
+    animals = config.get("animals")
+    if not isinstance(animals, dict):
+        return
+    for name in animals:
+        if not isinstance(name, str):
+            raise ConfigError(
+                f"config key animals: animal name {name!r} is read by YAML as a {type(name).__name__}, not a name; "
+                f"quote it in the config file (as written there, e.g. '01')"
+            )
 
 
 _FILE_KEYS = ("pre", "during", "overrides")
@@ -234,9 +380,34 @@ def _check_convergence_animal(config: dict[str, Any]) -> None:
         )
 
 
+def _check_reserved_names(config: dict[str, Any]) -> None:
+    for name in config["animals"]:
+        if name in RESERVED_ANIMAL_NAMES:
+            raise ConfigError(
+                f"config key animals.{name}: {name!r} is a folder of results/ that holds the study's own outputs "
+                f"(reserved: {', '.join(RESERVED_ANIMAL_NAMES)}); rename the animal"
+            )
+
+
+def _check_phantoms(config: dict[str, Any]) -> None:
+    """Refuse a phantom whose indenter cannot be imaged (tilt, depth), with the range that works."""
+    phantoms = {a: cfg["phantom"] for a, cfg in config["animals"].items() if "phantom" in cfg}
+    if not phantoms:
+        return
+    from .phantom import PhantomSpec, check_indenter
+
+    for animal, cfg in phantoms.items():
+        try:
+            check_indenter(PhantomSpec.from_config(cfg))
+        except ValueError as exc:
+            raise ConfigError(f"config key animals.{animal}.{exc}") from exc
+
+
 def check_config(config: dict[str, Any]) -> None:
     """Check the rules of a configuration that span several keys (the schema checks each key alone).
 
+    No animal is named like a folder of the study's own outputs (:data:`RESERVED_ANIMAL_NAMES`); every
+    phantom's indenter can be imaged (:func:`deeptissue.phantom.check_indenter`);
     ``study.bin_edges`` starts at ``study.threshold`` and increases strictly; ``study.figure_animal``
     is a configured animal; ``convergence.animal`` is a configured animal with a during scan.
 
@@ -250,6 +421,8 @@ def check_config(config: dict[str, Any]) -> None:
     ConfigError
         Naming the key whose value breaks a rule.
     """
+    _check_reserved_names(config)
+    _check_phantoms(config)
     _check_bin_edges(config)
     _check_figure_animal(config)
     _check_convergence_animal(config)

@@ -62,7 +62,7 @@ from .io import atomic_path, write_json
 from .pose import Pose, save_pose
 from .rigid import rotation_matrix
 
-__all__ = ["Phantom", "PhantomSpec", "make_phantom", "write_phantom"]
+__all__ = ["Phantom", "PhantomSpec", "check_indenter", "make_phantom", "write_phantom"]
 
 
 @dataclass(frozen=True)
@@ -309,6 +309,90 @@ class _Anatomy:
         return np.column_stack([cx + r * np.cos(th), cy + r * np.sin(th)])
 
 
+def _indenter_entry(an: _Anatomy, spec: PhantomSpec, tilt_deg) -> tuple[np.ndarray, np.ndarray] | None:
+    """Unit axis (3,) and skin point (3,) [mm] of the indenter aimed at the tibia centre at ``indenter_z_mm``
+    (nominal -y, tilted about X then Z by ``tilt_deg``); None if the axis does not leave the leg within 30 mm."""
+    z0 = spec.indenter_z_mm
+    aim = np.array([*an.tib_centre(z0), z0], float)
+    tx, tz = tilt_deg
+    axis = rotation_matrix([0, 0, tz]) @ rotation_matrix([tx, 0, 0]) @ np.array([0.0, -1.0, 0.0])
+    axis = axis / np.linalg.norm(axis)
+    f = lambda s_: float(an.phi_pre(*(aim - s_ * axis)))
+    if not (f(0.0) < 0.0 < f(30.0)):
+        return None
+    return axis, aim - brentq(f, 0.0, 30.0, xtol=1e-12) * axis
+
+
+def _tilt_x_range(an: _Anatomy, spec: PhantomSpec, inside) -> tuple[float, float] | None:
+    """Smallest and largest tilt about X [deg] (at the spec's tilt about Z) for which ``inside(tilt)`` holds, by
+    bisection outward from 0; None if it does not hold at 0."""
+    tz = spec.tilt_deg[1]
+    if not inside((0.0, tz)):
+        return None
+    ends = []
+    for sign in (-1.0, 1.0):
+        good, bad = 0.0, 90.0
+        while bad - good > 0.1:
+            mid = 0.5 * (good + bad)
+            good, bad = (mid, bad) if inside((sign * mid, tz)) else (good, mid)
+        ends.append(sign * good)
+    return ends[0], ends[1]
+
+
+def check_indenter(spec: PhantomSpec) -> None:
+    """Refuse an indenter the phantom cannot image, saying the range that works for this leg and slab.
+
+    The indenter axis (``tilt_deg``) must leave the leg within 30 mm of the tibia centre, its skin point and
+    its tip at full depth must lie inside the imaged slab (the pose stage finds the indenter by its fluid
+    there), and ``depth_mm`` must be > 0 and stop short of the tibia and fibula along the axis (of the pre
+    state; the rendering checks the moved bones again). It costs milliseconds, so a configuration is
+    checked before anything runs.
+
+    Parameters
+    ----------
+    spec : PhantomSpec
+
+    Raises
+    ------
+    ValueError
+        Naming ``tilt_deg`` or ``depth_mm``, with the range of values that works.
+    """
+    an = _Anatomy(spec)
+    z = _affine(spec)[2, 2] * np.arange(spec.n_slices) + _affine(spec)[2, 3]
+    z_lo, z_hi = float(z.min()), float(z.max())
+
+    def inside(tilt) -> bool:
+        entry = _indenter_entry(an, spec, tilt)
+        if entry is None:
+            return False
+        axis, skin = entry
+        tip = skin + spec.depth_mm * axis
+        return all(z_lo <= p[2] <= z_hi for p in (skin, tip))
+
+    if spec.depth_mm <= 0:
+        raise ValueError(f"phantom: depth_mm {spec.depth_mm} mm images no indenter (its contrast fluid stays outside "
+                         "the leg); depth_mm must be > 0")
+    if not inside(spec.tilt_deg):
+        tilt = [float(t) for t in spec.tilt_deg]
+        span = _tilt_x_range(an, spec, inside)
+        works = ("no tilt about X works with this tilt about Z" if span is None
+                 else f"tilt about X works from {span[0]:.1f} to {span[1]:.1f} deg (with this tilt about Z and depth)")
+        raise ValueError(f"phantom: tilt_deg {tilt}: the indenter does not enter the leg with its skin point and tip "
+                         f"inside the imaged slab (z {z_lo:g} to {z_hi:g} mm); {works}")
+    axis, skin = _indenter_entry(an, spec, spec.tilt_deg)
+    s = np.arange(0.0, 30.0, 0.005)
+    pts = skin + s[:, None] * axis
+    level = an.bone_f(pts[:, 0], pts[:, 1], pts[:, 2])
+    if spec.fibula:
+        level = np.minimum(level, an.fibula_f(pts[:, 0], pts[:, 1], pts[:, 2]))
+    hit = np.nonzero(level <= 0.0)[0]
+    reach = float(s[hit[0]]) if hit.size else np.inf
+    if spec.depth_mm >= reach:
+        raise ValueError(f"phantom: depth_mm {spec.depth_mm} mm: the indenter's tip reaches the tibia or fibula "
+                         f"{reach:.2f} mm below the skin along its axis; depth_mm works from 0 to below {reach:.2f} mm "
+                         "for this leg and tilt")
+
+
 def _affine(spec: PhantomSpec) -> np.ndarray:
     dx = spec.fov_mm / spec.n_pixels
     A = np.diag([dx, dx, spec.slice_mm, 1.0])
@@ -351,15 +435,12 @@ class _Scene:
         self.bone_com = np.array([np.sum(w * cxy[:, 0]), np.sum(w * cxy[:, 1]), np.sum(w * self.z)]) / w.sum()
         self.R = rotation_matrix(spec.bone_rotation_deg)
         self.t = np.asarray(spec.bone_translation_mm, float)
-        # indenter axis: nominal -y through the tibia centre at indenter_z, tilted about X then Z
         z0 = spec.indenter_z_mm
-        aim = np.array([*an.tib_centre(z0), z0], float)
-        tx, tz = spec.tilt_deg
-        axis = rotation_matrix([0, 0, tz]) @ rotation_matrix([tx, 0, 0]) @ np.array([0.0, -1.0, 0.0])
-        self.axis = axis / np.linalg.norm(axis)
-        f = lambda s_: float(an.phi_pre(*(aim - s_ * self.axis)))
-        s_out = brentq(f, 0.0, 30.0, xtol=1e-12)
-        self.skin_point = aim - s_out * self.axis
+        entry = _indenter_entry(an, spec, spec.tilt_deg)
+        if entry is None:
+            raise ValueError(f"phantom: tilt_deg {list(spec.tilt_deg)}: the indenter axis does not leave the leg within "
+                             "30 mm of the tibia centre (deeptissue.phantom.check_indenter says the range that works)")
+        self.axis, self.skin_point = entry
         self.tip_start = self.skin_point - 1.0 * self.axis
         self.tip_end = self.skin_point + spec.depth_mm * self.axis
         self.head_centre = self.tip_end - spec.indenter_radius_mm * self.axis

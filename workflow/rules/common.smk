@@ -4,7 +4,12 @@ from pathlib import Path
 from deeptissue.config import has_during_scan, validate_config
 from deeptissue.variants import mesh_group_of, mesh_groups, solve_priority, turn_base
 
-config = validate_config(config, workflow.source_path("../schemas/config.schema.yaml"), base_dir=Path(workflow.basedir))
+config = validate_config(
+    config,
+    workflow.source_path("../schemas/config.schema.yaml"),
+    base_dir=Path(workflow.basedir),
+    config_files=CONFIG_FILES,
+)
 
 ANIMALS = list(config["animals"])
 # which variants share a mesh (model.mesh_groups): {mesh name: variants}

@@ -5,6 +5,8 @@ from deeptissue.config import figure_animal
 from deeptissue.variants import parse_variant
 
 STUDY = config["study"]
+# the study's tables and figures: a folder per study.name, so studies in one checkout keep their own
+SUMMARY = f"results/summary/{STUDY['name']}"
 VARIANTS = list(STUDY["variants"])
 FIGURE_ANIMAL = figure_animal(config)
 # variants drawn in the section figures: sphere vs bar, and every sphere orientation
@@ -12,13 +14,13 @@ SECTION_VARIANTS = [v for v in VARIANTS if v == "bar" or parse_variant(v).indent
 
 
 STUDY_OUTPUTS = [
-    "results/summary/voi.csv",
-    "results/summary/bins.csv",
-    "results/summary/voi.png",
-    "results/summary/bins.png",
-    "results/summary/voi_change.png",
-    "results/summary/sections.png",
-    "results/summary/orientations.png",
+    f"{SUMMARY}/voi.csv",
+    f"{SUMMARY}/bins.csv",
+    f"{SUMMARY}/voi.png",
+    f"{SUMMARY}/bins.png",
+    f"{SUMMARY}/voi_change.png",
+    f"{SUMMARY}/sections.png",
+    f"{SUMMARY}/orientations.png",
 ]
 # final targets of the study (tables and figures): part of the default target
 study_outputs = lambda: list(STUDY_OUTPUTS)
@@ -32,31 +34,31 @@ rule aggregate:
         pose=f"results/{FIGURE_ANIMAL}/pose.json",
     output:
         voi_csv=report(
-            "results/summary/voi.csv", caption="../report/study_voi_csv.rst", category="Study", subcategory="Tables"
+            f"{SUMMARY}/voi.csv", caption="../report/study_voi_csv.rst", category="Study", subcategory="Tables"
         ),
         bins_csv=report(
-            "results/summary/bins.csv", caption="../report/study_bins_csv.rst", category="Study", subcategory="Tables"
+            f"{SUMMARY}/bins.csv", caption="../report/study_bins_csv.rst", category="Study", subcategory="Tables"
         ),
         voi_png=report(
-            "results/summary/voi.png", caption="../report/study_voi.rst", category="Study", subcategory="All animals"
+            f"{SUMMARY}/voi.png", caption="../report/study_voi.rst", category="Study", subcategory="All animals"
         ),
         bins_png=report(
-            "results/summary/bins.png", caption="../report/study_bins.rst", category="Study", subcategory="All animals"
+            f"{SUMMARY}/bins.png", caption="../report/study_bins.rst", category="Study", subcategory="All animals"
         ),
         voi_change_png=report(
-            "results/summary/voi_change.png",
+            f"{SUMMARY}/voi_change.png",
             caption="../report/study_voi_change.rst",
             category="Study",
             subcategory="All animals",
         ),
         sections_png=report(
-            "results/summary/sections.png",
+            f"{SUMMARY}/sections.png",
             caption="../report/study_sections.rst",
             category="Study",
             subcategory="Sections",
         ),
         orientations_png=report(
-            "results/summary/orientations.png",
+            f"{SUMMARY}/orientations.png",
             caption="../report/study_orientations.rst",
             category="Study",
             subcategory="Sections",
@@ -70,7 +72,7 @@ rule aggregate:
         threshold=STUDY["threshold"],
         bin_edges=STUDY["bin_edges"],
     log:
-        "results/summary/aggregate.log",
+        f"{SUMMARY}/aggregate.log",
     resources:
         mem_mb=4000,
         runtime=30,
