@@ -108,7 +108,11 @@ def load_nifti(path: str | Path, *, animal: str = "") -> Volume:
         raise ImagingError(f"{where}: image too small (shape {tuple(shape)})")
     affine = np.asarray(img.affine, float)
     _check_affine(affine, where)
-    data = np.asarray(img.dataobj, dtype=np.float32).reshape(shape)
+    try:  # nibabel reads the voxels lazily: a truncated or corrupt file fails here
+        data = np.asarray(img.dataobj, dtype=np.float32).reshape(shape)
+    except Exception as exc:
+        raise ImagingError(f"{where}: cannot read the voxel data, the file is truncated or corrupt "
+                           f"({type(exc).__name__}: {exc})") from exc
     bad = ~np.isfinite(data)
     if bad.any():
         k = int(np.nonzero(bad.any(axis=(0, 1)))[0][0])

@@ -6,20 +6,24 @@ import contextlib
 import json
 import logging
 import os
+import signal
 import tempfile
+import threading
 from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
 
-__all__ = ["atomic_path", "read_json", "save_npz", "script_log", "write_json"]
+__all__ = ["atomic_path", "read_json", "save_npz", "script_log", "snakemake_ancestor", "stop_with_snakemake",
+           "write_json"]
 
 
 @contextlib.contextmanager
 def script_log(log_path: str | Path, job: str) -> Iterator[None]:
     """Run a workflow script's body with stderr and logging (INFO) going to ``log_path``; an exception
     is logged with its traceback as "<job> failed" and re-raised (Snakemake then marks the job failed
-    and keeps the log)."""
+    and keeps the log). The body stops, as by Ctrl-C, on SIGTERM or when the Snakemake that started it
+    is gone (:func:`stop_with_snakemake`), so no job goes on writing after its workflow."""
     with open(log_path, "w") as log, contextlib.redirect_stderr(log):
         root = logging.getLogger()
         handler = logging.StreamHandler(log)
@@ -27,12 +31,94 @@ def script_log(log_path: str | Path, job: str) -> Iterator[None]:
         root.addHandler(handler)
         root.setLevel(logging.INFO)
         try:
-            yield
+            with stop_with_snakemake(logging.getLogger(job)):
+                yield
         except Exception:
             logging.getLogger(job).exception("%s failed", job)
             raise
+        except KeyboardInterrupt:
+            logging.getLogger(job).error("%s stopped (interrupted); its outputs are not written", job)
+            raise
         finally:
             root.removeHandler(handler)
+
+
+def _start_time(pid: int) -> str | None:
+    """The start time of process ``pid`` (clock ticks since boot, /proc/<pid>/stat), None if it is gone."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[19]
+    except (OSError, IndexError):
+        return None
+
+
+def snakemake_ancestor() -> tuple[int, str] | None:
+    """The nearest ancestor process that runs Snakemake, as (pid, start time); None if there is none or no /proc.
+
+    A process runs Snakemake if an argument of its command line is a file named ``snakemake`` or it is
+    started as ``-m snakemake``. The start time tells the process from a later one with the same pid.
+    """
+    pid = os.getppid()
+    while pid > 1:
+        try:
+            args = Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace").split("\0")
+            ppid = int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, ValueError, IndexError):
+            return None
+        module = args[args.index("-m") + 1] if "-m" in args[:-1] else ""
+        if module == "snakemake" or any(Path(a).name == "snakemake" for a in args[:2]):
+            start = _start_time(pid)
+            return None if start is None else (pid, start)
+        pid = ppid
+    return None
+
+
+@contextlib.contextmanager
+def stop_with_snakemake(log: logging.Logger | None = None, *, poll_s: float = 2.0,
+                        grace_s: float = 60.0) -> Iterator[None]:
+    """Run the block so that SIGTERM, or the end of the Snakemake process that started it, stops it as Ctrl-C does.
+
+    SIGTERM raises KeyboardInterrupt in the main thread, so ``finally`` blocks run and
+    :func:`atomic_path` removes its temporary file. A thread checks every ``poll_s`` seconds that the
+    Snakemake ancestor (:func:`snakemake_ancestor`) still runs: when it is gone (killed with SIGKILL,
+    say) the job sends itself SIGTERM, and exits ``grace_s`` seconds later if the block has not stopped
+    (a long call into compiled code). Outside Snakemake or off Linux only the SIGTERM part applies.
+
+    Parameters
+    ----------
+    log : logging.Logger, optional
+        Where to say why the job stops.
+    poll_s, grace_s : float, optional
+        Seconds between checks, and before a forced exit.
+    """
+    log = log or logging.getLogger(__name__)
+    main = threading.current_thread() is threading.main_thread()
+    previous = signal.getsignal(signal.SIGTERM) if main else None
+
+    def on_term(signum, frame):
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    if main and previous in (signal.SIG_DFL, None):
+        signal.signal(signal.SIGTERM, on_term)
+    done = threading.Event()
+    parent = snakemake_ancestor()
+
+    def watch():
+        while not done.wait(poll_s):
+            if _start_time(parent[0]) != parent[1]:
+                log.error("Snakemake (pid %d) is gone: stopping this job", parent[0])
+                os.kill(os.getpid(), signal.SIGTERM)
+                if not done.wait(grace_s):
+                    os._exit(1)
+                return
+
+    if parent is not None and main:
+        threading.Thread(target=watch, name="stop_with_snakemake", daemon=True).start()
+    try:
+        yield
+    finally:
+        done.set()
+        if main and previous in (signal.SIG_DFL, None):
+            signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
 
 
 @contextlib.contextmanager
@@ -40,7 +126,8 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; move it onto ``path`` only if the block succeeds.
 
     The temporary name keeps the suffix(es) of ``path`` so that writers that dispatch on the
-    extension (nibabel, matplotlib, meshio) still work.
+    extension (nibabel, matplotlib, meshio) still work. The file gets the mode ``open`` would give
+    it (0666 less the umask), not the 0600 of a temporary file, so colleagues can read it.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -50,10 +137,18 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     tmp = Path(tmp)
     try:
         yield tmp
+        os.chmod(tmp, _new_file_mode())
         os.replace(tmp, path)
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+def _new_file_mode() -> int:
+    """0666 less the process's umask: the mode ``open`` gives a new file."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return 0o666 & ~mask
 
 
 def _jsonable(obj: Any) -> Any:

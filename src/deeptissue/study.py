@@ -23,6 +23,7 @@ from .fem.material import Ogden, ogden_energy
 from .fem.solver import (BoneState, EndState, SolverSettings, end_state, load_bone_state, load_end_state,
                          save_bone_state, save_end_state, solve_bone_rotation, solve_indentation, solve_turned,
                          solver_settings_from_config, summed_costs)
+from .io import save_npz
 from .mesh import TetMesh, load_tetmesh
 from .pose import Pose, load_pose
 from .rigid import BoneMotion
@@ -236,8 +237,7 @@ def run_bone_state(*, mesh_path, cast_path, pose_path, state_path, fem_cfg: dict
         why = f"{type(exc).__name__}: {exc}"
     if state is None:
         log.warning("%s: bone rotation not solved once for all variants (%s): each variant solves it", mesh_path, why)
-        with open(state_path, "wb") as f:
-            np.savez(f, failed=np.array(why or "not converged"))
+        save_npz(state_path, failed=np.array(why or "not converged"))
         return None
     log.info("bone rotation of %s: %d increments, %d Newton iterations, %.1f s", mesh_path, len(state.history),
              state.newton_iterations, state.wall_s)
@@ -337,8 +337,7 @@ def run_solve(*, animal: str, variant: str, mesh_path, cast_path, pose_path, dur
                                  n_elements=int(mesh.n_tets))
         strain = element_strain(mesh, u)
     if end_state_path is not None and not Path(end_state_path).exists():
-        with open(end_state_path, "wb") as f:
-            np.savez(f, failed=np.array(summary.reason or "not converged"))
+        save_npz(end_state_path, failed=np.array(summary.reason or "not converged"))
     write_result_vtu(vtu_path, mesh, u, strain, cell_data={"converged": np.full(mesh.n_tets, int(summary.converged))})
     write_summary(summary_path, summary)
     return summary

@@ -304,9 +304,11 @@ class BoneState:
 
 
 def save_bone_state(path, state: BoneState) -> None:
-    """Write a BoneState as .npz (arrays, and the rest as JSON)."""
+    """Write a BoneState as .npz (arrays, and the rest as JSON), atomically."""
     import json
     from dataclasses import asdict
+
+    from ..io import atomic_path
 
     meta = dict(strain_energy_mJ=state.strain_energy_mJ, newton_iterations=state.newton_iterations,
                 wall_s=state.wall_s, assembly_s=state.assembly_s, linear_solve_s=state.linear_solve_s,
@@ -315,7 +317,7 @@ def save_bone_state(path, state: BoneState) -> None:
     arrays = dict(displacement_mm=state.displacement_mm, meta=np.array(json.dumps(meta)))
     if state.cast_lam_mpa is not None:
         arrays.update(cast_lam_mpa=state.cast_lam_mpa, cast_eps=state.cast_eps)
-    with open(path, "wb") as f:
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
         np.savez(f, **arrays)
 
 
@@ -370,16 +372,18 @@ def end_state(result: SolveResult, mesh: TetMesh, *, indenter: Indenter, bone_mo
 
 
 def save_end_state(path, state: EndState) -> None:
-    """Write an EndState as .npz (arrays, and the rest as JSON)."""
+    """Write an EndState as .npz (arrays, and the rest as JSON), atomically."""
     import json
     from dataclasses import asdict
+
+    from ..io import atomic_path
 
     meta = dict(indenter=asdict(state.indenter), bone_motion=asdict(state.bone_motion), settings=asdict(state.settings),
                 pairs=sorted(state.contact))
     arrays = dict(displacement_mm=state.displacement_mm, meta=np.array(json.dumps(meta)))
     for name, (facets, lam, eps) in state.contact.items():
         arrays.update({f"{name}_facets": facets, f"{name}_lam_mpa": lam, f"{name}_eps": eps})
-    with open(path, "wb") as f:
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
         np.savez(f, **arrays)
 
 

@@ -227,19 +227,16 @@ def run_pose(
     Pose
         The pose written to ``pose_json``.
     """
-    import nibabel as nib
-
     from ..contours import load_contours
+    from ..imaging import load_nifti
 
-    img = nib.load(str(during_nifti))
-    data = np.asanyarray(img.dataobj, dtype=float)
-    if data.ndim != 3:
-        raise PoseError(f"{_where(animal)}{during_nifti}: not a 3D volume (shape {data.shape})")
+    vol = load_nifti(during_nifti, animal=animal)  # an unreadable or not-3D file: ImagingError naming both
+    data = vol.data.astype(float)
     pre = load_contours(pre_contours)
     dur = load_contours(during_contours)
     opts = PoseOptions.from_config(options)
-    pose, qc = estimate_pose(data, img.affine, pre, dur, options=opts, override=override, animal=animal)
-    plot_axis_qc(axis_png, data, img.affine, pose, qc, title=animal)
+    pose, qc = estimate_pose(data, vol.affine, pre, dur, options=opts, override=override, animal=animal)
+    plot_axis_qc(axis_png, data, vol.affine, pose, qc, title=animal)
     plot_tip_qc(tip_png, pre, dur, pose, roi_diameter_mm=opts.roi_diameter_mm, title=animal)
     plot_bone_qc(bone_png, pre, dur, pose, title=animal)
     save_pose(pose_json, pose)
