@@ -380,17 +380,40 @@ def check_indenter(spec: PhantomSpec) -> None:
         raise ValueError(f"phantom: tilt_deg {tilt}: the indenter does not enter the leg with its skin point and tip "
                          f"inside the imaged slab (z {z_lo:g} to {z_hi:g} mm); {works}")
     axis, skin = _indenter_entry(an, spec, spec.tilt_deg)
-    s = np.arange(0.0, 30.0, 0.005)
-    pts = skin + s[:, None] * axis
-    level = an.bone_f(pts[:, 0], pts[:, 1], pts[:, 2])
-    if spec.fibula:
-        level = np.minimum(level, an.fibula_f(pts[:, 0], pts[:, 1], pts[:, 2]))
-    hit = np.nonzero(level <= 0.0)[0]
-    reach = float(s[hit[0]]) if hit.size else np.inf
+    reach = _depth_reach(an, spec, axis, skin, np.linspace(z_lo, z_hi, 21))
     if spec.depth_mm >= reach:
-        raise ValueError(f"phantom: depth_mm {spec.depth_mm} mm: the indenter's tip reaches the tibia or fibula "
-                         f"{reach:.2f} mm below the skin along its axis; depth_mm works from 0 to below {reach:.2f} mm "
-                         "for this leg and tilt")
+        below = np.floor(reach * 100.0) / 100.0
+        raise ValueError(f"phantom: depth_mm {spec.depth_mm} mm: the indenter touches the tibia or fibula at a depth "
+                         f"of {reach:.2f} mm; depth_mm works from 0 to below {below:.2f} mm for this leg and tilt")
+
+
+def _depth_reach(an: _Anatomy, spec: PhantomSpec, axis: np.ndarray, skin: np.ndarray, zs: np.ndarray) -> float:
+    """The depth [mm] at which the indenter (a cylinder of ``indenter_radius_mm`` ending in a hemisphere, its tip
+    ``depth`` beyond ``skin`` along ``axis``) first touches the moved tibia or fibula, sampled on the bones'
+    boundaries at ``zs``; inf if it never does.
+
+    A point at ``a`` along the axis from the skin point and ``rho < R`` from the axis is inside the indenter
+    once the depth exceeds ``a + R - sqrt(R² - rho²)``. The bones move about the tibia centre at mid-slab, which
+    differs from the rendering's centre of mass by a fraction of a millimetre.
+    """
+    pts = []
+    for z in zs:
+        xy = an.tib_boundary(float(z), 120)
+        if spec.fibula:
+            xy = np.vstack([xy, an.fib_boundary(float(z), 60)])
+        pts.append(np.column_stack([xy, np.full(len(xy), z)]))
+    pts = np.vstack(pts)
+    z_mid = 0.5 * (zs[0] + zs[-1])
+    centre = np.array([*an.tib_centre(z_mid), z_mid], float)
+    pts = (pts - centre) @ rotation_matrix(spec.bone_rotation_deg).T + centre + np.asarray(spec.bone_translation_mm)
+    rel = pts - skin
+    a = rel @ axis
+    rho = np.linalg.norm(rel - a[:, None] * axis, axis=1)
+    r = spec.indenter_radius_mm
+    near = rho < r
+    if not near.any():
+        return float("inf")
+    return float(np.min(a[near] + r - np.sqrt(r * r - rho[near] ** 2)))
 
 
 def _affine(spec: PhantomSpec) -> np.ndarray:
