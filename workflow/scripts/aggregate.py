@@ -1,4 +1,4 @@
-"""Glue of rule aggregate: every summary.json -> results/summary/ tables and figures."""
+"""Glue of rule aggregate: every summary.json -> results/summary/<study.name>/ tables and figures."""
 
 from deeptissue.io import script_log
 from deeptissue.report import aggregate_study
