@@ -146,8 +146,12 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
 
 def _new_file_mode() -> int:
     """0666 less the process's umask: the mode ``open`` gives a new file."""
-    mask = os.umask(0o022)
-    os.umask(mask)
+    try:  # Linux: read it without changing it (os.umask sets it for every thread)
+        status = Path("/proc/self/status").read_text()
+        mask = int(next(line.split()[1] for line in status.splitlines() if line.startswith("Umask:")), 8)
+    except (OSError, StopIteration, ValueError, IndexError):
+        mask = os.umask(0o022)
+        os.umask(mask)
     return 0o666 & ~mask
 
 
