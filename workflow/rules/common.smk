@@ -10,6 +10,9 @@ config = validate_config(
     base_dir=Path(workflow.basedir),
     config_files=CONFIG_FILES,
 )
+# the study's name picks the folder of its tables (study.smk); it is no job's setting, so it is kept out of
+# the jobs' params: renaming a study, or running one of the same settings under another name, redoes nothing
+STUDY_NAME = config["study"].pop("name")
 
 ANIMALS = list(config["animals"])
 # which variants share a mesh (model.mesh_groups): {mesh name: variants}

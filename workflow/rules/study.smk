@@ -6,7 +6,7 @@ from deeptissue.variants import parse_variant
 
 STUDY = config["study"]
 # the study's tables and figures: a folder per study.name, so studies in one checkout keep their own
-SUMMARY = f"results/summary/{STUDY['name']}"
+SUMMARY = f"results/summary/{STUDY_NAME}"
 VARIANTS = list(STUDY["variants"])
 FIGURE_ANIMAL = figure_animal(config)
 # variants drawn in the section figures: sphere vs bar, and every sphere orientation
