@@ -83,6 +83,21 @@ def test_a_yaml_syntax_error_names_file_line_and_column(tmp_path):
         load_config_file(f)
 
 
+def test_config_files_are_checked_without_snakemake(tmp_path, capsys, monkeypatch):
+    # Snakemake reads a --configfile itself and reports a syntax error without its place: --check names it
+    from deeptissue.config import main
+
+    monkeypatch.chdir(ROOT)
+    overlay = _write(tmp_path / "overlay.yaml", "study: {variants: [bar]}\n")
+    main(["--check", str(_write(tmp_path / "paper2.yaml", GOOD)), str(overlay), "--schema", str(SCHEMA)])
+    assert "config OK: study paper2, animals ['rat01', 'rat02']" in capsys.readouterr().out
+    bad = _write(tmp_path / "bad.yaml", GOOD.replace("[sphere]", "[sphere"))
+    with pytest.raises(SystemExit) as exit_:
+        main(["--check", str(bad), "--schema", str(SCHEMA)])
+    assert exit_.value.code == 1
+    assert "bad.yaml, line 8, column 1: YAML syntax error" in capsys.readouterr().err
+
+
 def test_animals_named_like_a_folder_of_results_are_refused():
     for name in RESERVED_ANIMAL_NAMES:
         with pytest.raises(ConfigError, match=f"config key animals.{name}: '{name}' is a folder of results/"):

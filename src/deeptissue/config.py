@@ -573,21 +573,48 @@ def schema_markdown(schema: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _merged(base: dict, overlay: dict) -> dict:
+    """``base`` updated by ``overlay``, nested mappings key by key (as Snakemake merges config files)."""
+    out = dict(base)
+    for key, value in overlay.items():
+        out[key] = _merged(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
-    """Write the reference page rendered from the schema (``python -m deeptissue.config docs/config.md``).
+    """Write the reference page rendered from the schema (``python -m deeptissue.config docs/config.md``),
+    or check config files without running the workflow (``--check config/my_study.yaml``).
 
     Parameters
     ----------
     argv : list of str, optional
         Command-line arguments: the output file and ``--schema PATH`` (default
-        ``workflow/schemas/config.schema.yaml``, relative to the working directory).
+        ``workflow/schemas/config.schema.yaml``, relative to the working directory); or ``--check`` and the
+        config files of a run in the order Snakemake is given them (the study's file, then overlays), whose
+        input files are relative to the working directory.
     """
+    from .io import atomic_path
+
     parser = argparse.ArgumentParser(prog="python -m deeptissue.config", description=main.__doc__.splitlines()[0])
-    parser.add_argument("output", type=Path, help="the Markdown file to write, e.g. docs/config.md")
+    parser.add_argument("output", type=Path, nargs="?", help="the Markdown file to write, e.g. docs/config.md")
     parser.add_argument("--schema", type=Path, default=SCHEMA_PATH, help="the configuration schema (YAML)")
+    parser.add_argument("--check", type=Path, nargs="+", metavar="CONFIG",
+                        help="check these config files (merged in order) instead of writing the page")
     args = parser.parse_args(argv)
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(schema_markdown(load_schema(args.schema)))
+    if args.check:
+        try:
+            config = {}
+            for path in args.check:
+                config = _merged(config, load_config_file(path))
+            validate_config(config, args.schema, base_dir=".", config_files=args.check)
+        except (ConfigError, OSError) as exc:
+            parser.exit(1, f"{exc}\n")
+        print(f"config OK: study {config['study']['name']}, animals {list(config['animals'])}")
+        return
+    if args.output is None:
+        parser.error("give the Markdown file to write, or --check CONFIG")
+    with atomic_path(args.output) as tmp:
+        tmp.write_text(schema_markdown(load_schema(args.schema)))
 
 
 if __name__ == "__main__":
