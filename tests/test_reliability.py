@@ -70,9 +70,9 @@ def test_a_key_given_twice_is_refused_with_both_lines(tmp_path):
 
 def test_an_unquoted_numeric_animal_name_says_to_quote_it(tmp_path):
     f = _write(tmp_path / "study.yaml", GOOD.replace("rat01:", "01:"))
-    with pytest.raises(ConfigError, match=r"line 2: animal name 01 is read by YAML as a int, not a name; quote it: '01'"):
+    with pytest.raises(ConfigError, match=r"line 2: animal name 01 is read by YAML as an int, not a name; quote it: '01'"):
         load_config_file(f)
-    with pytest.raises(ConfigError, match=r"config key animals: animal name 1 is read by YAML as a int.*quote it"):
+    with pytest.raises(ConfigError, match=r"config key animals: animal name 1 is read by YAML as an int.*quote it"):
         _validate(GOOD.replace("rat01:", "01:"))
     assert list(load_config_file(_write(tmp_path / "q.yaml", GOOD.replace("rat01:", "'01':")))["animals"]) == ["01", "rat02"]
 
@@ -158,7 +158,7 @@ def test_a_study_is_named_after_its_first_config_file():
     "change, message",
     [
         (lambda t: t.replace("  rat02:", "  rat01:"), r"line 4: key 'rat01' is given twice \(lines 2 and 4\)"),
-        (lambda t: t.replace("rat01:", "01:"), r"animal name 01 is read by YAML as a int, not a name; quote it: '01'"),
+        (lambda t: t.replace("rat01:", "01:"), r"animal name 01 is read by YAML as an int, not a name; quote it: '01'"),
         (lambda t: t.replace("rat02:", "summary:"), r"config key animals.summary: 'summary' is a folder of results/"),
         (lambda t: t.replace("depth_mm: 2.0", "depth_mm: 0"), r"animals.rat01.phantom.depth_mm: 0 is less than"),
         (lambda t: t.replace("depth_mm: 2.0", "depth_mm: 2.0, tilt_deg: [89, 0]"), r"tilt about X works from"),

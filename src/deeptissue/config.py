@@ -3,7 +3,8 @@
 The schema (``workflow/schemas/config.schema.yaml``) gives every key a description, unit and
 default. Validation fills in defaults, checks the rules that span several keys, and turns the
 first problem into a one-line error that names the key, so a typo in a 40-line config is found at
-once. ``docs/config.md`` is rendered from the same schema; regenerate it with::
+once. Config files are read again strictly (:func:`load_config_file`): a key given twice, an animal
+name YAML reads as a number and a syntax error are refused with file and line. ``docs/config.md`` is rendered from the same schema; regenerate it with::
 
     python -m deeptissue.config docs/config.md
 """
@@ -74,6 +75,11 @@ class _StrictLoader(yaml.SafeLoader):
 _StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _StrictLoader.construct_mapping)
 
 
+def _a(kind: str) -> str:
+    """``kind`` with its indefinite article (``an int``, ``a float``)."""
+    return f"{'an' if kind[:1] in 'aeiou' else 'a'} {kind}"
+
+
 def _numeric_animal_names(node: yaml.Node, path: str) -> None:
     """Refuse an animal name that YAML reads as a number (``01``, ``1e3``), with its line and the quoted form."""
     if not isinstance(node, yaml.MappingNode):
@@ -82,10 +88,10 @@ def _numeric_animal_names(node: yaml.Node, path: str) -> None:
         if key_node.value == "animals" and isinstance(value_node, yaml.MappingNode):
             for name_node, _ in value_node.value:
                 if isinstance(name_node, yaml.ScalarNode) and name_node.tag != "tag:yaml.org,2002:str":
-                    kind = name_node.tag.rsplit(":", 1)[-1]
                     raise ConfigError(
                         f"config file {path}, line {name_node.start_mark.line + 1}: animal name {name_node.value} "
-                        f"is read by YAML as a {kind}, not a name; quote it: '{name_node.value}'"
+                        f"is read by YAML as {_a(name_node.tag.rsplit(':', 1)[-1])}, not a name; quote it: "
+                        f"'{name_node.value}'"
                     )
 
 
@@ -275,7 +281,7 @@ def _check_animal_keys(config: dict[str, Any]) -> None:
     for name in animals:
         if not isinstance(name, str):
             raise ConfigError(
-                f"config key animals: animal name {name!r} is read by YAML as a {type(name).__name__}, not a name; "
+                f"config key animals: animal name {name!r} is read by YAML as {_a(type(name).__name__)}, not a name; "
                 f"quote it in the config file (as written there, e.g. '01')"
             )
 
