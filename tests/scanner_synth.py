@@ -1,0 +1,135 @@
+"""A volume written as a classic MR DICOM series with pydicom, in the geometry a scanner writes it.
+
+The writer knows nothing of the reader under test: a voxel (i, j, k) of ``data`` with the RAS
+``affine`` becomes column i, row j of the file whose ImagePositionPatient is the LPS position of
+(0, 0, k). DICOM stores integers, so the data are quantised with one RescaleSlope for the series;
+:func:`quantised` is what a reader must give back.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from pydicom.dataset import Dataset, FileMetaDataset
+from pydicom.uid import ExplicitVRLittleEndian, generate_uid
+
+MR_IMAGE_STORAGE = "1.2.840.10008.5.1.4.1.1.4"
+LPS = np.diag([-1.0, -1.0, 1.0])  # RAS <-> DICOM patient coordinates (LPS)
+LEVELS = 4000  # integer levels of the data's maximum
+
+
+def slope_of(data: np.ndarray) -> float:
+    """The RescaleSlope that maps the integer levels to the data's values."""
+    return float(np.max(data)) / LEVELS
+
+
+def quantised(data: np.ndarray) -> np.ndarray:
+    """The values a DICOM series of ``data`` holds (integer levels times the slope), float32."""
+    s = slope_of(data)
+    return (np.round(np.asarray(data, float) / s) * s).astype(np.float32)
+
+
+def reorder(data: np.ndarray, affine: np.ndarray, *, perm=(0, 1, 2), flip=(False, False, False)):
+    """The same voxels in another index order: axes permuted, then flipped; world coordinates unchanged."""
+    d = np.transpose(data, perm)
+    a = np.asarray(affine, float)[:, list(perm) + [3]].copy()
+    for ax, f in enumerate(flip):
+        if f:
+            n = d.shape[ax]
+            d = np.flip(d, axis=ax)
+            a[:3, 3] = a[:3, 3] + a[:3, ax] * (n - 1)
+            a[:3, ax] = -a[:3, ax]
+    return np.ascontiguousarray(d), a
+
+
+def rotated(affine: np.ndarray, angles_deg) -> np.ndarray:
+    """The affine turned about the world origin by rotations about x, y, z (deg): an oblique acquisition."""
+    ax, ay, az = np.deg2rad(angles_deg)
+    rx = np.array([[1, 0, 0], [0, np.cos(ax), -np.sin(ax)], [0, np.sin(ax), np.cos(ax)]])
+    ry = np.array([[np.cos(ay), 0, np.sin(ay)], [0, 1, 0], [-np.sin(ay), 0, np.cos(ay)]])
+    rz = np.array([[np.cos(az), -np.sin(az), 0], [np.sin(az), np.cos(az), 0], [0, 0, 1]])
+    out = np.asarray(affine, float).copy()
+    out[:3] = (rz @ ry @ rx) @ out[:3]
+    return out
+
+
+def write_series(folder, data: np.ndarray, affine: np.ndarray, *, patient_position: str = "HFS",
+                 series_number: int = 1, description: str = "T2 RARE", echo_time_ms: float = 12.0,
+                 echo_number: int = 1, repetition_time_ms: float = 2500.0, study_uid: str | None = None,
+                 series_uid: str | None = None, slices=None, instance_start: int = 1,
+                 temporal_position: int | None = None, name: str = "IM") -> list[Path]:
+    """Write ``data`` (ni, nj, nk) with its RAS ``affine`` as one file per slice into ``folder``.
+
+    ``slices`` picks (and orders) the slices written (default all, in order k = 0..nk-1); files are
+    named ``{name}{series_number}_{instance}.dcm``. Returns the paths written.
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    data = np.asarray(data, float)
+    slope = slope_of(data)
+    levels = np.round(data / slope).astype(np.uint16)
+    lps = LPS @ np.asarray(affine, float)[:3]
+    row_dir = lps[:, 0] / np.linalg.norm(lps[:, 0])  # along a row: column index i grows
+    col_dir = lps[:, 1] / np.linalg.norm(lps[:, 1])  # down a column: row index j grows
+    study_uid = study_uid or generate_uid()
+    series_uid = series_uid or generate_uid()
+    frame_uid = generate_uid()
+    ks = list(range(data.shape[2])) if slices is None else list(slices)
+    paths = []
+    for n, k in enumerate(ks):
+        meta = FileMetaDataset()
+        meta.MediaStorageSOPClassUID = MR_IMAGE_STORAGE
+        meta.MediaStorageSOPInstanceUID = generate_uid()
+        meta.TransferSyntaxUID = ExplicitVRLittleEndian
+        ds = Dataset()
+        ds.file_meta = meta
+        ds.SOPClassUID = MR_IMAGE_STORAGE
+        ds.SOPInstanceUID = meta.MediaStorageSOPInstanceUID
+        ds.StudyInstanceUID = study_uid
+        ds.SeriesInstanceUID = series_uid
+        ds.FrameOfReferenceUID = frame_uid
+        ds.Modality = "MR"
+        ds.Manufacturer = "Bruker BioSpin MRI GmbH"
+        ds.PatientName = "phantom"
+        ds.PatientID = "phantom"
+        ds.PatientPosition = patient_position
+        ds.StudyDate = ds.SeriesDate = ds.AcquisitionDate = "20260101"
+        ds.StudyTime = ds.SeriesTime = "120000"
+        ds.AcquisitionTime = f"12{series_number % 60:02d}00"
+        ds.StudyID = "1"
+        ds.SeriesNumber = series_number
+        ds.AcquisitionNumber = 1
+        ds.InstanceNumber = instance_start + n
+        ds.SeriesDescription = description
+        ds.ProtocolName = description
+        ds.ImageType = ["ORIGINAL", "PRIMARY", "M", "NONE"]
+        ds.ScanningSequence = "SE"
+        ds.SequenceVariant = "NONE"
+        ds.SequenceName = "RARE"
+        ds.MRAcquisitionType = "2D"
+        ds.MagneticFieldStrength = 7.0
+        ds.ImagingFrequency = 300.3
+        ds.EchoTime = echo_time_ms
+        ds.EchoNumbers = echo_number
+        ds.RepetitionTime = repetition_time_ms
+        if temporal_position is not None:
+            ds.TemporalPositionIdentifier = temporal_position
+            ds.NumberOfTemporalPositions = 2
+        ds.ImagePositionPatient = [f"{v:.6f}" for v in lps @ np.array([0.0, 0.0, k, 1.0])]
+        ds.ImageOrientationPatient = [f"{v:.8f}" for v in (*row_dir, *col_dir)]
+        ds.PixelSpacing = [f"{np.linalg.norm(lps[:, 1]):.8f}", f"{np.linalg.norm(lps[:, 0]):.8f}"]
+        ds.SliceThickness = f"{np.linalg.norm(lps[:, 2]):.6f}"
+        ds.SpacingBetweenSlices = f"{np.linalg.norm(lps[:, 2]):.6f}"
+        ds.SliceLocation = f"{float(np.dot(np.cross(row_dir, col_dir), lps @ np.array([0.0, 0.0, k, 1.0]))):.6f}"
+        ds.Rows, ds.Columns = data.shape[1], data.shape[0]
+        ds.SamplesPerPixel = 1
+        ds.PhotometricInterpretation = "MONOCHROME2"
+        ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 16, 15, 0
+        ds.RescaleSlope = f"{slope:.10g}"
+        ds.RescaleIntercept = "0"
+        ds.PixelData = np.ascontiguousarray(levels[:, :, k].T).tobytes()
+        path = folder / f"{name}{series_number}_{instance_start + n:04d}.dcm"
+        ds.save_as(path, enforce_file_format=True)
+        paths.append(path)
+    return paths
