@@ -9,12 +9,14 @@ agree to 0.01 mm.
 
 import json
 import shutil
+from pathlib import Path
 
 import nibabel as nib
 import numpy as np
 import pytest
 from scanner_synth import quantised, reorder, rotated, write_series
 
+from deeptissue.config import ConfigError, validate_config
 from deeptissue.imaging import ImagingError, load_nifti
 from deeptissue.phantom import PhantomSpec, make_phantom
 from deeptissue.scanner import dicom_series, read_dicom, read_scan, scan_kind, write_scan
@@ -71,6 +73,11 @@ def test_dicom_geometry_round_trip(ph, tmp_path, name):
     # the slice axis stays the third voxel axis (later stages read slices as data[:, :, k])
     normal_in, normal_out = aff[:3, 2] / np.linalg.norm(aff[:3, 2]), vol.affine[:3, 2] / np.linalg.norm(vol.affine[:3, 2])
     assert abs(abs(normal_in @ normal_out) - 1.0) < 1e-6
+    # axes ordered and flipped toward +x, +y, +z world: the phantom's own array for every axial stack
+    if perm == (0, 1, 2) and rot is None:
+        np.testing.assert_allclose(vol.data, quantised(ph.pre), rtol=0, atol=1e-5 * float(ph.pre.max()))
+        np.testing.assert_allclose(vol.affine, ph.affine, atol=1e-5)
+    assert all(vol.affine[np.argmax(np.abs(vol.affine[:3, a])), a] > 0 for a in range(3))
     assert meta["converter"] == "dcm2niix" and meta["patient_position"] == position
     assert meta["field_strength_t"] == 7.0 and meta["echo_time_ms"] == 12.0 and meta["repetition_time_ms"] == 2500.0
 
@@ -94,7 +101,10 @@ def test_scan_kinds_and_sidecar(ph, tmp_path):
     assert_same_geometry(quantised(ph.pre), ph.affine, back.data, back.affine)
     side = json.loads((tmp_path / "out" / "pre.json").read_text())
     assert side["kind"] == "dicom" and side["shape"] == [40, 40, 8]
-    assert side["orientation"] == "".join(nib.aff2axcodes(back.affine)) and side["orientation"][2] == "S"
+    assert side["orientation"] == "RAS"
+    # an axial series reads back as the very array and affine of its NIfTI twin
+    np.testing.assert_allclose(back.data, quantised(ph.pre), rtol=0, atol=1e-5 * float(ph.pre.max()))
+    np.testing.assert_allclose(back.affine, ph.affine, atol=1e-5)
     np.testing.assert_allclose(side["voxel_mm"], [25 / 40, 25 / 40, 1.0])
     # a NIfTI entry reads as before, with the same sidecar keys
     vol2, meta2 = read_scan("out/pre.nii.gz", base_dir=tmp_path)
@@ -197,3 +207,32 @@ def test_copying_a_folder_keeps_geometry(ph, tmp_path):
     vb, _ = read_dicom(tmp_path / "b")
     np.testing.assert_array_equal(va.data, vb.data)
     np.testing.assert_array_equal(va.affine, vb.affine)
+
+
+# --- the config accepts scanner data as pre/during ---
+
+ROOT = Path(__file__).resolve().parents[1]
+SCHEMA = ROOT / "workflow" / "schemas" / "config.schema.yaml"
+
+
+def test_config_accepts_scanner_forms(tmp_path):
+    (tmp_path / "dcm").mkdir()
+    (tmp_path / "study").mkdir()
+    cfg = {"animals": {"rat": {"pre": "dcm", "during": {"bruker": "study", "scan": 6, "reco": 1}},
+                       "rat2": {"pre": {"dicom": "dcm", "series": 3, "volume": 1}, "during": {"dicom": "dcm", "series": "T2 during"}}}}
+    out = validate_config(cfg, SCHEMA, base_dir=tmp_path)
+    # no key is filled into a scan mapping (a default would leak into the other forms)
+    assert out["animals"]["rat"]["during"] == {"bruker": "study", "scan": 6, "reco": 1}
+    assert out["animals"]["rat2"]["during"] == {"dicom": "dcm", "series": "T2 during"}
+
+
+@pytest.mark.parametrize("during, match", [
+    ({"bruker": "nowhere", "scan": 6}, r"animals\.rat\.during: folder not found: nowhere"),
+    ({"dicom": "dcm", "scan": 6}, r"animals\.rat\.during: unknown key\(s\) \[.scan.\]; allowed: \[.dicom., .series., .volume.\]"),
+    ({"bruker": "dcm"}, r"animals\.rat\.during: .scan. is a required property"),
+    ("nowhere", r"animals\.rat\.during: file not found: nowhere"),
+])
+def test_config_refuses_bad_scanner_forms(tmp_path, during, match):
+    (tmp_path / "dcm").mkdir()
+    with pytest.raises(ConfigError, match=match):
+        validate_config({"animals": {"rat": {"pre": "dcm", "during": during}}}, SCHEMA, base_dir=tmp_path)

@@ -233,7 +233,7 @@ def read_dicom(folder: str | Path, *, series: int | str | None = None, volume: i
     Returns
     -------
     (Volume, dict)
-        The volume (``path`` is the folder) and its metadata (see :func:`read_scan`).
+        The volume (``path`` is the folder; voxel axes as :func:`read_scan` says) and its metadata.
 
     Raises
     ------
@@ -265,7 +265,7 @@ def read_dicom(folder: str | Path, *, series: int | str | None = None, volume: i
         path, _ = _select_volume(_dcm2niix(files, tmp, where), nifti_volume, tmp, where,
                                  key="{dicom: <folder>, volume: <number>}")
         vol = load_nifti(path, animal=animal)
-    vol = Volume(data=vol.data, affine=vol.affine, path=str(folder), animal=animal)
+    vol = _oriented(Volume(data=vol.data, affine=vol.affine, path=str(folder), animal=animal))
     meta = {
         "kind": "dicom",
         "source": str(folder),
@@ -323,7 +323,7 @@ def read_bruker(study: str | Path, *, scan: int, reco: int = 1, volume: int | No
     Returns
     -------
     (Volume, dict)
-        The volume (``path`` is the study folder) and its metadata (see :func:`read_scan`).
+        The volume (``path`` is the study folder; voxel axes as :func:`read_scan` says) and its metadata.
 
     Raises
     ------
@@ -364,7 +364,7 @@ def read_bruker(study: str | Path, *, scan: int, reco: int = 1, volume: int | No
         nib.save(nib.Nifti1Image(data.astype(np.float32), np.asarray(affine, float)), str(raw))
         path, picked = _select_volume(raw, volume, tmp, where, key="{bruker: <study>, scan: <n>, reco: <m>, volume: <number>}")
         vol = load_nifti(path, animal=animal)
-    vol = Volume(data=vol.data, affine=vol.affine, path=str(study), animal=animal)
+    vol = _oriented(Volume(data=vol.data, affine=vol.affine, path=str(study), animal=animal))
     method = _param(sc, "method")
     acqp = _param(sc, "acqp")
     bf1 = _scalar(_param(acqp, "BF1")) if acqp is not None else None
@@ -400,6 +400,27 @@ def _scan_label(sc) -> str:
 # --- any input ---
 
 
+def _oriented(vol: Volume) -> Volume:
+    """The same voxels with the in-plane axes ordered and every axis flipped toward +x, +y, +z world; slices stay third.
+
+    Converters keep the order a scanner stored (rows top to bottom, slices in acquisition order); this
+    fixed order makes a scan and its NIfTI twin the same array, while the slice axis stays the third
+    axis that later stages read slices along.
+    """
+    data, affine = vol.data, vol.affine.copy()
+    dominant = np.argmax(np.abs(affine[:3, :2]), axis=0)
+    if dominant[0] > dominant[1]:
+        data = np.swapaxes(data, 0, 1)
+        affine[:, [0, 1]] = affine[:, [1, 0]]
+    for ax in range(3):
+        col = affine[:3, ax]
+        if col[np.argmax(np.abs(col))] < 0:
+            data = np.flip(data, axis=ax)
+            affine[:3, 3] += col * (data.shape[ax] - 1)
+            affine[:3, ax] = -col
+    return Volume(data=np.ascontiguousarray(data), affine=affine, path=vol.path, animal=vol.animal)
+
+
 def _geometry(vol: Volume) -> dict:
     return {
         "shape": list(vol.data.shape),
@@ -425,7 +446,9 @@ def read_scan(spec: str | dict, *, base_dir: str | Path = ".", animal: str = "")
     Returns
     -------
     (Volume, dict)
-        The volume (RAS mm) and its metadata: ``kind``, ``source``, ``converter`` and
+        The volume (affine to RAS mm). Scanner data keep the acquired slice axis third, with the in-plane
+        axes ordered and all axes flipped toward +x, +y, +z world (an axial scan reads as RAS, like a NIfTI
+        twin); a NIfTI file is read as it is. Metadata: ``kind``, ``source``, ``converter`` and
         ``converter_version``, ``field_strength_t``, ``sequence``, ``echo_time_ms``,
         ``repetition_time_ms`` (None where the data do not say), ``shape``, ``voxel_mm``,
         ``orientation`` (nibabel axis codes of the voxel axes, e.g. ``RAS``) and ``affine``.

@@ -1,7 +1,9 @@
 # Configuration validation, input functions and wildcard constraints shared by all rules.
+from argparse import Namespace
 from pathlib import Path
 
 from deeptissue.config import has_during_scan, validate_config
+from deeptissue.scanner import scan_kind
 from deeptissue.variants import mesh_group_of, mesh_groups, solve_priority, turn_base
 
 config = validate_config(config, workflow.source_path("../schemas/config.schema.yaml"), base_dir=Path(workflow.basedir))
@@ -62,12 +64,23 @@ def mesh_of(animal, variant):
     return f"results/{animal}/model/{mesh_group_of(variant, MESH_GROUPS)}"
 
 
+def is_converted(animal, state):
+    """Whether a state's scan is scanner data (a DICOM series or a ParaVision scan) that rule convert turns into NIfTI."""
+    cfg = animal_cfg(animal)
+    return state in cfg and scan_kind(cfg[state], base_dir=workflow.basedir) != "nifti"
+
+
+def scan_source(animal, state):
+    """The file or folder a state's scan is read from (a mapping's `dicom` or `bruker` folder)."""
+    spec = animal_cfg(animal)[state]
+    return spec.get("dicom", spec.get("bruker")) if isinstance(spec, dict) else spec
+
+
 def mri_input(wildcards):
-    """The NIfTI of one animal and state: the phantom's output or the configured file."""
-    cfg = animal_cfg(wildcards.animal)
-    if "phantom" in cfg:
+    """The NIfTI of one animal and state: the phantom's or the converted scanner data's output, or the configured file."""
+    if is_phantom(wildcards.animal) or is_converted(wildcards.animal, wildcards.state):
         return f"results/{wildcards.animal}/mri/{wildcards.state}.nii.gz"
-    return cfg[wildcards.state]
+    return animal_cfg(wildcards.animal)[wildcards.state]
 
 
 def segment_inputs(wildcards):
@@ -75,9 +88,7 @@ def segment_inputs(wildcards):
     cfg = animal_cfg(wildcards.animal)
     inputs = {"image": mri_input(wildcards)}
     if wildcards.state == "during":
-        inputs["reference"] = (
-            f"results/{wildcards.animal}/mri/pre.nii.gz" if is_phantom(wildcards.animal) else cfg["pre"]
-        )
+        inputs["reference"] = mri_input(Namespace(animal=wildcards.animal, state="pre"))
     if "overrides" in cfg:
         inputs["overrides"] = cfg["overrides"]
     if is_phantom(wildcards.animal):
