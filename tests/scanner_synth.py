@@ -133,3 +133,74 @@ def write_series(folder, data: np.ndarray, affine: np.ndarray, *, patient_positi
         ds.save_as(path, enforce_file_format=True)
         paths.append(path)
     return paths
+
+
+def _jcamp(path: Path, params: dict) -> None:
+    """A JCAMP-DX parameter file as ParaVision writes them: ``##$Key=value``, arrays as ``( n )`` then values."""
+    lines = ["##TITLE=Parameter List, ParaVision 6.0.1", "##JCAMPDX=4.24", "##DATATYPE=Parameter Values"]
+    for key, value in params.items():
+        if isinstance(value, np.ndarray):
+            dims = ", ".join(str(n) for n in value.shape)
+            lines += [f"##${key}=( {dims} )", " ".join(f"{v:.10g}" if isinstance(v, float) else str(v) for v in value.ravel())]
+        elif isinstance(value, tuple):  # (shape, text): a structured value written as is
+            lines += [f"##${key}=( {value[0]} )", value[1]]
+        else:
+            lines.append(f"##${key}={value}")
+    lines.append("##END=")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def write_paravision(study, scan: int, data: np.ndarray, affine: np.ndarray, *, reco: int = 1,
+                     subject_position: str = "Head_Prone", subject_type: str = "Quadruped",
+                     protocol: str = "T2_TurboRARE", echo_time_ms: float = 12.0,
+                     repetition_time_ms: float = 2500.0) -> Path:
+    """Write ``data`` (ni, nj, nk) with its RAS ``affine`` as scan ``scan`` / reco ``reco`` of a ParaVision study.
+
+    The layout is the one brkraw discovers (``<scan>/method``, ``acqp``, ``pdata/<reco>/2dseq``,
+    ``visu_pars``, ``reco``); ``VisuCoreOrientation`` holds the row, column and slice direction
+    cosines and ``VisuCorePosition`` the first voxel of each slice, in the LPS patient coordinates
+    that ParaVision also exports as DICOM ImageOrientationPatient / ImagePositionPatient. The
+    2dseq is int16 in Fortran order (i fastest) with one slope for all frames.
+    """
+    study = Path(study)
+    scan_dir = study / str(scan)
+    reco_dir = scan_dir / "pdata" / str(reco)
+    reco_dir.mkdir(parents=True, exist_ok=True)
+    (study / "subject").write_text("##TITLE=Parameter List, ParaVision 6.0.1\n##JCAMPDX=4.24\n##$SUBJECT_id=<phantom>\n##END=\n")
+    ni, nj, nk = data.shape
+    slope = float(np.max(data)) / LEVELS
+    levels = np.round(np.asarray(data, float) / slope).astype("<i2")
+    lps = LPS @ np.asarray(affine, float)[:3]
+    dirs = lps[:, :3] / np.linalg.norm(lps[:, :3], axis=0)
+    step = np.linalg.norm(lps[:, :3], axis=0)
+    orient = np.tile(dirs.T.ravel(), (nk, 1))
+    pos = np.array([lps @ np.array([0.0, 0.0, k, 1.0]) for k in range(nk)])
+    _jcamp(scan_dir / "acqp", {"ACQ_protocol_name": ("64", f"<{protocol}>"), "ACQ_scan_name": ("64", f"<{protocol}>"),
+                                "BF1": 300.300, "BYTORDA": "little", "ACQ_word_size": "_32_BIT",
+                                "ACQ_scaling_phase": 1, "ACQ_dim": 2})
+    _jcamp(scan_dir / "method", {"Method": "<Bruker:RARE>", "PVM_EchoTime": echo_time_ms,
+                                  "PVM_RepetitionTime": repetition_time_ms, "PVM_NSPacks": 1,
+                                  "PVM_SPackArrNSlices": np.array([nk]),
+                                  "PVM_SPackArrSliceDistance": np.array([float(step[2])]),
+                                  "PVM_SPackArrSliceGap": np.array([0.0]),
+                                  "PVM_SPackArrSliceOrient": ("1", "axial"),
+                                  "PVM_ObjOrderScheme": "Interlaced"})
+    _jcamp(reco_dir / "reco", {"RECO_wordtype": "_16BIT_SGN_INT", "RECO_byte_order": "littleEndian"})
+    _jcamp(reco_dir / "visu_pars", {
+        "VisuCoreFrameCount": nk, "VisuCoreDim": 2, "VisuCoreSize": np.array([ni, nj]),
+        "VisuCoreDimDesc": ("2", "spatial spatial"),
+        "VisuCoreExtent": np.array([float(step[0] * ni), float(step[1] * nj)]),
+        "VisuCoreFrameThickness": np.array([float(step[2])]), "VisuCoreUnits": ("2, 65", "<mm> <mm>"),
+        "VisuCoreOrientation": orient, "VisuCorePosition": pos,
+        "VisuCoreDataMin": np.zeros(nk), "VisuCoreDataMax": levels.reshape(-1, nk, order="F").max(axis=0).astype(float) * slope,
+        "VisuCoreDataOffs": np.zeros(nk), "VisuCoreDataSlope": np.full(nk, slope),
+        "VisuCoreFrameType": "MAGNITUDE_IMAGE", "VisuCoreWordType": "_16BIT_SGN_INT",
+        "VisuCoreByteOrder": "littleEndian", "VisuFGOrderDescDim": 1,
+        "VisuFGOrderDesc": ("1", f"({nk}, <FG_SLICE>, <>, 0, 2)"),
+        "VisuGroupDepVals": ("2", "(<VisuCoreOrientation>, 0) (<VisuCorePosition>, 0)"),
+        "VisuSubjectPosition": subject_position, "VisuSubjectType": subject_type,
+        "VisuAcqEchoTime": np.array([echo_time_ms]), "VisuAcqRepetitionTime": np.array([repetition_time_ms]),
+        "VisuMagneticFieldStrength": 7.0, "VisuCreatorVersion": "<6.0.1>", "VisuCoreVersion": 5,
+    })
+    (reco_dir / "2dseq").write_bytes(levels.tobytes(order="F"))
+    return study

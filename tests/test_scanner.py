@@ -14,12 +14,12 @@ from pathlib import Path
 import nibabel as nib
 import numpy as np
 import pytest
-from scanner_synth import quantised, reorder, rotated, write_series
+from scanner_synth import quantised, reorder, rotated, write_paravision, write_series
 
 from deeptissue.config import ConfigError, validate_config
 from deeptissue.imaging import ImagingError, load_nifti
 from deeptissue.phantom import PhantomSpec, make_phantom
-from deeptissue.scanner import dicom_series, read_dicom, read_scan, scan_kind, write_scan
+from deeptissue.scanner import dicom_series, read_bruker, read_dicom, read_scan, scan_kind, write_scan
 
 WORLD_TOL_MM = 0.01
 
@@ -236,3 +236,48 @@ def test_config_refuses_bad_scanner_forms(tmp_path, during, match):
     (tmp_path / "dcm").mkdir()
     with pytest.raises(ConfigError, match=match):
         validate_config({"animals": {"rat": {"pre": "dcm", "during": during}}}, SCHEMA, base_dir=tmp_path)
+
+
+# --- ParaVision: a study written as brkraw discovers it (tests/scanner_synth.write_paravision) ---
+
+
+@pytest.mark.parametrize("name", ["axial_head_first", "axial_feet_first", "coronal", "sagittal", "oblique",
+                                  "oblique_coronal_feet_first"])
+def test_paravision_geometry_round_trip(ph, tmp_path, name):
+    perm, flip, rot, _ = ORIENTATIONS[name]
+    affine = ph.affine if rot is None else rotated(ph.affine, rot)
+    data, aff = reorder(ph.pre, affine, perm=perm, flip=flip)
+    write_paravision(tmp_path / "study", 5, data, aff, subject_position="Foot_Prone" if "feet" in name else "Head_Prone")
+    vol, meta = read_bruker(tmp_path / "study", scan=5, reco=1, animal="rat")
+    assert_same_geometry(quantised(ph.pre), affine, vol.data, vol.affine)
+    normal_in, normal_out = aff[:3, 2] / np.linalg.norm(aff[:3, 2]), vol.affine[:3, 2] / np.linalg.norm(vol.affine[:3, 2])
+    assert abs(abs(normal_in @ normal_out) - 1.0) < 1e-6
+    if perm == (0, 1, 2) and rot is None:
+        np.testing.assert_allclose(vol.data, quantised(ph.pre), rtol=0, atol=1e-5 * float(ph.pre.max()))
+        np.testing.assert_allclose(vol.affine, ph.affine, atol=1e-5)
+    assert meta["converter"] == "brkraw" and meta["scan"] == 5 and meta["sequence"] == "<Bruker:RARE>"
+    assert meta["echo_time_ms"] == 12.0 and meta["repetition_time_ms"] == 2500.0 and meta["field_strength_t"] == 7.053
+
+
+def test_paravision_refusals(ph, tmp_path):
+    study = tmp_path / "20190312_rat07"
+    write_paravision(study, 5, ph.pre, ph.affine, protocol="T2_pre")
+    write_paravision(study, 6, ph.during, ph.affine, protocol="T2_during")
+    with pytest.raises(ImagingError, match=r"animal rat, folder .*20190312_rat07: no scan 7; the study holds: "
+                                           r"scan 5 'T2_pre' \(recos \[1\]\); scan 6 'T2_during' \(recos \[1\]\)"):
+        read_bruker(study, scan=7, animal="rat")
+    with pytest.raises(ImagingError, match=r"folder .*20190312_rat07, scan 6: no reco 2; the scan has recos \[1\]"):
+        read_bruker(study, scan=6, reco=2)
+    vol, _ = read_scan({"bruker": "20190312_rat07", "scan": 6}, base_dir=tmp_path)
+    assert_same_geometry(quantised(ph.during), ph.affine, vol.data, vol.affine)
+    # per-frame scaling that brkraw would apply as one slope
+    visu = study / "6" / "pdata" / "1" / "visu_pars"
+    text = visu.read_text().splitlines()
+    k = text.index(next(t for t in text if t.startswith("##$VisuCoreDataSlope")))
+    text[k + 1] = " ".join(["0.001"] + text[k + 1].split()[1:])
+    visu.write_text("\n".join(text) + "\n")
+    with pytest.raises(ImagingError, match=r"scan 6, reco 1: VisuCoreDataSlope differs between frames"):
+        read_bruker(study, scan=6)
+    with pytest.raises(ImagingError, match=r"folder .*empty: not a readable ParaVision study"):
+        (tmp_path / "empty").mkdir()
+        read_bruker(tmp_path / "empty", scan=1)

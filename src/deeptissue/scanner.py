@@ -291,10 +291,13 @@ def read_dicom(folder: str | Path, *, series: int | str | None = None, volume: i
 
 
 def _param(obj, key):
-    try:
-        return obj[key]
-    except Exception:
-        return None
+    """A ParaVision parameter (or parameter file of a scan/reco) by name; None where it is missing."""
+    for get in (lambda: obj[key], lambda: getattr(obj, key)):
+        try:
+            return get()
+        except Exception:  # brkraw raises several types for a missing parameter or file
+            continue
+    return None
 
 
 def _scalar(v):
@@ -349,19 +352,29 @@ def read_bruker(study: str | Path, *, scan: int, reco: int = 1, volume: int | No
     if reco not in sc.avail:
         raise ImagingError(f"{where}, scan {scan}: no reco {reco}; the scan has recos {sorted(sc.avail)}")
     where = f"{where}, scan {scan}, reco {reco}"
-    data = loader.get_dataobj(scan, reco)
-    affine = loader.get_affine(scan, reco)
-    if isinstance(data, tuple):
-        if len(data) != 1:
-            raise ImagingError(f"{where}: {len(data)} slice packs; export the one with the leg as its own scan")
-        data, affine = data[0], affine[0]
-    data = np.asarray(data)
-    if data.ndim > 4:
-        data = data.reshape(*data.shape[:3], -1)
+    visu = _param(sc.avail[reco], "visu_pars")
+    for key in ("VisuCoreDataSlope", "VisuCoreDataOffs"):
+        values = np.ravel(np.asarray(_param(visu, key) if visu is not None else 0.0, float))
+        if values.size > 1 and np.ptp(values) > 1e-9 * np.abs(values).max():
+            raise ImagingError(f"{where}: {key} differs between frames ({values.min():g} to {values.max():g}); brkraw "
+                               f"{brkraw.__version__} scales all frames by the first, so reconstruct with one scaling "
+                               f"or export the scan as DICOM")
+    try:
+        # patient coordinates as ParaVision writes them (and exports to DICOM): a quadruped's anatomical
+        # frame would turn the bore axis, along which the leg's slices are stacked, into y
+        img = loader.convert(scan, reco, override_subject_type="Biped")
+    except Exception as exc:  # brkraw raises several types for data it cannot shape
+        raise ImagingError(f"{where}: brkraw cannot convert the scan ({exc})") from exc
+    if isinstance(img, tuple):
+        if len(img) != 1:
+            raise ImagingError(f"{where}: {len(img)} slice packs; export the one with the leg as its own scan")
+        img = img[0]
     with tempfile.TemporaryDirectory(prefix="deeptissue_bruker_") as tmp:
         tmp = Path(tmp)
         raw = tmp / "scan.nii"
-        nib.save(nib.Nifti1Image(data.astype(np.float32), np.asarray(affine, float)), str(raw))
+        if img.ndim > 4:
+            img = nib.Nifti1Image(np.asarray(img.dataobj).reshape(*img.shape[:3], -1), img.affine, img.header)
+        nib.save(img, str(raw))  # saved and read back: nibabel applies the header's slope and offset
         path, picked = _select_volume(raw, volume, tmp, where, key="{bruker: <study>, scan: <n>, reco: <m>, volume: <number>}")
         vol = load_nifti(path, animal=animal)
     vol = _oriented(Volume(data=vol.data, affine=vol.affine, path=str(study), animal=animal))
@@ -377,6 +390,7 @@ def read_bruker(study: str | Path, *, scan: int, reco: int = 1, volume: int | No
         "converter": "brkraw",
         "converter_version": brkraw.__version__,
         "paravision_version": loader.sw_version,
+        "subject": f"{_param(visu, 'VisuSubjectType')} {_param(visu, 'VisuSubjectPosition')}",
         "field_strength_t": None if bf1 is None else round(bf1 / 42.577478, 3),  # 1H Larmor frequency [MHz] / gamma-bar
         "sequence": str(_param(method, "Method") or "") if method is not None else "",
         "protocol": _scan_label(sc),
