@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 from pydicom.dataset import Dataset, FileMetaDataset
 from pydicom.uid import ExplicitVRLittleEndian, generate_uid
+from pydicom.valuerep import format_number_as_ds
 
 MR_IMAGE_STORAGE = "1.2.840.10008.5.1.4.1.1.4"
 LPS = np.diag([-1.0, -1.0, 1.0])  # RAS <-> DICOM patient coordinates (LPS)
@@ -22,6 +23,11 @@ LEVELS = 4000  # integer levels of the data's maximum
 def slope_of(data: np.ndarray) -> float:
     """The RescaleSlope that maps the integer levels to the data's values."""
     return float(np.max(data)) / LEVELS
+
+
+def _ds(value) -> str:
+    """A number as a DICOM decimal string at the most precision its 16 characters hold."""
+    return format_number_as_ds(float(value))
 
 
 def quantised(data: np.ndarray) -> np.ndarray:
@@ -58,16 +64,17 @@ def write_series(folder, data: np.ndarray, affine: np.ndarray, *, patient_positi
                  series_number: int = 1, description: str = "T2 RARE", echo_time_ms: float = 12.0,
                  echo_number: int = 1, repetition_time_ms: float = 2500.0, study_uid: str | None = None,
                  series_uid: str | None = None, slices=None, instance_start: int = 1,
-                 temporal_position: int | None = None, name: str = "IM") -> list[Path]:
+                 temporal_position: int | None = None, name: str = "IM", slope: float | None = None) -> list[Path]:
     """Write ``data`` (ni, nj, nk) with its RAS ``affine`` as one file per slice into ``folder``.
 
     ``slices`` picks (and orders) the slices written (default all, in order k = 0..nk-1); files are
-    named ``{name}{series_number}_{instance}.dcm``. Returns the paths written.
+    named ``{name}{series_number}_{instance}.dcm``; ``slope`` defaults to :func:`slope_of`. Returns
+    the paths written.
     """
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     data = np.asarray(data, float)
-    slope = slope_of(data)
+    slope = slope or slope_of(data)
     levels = np.round(data / slope).astype(np.uint16)
     lps = LPS @ np.asarray(affine, float)[:3]
     row_dir = lps[:, 0] / np.linalg.norm(lps[:, 0])  # along a row: column index i grows
@@ -116,17 +123,17 @@ def write_series(folder, data: np.ndarray, affine: np.ndarray, *, patient_positi
         if temporal_position is not None:
             ds.TemporalPositionIdentifier = temporal_position
             ds.NumberOfTemporalPositions = 2
-        ds.ImagePositionPatient = [f"{v:.6f}" for v in lps @ np.array([0.0, 0.0, k, 1.0])]
-        ds.ImageOrientationPatient = [f"{v:.8f}" for v in (*row_dir, *col_dir)]
-        ds.PixelSpacing = [f"{np.linalg.norm(lps[:, 1]):.8f}", f"{np.linalg.norm(lps[:, 0]):.8f}"]
-        ds.SliceThickness = f"{np.linalg.norm(lps[:, 2]):.6f}"
-        ds.SpacingBetweenSlices = f"{np.linalg.norm(lps[:, 2]):.6f}"
-        ds.SliceLocation = f"{float(np.dot(np.cross(row_dir, col_dir), lps @ np.array([0.0, 0.0, k, 1.0]))):.6f}"
+        ds.ImagePositionPatient = [_ds(v) for v in lps @ np.array([0.0, 0.0, k, 1.0])]
+        ds.ImageOrientationPatient = [_ds(v) for v in (*row_dir, *col_dir)]
+        ds.PixelSpacing = [_ds(np.linalg.norm(lps[:, 1])), _ds(np.linalg.norm(lps[:, 0]))]
+        ds.SliceThickness = _ds(np.linalg.norm(lps[:, 2]))
+        ds.SpacingBetweenSlices = _ds(np.linalg.norm(lps[:, 2]))
+        ds.SliceLocation = _ds(np.dot(np.cross(row_dir, col_dir), lps @ np.array([0.0, 0.0, k, 1.0])))
         ds.Rows, ds.Columns = data.shape[1], data.shape[0]
         ds.SamplesPerPixel = 1
         ds.PhotometricInterpretation = "MONOCHROME2"
         ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 16, 15, 0
-        ds.RescaleSlope = f"{slope:.10g}"
+        ds.RescaleSlope = _ds(slope)
         ds.RescaleIntercept = "0"
         ds.PixelData = np.ascontiguousarray(levels[:, :, k].T).tobytes()
         path = folder / f"{name}{series_number}_{instance_start + n:04d}.dcm"
@@ -141,7 +148,7 @@ def _jcamp(path: Path, params: dict) -> None:
     for key, value in params.items():
         if isinstance(value, np.ndarray):
             dims = ", ".join(str(n) for n in value.shape)
-            lines += [f"##${key}=( {dims} )", " ".join(f"{v:.10g}" if isinstance(v, float) else str(v) for v in value.ravel())]
+            lines += [f"##${key}=( {dims} )", " ".join(repr(float(v)) if value.dtype.kind == "f" else str(v) for v in value.ravel())]
         elif isinstance(value, tuple):  # (shape, text): a structured value written as is
             lines += [f"##${key}=( {value[0]} )", value[1]]
         else:
@@ -153,14 +160,14 @@ def _jcamp(path: Path, params: dict) -> None:
 def write_paravision(study, scan: int, data: np.ndarray, affine: np.ndarray, *, reco: int = 1,
                      subject_position: str = "Head_Prone", subject_type: str = "Quadruped",
                      protocol: str = "T2_TurboRARE", echo_time_ms: float = 12.0,
-                     repetition_time_ms: float = 2500.0) -> Path:
+                     repetition_time_ms: float = 2500.0, slope: float | None = None) -> Path:
     """Write ``data`` (ni, nj, nk) with its RAS ``affine`` as scan ``scan`` / reco ``reco`` of a ParaVision study.
 
     The layout is the one brkraw discovers (``<scan>/method``, ``acqp``, ``pdata/<reco>/2dseq``,
     ``visu_pars``, ``reco``); ``VisuCoreOrientation`` holds the row, column and slice direction
     cosines and ``VisuCorePosition`` the first voxel of each slice, in the LPS patient coordinates
     that ParaVision also exports as DICOM ImageOrientationPatient / ImagePositionPatient. The
-    2dseq is int16 in Fortran order (i fastest) with one slope for all frames.
+    2dseq is int16 in Fortran order (i fastest) with one slope for all frames (default :func:`slope_of`).
     """
     study = Path(study)
     scan_dir = study / str(scan)
@@ -168,7 +175,7 @@ def write_paravision(study, scan: int, data: np.ndarray, affine: np.ndarray, *, 
     reco_dir.mkdir(parents=True, exist_ok=True)
     (study / "subject").write_text("##TITLE=Parameter List, ParaVision 6.0.1\n##JCAMPDX=4.24\n##$SUBJECT_id=<phantom>\n##END=\n")
     ni, nj, nk = data.shape
-    slope = float(np.max(data)) / LEVELS
+    slope = slope or slope_of(data)
     levels = np.round(np.asarray(data, float) / slope).astype("<i2")
     lps = LPS @ np.asarray(affine, float)[:3]
     dirs = lps[:, :3] / np.linalg.norm(lps[:, :3], axis=0)

@@ -341,7 +341,9 @@ def read_bruker(study: str | Path, *, scan: int, reco: int = 1, volume: int | No
     if not study.is_dir():
         raise ImagingError(f"{where}: not a folder")
     try:
-        loader = brkraw.load(str(study))
+        # no converter hooks (plugins) and a fixed rounding of the affine (1e-9 mm): the result does not
+        # depend on what else is installed or on a user's brkraw configuration
+        loader = brkraw.BrukerLoader(str(study), disable_hook=True, affine_decimals=9)
     except Exception as exc:  # brkraw raises several types for a folder it cannot read
         raise ImagingError(f"{where}: not a readable ParaVision study ({exc})") from exc
     avail = loader.avail
