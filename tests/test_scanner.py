@@ -281,3 +281,64 @@ def test_paravision_refusals(ph, tmp_path):
     with pytest.raises(ImagingError, match=r"folder .*empty: not a readable ParaVision study"):
         (tmp_path / "empty").mkdir()
         read_bruker(tmp_path / "empty", scan=1)
+
+
+# --- the whole study: a DICOM and a ParaVision copy of an animal give its NIfTI twin's answers ---
+
+
+@pytest.mark.slow
+def test_study_from_scanner_copies_matches_its_nifti_twin(tmp_path):
+    """One phantom animal given three ways: NIfTI, DICOM stored feet-first, ParaVision stored bottom-up.
+
+    The voxel values are multiples of 2^-12 and the slope is 2^-12, so DICOM's integers hold them exactly;
+    the three animals must get the same converted volumes and the same row of voi.csv.
+    """
+    import os
+    import subprocess
+    import sys
+
+    import pandas as pd
+    import yaml
+
+    from deeptissue.imaging import write_nifti
+
+    spec = PhantomSpec(seed=1, depth_mm=2.0, tilt_deg=(5.0, -3.0), bone_rotation_deg=(1.0, -0.5, 0.8),
+                       bone_translation_mm=(0.05, -0.10, 0.02), snr=20, supersample=2)
+    ph = make_phantom(spec)
+    step = 2.0**-12
+    data = tmp_path / "data"
+    vols = {s: (np.round(getattr(ph, s) / step) * step).astype(np.float32) for s in ("pre", "during")}
+    for s, (series, scan) in {"pre": (3, 5), "during": (4, 6)}.items():
+        write_nifti(data / "nifti" / f"{s}.nii.gz", vols[s], ph.affine)
+        d, a = reorder(vols[s], ph.affine, flip=(True, False, True))
+        write_series(data / "dicom", d, a, series_number=series, description=f"T2 {s}", patient_position="FFS", slope=step)
+        d, a = reorder(vols[s], ph.affine, flip=(False, True, False))
+        write_paravision(data / "study", scan, d, a, protocol=f"T2_{s}", slope=step)
+    cfg = {
+        "animals": {
+            "twin": {s: str(data / "nifti" / f"{s}.nii.gz") for s in ("pre", "during")},
+            "dicom": {"pre": {"dicom": str(data / "dicom"), "series": 3}, "during": {"dicom": str(data / "dicom"), "series": 4}},
+            "bruker": {"pre": {"bruker": str(data / "study"), "scan": 5}, "during": {"bruker": str(data / "study"), "scan": 6}},
+        },
+        "study": {"variants": ["sphere"]},
+        "model": {"element_size_mm": 2.5, "refine_size_mm": 1.25},
+    }
+    (tmp_path / "study.yaml").write_text(yaml.safe_dump(cfg))
+    wd = tmp_path / "wd"
+    env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
+    r = subprocess.run([sys.executable, "-m", "snakemake", "results/summary/voi.csv", "--cores", "2", "-s", str(ROOT / "Snakefile"),
+                        "--directory", str(wd), "--configfile", str(tmp_path / "study.yaml")],
+                       env=env, capture_output=True, text=True, timeout=3000)
+    assert r.returncode == 0, r.stderr[-3000:]
+    for animal in ("dicom", "bruker"):
+        for s in ("pre", "during"):
+            got = load_nifti(wd / "results" / animal / "mri" / f"{s}.nii.gz")
+            np.testing.assert_array_equal(got.data, vols[s])
+            np.testing.assert_array_equal(got.affine, ph.affine)
+        assert json.loads((wd / "results" / animal / "mri" / "pre.json").read_text())["kind"] == animal
+    voi = pd.read_csv(wd / "results" / "summary" / "voi.csv").set_index("animal")
+    # every number but the timings (columns ending in _s) is the same
+    numeric = [c for c in voi.select_dtypes("number").columns if not c.endswith("_s")]
+    assert voi.loc["twin", "converged"]
+    for animal in ("dicom", "bruker"):
+        pd.testing.assert_series_equal(voi.loc[animal, numeric], voi.loc["twin", numeric], check_names=False, rtol=1e-9)

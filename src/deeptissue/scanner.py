@@ -2,9 +2,9 @@
 
 DICOM headers are read with pydicom to pick one series and one volume and to check its slices; the
 pixels and the voxel-to-world affine come from dcm2niix, the reference DICOM-to-NIfTI converter.
-ParaVision scans are read with brkraw (data, and the affine in subject RAS coordinates). Neither
-geometry is trusted blindly: ``tests/test_scanner.py`` writes a phantom in every orientation and
-patient position a scanner writes and requires the same voxels and world coordinates back.
+ParaVision scans are read with brkraw, in the patient coordinates ParaVision also exports as DICOM.
+Neither geometry is trusted blindly: ``tests/test_scanner.py`` writes a phantom in every orientation
+and patient position a scanner writes and requires the same voxels and world coordinates back.
 
 Every refusal is an :class:`~deeptissue.imaging.ImagingError` whose message names the animal and the
 folder, lists what the folder holds and names the config key that picks one.
