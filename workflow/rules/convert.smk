@@ -13,7 +13,12 @@ rule convert:
         source=lambda wc: scan_source(wc.animal, wc.state),
     output:
         nifti="results/{animal}/mri/{state}.nii.gz",
-        sidecar="results/{animal}/mri/{state}.json",
+        sidecar=report(
+            "results/{animal}/mri/{state}.json",
+            caption="../report/convert.rst",
+            category="Stage 0: scanner data",
+            subcategory="{animal}",
+        ),
     params:
         spec=lambda wc: animal_cfg(wc.animal)[wc.state],
     wildcard_constraints:
