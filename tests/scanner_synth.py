@@ -163,6 +163,9 @@ def write_paravision(study, scan: int, data: np.ndarray, affine: np.ndarray, *, 
                      repetition_time_ms: float = 2500.0, slope: float | None = None) -> Path:
     """Write ``data`` (ni, nj, nk) with its RAS ``affine`` as scan ``scan`` / reco ``reco`` of a ParaVision study.
 
+    ``data`` (ni, nj, nk, ne) is a multi-echo scan: frames in echo-fastest order, an FG_ECHO frame group
+    before FG_SLICE, positions per slice.
+
     The layout is the one brkraw discovers (``<scan>/method``, ``acqp``, ``pdata/<reco>/2dseq``,
     ``visu_pars``, ``reco``); ``VisuCoreOrientation`` holds the row, column and slice direction
     cosines and ``VisuCorePosition`` the first voxel of each slice, in the LPS patient coordinates
@@ -174,9 +177,11 @@ def write_paravision(study, scan: int, data: np.ndarray, affine: np.ndarray, *, 
     reco_dir = scan_dir / "pdata" / str(reco)
     reco_dir.mkdir(parents=True, exist_ok=True)
     (study / "subject").write_text("##TITLE=Parameter List, ParaVision 6.0.1\n##JCAMPDX=4.24\n##$SUBJECT_id=<phantom>\n##END=\n")
-    ni, nj, nk = data.shape
+    data = np.asarray(data, float)
+    ne = data.shape[3] if data.ndim == 4 else 1
+    ni, nj, nk = data.shape[:3]
     slope = slope or slope_of(data)
-    levels = np.round(np.asarray(data, float) / slope).astype("<i2")
+    levels = np.round(data / slope).astype("<i2").reshape(ni, nj, nk, ne)
     lps = LPS @ np.asarray(affine, float)[:3]
     dirs = lps[:, :3] / np.linalg.norm(lps[:, :3], axis=0)
     step = np.linalg.norm(lps[:, :3], axis=0)
@@ -194,20 +199,21 @@ def write_paravision(study, scan: int, data: np.ndarray, affine: np.ndarray, *, 
                                   "PVM_ObjOrderScheme": "Interlaced"})
     _jcamp(reco_dir / "reco", {"RECO_wordtype": "_16BIT_SGN_INT", "RECO_byte_order": "littleEndian"})
     _jcamp(reco_dir / "visu_pars", {
-        "VisuCoreFrameCount": nk, "VisuCoreDim": 2, "VisuCoreSize": np.array([ni, nj]),
+        "VisuCoreFrameCount": nk * ne, "VisuCoreDim": 2, "VisuCoreSize": np.array([ni, nj]),
         "VisuCoreDimDesc": ("2", "spatial spatial"),
         "VisuCoreExtent": np.array([float(step[0] * ni), float(step[1] * nj)]),
         "VisuCoreFrameThickness": np.array([float(step[2])]), "VisuCoreUnits": ("2, 65", "<mm> <mm>"),
         "VisuCoreOrientation": orient, "VisuCorePosition": pos,
-        "VisuCoreDataMin": np.zeros(nk), "VisuCoreDataMax": levels.reshape(-1, nk, order="F").max(axis=0).astype(float) * slope,
-        "VisuCoreDataOffs": np.zeros(nk), "VisuCoreDataSlope": np.full(nk, slope),
+        "VisuCoreDataMin": np.zeros(nk * ne), "VisuCoreDataMax": np.full(nk * ne, levels.max() * slope),
+        "VisuCoreDataOffs": np.zeros(nk * ne), "VisuCoreDataSlope": np.full(nk * ne, slope),
         "VisuCoreFrameType": "MAGNITUDE_IMAGE", "VisuCoreWordType": "_16BIT_SGN_INT",
-        "VisuCoreByteOrder": "littleEndian", "VisuFGOrderDescDim": 1,
-        "VisuFGOrderDesc": ("1", f"({nk}, <FG_SLICE>, <>, 0, 2)"),
+        "VisuCoreByteOrder": "littleEndian", "VisuFGOrderDescDim": 1 if ne == 1 else 2,
+        "VisuFGOrderDesc": ("1", f"({nk}, <FG_SLICE>, <>, 0, 2)") if ne == 1
+        else ("2", f"({ne}, <FG_ECHO>, <>, 0, 0) ({nk}, <FG_SLICE>, <>, 0, 2)"),
         "VisuGroupDepVals": ("2", "(<VisuCoreOrientation>, 0) (<VisuCorePosition>, 0)"),
         "VisuSubjectPosition": subject_position, "VisuSubjectType": subject_type,
-        "VisuAcqEchoTime": np.array([echo_time_ms]), "VisuAcqRepetitionTime": np.array([repetition_time_ms]),
+        "VisuAcqEchoTime": echo_time_ms * np.arange(1.0, ne + 1), "VisuAcqRepetitionTime": np.array([repetition_time_ms]),
         "VisuMagneticFieldStrength": 7.0, "VisuCreatorVersion": "<6.0.1>", "VisuCoreVersion": 5,
     })
-    (reco_dir / "2dseq").write_bytes(levels.tobytes(order="F"))
+    (reco_dir / "2dseq").write_bytes(levels.transpose(0, 1, 3, 2).tobytes(order="F"))
     return study

@@ -278,6 +278,18 @@ def test_paravision_refusals(ph, tmp_path):
     visu.write_text("\n".join(text) + "\n")
     with pytest.raises(ImagingError, match=r"scan 6, reco 1: VisuCoreDataSlope differs between frames"):
         read_bruker(study, scan=6)
+    # a multi-echo scan: one volume per echo, and a refusal without a choice
+    write_paravision(study, 8, np.stack([ph.pre, ph.during], axis=3), ph.affine, protocol="MGE")
+    with pytest.raises(ImagingError, match=r"folder .*20190312_rat07, scan 8, reco 1: 2 volumes .*; pick one with .*volume"):
+        read_bruker(study, scan=8, animal="rat")
+    for n, truth in ((1, ph.pre), (2, ph.during)):
+        vol, meta = read_scan({"bruker": "20190312_rat07", "scan": 8, "volume": n}, base_dir=tmp_path)
+        slope = float(max(ph.pre.max(), ph.during.max())) / 4000
+        np.testing.assert_allclose(vol.data, np.round(truth / slope) * slope, rtol=0, atol=1e-5 * slope * 4000)
+        np.testing.assert_allclose(vol.affine, ph.affine, atol=1e-5)
+        assert meta["volume"] == n and meta["echo_time_ms"] == 12.0 * n
+    with pytest.raises(ImagingError, match=r"volume 3 does not exist"):
+        read_bruker(study, scan=8, volume=3)
     with pytest.raises(ImagingError, match=r"folder .*empty: not a readable ParaVision study"):
         (tmp_path / "empty").mkdir()
         read_bruker(tmp_path / "empty", scan=1)

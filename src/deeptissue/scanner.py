@@ -396,10 +396,19 @@ def read_bruker(study: str | Path, *, scan: int, reco: int = 1, volume: int | No
         "field_strength_t": None if bf1 is None else round(bf1 / 42.577478, 3),  # 1H Larmor frequency [MHz] / gamma-bar
         "sequence": str(_param(method, "Method") or "") if method is not None else "",
         "protocol": _scan_label(sc),
-        "echo_time_ms": _scalar(_param(method, "PVM_EchoTime")) if method is not None else None,
+        "echo_time_ms": _echo_time_ms(visu, method, picked),
         "repetition_time_ms": _scalar(_param(method, "PVM_RepetitionTime")) if method is not None else None,
     }
     return vol, {**meta, **_geometry(vol)}
+
+
+def _echo_time_ms(visu, method, volume: int) -> float | None:
+    """The echo time of the chosen volume: VisuAcqEchoTime per echo, else the method's PVM_EchoTime [ms]."""
+    per_echo = _param(visu, "VisuAcqEchoTime") if visu is not None else None
+    values = np.ravel(np.asarray(per_echo, float)) if per_echo is not None else np.zeros(0)
+    if values.size:
+        return float(values[min(volume, values.size) - 1])
+    return _scalar(_param(method, "PVM_EchoTime")) if method is not None else None
 
 
 def _scan_label(sc) -> str:
