@@ -71,9 +71,16 @@ def is_converted(animal, state):
 
 
 def scan_source(animal, state):
-    """The file or folder a state's scan is read from (a mapping's `dicom` or `bruker` folder)."""
+    """The files or folder a state's scan is read from: a ParaVision scan's parameter and data files (so
+    that new scans in the study do not redo it; the study folder if they are missing, for deeptissue.scanner's
+    message listing the scans that exist), a DICOM folder, or the NIfTI file."""
     spec = animal_cfg(animal)[state]
-    return spec.get("dicom", spec.get("bruker")) if isinstance(spec, dict) else spec
+    if isinstance(spec, dict) and "bruker" in spec:
+        scan = Path(spec["bruker"]) / str(spec["scan"])
+        reco = scan / "pdata" / str(spec.get("reco", 1))
+        files = [scan / "method", scan / "acqp", reco / "visu_pars", reco / "2dseq"]
+        return [str(f) for f in files] if all(f.is_file() for f in files) else spec["bruker"]
+    return spec.get("dicom") if isinstance(spec, dict) else spec
 
 
 def mri_input(wildcards):
