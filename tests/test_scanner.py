@@ -155,6 +155,23 @@ def test_refuses_uneven_slices(ph, tmp_path):
         read_dicom(tmp_path / "d")
 
 
+def test_refuses_tilted_stack_and_mixed_orientations(ph, tmp_path):
+    sheared = ph.affine.copy()
+    sheared[0, 2] = 0.2  # each slice 0.2 mm further along x: a gantry-tilted stack, not a box of voxels
+    write_series(tmp_path / "tilt", ph.pre, sheared)
+    with pytest.raises(ImagingError, match=r"folder .*tilt: slices shifted in-plane from one to the next \(a tilted stack\)"):
+        read_dicom(tmp_path / "tilt")
+    import pydicom
+
+    write_series(tmp_path / "mixed", ph.pre, ph.affine)
+    last = sorted((tmp_path / "mixed").glob("*.dcm"))[-1]
+    ds = pydicom.dcmread(last)
+    ds.ImageOrientationPatient = ["1", "0", "0", "0", "0.9950042", "0.0998334"]
+    ds.save_as(last)
+    with pytest.raises(ImagingError, match=r"folder .*mixed: slices with different orientations in one series"):
+        read_dicom(tmp_path / "mixed")
+
+
 def test_refuses_multi_echo_without_volume(ph, tmp_path):
     import pydicom.uid
 
