@@ -217,3 +217,96 @@ def write_paravision(study, scan: int, data: np.ndarray, affine: np.ndarray, *, 
     })
     (reco_dir / "2dseq").write_bytes(levels.transpose(0, 1, 3, 2).tobytes(order="F"))
     return study
+
+
+ENHANCED_MR_IMAGE_STORAGE = "1.2.840.10008.5.1.4.1.1.4.1"
+
+
+def write_enhanced(path, data: np.ndarray, affine: np.ndarray, *, echo_times_ms=(12.0,), series_number: int = 1,
+                   description: str = "T2 RARE", slope: float | None = None, skip_slices=()) -> Path:
+    """Write ``data`` (ni, nj, nk) or (ni, nj, nk, ne echoes) as one enhanced (multi-frame) MR DICOM file.
+
+    One frame per slice and echo (echo fastest), each with its PlanePositionSequence, the orientation
+    and pixel measures shared, and an MREchoSequence per frame; one RescaleSlope for all frames.
+    ``skip_slices`` leaves those slices' frames out (a stack with a gap).
+    """
+    from pydicom.sequence import Sequence
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    data = np.asarray(data, float)
+    ne = data.shape[3] if data.ndim == 4 else 1
+    ni, nj, nk = data.shape[:3]
+    data = data.reshape(ni, nj, nk, ne)
+    slope = slope or slope_of(data)
+    levels = np.round(data / slope).astype(np.uint16)
+    lps = LPS @ np.asarray(affine, float)[:3]
+    row_dir = lps[:, 0] / np.linalg.norm(lps[:, 0])
+    col_dir = lps[:, 1] / np.linalg.norm(lps[:, 1])
+    meta = FileMetaDataset()
+    meta.MediaStorageSOPClassUID = ENHANCED_MR_IMAGE_STORAGE
+    meta.MediaStorageSOPInstanceUID = generate_uid()
+    meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds = Dataset()
+    ds.file_meta = meta
+    ds.SOPClassUID = ENHANCED_MR_IMAGE_STORAGE
+    ds.SOPInstanceUID = meta.MediaStorageSOPInstanceUID
+    ds.StudyInstanceUID, ds.SeriesInstanceUID, ds.FrameOfReferenceUID = generate_uid(), generate_uid(), generate_uid()
+    ds.Modality, ds.Manufacturer = "MR", "Bruker BioSpin MRI GmbH"
+    ds.PatientName = ds.PatientID = "phantom"
+    ds.PatientPosition = "HFS"
+    ds.StudyDate = ds.SeriesDate = ds.AcquisitionDate = ds.ContentDate = "20260101"
+    ds.StudyTime = ds.SeriesTime = ds.ContentTime = "120000"
+    ds.AcquisitionDateTime = "20260101120000"
+    ds.SeriesNumber, ds.InstanceNumber = series_number, 1
+    ds.SeriesDescription = ds.ProtocolName = description
+    ds.ImageType = ["ORIGINAL", "PRIMARY", "M", "NONE"]
+    ds.MagneticFieldStrength = 7.0
+    ds.RepetitionTime = 2500.0
+    ds.Rows, ds.Columns = nj, ni
+    ds.NumberOfFrames = (nk - len(skip_slices)) * ne
+    ds.SamplesPerPixel = 1
+    ds.PhotometricInterpretation = "MONOCHROME2"
+    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 16, 15, 0
+    shared = Dataset()
+    measures = Dataset()
+    measures.PixelSpacing = [_ds(np.linalg.norm(lps[:, 1])), _ds(np.linalg.norm(lps[:, 0]))]
+    measures.SliceThickness = _ds(np.linalg.norm(lps[:, 2]))
+    measures.SpacingBetweenSlices = _ds(np.linalg.norm(lps[:, 2]))
+    shared.PixelMeasuresSequence = Sequence([measures])
+    orient = Dataset()
+    orient.ImageOrientationPatient = [_ds(v) for v in (*row_dir, *col_dir)]
+    shared.PlaneOrientationSequence = Sequence([orient])
+    scale = Dataset()
+    scale.RescaleSlope, scale.RescaleIntercept, scale.RescaleType = _ds(slope), "0", "US"
+    shared.PixelValueTransformationSequence = Sequence([scale])
+    ds.SharedFunctionalGroupsSequence = Sequence([shared])
+    dims = []
+    for pointer, group in ((0x00189082, 0x00189114), (0x00209057, 0x00209111)):  # echo time (MR echo), stack position
+        dim = Dataset()
+        dim.DimensionIndexPointer = pointer
+        dim.FunctionalGroupPointer = group
+        dims.append(dim)
+    ds.DimensionIndexSequence = Sequence(dims)
+    frames, pixels = [], []
+    for k in (k for k in range(nk) if k not in skip_slices):
+        for e in range(ne):
+            fr = Dataset()
+            pos = Dataset()
+            pos.ImagePositionPatient = [_ds(v) for v in lps @ np.array([0.0, 0.0, k, 1.0])]
+            fr.PlanePositionSequence = Sequence([pos])
+            echo = Dataset()
+            echo.EffectiveEchoTime = float(echo_times_ms[e])
+            fr.MREchoSequence = Sequence([echo])
+            content = Dataset()
+            content.InStackPositionNumber = k + 1
+            content.StackID = "1"
+            content.DimensionIndexValues = [e + 1, k + 1]
+            content.TemporalPositionIndex = 1
+            fr.FrameContentSequence = Sequence([content])
+            frames.append(fr)
+            pixels.append(levels[:, :, k, e].T)
+    ds.PerFrameFunctionalGroupsSequence = Sequence(frames)
+    ds.PixelData = np.ascontiguousarray(np.stack(pixels)).tobytes()
+    ds.save_as(path, enforce_file_format=True)
+    return path

@@ -14,7 +14,7 @@ from pathlib import Path
 import nibabel as nib
 import numpy as np
 import pytest
-from scanner_synth import quantised, reorder, rotated, write_paravision, write_series
+from scanner_synth import quantised, reorder, rotated, write_enhanced, write_paravision, write_series
 
 from deeptissue.config import ConfigError, validate_config
 from deeptissue.imaging import ImagingError, load_nifti
@@ -170,6 +170,29 @@ def test_refuses_tilted_stack_and_mixed_orientations(ph, tmp_path):
     ds.save_as(last)
     with pytest.raises(ImagingError, match=r"folder .*mixed: slices with different orientations in one series"):
         read_dicom(tmp_path / "mixed")
+
+
+def test_enhanced_multiframe_dicom(ph, tmp_path):
+    """One multi-frame file: geometry from its per-frame groups; several echoes are volumes to pick from."""
+    affine = rotated(ph.affine, (10.0, -5.0, 20.0))
+    write_enhanced(tmp_path / "one" / "x.dcm", ph.pre, affine)
+    vol, _ = read_dicom(tmp_path / "one")
+    assert_same_geometry(quantised(ph.pre), affine, vol.data, vol.affine)
+    both = np.stack([ph.pre, ph.during], axis=3)
+    write_enhanced(tmp_path / "me" / "x.dcm", both, affine, echo_times_ms=(12.0, 24.0))
+    with pytest.raises(ImagingError, match=r"folder .*me: dcm2niix splits the series into 2 volumes \(volume_e1, volume_e2: "
+                                           r"echoes .*\); pick one with .*volume"):
+        read_dicom(tmp_path / "me", animal="rat")
+    with pytest.raises(ImagingError, match=r"volume 3 does not exist"):
+        read_dicom(tmp_path / "me", volume=3)
+    for n, truth in ((1, ph.pre), (2, ph.during)):
+        vol, meta = read_dicom(tmp_path / "me", volume=n)
+        assert_same_geometry(quantised(both)[..., n - 1], affine, vol.data, vol.affine)
+        assert meta["volume"] == n
+    # a frame missing from the stack is found in the per-frame positions
+    write_enhanced(tmp_path / "gap" / "x.dcm", ph.pre, affine, skip_slices=(3,))
+    with pytest.raises(ImagingError, match=r"folder .*gap: 1 slice\(s\) missing: slice gap 2.0000 mm"):
+        read_dicom(tmp_path / "gap")
 
 
 def test_refuses_multi_echo_without_volume(ph, tmp_path):

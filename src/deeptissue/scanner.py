@@ -13,6 +13,7 @@ folder, lists what the folder holds and names the config key that picks one.
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import tempfile
 from collections import Counter, defaultdict
@@ -137,27 +138,55 @@ def _volume_label(files: list) -> str:
     return f"echo {getattr(ds, 'EchoNumbers', '?')}, TE {te} ms, {len(files)} slices"
 
 
+def _frame_attr(frame, shared, seq: str, key: str):
+    """``key`` of a multi-frame file's frame, from its own functional group ``seq`` or the shared one."""
+    for group in (frame, shared):
+        if group is not None and seq in group and len(group[seq].value) and key in group[seq].value[0]:
+            return group[seq].value[0][key].value
+    return None
+
+
+def _planes(files: list) -> list:
+    """(orientation, position) of every frame: one per classic file, one per frame of a multi-frame file."""
+    out = []
+    for _, ds in files:
+        if int(getattr(ds, "NumberOfFrames", 1) or 1) > 1 and "PerFrameFunctionalGroupsSequence" in ds:
+            shared = ds.SharedFunctionalGroupsSequence[0] if "SharedFunctionalGroupsSequence" in ds else None
+            for frame in ds.PerFrameFunctionalGroupsSequence:
+                out.append((_frame_attr(frame, shared, "PlaneOrientationSequence", "ImageOrientationPatient"),
+                            _frame_attr(frame, shared, "PlanePositionSequence", "ImagePositionPatient")))
+        else:
+            out.append((getattr(ds, "ImageOrientationPatient", None), getattr(ds, "ImagePositionPatient", None)))
+    return out
+
+
 def _check_slices(files: list, where: str) -> None:
-    """Refuse a volume whose slices are not one evenly spaced stack with one orientation and size."""
+    """Refuse a volume whose slices are not one evenly spaced stack with one orientation and size.
+
+    Frames of a multi-frame file that share a position (echoes, repetitions) count as one slice.
+    """
     shapes = {(int(ds.Rows), int(ds.Columns)) for _, ds in files}
     if len(shapes) > 1:
         raise ImagingError(f"{where}: slices of different sizes {sorted(shapes)} in one series")
-    if any(int(getattr(ds, "NumberOfFrames", 1) or 1) > 1 for _, ds in files):
-        return  # a multi-frame file: its frames' geometry is checked by the converter and after it
-    iop = np.array([np.asarray(ds.ImageOrientationPatient, float) for _, ds in files])
+    planes = _planes(files)
+    if any(o is None or p is None for o, p in planes):
+        return  # geometry not in the headers read here: left to the converter and load_nifti's checks
+    iop = np.array([np.asarray(o, float) for o, _ in planes])
     if np.abs(iop - iop[0]).max() > 1e-4:
         raise ImagingError(f"{where}: slices with different orientations in one series")
-    normal = np.cross(iop[0][:3], iop[0][3:])
-    pos = np.array([np.asarray(ds.ImagePositionPatient, float) for _, ds in files])
-    along = pos @ normal
-    order = np.argsort(along)
-    along, pos = along[order], pos[order]
-    if len(files) < 2:
+    positions = np.array([np.asarray(p, float) for _, p in planes])
+    if len(files) == 1:  # a multi-frame file: its echoes or repetitions repeat each position
+        positions = np.unique(np.round(positions, 4), axis=0)
+    if len(positions) < 2:
         return
+    normal = np.cross(iop[0][:3], iop[0][3:])
+    along = positions @ normal
+    order = np.argsort(along)
+    along, pos = along[order], positions[order]
     gaps = np.diff(along)
     step = float(np.median(gaps))
     if step < SLICE_TOL_MM:
-        raise ImagingError(f"{where}: {len(files)} files but slices repeat at the same position")
+        raise ImagingError(f"{where}: {len(pos)} slices but they repeat at the same position")
     off = np.abs(gaps - step)
     if off.max() > SLICE_TOL_MM:
         k = int(np.argmax(off))
@@ -172,7 +201,12 @@ def _check_slices(files: list, where: str) -> None:
                            f"{np.abs(inplane).max():.4f} mm")
 
 
-def _dcm2niix(files: list, workdir: Path, where: str) -> Path:
+def _dcm2niix(files: list, workdir: Path, where: str, volume: int | None) -> tuple[Path, int | None]:
+    """Convert ``files`` with dcm2niix; return its NIfTI and the volume still to pick inside it.
+
+    dcm2niix writes one file per echo of a multi-frame series (``volume_e1``, ``volume_e2``, ...):
+    those are the series' volumes, and ``volume`` picks one.
+    """
     import dcm2niix
 
     src, out = workdir / "in", workdir / "out"
@@ -182,11 +216,17 @@ def _dcm2niix(files: list, workdir: Path, where: str) -> Path:
         (src / f"{n:05d}.dcm").symlink_to(Path(path).resolve())
     proc = subprocess.run([dcm2niix.bin, "-z", "n", "-b", "y", "-ba", "y", "-f", "volume", "-o", str(out), str(src)],
                           capture_output=True, text=True)
-    made = sorted(out.glob("*.nii"))
-    if proc.returncode != 0 or len(made) != 1:
+    made = sorted(out.glob("*.nii"), key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)])
+    if proc.returncode != 0 or not made:
         tail = (proc.stdout + proc.stderr).strip().splitlines()[-3:]
-        raise ImagingError(f"{where}: dcm2niix made {len(made)} NIfTI files, not 1 (exit {proc.returncode}: {' | '.join(tail)})")
-    return made[0]
+        raise ImagingError(f"{where}: dcm2niix made no NIfTI file (exit {proc.returncode}: {' | '.join(tail)})")
+    if len(made) == 1:
+        return made[0], volume
+    if volume is None or not 1 <= volume <= len(made):
+        raise ImagingError(f"{where}: dcm2niix splits the series into {len(made)} volumes "
+                           f"({', '.join(p.stem for p in made)}: echoes or other frame groups); pick one with "
+                           f"{{dicom: <folder>, volume: <number>}}" + ("" if volume is None else f" (volume {volume} does not exist)"))
+    return made[volume - 1], None
 
 
 def _select_volume(img_path: Path, volume: int | None, workdir: Path, where: str, *, key: str) -> tuple[Path, int]:
@@ -262,8 +302,8 @@ def read_dicom(folder: str | Path, *, series: int | str | None = None, volume: i
     ds = files[0][1]
     with tempfile.TemporaryDirectory(prefix="deeptissue_dicom_") as tmp:
         tmp = Path(tmp)
-        path, _ = _select_volume(_dcm2niix(files, tmp, where), nifti_volume, tmp, where,
-                                 key="{dicom: <folder>, volume: <number>}")
+        path, nifti_volume = _dcm2niix(files, tmp, where, nifti_volume)
+        path, _ = _select_volume(path, nifti_volume, tmp, where, key="{dicom: <folder>, volume: <number>}")
         vol = load_nifti(path, animal=animal)
     vol = _oriented(Volume(data=vol.data, affine=vol.affine, path=str(folder), animal=animal))
     meta = {
