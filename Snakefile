@@ -21,6 +21,7 @@ report: "workflow/report/workflow.rst"
 
 
 include: "workflow/rules/common.smk"
+include: "workflow/rules/convert.smk"
 include: "workflow/rules/imaging.smk"
 include: "workflow/rules/pose.smk"
 include: "workflow/rules/model.smk"

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import copy
 import json
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -248,7 +249,10 @@ def validate_config(
         # the deepest error is the most specific; oneOf errors carry their context
         err = errors[-1]
         if err.context:
-            err = max(err.context, key=lambda e: len(e.absolute_path))
+            # the allowed form the value comes closest to: fewest errors, then deepest, not a plain type mismatch
+            per_form = Counter(e.relative_schema_path[0] for e in err.context)
+            err = min(err.context, key=lambda e: (e.validator == "type", per_form[e.relative_schema_path[0]],
+                                                  -len(e.absolute_path)))
         raise ConfigError(_message(err))
     _check_files(config, Path(base_dir))
     if config["study"]["name"] is None:
@@ -293,7 +297,11 @@ def _check_files(config: dict, base_dir: Path) -> None:
     for animal, cfg in (config.get("animals") or {}).items():
         for key in _FILE_KEYS:
             val = cfg.get(key)
-            if isinstance(val, str) and not (base_dir / val).is_file():
+            if isinstance(val, dict):  # a scanner's folder: {dicom: folder, ...} or {bruker: study, ...}
+                folder = val.get("dicom", val.get("bruker"))
+                if not (base_dir / folder).is_dir():
+                    raise ConfigError(f"config key animals.{animal}.{key}: folder not found: {folder}")
+            elif isinstance(val, str) and not ((base_dir / val).is_file() or (key != "overrides" and (base_dir / val).is_dir())):
                 raise ConfigError(f"config key animals.{animal}.{key}: file not found: {val}")
 
 

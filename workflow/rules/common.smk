@@ -1,7 +1,9 @@
 # Configuration validation, input functions and wildcard constraints shared by all rules.
+from argparse import Namespace
 from pathlib import Path
 
 from deeptissue.config import has_during_scan, validate_config
+from deeptissue.scanner import scan_kind
 from deeptissue.variants import mesh_group_of, mesh_groups, solve_priority, turn_base
 
 config = validate_config(
@@ -70,12 +72,30 @@ def mesh_of(animal, variant):
     return f"results/{animal}/model/{mesh_group_of(variant, MESH_GROUPS)}"
 
 
+def is_converted(animal, state):
+    """Whether a state's scan is scanner data (a DICOM series or a ParaVision scan) that rule convert turns into NIfTI."""
+    cfg = animal_cfg(animal)
+    return state in cfg and scan_kind(cfg[state], base_dir=workflow.basedir) != "nifti"
+
+
+def scan_source(animal, state):
+    """The files or folder a state's scan is read from: a ParaVision scan's parameter and data files (so
+    that new scans in the study do not redo it; the study folder if they are missing, for deeptissue.scanner's
+    message listing the scans that exist), a DICOM folder, or the NIfTI file."""
+    spec = animal_cfg(animal)[state]
+    if isinstance(spec, dict) and "bruker" in spec:
+        scan = Path(spec["bruker"]) / str(spec["scan"])
+        reco = scan / "pdata" / str(spec.get("reco", 1))
+        files = [scan / "method", scan / "acqp", reco / "visu_pars", reco / "2dseq"]
+        return [str(f) for f in files] if all(f.is_file() for f in files) else spec["bruker"]
+    return spec.get("dicom") if isinstance(spec, dict) else spec
+
+
 def mri_input(wildcards):
-    """The NIfTI of one animal and state: the phantom's output or the configured file."""
-    cfg = animal_cfg(wildcards.animal)
-    if "phantom" in cfg:
+    """The NIfTI of one animal and state: the phantom's or the converted scanner data's output, or the configured file."""
+    if is_phantom(wildcards.animal) or is_converted(wildcards.animal, wildcards.state):
         return f"results/{wildcards.animal}/mri/{wildcards.state}.nii.gz"
-    return cfg[wildcards.state]
+    return animal_cfg(wildcards.animal)[wildcards.state]
 
 
 def segment_inputs(wildcards):
@@ -83,9 +103,7 @@ def segment_inputs(wildcards):
     cfg = animal_cfg(wildcards.animal)
     inputs = {"image": mri_input(wildcards)}
     if wildcards.state == "during":
-        inputs["reference"] = (
-            f"results/{wildcards.animal}/mri/pre.nii.gz" if is_phantom(wildcards.animal) else cfg["pre"]
-        )
+        inputs["reference"] = mri_input(Namespace(animal=wildcards.animal, state="pre"))
     if "overrides" in cfg:
         inputs["overrides"] = cfg["overrides"]
     if is_phantom(wildcards.animal):
