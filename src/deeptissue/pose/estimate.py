@@ -170,8 +170,11 @@ def estimate_pose(
         log.info("%s%s", _where(animal), why)
         fit = fit_bone_motion(
             pre.bone, during_contours.bone, fibula_pre_mm=pre.fibula, fibula_during_mm=during_contours.fibula,
-            method=options.bone_method, dof=dof, surface_step_mm=options.bone_surface_step_mm, animal=animal,
+            method=options.bone_method, dof=dof, surface_step_mm=options.bone_surface_step_mm,
+            during_slices=during_contours.bone_seen if pre.n_slices == during_contours.n_slices else None,
+            animal=animal,
         )
+        extra["bone_slices_used"] = [int(during_contours.bone_seen.sum()), during_contours.n_slices]
         extra["bone_dof_reason"] = why
         extra["bone_fibula_slices"] = list(fit.fibula_slices)
         com_pre = fit.motion.centre_mm
