@@ -227,8 +227,8 @@ def _segment_slice(img, *, bg, noise, px_mm, settings: SegmentationSettings, whe
     """Skin, tibia and fibula of one slice (steps in the module docstring). ``indenter_sd`` (same shape as
     ``img``, mm): distance from the indenter's outer surface, negative inside; pixels closer than
     ``indenter_guard_mm`` are set to muscle before the bones are traced, so the indenter's dark wall cannot
-    join the tibia's dark cortex. With it, a slice without a bone contour returns ``bone_ij`` None instead
-    of raising (the tibia hidden against the indenter)."""
+    join the tibia's dark cortex. With it, a slice without a bone contour where the indenter reaches within
+    1 mm of the inside of the skin returns ``bone_ij`` None instead of raising (the tibia hidden against it)."""
     s = settings
     rough = img > bg + 6 * noise + 1e-6 * max(float(np.percentile(img, 99)) - bg, 1e-12)
     rough = ndimage.binary_fill_holes(rough)
@@ -307,7 +307,10 @@ def _segment_slice(img, *, bg, noise, px_mm, settings: SegmentationSettings, whe
                 continue  # a bright island, not a dark hole
             cands.append((area, c))
         if not cands and indenter_sd is not None:
-            return _SliceResult(skin, None, skin_level, bone_level, None, -np.inf)
+            # the tibia may be hidden against the indenter only where the indenter reaches into the leg
+            near = np.argwhere(indenter_sd < 1.0)
+            if len(near) and points_in_polygon(near, skin).any():
+                return _SliceResult(skin, None, skin_level, bone_level, None, -np.inf)
         if not cands:
             raise SegmentationError(f"{where}: no closed bone contour inside the skin at level {bone_level:.3g}")
         amax = max(a for a, _ in cands)
