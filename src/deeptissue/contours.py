@@ -6,8 +6,10 @@ closed implicitly (the last point is not repeated), counter-clockwise seen from 
 at a fixed polar angle about the slice centroid. Optionally the fibula: an array of the same
 layout, ``(n_slices, n_points, 3)``, whose rows are NaN on the slices where no fibula was found
 (``None``: no fibula anywhere, e.g. a scan where it is out of view or not segmented).
-Written and read only by :func:`save_contours` / :func:`load_contours` (``.npz`` with arrays
-``skin`` and ``bone``, and ``fibula`` when there is one).
+Optionally ``bone_hidden``, ``(n_slices,)`` bool: the during slices where the tibia touches the indenter,
+whose tibia contour is the pre tibia moved by the rigid fit of the other slices (the pose stage leaves them
+out of its fit). Written and read only by :func:`save_contours` / :func:`load_contours` (``.npz`` with
+arrays ``skin`` and ``bone``, and ``fibula`` and ``bone_hidden`` when there are any).
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ class Contours:
     skin: np.ndarray  # (n_slices, n_points, 3) world mm
     bone: np.ndarray  # (n_slices, n_points, 3) world mm: the tibia
     fibula: np.ndarray | None = None  # (n_slices, n_points_f, 3) world mm, NaN rows where absent; None: none
+    bone_hidden: np.ndarray | None = None  # (n_slices,) bool: tibia against the indenter, contour from the pre bone
 
     def __post_init__(self):
         for name in ("skin", "bone"):
@@ -52,6 +55,16 @@ class Contours:
                 raise ValueError(f"contours.fibula: slice {int(mixed[0])} is partly non-finite (a slice has a whole "
                                  "contour or NaN throughout)")
             object.__setattr__(self, "fibula", f if fin.any() else None)
+        if self.bone_hidden is not None:
+            h = np.asarray(self.bone_hidden, bool)
+            if h.shape != (self.skin.shape[0],):
+                raise ValueError(f"contours.bone_hidden: expected shape ({self.skin.shape[0]},), got {h.shape}")
+            object.__setattr__(self, "bone_hidden", h if h.any() else None)
+
+    @property
+    def bone_seen(self) -> np.ndarray:
+        """Boolean (n_slices,): the slices whose tibia contour was traced in the image (not ``bone_hidden``)."""
+        return np.ones(self.n_slices, bool) if self.bone_hidden is None else ~self.bone_hidden
 
     @property
     def fibula_slices(self) -> np.ndarray:
@@ -93,12 +106,15 @@ def save_contours(path: str | Path, contours: Contours) -> None:
     path : str or Path
         Output file.
     contours : Contours
-        Written as arrays ``skin`` and ``bone`` (n_slices, n_points, 3) [mm], and ``fibula``
-        (n_slices, n_points_f, 3) [mm, NaN rows where absent] when there is one.
+        Written as arrays ``skin`` and ``bone`` (n_slices, n_points, 3) [mm], ``fibula``
+        (n_slices, n_points_f, 3) [mm, NaN rows where absent] when there is one, and ``bone_hidden``
+        (n_slices,) bool when a slice has one.
     """
     arrays = dict(skin=contours.skin, bone=contours.bone)
     if contours.fibula is not None:
         arrays["fibula"] = contours.fibula
+    if contours.bone_hidden is not None:
+        arrays["bone_hidden"] = contours.bone_hidden
     save_npz(path, **arrays)
 
 
@@ -124,13 +140,14 @@ def load_contours(path: str | Path) -> Contours:
         with np.load(path) as data:
             skin, bone = data["skin"], data["bone"]
             fibula = data["fibula"] if "fibula" in data.files else None
+            hidden = data["bone_hidden"] if "bone_hidden" in data.files else None
     except KeyError as exc:
         raise ValueError(f"{path}: contour file lacks array {exc}") from exc
     except (OSError, ValueError) as exc:
         raise ValueError(f"{path}: not a contour file ({exc})") from exc
     try:
         return Contours(skin=np.asarray(skin, float), bone=np.asarray(bone, float),
-                        fibula=None if fibula is None else np.asarray(fibula, float))
+                        fibula=None if fibula is None else np.asarray(fibula, float), bone_hidden=hidden)
     except ValueError as exc:
         raise ValueError(f"{path}: {exc}") from exc
 

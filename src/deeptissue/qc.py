@@ -14,7 +14,8 @@ __all__ = ["plot_segmentation"]
 def plot_segmentation(vol: Volume, contours: Contours, path, *, truth: Contours | None = None,
                       accuracy: list[dict] | None = None, title: str = "") -> None:
     """Every slice of ``vol`` with the skin (red), tibia (green) and fibula (yellow, where found)
-    contours; truth dashed (cyan).
+    contours; truth dashed (cyan). A slice whose tibia touches the indenter (``bone_hidden``) says that its tibia
+    is the pre tibia moved rigidly.
 
     Drawn in voxel index space (so any affine works), zoomed to the skin contours; the PNG is
     written atomically. With ``accuracy`` rows (see :func:`deeptissue.segment.contour_accuracy`)
@@ -53,7 +54,9 @@ def plot_segmentation(vol: Volume, contours: Contours, path, *, truth: Contours 
                 ax.plot(t[:, 0], t[:, 1], "--", color="cyan", lw=0.6)
         ax.set_xlim(lo[0], hi[0])
         ax.set_ylim(lo[1], hi[1])
-        ax.set_title(f"slice {k + vol.index_offset[2]}", fontsize=8)
+        hidden = contours.bone_hidden is not None and contours.bone_hidden[k]
+        ax.set_title(f"slice {k + vol.index_offset[2]}" + (" (tibia at the indenter: from pre)" if hidden else ""),
+                     fontsize=8)
     sup = title
     if accuracy:
         parts = []

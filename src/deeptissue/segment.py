@@ -31,7 +31,15 @@ Per slice (arrays indexed [i, j] as in the NIfTI, converted to world mm by the a
    fewer than ``fibula_min_slices`` slices have one has no fibula (a stray dark spot is not a bone
    that runs along the leg); the slices without one are NaN in the ``fibula`` array of the
    contour file.
-8. Every contour is resampled (:func:`deeptissue.contours.resample_closed`): ``n_points``
+8. **Indenter** (during scan, ``indenter_mask``): the indenter is found from its contrast fluid
+   (:func:`find_indenter`: the pose stage's fluid component and axis, the head and fluid radius from the
+   fluid's edge, the outer radius ``pose.head_radius_mm``). Pixels within ``indenter_guard_mm`` of its
+   outer surface are set to muscle before the bones are traced, and dark regions cut off there from the
+   background are filled before the skin is traced, so the indenter's dark wall joins neither the tibia's
+   cortex nor the skin. A slice whose tibia comes within the guard and a pixel of the indenter is
+   ``bone_hidden``: its tibia is the pre tibia moved by the rigid fit of the other slices, and the pose
+   stage leaves it out of its fit.
+9. Every contour is resampled (:func:`deeptissue.contours.resample_closed`): ``n_points``
    points equidistant in arc length (PCHIP), counter-clockwise, starting at ``start_angle_deg``
    about its own area centroid.
 
@@ -51,8 +59,8 @@ from scipy import ndimage
 from .contours import Contours, point_to_polygon_distance, points_in_polygon, polygon_area_centroid, resample_closed
 from .imaging import ImagingError, Volume
 
-__all__ = ["STRUCTURES", "SegmentationError", "SegmentationSettings", "contour_accuracy", "load_overrides",
-           "segment_files", "segment_volume", "write_accuracy"]
+__all__ = ["STRUCTURES", "SegmentationError", "SegmentationSettings", "contour_accuracy", "find_indenter",
+           "load_overrides", "segment_files", "segment_volume", "write_accuracy"]
 
 STRUCTURES = ("skin", "bone", "fibula")
 # the skin plateau is read in a 1-pixel band starting this many blur widths (+ pixels) inside the edge
@@ -84,6 +92,8 @@ class SegmentationSettings:
     fibula_min_area_mm2: float = 0.1
     fibula_max_area_ratio: float = 0.6
     fibula_min_slices: int = 3
+    indenter_mask: bool = True
+    indenter_guard_mm: float = 0.15
 
     @classmethod
     def from_config(cls, *dicts: dict | None) -> "SegmentationSettings":
@@ -175,6 +185,33 @@ def _contour_mean(img, c):
     return float(img[P[inside, 0], P[inside, 1]].mean())
 
 
+def _cut_at_indenter(Ns, sd, *, level, fill, guard_mm, px_mm, min_area_px):
+    """``Ns`` with the dark regions that reach the outside only through the indenter's rim filled with ``fill``.
+
+    Where the tibia's dark cortex touches the indenter's dark wall, the two and the dark background form one
+    region and the skin contour would run into the bone. Cut at ``guard_mm`` from the indenter (``sd``, mm,
+    negative inside), the dark regions (below ``level``) of at least ``min_area_px`` pixels (a bone, not a
+    pocket of air between the skin and the indenter) that no longer reach the image border are inside the
+    leg: they and the rim pixels beside them are set to ``fill``, so the skin runs along the indenter's
+    surface there.
+    """
+    dark = (Ns < level) & (sd >= guard_mm)
+    lab, n = ndimage.label(dark)
+    if n == 0:
+        return Ns
+    border = np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))
+    sizes = np.bincount(lab.ravel(), minlength=n + 1)
+    big = np.nonzero(sizes >= min_area_px)[0]
+    holes = (lab > 0) & ~np.isin(lab, border) & np.isin(lab, big)
+    rim = (sd >= 0) & (sd < guard_mm)
+    if not (holes & ndimage.binary_dilation(rim, iterations=2)).any():
+        return Ns
+    near = ndimage.binary_dilation(holes, iterations=max(1, int(np.ceil(guard_mm / px_mm))) + 1)
+    out = Ns.copy()
+    out[holes | (rim & near)] = fill
+    return out
+
+
 @dataclass
 class _SliceResult:
     skin_ij: np.ndarray
@@ -182,9 +219,16 @@ class _SliceResult:
     skin_level: float
     bone_level: float
     fibula_ij: np.ndarray | None = None
+    bone_touch_mm: float | None = None  # the tibia contour's smallest distance from the indenter (None: no indenter)
 
 
-def _segment_slice(img, *, bg, noise, px_mm, settings: SegmentationSettings, where: str, need_bone: bool = True):
+def _segment_slice(img, *, bg, noise, px_mm, settings: SegmentationSettings, where: str, need_bone: bool = True,
+                   indenter_sd=None):
+    """Skin, tibia and fibula of one slice (steps in the module docstring). ``indenter_sd`` (same shape as
+    ``img``, mm): distance from the indenter's outer surface, negative inside; pixels closer than
+    ``indenter_guard_mm`` are set to muscle before the bones are traced, so the indenter's dark wall cannot
+    join the tibia's dark cortex. With it, a slice without a bone contour where the indenter reaches within
+    1 mm of the inside of the skin returns ``bone_ij`` None instead of raising (the tibia hidden against it)."""
     s = settings
     rough = img > bg + 6 * noise + 1e-6 * max(float(np.percentile(img, 99)) - bg, 1e-12)
     rough = ndimage.binary_fill_holes(rough)
@@ -208,6 +252,9 @@ def _segment_slice(img, *, bg, noise, px_mm, settings: SegmentationSettings, whe
             fluid = ndimage.binary_dilation(fluid, iterations=guard)
             Ns = N.copy()
             Ns[fluid] = 0.0
+    if indenter_sd is not None:
+        Ns = _cut_at_indenter(Ns, indenter_sd, level=0.5 * muscle, fill=muscle, guard_mm=s.indenter_guard_mm,
+                              px_mm=px_mm, min_area_px=s.bone_min_area_mm2 / px_mm**2)
     def trace(level):
         # tissue (above the level) is 8-connected, background only 4-connected: single-pixel gaps
         # that touch the outside only diagonally do not cut channels into the skin
@@ -243,17 +290,27 @@ def _segment_slice(img, *, bg, noise, px_mm, settings: SegmentationSettings, whe
         skin = trace(skin_level)
     bone_level = float(s.bone_level) if s.bone_level is not None else 0.5 * muscle
     bone = fibula = None
+    touch = None
+    Nb = N
+    if need_bone and indenter_sd is not None:
+        Nb = N.copy()
+        Nb[indenter_sd < s.indenter_guard_mm] = muscle
     if need_bone:
         min_area_px = s.bone_min_area_mm2 / px_mm**2
-        dark = _closed_contours(N, bone_level)
+        dark = _closed_contours(Nb, bone_level)
         cands = []
         for c in dark:
             area = abs(polygon_area_centroid(c)[0])
             if area < min_area_px or not points_in_polygon(c, skin).all():
                 continue
-            if _contour_mean(N, c) >= bone_level:
+            if _contour_mean(Nb, c) >= bone_level:
                 continue  # a bright island, not a dark hole
             cands.append((area, c))
+        if not cands and indenter_sd is not None:
+            # the tibia may be hidden against the indenter only where the indenter reaches into the leg
+            near = np.argwhere(indenter_sd < 1.0)
+            if len(near) and points_in_polygon(near, skin).any():
+                return _SliceResult(skin, None, skin_level, bone_level, None, -np.inf)
         if not cands:
             raise SegmentationError(f"{where}: no closed bone contour inside the skin at level {bone_level:.3g}")
         amax = max(a for a, _ in cands)
@@ -263,8 +320,10 @@ def _segment_slice(img, *, bg, noise, px_mm, settings: SegmentationSettings, whe
         else:
             bone_a, bone = max(cands, key=lambda ac: ac[0])
         if s.fibula:
-            fibula = _pick_fibula(N, dark, skin, bone, bone_a, bone_level, px_mm=px_mm, settings=s)
-    return _SliceResult(skin, bone, skin_level, bone_level, fibula)
+            fibula = _pick_fibula(Nb, dark, skin, bone, bone_a, bone_level, px_mm=px_mm, settings=s)
+        if indenter_sd is not None:
+            touch = float(ndimage.map_coordinates(indenter_sd, bone.T, order=1, mode="nearest").min())
+    return _SliceResult(skin, bone, skin_level, bone_level, fibula, touch)
 
 
 def _pick_fibula(N, contours, skin, bone, bone_area_px, level, *, px_mm, settings: SegmentationSettings):
@@ -290,7 +349,8 @@ def _pick_fibula(N, contours, skin, bone, bone_area_px, level, *, px_mm, setting
 
 
 def segment_volume(vol: Volume, *, settings: SegmentationSettings = SegmentationSettings(), state: str = "pre",
-                   overrides: dict | None = None) -> tuple[Contours, dict]:
+                   overrides: dict | None = None, indenter=None, pre: Contours | None = None,
+                   _skin_only: bool = False) -> tuple[Contours, dict]:
     """Skin, tibia and (where found) fibula contours on every slice of ``vol`` (steps in the module docstring).
 
     Parameters
@@ -304,22 +364,33 @@ def segment_volume(vol: Volume, *, settings: SegmentationSettings = Segmentation
     overrides : dict or None
         From :func:`load_overrides`: hand-drawn contours that replace the automatic ones on the
         slices and structures they name.
+    indenter : IndenterShape or None
+        The indenter of a during scan (:func:`find_indenter`): the bones are traced with it masked out
+        (``indenter_guard_mm``), and a slice whose tibia comes within the guard and a pixel of it, or
+        cannot be traced beside it, is ``bone_hidden``.
+    pre : Contours or None
+        The pre contours on the same slices: the tibia of a ``bone_hidden`` slice is the pre tibia moved by
+        the rigid fit (:func:`deeptissue.pose.fit_bone_motion`) of the other slices. Without them a hidden
+        slice keeps its traced contour (cut at the guard), or is an error if it has none.
 
     Returns
     -------
     contours : Contours
         ``skin``, ``bone`` (n_slices, n_points, 3) [mm, world], each slice at the z of its centre;
-        ``fibula`` the same shape with NaN rows on the slices without one, None when no slice has one.
+        ``fibula`` the same shape with NaN rows on the slices without one, None when no slice has one;
+        ``bone_hidden`` the slices whose tibia touches the indenter.
     info : dict
         ``background`` and ``noise`` (image units), ``slices`` (one row per slice: ``slice`` index in
         the file, ``z_mm``, ``skin_level`` / ``bone_level`` in N units, ``*_source`` auto / manual /
-        none / dropped), ``settings``, ``fibula_slices`` (count).
+        none / dropped / hidden), ``bone_touch_mm`` (distance from the indenter, with one), ``settings``,
+        ``fibula_slices`` (count), ``bone_hidden`` (slice indices in the file).
 
     Raises
     ------
     SegmentationError
         Naming animal, file and slice, if a slice has no closed skin or bone contour, or a bone or
-        fibula contour lies outside the skin.
+        fibula contour lies outside the skin, or the tibia is hidden by the indenter on more than half
+        the slices.
     ValueError
         For an unknown ``bone_select``.
     """
@@ -339,6 +410,8 @@ def segment_volume(vol: Volume, *, settings: SegmentationSettings = Segmentation
     # +y direction in index space (for the 'anterior' choice): flip j if the affine's y runs opposite
     flip_j = vol.affine[1, 1] < 0
     skins, bones, fibulas, info_slices = [], [], [], []
+    hidden = np.zeros(vol.n_slices, bool)
+    ii, jj = np.meshgrid(np.arange(vol.data.shape[0]), np.arange(vol.data.shape[1]), indexing="ij")
     for k in range(vol.n_slices):
         where = vol.where(k)
         kf = k + off
@@ -346,20 +419,33 @@ def segment_volume(vol: Volume, *, settings: SegmentationSettings = Segmentation
         img = sm[:, :, k]
         if flip_j:
             img = img[:, ::-1]
-        auto_fibula = s.fibula and manual["fibula"] is None
+        if _skin_only:
+            manual["bone"] = manual["fibula"] = None
+        auto_fibula = s.fibula and manual["fibula"] is None and not _skin_only
         need_auto = manual["skin"] is None or manual["bone"] is None or auto_fibula
+        sd = None
+        if indenter is not None and not _skin_only:
+            sd = indenter.signed_distance_mm(vol.world(np.stack([ii, jj, np.full(ii.shape, k)], axis=-1)))
+            sd = sd[:, ::-1] if flip_j else sd
         res = None
         if need_auto:
             try:
                 res = _segment_slice(img, bg=bg, noise=noise, px_mm=px_mm, settings=s, where=where,
-                                     need_bone=manual["bone"] is None or auto_fibula)
+                                     need_bone=(manual["bone"] is None or auto_fibula) and not _skin_only,
+                                     indenter_sd=sd)
             except SegmentationError:
                 if manual["bone"] is None or manual["skin"] is None:
                     raise
                 res = None  # skin and tibia drawn by hand: no automatic fibula on this slice
         z_c = float(vol.world([(vol.data.shape[0] - 1) / 2, (vol.data.shape[1] - 1) / 2, k])[2])
         out = {}
+        touch = None if res is None else res.bone_touch_mm
+        if manual["bone"] is None and touch is not None and touch < s.indenter_guard_mm + px_mm:
+            hidden[k] = True
         for st in STRUCTURES:
+            if _skin_only and st != "skin":
+                out[st] = None
+                continue
             if manual[st] is not None:
                 xy = manual[st]
             else:
@@ -395,7 +481,14 @@ def segment_volume(vol: Volume, *, settings: SegmentationSettings = Segmentation
             "skin_source": "manual" if manual["skin"] is not None else "auto",
             "bone_source": "manual" if manual["bone"] is not None else "auto",
             "fibula_source": "manual" if manual["fibula"] is not None else ("auto" if out["fibula"] is not None else "none"),
+            "bone_touch_mm": touch,
         })
+        if hidden[k]:
+            info_slices[-1]["bone_source"] = "hidden"
+    if _skin_only:
+        return Contours(skin=np.stack(skins), bone=np.stack(skins)), {"slices": info_slices}
+    if hidden.any():
+        bones = _fill_hidden(vol, bones, fibulas, hidden, pre, s)
     n_auto = sum(1 for r in info_slices if r["fibula_source"] == "auto")
     if s.fibula and 0 < n_auto < s.fibula_min_slices:
         # a dark spot on a slice or two is not a bone that runs along the leg: drop the automatic ones
@@ -408,8 +501,76 @@ def segment_volume(vol: Volume, *, settings: SegmentationSettings = Segmentation
     if any(found):
         fibula = np.stack([f if f is not None else np.full((s.n_points, 3), np.nan) for f in fibulas])
     info = {"background": bg, "noise": noise, "slices": info_slices, "settings": s.__dict__,
-            "fibula_slices": int(sum(found))}
-    return Contours(skin=np.stack(skins), bone=np.stack(bones), fibula=fibula), info
+            "fibula_slices": int(sum(found)), "bone_hidden": [int(k + off) for k in np.nonzero(hidden)[0]]}
+    return Contours(skin=np.stack(skins), bone=np.stack(bones), fibula=fibula, bone_hidden=hidden), info
+
+
+def _fill_hidden(vol: Volume, bones: list, fibulas: list, hidden: np.ndarray, pre: Contours | None,
+                 s: SegmentationSettings) -> list:
+    """The tibia contours with those of the ``hidden`` slices replaced by the pre tibia moved by the rigid fit
+    of the other slices (see :func:`segment_volume`)."""
+    from .pose.bone import fit_bone_motion, moved_section, resolve_bone_dof
+
+    off = vol.index_offset[2]
+    names = ", ".join(str(int(k + off)) for k in np.nonzero(hidden)[0])
+    n = len(bones)
+    if hidden.sum() > n // 2:
+        raise SegmentationError(f"{vol.where()}: the tibia touches the indenter on {int(hidden.sum())} of {n} slices "
+                                f"({names}); too few slices show it to fit its motion")
+    if pre is None or pre.n_slices != n:
+        if any(b is None for b in bones):
+            raise SegmentationError(f"{vol.where()}: the tibia cannot be traced beside the indenter on slice(s) {names} "
+                                    "and no pre contours on the same slices are given to fill them")
+        return bones
+    seen = ~hidden
+    dur = np.stack([pre.bone[k] if b is None else b for k, b in enumerate(bones)])
+    fib = None
+    if any(f is not None for f in fibulas):
+        fib = np.stack([np.full((s.n_points, 3), np.nan) if f is None else f for f in fibulas])
+    during = Contours(skin=dur, bone=dur, fibula=fib)
+    dof, _ = resolve_bone_dof("auto", pre, during)
+    fit = fit_bone_motion(pre.bone, dur, fibula_pre_mm=pre.fibula, fibula_during_mm=fib, dof=dof,
+                          during_slices=seen, animal=vol.animal)
+    out = list(bones)
+    for k in np.nonzero(hidden)[0]:
+        try:
+            out[k] = moved_section(pre.bone, fit.motion, float(dur[k, :, 2].mean()), n_points=s.n_points,
+                                   start_angle_deg=s.start_angle_deg)
+        except ValueError as exc:
+            raise SegmentationError(f"{vol.where(k)}: tibia hidden by the indenter: {exc}") from exc
+    return out
+
+
+def find_indenter(vol: Volume, skin_mm: np.ndarray, *, radius_mm: float = 1.5, pose_options: dict | None = None):
+    """The indenter of a during scan from its contrast fluid, or None when the scan has no fluid column.
+
+    The fluid and its axis are found as by the pose stage (:func:`deeptissue.pose.find_fluid_component`
+    outside the skin contours ``skin_mm`` (n_slices, n_points, 3) [mm], settings from the config section
+    ``pose`` given as ``pose_options``); the head and the fluid radius by
+    :func:`deeptissue.pose.indenter_shape`, with the outer radius ``radius_mm`` (``pose.head_radius_mm``).
+    """
+    import logging
+
+    from .pose.estimate import PoseOptions
+    from .pose.indenter import (find_fluid_component, fluid_threshold, indenter_shape, inside_skin_mask,
+                                orient_axis)
+    from .pose.result import PoseError
+
+    opts = PoseOptions.from_config(pose_options)
+    data = np.asarray(vol.data, float)
+    mask = inside_skin_mask(data.shape, vol.affine, skin_mm)
+    try:
+        thr = opts.fluid_threshold if opts.fluid_threshold is not None else fluid_threshold(
+            data, mask, ratio=opts.fluid_threshold_ratio)
+        fluid = find_fluid_component(data, vol.affine, threshold=thr, exclude_mask=mask,
+                                     min_volume_mm3=opts.min_component_mm3, ambiguity_ratio=opts.ambiguity_ratio,
+                                     animal=vol.animal)
+        axis = orient_axis(fluid.axis, from_mm=fluid.com_mm, toward_mm=np.asarray(skin_mm).reshape(-1, 3).mean(0))
+        return indenter_shape(data, vol.affine, fluid, axis=axis, radius_mm=radius_mm, exclude_mask=mask,
+                              animal=vol.animal)
+    except PoseError as exc:
+        logging.getLogger(__name__).info("%s: bones traced without an indenter mask (%s)", vol.where(), exc)
+        return None
 
 
 def contour_accuracy(seg: Contours, truth: Contours | dict) -> list[dict]:
@@ -445,7 +606,8 @@ def contour_accuracy(seg: Contours, truth: Contours | dict) -> list[dict]:
 
 
 def segment_files(image, *, contours_out, qc_out, animal: str, state: str, settings: dict | SegmentationSettings,
-                  crop_mm=None, reference=None, overrides=None, truth=None) -> Contours:
+                  crop_mm=None, reference=None, overrides=None, truth=None, pre_contours=None,
+                  pose_options: dict | None = None) -> Contours:
     """The rule ``segment``: load and check the image, segment, write contours and the QC figure.
 
     Parameters
@@ -468,6 +630,11 @@ def segment_files(image, *, contours_out, qc_out, animal: str, state: str, setti
         Manual-override YAML (:func:`load_overrides`).
     truth : str or Path or None
         Truth contour file (phantom), drawn in the QC figure with the distances to it in the title.
+    pre_contours : str or Path or None
+        The pre contour file of a during ``image``: it fills the slices where the tibia touches the indenter.
+    pose_options : dict or None
+        Config section ``pose``: how the contrast fluid is found, and the indenter's radius
+        (``head_radius_mm``), for the indenter mask of a during scan (``indenter_mask``).
 
     Returns
     -------
@@ -486,14 +653,28 @@ def segment_files(image, *, contours_out, qc_out, animal: str, state: str, setti
     if not isinstance(settings, SegmentationSettings):
         settings = SegmentationSettings.from_config(settings)
     ov = load_overrides(overrides) if overrides else None
-    contours, info = segment_volume(vol, settings=settings, state=state, overrides=ov)
     import logging
 
     log = logging.getLogger(__name__)
+    indenter = pre = None
+    if state == "during" and settings.indenter_mask:
+        skins, _ = segment_volume(vol, settings=settings, state=state, overrides=ov, _skin_only=True)
+        indenter = find_indenter(vol, skins.skin, radius_mm=float((pose_options or {}).get("head_radius_mm", 1.5)),
+                                 pose_options=pose_options)
+        if indenter is not None:
+            log.info("%s %s: indenter masked: head centre %s mm, axis %s, fluid radius %.3f mm, wall %.3f mm",
+                     animal, state, np.round(indenter.head_centre_mm, 3), np.round(indenter.axis, 4),
+                     indenter.fluid_radius_mm, indenter.wall_mm)
+        pre = load_contours(pre_contours) if pre_contours else None
+    contours, info = segment_volume(vol, settings=settings, state=state, overrides=ov, indenter=indenter, pre=pre)
+    if info["bone_hidden"]:
+        log.info("%s %s: the tibia touches the indenter on slice(s) %s: their contour is the pre tibia moved by "
+                 "the rigid fit of the other slices", animal, state, info["bone_hidden"])
     log.info("%s %s: background %.4g, noise %.4g", animal, state, info["background"], info["noise"])
     for row in info["slices"]:
         log.info("slice %(slice)d z %(z_mm).2f mm: skin %(skin_source)s (level %(skin_level)s), "
-                 "bone %(bone_source)s (level %(bone_level)s), fibula %(fibula_source)s", row)
+                 "bone %(bone_source)s (level %(bone_level)s, from the indenter %(bone_touch_mm)s mm), "
+                 "fibula %(fibula_source)s", row)
     if not settings.fibula:
         log.info("%s %s: fibula not segmented (segmentation.fibula is false)", animal, state)
     elif info["fibula_slices"] == 0:

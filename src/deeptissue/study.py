@@ -28,7 +28,7 @@ from .mesh import TetMesh, load_tetmesh
 from .pose import Pose, load_pose
 from .rigid import BoneMotion
 from .strain import DEFAULT_BIN_EDGES, element_strain
-from .summary import Summary, failed_summary, summarize_solution, write_result_vtu, write_summary
+from .summary import Summary, failed_summary, qc_warnings_of, summarize_solution, write_result_vtu, write_summary
 from .variants import parse_variant, variant_travel
 
 log = logging.getLogger(__name__)
@@ -339,5 +339,9 @@ def run_solve(*, animal: str, variant: str, mesh_path, cast_path, pose_path, dur
     if end_state_path is not None and not Path(end_state_path).exists():
         save_npz(end_state_path, failed=np.array(summary.reason or "not converged"))
     write_result_vtu(vtu_path, mesh, u, strain, cell_data={"converged": np.full(mesh.n_tets, int(summary.converged))})
+    try:  # the animal's QC warnings travel with every variant's numbers
+        summary = replace(summary, qc_warnings=qc_warnings_of(pose_path))
+    except (OSError, ValueError) as exc:
+        log.warning("%s: QC warnings not read (%s)", pose_path, exc)
     write_summary(summary_path, summary)
     return summary

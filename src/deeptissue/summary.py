@@ -25,7 +25,7 @@ from .mesh import TetMesh
 from .strain import DEFAULT_BIN_EDGES, STRAIN_MEASURES, ElementStrain, element_strain, gamma_at_points, voi_statistics
 
 __all__ = ["GAMMA_SAMPLINGS", "SAMPLING_LEVELS", "Summary", "deformed_surface", "failed_summary", "point_triangle_distance",
-           "read_result_vtu", "read_summary", "skin_agreement_mm", "summarize_solution", "surface_distance_mm",
+           "qc_warnings_of", "read_result_vtu", "read_summary", "skin_agreement_mm", "summarize_solution", "surface_distance_mm",
            "tri6_to_tri3", "write_result_vtu", "write_summary"]
 
 # How γmax is sampled for the VOI and its bins (config study.gamma_sampling):
@@ -67,6 +67,7 @@ class Summary:
     bins_centroid_percent: dict | None = None  # bin label -> % of that VOI
     voi_by_measure_mm3: dict | None = None  # {"green_lagrange": .., "log": ..} VOI with each measure [mm^3]
     peak_gamma_by_measure: dict | None = None  # {"green_lagrange": .., "log": ..}
+    qc_warnings: str | None = None  # the animal's QC warnings from pose.json ("check value > limit; ..."), None: none
     extra: dict = field(default_factory=dict)  # further solver diagnostics, kept and tabulated
 
     def __post_init__(self):
@@ -99,6 +100,13 @@ class Summary:
             return cls(**known, extra=extra)
         except (TypeError, ValueError) as exc:
             raise ValueError(f"{source}: {exc}") from exc
+
+
+def qc_warnings_of(pose_path: str | Path) -> str | None:
+    """The QC warnings of ``pose.json`` (key ``qc_warnings``, see :mod:`deeptissue.pose.checks`) joined by "; ",
+    or None when it has none."""
+    warnings = read_json(pose_path).get("qc_warnings") or []
+    return "; ".join(warnings) or None
 
 
 def write_summary(path: str | Path, summary: Summary) -> None:

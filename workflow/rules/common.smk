@@ -99,11 +99,13 @@ def mri_input(wildcards):
 
 
 def segment_inputs(wildcards):
-    """The image of the state, the pre image it must match, overrides and truth where they exist."""
+    """The image of the state, the pre image and contours a during scan needs, overrides and truth where they exist."""
     cfg = animal_cfg(wildcards.animal)
     inputs = {"image": mri_input(wildcards)}
     if wildcards.state == "during":
         inputs["reference"] = mri_input(Namespace(animal=wildcards.animal, state="pre"))
+        # the pre tibia fills the during slices where it touches the indenter
+        inputs["pre_contours"] = f"results/{wildcards.animal}/contours/pre.npz"
     if "overrides" in cfg:
         inputs["overrides"] = cfg["overrides"]
     if is_phantom(wildcards.animal):

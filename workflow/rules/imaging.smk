@@ -24,7 +24,8 @@ rule phantom:
 
 
 rule segment:
-    """Skin, tibia and (where found) fibula contours of every slice of one state, and a QC figure."""
+    """Skin, tibia and (where found) fibula contours of every slice of one state, and a QC figure; a during scan
+    after the pre one, whose tibia fills the slices where the bone touches the indenter."""
     input:
         unpack(segment_inputs),
     output:
@@ -38,6 +39,8 @@ rule segment:
     params:
         settings=lambda wc: {**config["segmentation"], **animal_cfg(wc.animal).get("segmentation", {})},
         crop_mm=lambda wc: animal_cfg(wc.animal).get("crop_mm"),
+        # how the contrast fluid is found and the indenter's radius, for the during scan's indenter mask
+        pose_options=config["pose"],
     log:
         "results/{animal}/logs/segment_{state}.log",
     conda:

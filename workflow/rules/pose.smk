@@ -6,6 +6,7 @@ rule pose:
     input:
         # the phantom's during scan, or the configured file (mri_input with state=during)
         during=lambda wildcards: mri_input(Namespace(animal=wildcards.animal, state="during")),
+        pre=lambda wildcards: mri_input(Namespace(animal=wildcards.animal, state="pre")),
         pre_contours="results/{animal}/contours/pre.npz",
         during_contours="results/{animal}/contours/during.npz",
     output:
@@ -25,6 +26,12 @@ rule pose:
         bone=report(
             "results/{animal}/qc/pose_bone.png",
             caption="../report/pose_bone.rst",
+            category="pose",
+            subcategory="{animal}",
+        ),
+        checks=report(
+            "results/{animal}/qc/checks.csv",
+            caption="../report/qc_checks.rst",
             category="pose",
             subcategory="{animal}",
         ),

@@ -14,6 +14,8 @@ with script_log(snakemake.log[0], "pose"):  # noqa: F821
         axis_png=snakemake.output.axis,  # noqa: F821
         tip_png=snakemake.output.tip,  # noqa: F821
         bone_png=snakemake.output.bone,  # noqa: F821
+        checks_csv=snakemake.output.checks,  # noqa: F821
+        pre_nifti=snakemake.input.pre,  # noqa: F821
         options=dict(snakemake.params.options),  # noqa: F821
         override=dict(snakemake.params.override),  # noqa: F821
         animal=snakemake.wildcards.animal,  # noqa: F821

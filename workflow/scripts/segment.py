@@ -16,4 +16,6 @@ with script_log(snakemake.log[0], "segment"):  # noqa: F821
         reference=inp.get("reference"),
         overrides=inp.get("overrides"),
         truth=inp.get("truth"),
+        pre_contours=inp.get("pre_contours"),
+        pose_options=dict(snakemake.params.pose_options),
     )

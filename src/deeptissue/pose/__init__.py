@@ -12,12 +12,15 @@ The stage reads the during scan and the contours of both states and writes ``pos
 """
 
 from .accuracy import ACCURACY_TOLERANCES, accuracy_table, pose_errors, run_pose_accuracy
-from .bone import MIN_FIBULA_SLICES, BoneFit, bone_centroid_mm, dense_surface, fit_bone_motion, resolve_bone_dof
+from .bone import (MIN_FIBULA_SLICES, BoneFit, bone_centroid_mm, dense_surface, fit_bone_motion, moved_section,
+                   resolve_bone_dof)
 from .estimate import PoseOptions, estimate_pose, run_pose
 from .indenter import (
     FluidComponent,
+    IndenterShape,
     find_fluid_component,
     fluid_threshold,
+    indenter_shape,
     inertia_axis,
     inside_skin_mask,
     line_triangle_hits,
@@ -36,6 +39,7 @@ __all__ = [
     "MIN_FIBULA_SLICES",
     "BoneFit",
     "FluidComponent",
+    "IndenterShape",
     "Pose",
     "PoseError",
     "PoseOptions",
@@ -46,10 +50,12 @@ __all__ = [
     "find_fluid_component",
     "fit_bone_motion",
     "fluid_threshold",
+    "indenter_shape",
     "inertia_axis",
     "inside_skin_mask",
     "line_triangle_hits",
     "load_pose",
+    "moved_section",
     "orient_axis",
     "plot_axis_qc",
     "plot_bone_qc",

@@ -21,7 +21,8 @@ from .result import PoseError, _where
 if TYPE_CHECKING:
     from ..contours import Contours
 
-__all__ = ["MIN_FIBULA_SLICES", "BoneFit", "bone_centroid_mm", "dense_surface", "fit_bone_motion", "resolve_bone_dof"]
+__all__ = ["MIN_FIBULA_SLICES", "BoneFit", "bone_centroid_mm", "dense_surface", "fit_bone_motion", "moved_section",
+           "resolve_bone_dof"]
 
 MIN_FIBULA_SLICES = 3  # a fibula seen on fewer slices of a state is not used by the bone fit
 
@@ -128,6 +129,7 @@ def fit_bone_motion(
     method: str = "surface",
     dof: int = 5,
     surface_step_mm: float = 0.05,
+    during_slices: np.ndarray | None = None,
     animal: str = "",
 ) -> BoneFit:
     """Rigid motion of the tibia from the pre and during bone contour stacks.
@@ -164,6 +166,9 @@ def fit_bone_motion(
         directions (6).
     surface_step_mm : float
         Spacing [mm] along z of the interpolated pre surface (:func:`dense_surface`).
+    during_slices : (n_slices,) bool array or None
+        The during slices whose tibia (and fibula) contours join the fit; None: all. Slices where the bone
+        cannot be seen (against the indenter) are left out; the pre surface keeps all its slices.
     animal : str
         Named in error messages.
 
@@ -203,14 +208,20 @@ def fit_bone_motion(
     # the pre fibula's surface through all its slices; the during fibula on the slices that have one
     # in both states (a during section whose plane the pre fibula does not reach has no counterpart:
     # matched to the end of the pre surface, it would pull the fit along the bone)
+    use = np.ones(pre.shape[0], bool) if during_slices is None else np.asarray(during_slices, bool)
+    if use.shape != (pre.shape[0],) or use.sum() < 2:
+        raise PoseError(f"{_where(animal)}the bone fit needs the tibia on at least 2 during slices, "
+                        f"got {int(use.sum()) if use.shape == (pre.shape[0],) else use.shape}")
     has_pre, has_dur = _fibula_mask(fibula_pre_mm, pre.shape[0]), _fibula_mask(fibula_during_mm, pre.shape[0])
+    has_dur = has_dur & use
     both = has_pre & has_dur
     use_fibula = has_pre.sum() >= MIN_FIBULA_SLICES and both.sum() >= MIN_FIBULA_SLICES
     if use_fibula:
         fib_pre = np.asarray(fibula_pre_mm, float)[has_pre]
         fib_dur = np.asarray(fibula_during_mm, float)[both]
     com_pre = bone_centroid_mm(pre)
-    shift = bone_centroid_mm(dur) - com_pre
+    shift = bone_centroid_mm(dur[use]) - bone_centroid_mm(pre[use])
+    dur = dur[use]
     # (during vertices, pre reference points, their normals, KD-tree) per bone
     bodies = [(pre, dur)] + ([(fib_pre, fib_dur)] if use_fibula else [])
     parts = []
@@ -258,6 +269,32 @@ def fit_bone_motion(
         n_evaluations=int(res.nfev), parameter_sd=sd,
         fibula_slices=(int(has_pre.sum()), int(both.sum())) if use_fibula else (0, 0),
     )
+
+
+def moved_section(bone_pre_mm: np.ndarray, motion: BoneMotion, z_mm: float, *, n_points: int = 100,
+                  start_angle_deg: float = 90.0) -> np.ndarray:
+    """The section at the plane ``z = z_mm`` of the pre bone surface moved by ``motion``: (n_points, 3) [mm].
+
+    The surface is :func:`dense_surface` of ``bone_pre_mm`` (n_slices, n_points, 3); each of its point tracks
+    along the bone, moved, is cut by the plane (linear interpolation in z), and the section is resampled
+    as a segmented contour (:func:`deeptissue.contours.resample_closed`). Raises ValueError if the moved
+    surface does not reach the plane.
+    """
+    from ..contours import resample_closed
+
+    pre = np.asarray(bone_pre_mm, float)
+    pts, _ = dense_surface(pre, upsample=2)
+    tracks = motion.apply(pts).reshape(-1, 2 * pre.shape[1], 3)
+    z = tracks[..., 2]
+    if not (z.min(axis=0) <= z_mm).all() or not (z.max(axis=0) >= z_mm).all():
+        raise ValueError(f"moved_section: the moved bone surface does not reach z = {z_mm:.3g} mm")
+    xy = np.empty((tracks.shape[1], 2))
+    for j in range(tracks.shape[1]):
+        order = np.argsort(z[:, j])
+        for d in range(2):
+            xy[j, d] = np.interp(z_mm, z[order, j], tracks[order, j, d])
+    out = resample_closed(xy, n_points=n_points, start_angle_deg=start_angle_deg)
+    return np.column_stack([out, np.full(n_points, float(z_mm))])
 
 
 def _fibula_mask(fibula_mm, n_slices: int) -> np.ndarray:

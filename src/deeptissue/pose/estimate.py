@@ -123,6 +123,15 @@ def estimate_pose(
         extra.update(fluid_threshold=fluid.threshold, fluid_volume_mm3=fluid.volume_mm3,
                      fluid_candidate_volumes_mm3=list(fluid.candidate_volumes_mm3[:5]),
                      fluid_elongation=float(np.sqrt(m[2] / max(m[0], 1e-12))))
+        # evidence for the QC checks: the column's length along the axis, and how far the cylinder fit turned
+        # the inertia axis (NaN when the fit did not run or was rejected: the axis is the inertia axis)
+        s_col = (fluid.points_mm - fluid.com_mm) @ fluid.axis
+        extra["fluid_column_length_mm"] = float(s_col.max() - s_col.min())
+        if fluid.axis_inertia is not None:
+            refined = not np.array_equal(fluid.axis_inertia, fluid.axis)
+            cos = abs(float(fluid.axis_inertia @ fluid.axis)) / float(np.linalg.norm(fluid.axis_inertia))
+            extra["axis_inertia_vs_cylinder_deg"] = (float(np.degrees(np.arccos(min(cos, 1.0)))) if refined
+                                                     else float("nan"))
         qc["fluid_points_mm"] = fluid.points_mm
 
     if "indenter_axis" in override:
@@ -170,8 +179,11 @@ def estimate_pose(
         log.info("%s%s", _where(animal), why)
         fit = fit_bone_motion(
             pre.bone, during_contours.bone, fibula_pre_mm=pre.fibula, fibula_during_mm=during_contours.fibula,
-            method=options.bone_method, dof=dof, surface_step_mm=options.bone_surface_step_mm, animal=animal,
+            method=options.bone_method, dof=dof, surface_step_mm=options.bone_surface_step_mm,
+            during_slices=during_contours.bone_seen if pre.n_slices == during_contours.n_slices else None,
+            animal=animal,
         )
+        extra["bone_slices_used"] = [int(during_contours.bone_seen.sum()), during_contours.n_slices]
         extra["bone_dof_reason"] = why
         extra["bone_fibula_slices"] = list(fit.fibula_slices)
         com_pre = fit.motion.centre_mm
@@ -199,11 +211,14 @@ def run_pose(
     axis_png,
     tip_png,
     bone_png,
+    checks_csv=None,
+    pre_nifti=None,
     options: dict | None = None,
     override: dict | None = None,
     animal: str = "",
 ) -> Pose:
-    """Rule ``pose``: read the during NIfTI and both contour files, write ``pose.json`` and the QC figures.
+    """Rule ``pose``: read the during NIfTI and both contour files, write ``pose.json``, the QC figures and the
+    QC checks (:mod:`.checks`); a failed check stops the rule after ``checks_csv`` is written.
 
     Parameters
     ----------
@@ -215,6 +230,11 @@ def run_pose(
         Written by :func:`~deeptissue.pose.save_pose`.
     axis_png, tip_png, bone_png : path
         QC figures of the axis, the tip and the bone fit.
+    checks_csv : path or None
+        ``checks.csv`` (:func:`~deeptissue.pose.checks.write_checks`); None: the checks are evaluated and
+        acted on, not written.
+    pre_nifti : path or None
+        The pre scan, named with ``during_nifti`` when a check fails.
     options : dict or None
         Config section ``pose`` (:meth:`PoseOptions.from_config`).
     override : dict or None
@@ -225,8 +245,17 @@ def run_pose(
     Returns
     -------
     Pose
-        The pose written to ``pose_json``.
+        The pose written to ``pose_json``, with the warnings of the checks in ``extra["qc_warnings"]``.
+
+    Raises
+    ------
+    PoseError
+        When a check fails: naming the animal, both scans and the value against its limit.
     """
+    from dataclasses import replace
+
+    from .checks import evaluate_checks, failed_message, warnings_of, write_checks
+
     from ..contours import load_contours
     from ..imaging import load_nifti
 
@@ -236,6 +265,16 @@ def run_pose(
     dur = load_contours(during_contours)
     opts = PoseOptions.from_config(options)
     pose, qc = estimate_pose(data, vol.affine, pre, dur, options=opts, override=override, animal=animal)
+    checks = evaluate_checks(pose, pre, dur)
+    if checks_csv is not None:
+        write_checks(checks_csv, checks)
+    for c in checks:
+        log.log(logging.INFO if c.status == "ok" else logging.WARNING, "%s check %s", animal, c.describe()
+                if c.status != "ok" else f"{c.name} {c.value:.4g} ok")
+    message = failed_message(checks, animal=animal, pre_file=pre_nifti or pre_contours, during_file=during_nifti)
+    if message:
+        raise PoseError(message)
+    pose = replace(pose, extra={**pose.extra, "qc_warnings": warnings_of(checks)})
     plot_axis_qc(axis_png, data, vol.affine, pose, qc, title=animal)
     plot_tip_qc(tip_png, pre, dur, pose, roi_diameter_mm=opts.roi_diameter_mm, title=animal)
     plot_bone_qc(bone_png, pre, dur, pose, title=animal)

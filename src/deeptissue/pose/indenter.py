@@ -19,8 +19,10 @@ from .result import PoseError, _where
 
 __all__ = [
     "FluidComponent",
+    "IndenterShape",
     "find_fluid_component",
     "fluid_threshold",
+    "indenter_shape",
     "inertia_axis",
     "inside_skin_mask",
     "line_triangle_hits",
@@ -477,3 +479,121 @@ def skin_entry_mm(
             "give pose_override.tip_start_mm or indenter_axis"
         )
     return np.asarray(point_mm, float) + t[np.argmin(np.abs(t))] * a
+
+
+@dataclass(frozen=True)
+class IndenterShape:
+    """The indenter in the during scan: a cylinder of outer radius ``radius_mm`` about ``axis`` that ends in a
+    hemispherical head centred at ``head_centre_mm``; the contrast fluid fills it out to ``fluid_radius_mm``.
+
+    ``axis`` (3,) unit vector into the leg; ``head_centre_mm`` (3,) [mm]; the wall is ``radius_mm -
+    fluid_radius_mm`` thick.
+    """
+
+    axis: np.ndarray
+    head_centre_mm: np.ndarray
+    radius_mm: float
+    fluid_radius_mm: float
+
+    @property
+    def wall_mm(self) -> float:
+        """Thickness of the dark wall between the fluid and the tissue [mm]."""
+        return self.radius_mm - self.fluid_radius_mm
+
+    @property
+    def tip_mm(self) -> np.ndarray:
+        """The front of the head [mm] (3,)."""
+        return self.head_centre_mm + self.radius_mm * self.axis
+
+    def signed_distance_mm(self, points_mm: np.ndarray) -> np.ndarray:
+        """Distance [mm] (...) of ``points_mm`` (..., 3) from the indenter's outer surface, negative inside."""
+        p = np.asarray(points_mm, float) - self.head_centre_mm
+        t = np.maximum(p @ -self.axis, 0.0)
+        q = p + t[..., None] * self.axis
+        return np.linalg.norm(q, axis=-1) - self.radius_mm
+
+
+def indenter_shape(volume: np.ndarray, affine: np.ndarray, fluid: FluidComponent, *, axis: np.ndarray,
+                   radius_mm: float, exclude_mask: np.ndarray | None = None, animal: str = "") -> IndenterShape:
+    """The indenter's head and fluid radius from the contrast fluid's sub-pixel edge.
+
+    The edge is the iso-contour of each axial slice of ``volume`` half-way between the fluid (median of the
+    component) and the background outside the leg, near the component's voxels. The fluid radius is the
+    median distance of the edge from the axis line where the column is a cylinder (more than 1.5 mm behind
+    its front); the head centre is the point of the axis whose sphere of that radius fits the edge points
+    of the front hemisphere best (least squares, robust). The outer radius ``radius_mm`` is the indenter's
+    known size (config ``pose.head_radius_mm``); the wall lies between the two.
+
+    Parameters
+    ----------
+    volume : (I, J, K) array
+        The during scan.
+    affine : (4, 4) array
+        Voxel index -> world mm.
+    fluid : FluidComponent
+        From :func:`find_fluid_component`.
+    axis : (3,) array
+        Axis into the leg (:func:`orient_axis`).
+    radius_mm : float
+        Outer radius of the indenter and its head [mm].
+    exclude_mask : (I, J, K) bool array or None
+        Voxels inside the leg, left out of the background level.
+    animal : str
+        Named in error messages.
+
+    Returns
+    -------
+    IndenterShape
+
+    Raises
+    ------
+    PoseError
+        If the fluid's edge has too few points to fit, or the fluid is wider than ``radius_mm``.
+    """
+    from scipy.optimize import least_squares
+    from scipy.spatial import cKDTree
+    from skimage.measure import find_contours
+
+    vol = np.asarray(volume, float)
+    affine = np.asarray(affine, float)
+    a = np.asarray(axis, float) / np.linalg.norm(axis)
+    c0 = np.asarray(fluid.com_mm, float)
+    inv = np.linalg.inv(affine)
+    pts = np.asarray(fluid.points_mm, float)
+    ijk = np.round(pts @ inv[:3, :3].T + inv[:3, 3]).astype(int)
+    fluid_level = float(np.median(vol[ijk[:, 0], ijk[:, 1], ijk[:, 2]]))
+    outside = vol < fluid.threshold
+    if exclude_mask is not None:
+        outside &= ~exclude_mask
+    background = float(np.median(vol[outside])) if outside.any() else 0.0
+    level = 0.5 * (fluid_level + background)
+    tree = cKDTree(pts)
+    edge = []
+    for k in np.unique(ijk[:, 2]):
+        for cont in find_contours(vol[:, :, k], level):
+            w = voxel_centres_mm(affine, np.column_stack([cont, np.full(len(cont), k)]))
+            d, _ = tree.query(w)
+            edge.append(w[d <= 0.3])
+    edge = np.concatenate(edge) if edge else np.zeros((0, 3))
+    if len(edge) < 20:
+        raise PoseError(f"{_where(animal)}the contrast fluid's edge has {len(edge)} points: too few to fit the "
+                        "indenter's head")
+    rel = edge - c0
+    s = rel @ a
+    r = np.linalg.norm(rel - np.outer(s, a), axis=1)
+    front = float(s.max())
+    body = s < front - 1.5
+    r_fluid = float(np.median(r[body])) if body.sum() >= 20 else float(np.median(r))
+    if r_fluid >= radius_mm:
+        raise PoseError(f"{_where(animal)}the contrast fluid is {2 * r_fluid:.3g} mm across, wider than the "
+                        f"indenter ({2 * radius_mm:g} mm, pose.head_radius_mm); check pose.head_radius_mm")
+    s_head = front - r_fluid
+    for _ in range(3):  # the front hemisphere: edge points ahead of the head centre
+        cap = edge[s >= s_head]
+        if len(cap) < 10:
+            break
+        fit = least_squares(lambda x: np.linalg.norm(cap - (c0 + x[0] * a), axis=1) - r_fluid, [s_head],
+                            loss="soft_l1", f_scale=0.05)
+        s_head = float(fit.x[0])
+    return IndenterShape(axis=a, head_centre_mm=c0 + s_head * a, radius_mm=float(radius_mm),
+                         fluid_radius_mm=r_fluid)
