@@ -68,7 +68,8 @@ class NewtonSettings:
 class IncrementSettings:
     """The indentation step starts with ``initial_increment`` (load units; a bone-rotation step is tried
     whole: the rigid predictor follows it); an increment converged in at most ``easy_iterations`` Newton
-    iterations with at most ``easy_changes`` active-set changes after its first iteration grows the next by
+    iterations whose active set changed after its first iteration on at most ``easy_changes_rel`` of its contact
+    nodes grows the next by
     ``grow_factor``, one that needed more than ``hard_iterations`` shrinks it by ``shrink_factor``, a failed
     one is cut by ``cut_factor``. first_touch_mm: the increment where the indenter first touches advances
     it at most this far past the first contact [mm]. start_clearance_mm: an indenter touching the skin at
@@ -79,7 +80,7 @@ class IncrementSettings:
     min_increment: float = 1e-4
     max_increments: int = 400
     easy_iterations: int = 5
-    easy_changes: int = 2
+    easy_changes_rel: float = 0.25
     hard_iterations: int = 10
     grow_factor: float = 2.0
     shrink_factor: float = 0.7
@@ -261,7 +262,8 @@ def solve_indentation_exact(mesh: TetMesh, *, material, indenter: Indenter | Non
     this mesh and bone motion) gives the displacement at t = 3 (its multipliers, of another formulation, are
     not used: the first Newton iteration finds the contact forces). Never raises for non-convergence
     (converged=False with the reason and the last converged state); ValueError for missing facet sets.
-    ``extra``: 'active_nodes' (per pair name), 'active_set_changes', 'node_penetration_rel',
+    ``extra``: 'active_nodes' (count per pair name), 'active_nodes_per_increment' (the TetMesh nodes in contact
+    after each converged increment), 'active_set_changes', 'node_penetration_rel',
     'min_force_N' (the most tensile contact force), 'infeasible', 'bone_clearance_mm', 'start_backoff_mm'.
     """
     t_wall = time.perf_counter()
@@ -392,6 +394,7 @@ def solve_indentation_exact(mesh: TetMesh, *, material, indenter: Indenter | Non
     u = np.zeros(asm.n_dofs)
     lam = contact.lam
     history, n_iter, total_changes = [], 0, 0
+    active_per_increment = []  # the nodes in contact after each converged increment
     steps = sched.active_steps()
     if start is not None:
         steps = [k for k in steps if k >= 3]
@@ -426,7 +429,8 @@ def solve_indentation_exact(mesh: TetMesh, *, material, indenter: Indenter | Non
                 done, reason_fail = False, f"wall-time budget of {s.max_wall_s:g} s spent at t = {t:.4f}"
                 break
             dt = min(dt, inc.max_increment, k + 1 - t)
-            if k == 3 and k_ind is not None and travel > 0:
+            if k == 3 and k_ind is not None and travel > 0 and not np.any(lam[contact.obstacle == k_ind] > 0):
+                # first touch: do not jump deep into contact
                 set_time(t)
                 sel = contact.obstacle == k_ind
                 gmin = float(np.min(contact.evaluate(u, sel)[0][sel]))
@@ -474,11 +478,12 @@ def solve_indentation_exact(mesh: TetMesh, *, material, indenter: Indenter | Non
             log.info("step %d t %.4f->%.4f %s it %d changes %d F %.4g N pen %.3g mm", k + 1, t, t1,
                      "ok" if ok else f"cut ({why})", iters, changes, history[-1].indenter_force_N, pen[0])
             if ok:
+                active_per_increment.append(np.unique(contact.node[lam_try > 0]))
                 prev = (t, u, lam) if k == 3 else None
                 u, lam, t = u_try, lam_try, t1
                 if iters == 0:
                     dt = inc.max_increment
-                elif iters <= inc.easy_iterations and changes <= inc.easy_changes:
+                elif iters <= inc.easy_iterations and changes <= inc.easy_changes_rel * max(np.count_nonzero(lam), 1):
                     dt *= inc.grow_factor
                 elif iters > inc.hard_iterations:
                     dt *= inc.shrink_factor
@@ -511,7 +516,8 @@ def solve_indentation_exact(mesh: TetMesh, *, material, indenter: Indenter | Non
         linear_solve_s=timers["solve"], contact_s=timers["contact"],
         extra={"attempts": 1, "formulation": "exact", "straightened_tets": n_straightened,
                "start_backoff_mm": start_backoff_mm, "bone_clearance_mm": bone_clearance_mm, "infeasible": infeasible,
-               "active_nodes": active, "active_set_changes": total_changes, "node_penetration_rel": max(node_pen, 0.0),
+               "active_nodes": active, "active_nodes_per_increment": tuple(active_per_increment),
+               "active_set_changes": total_changes, "node_penetration_rel": max(node_pen, 0.0),
                "min_force_N": float(lam.min(initial=0.0)), "started_from_bone_state": start is not None,
                "nodal_contact": {"nodes": contact.node.copy(), "obstacle": contact.obstacle.copy(), "lam_N": lam.copy()}},
     )
