@@ -53,8 +53,9 @@ class NewtonSettings:
     """rtol: equilibrium residual over max(|internal force|, |contact force|) at the end of a load step
     (rtol_intermediate inside a step: the problem is path independent, only end states need accuracy);
     atol_mu_rel: absolute floor of the residual in units of mu V^(2/3) [N]; max_iterations per increment;
-    armijo: the merit function must fall by this fraction of its predicted decrease; max_backtracks: step
-    halvings before the increment is cut."""
+    armijo: the merit function must fall by this fraction of its predicted decrease below the largest of the
+    last ``nonmonotone_memory`` merits (1: the monotone test); max_backtracks: step halvings before the
+    increment is cut."""
 
     rtol: float = 1e-6
     rtol_intermediate: float = 1e-3
@@ -62,6 +63,7 @@ class NewtonSettings:
     max_iterations: int = 25
     armijo: float = 1e-4
     max_backtracks: int = 12
+    nonmonotone_memory: int = 5
 
 
 @dataclass(frozen=True)
@@ -175,16 +177,18 @@ class _NodalContact:
                     H[sel] = Hk
         return g, n, H
 
-    def active_set(self, lam, g):
-        """Entries with lam - c g > 0, at most one per node (the largest)."""
+    def active_set(self, lam, g, n):
+        """Entries with lam - c g > 0; a node active against two obstacles whose normals are within ~8 deg
+        of each other (the constraints are then nearly dependent) keeps only the entry with the larger score."""
         score = lam - self.c * g
         act = score > 0
         idx = np.flatnonzero(act)
         if len(idx) > len(np.unique(self.node[idx])):
             order = idx[np.lexsort((-score[idx], self.node[idx]))]
-            first = np.r_[True, self.node[order][1:] != self.node[order][:-1]]
-            act[:] = False
-            act[order[first]] = True
+            second = np.flatnonzero(self.node[order][1:] == self.node[order][:-1])
+            a, b = order[second], order[second + 1]
+            close = np.abs(np.einsum("ij,ij->i", n[a], n[b])) > 0.99
+            act[b[close]] = False
         return act
 
     def ncp(self, lam, g):
@@ -321,8 +325,8 @@ def solve_indentation_exact(mesh: TetMesh, *, material, indenter: Indenter | Non
         np.add.at(R3, contact.node[act], -lam[act, None] * n[act])
         return R
 
-    def merit(u, lam):
-        """0.5 (|R_free|^2 + |C|^2) at (u, lam) with the active set they imply; inf if inverted."""
+    def merit(u, lam, ncp):
+        """0.5 (|R_free|^2 + |C|^2) at (u, lam), C = ncp(lam, g); inf if inverted."""
         ta = time.perf_counter()
         _, f = asm.force(u)
         timers["assembly"] += time.perf_counter() - ta
@@ -331,13 +335,24 @@ def solve_indentation_exact(mesh: TetMesh, *, material, indenter: Indenter | Non
         g, n, _ = contact_state(u, lam)
         on = lam != 0
         R = residual(f, lam, on, n)[asm.free]
-        C = contact.ncp(lam, g)
+        C = ncp(lam, g)
         return 0.5 * (float(R @ R) + float(C @ C))
 
     def newton(u, lam, target_d, rtol):
         """Solve one increment in place on (u, lam). Returns (ok, reason, iterations, residuals, changes)."""
-        residuals, changes = [], 0
+        residuals, changes, merits = [], 0, []
         act = lam > 0
+        flips = np.zeros(len(lam), int)  # active-set changes of each entry in this increment
+        frozen, frozen_state, switched = (np.zeros(len(lam), bool) for _ in range(3))
+
+        def ncp(lam, g):
+            # a frozen entry's complementarity function is the branch its state implies
+            C = contact.ncp(lam, g)
+            fa, fi = frozen & frozen_state, frozen & ~frozen_state
+            C[fa] = contact.c[fa] * g[fa]
+            C[fi] = lam[fi]
+            return C
+
         for it in range(s.newton.max_iterations + 1):
             ta = time.perf_counter()
             W, f, data, Ke_bc = asm.tangent(u)
@@ -358,32 +373,57 @@ def solve_indentation_exact(mesh: TetMesh, *, material, indenter: Indenter | Non
             if not np.isfinite(res):
                 return False, "non-finite residual", it, residuals, changes
             fc = np.linalg.norm(lam[on, None] * n[on]) if np.any(on) else 0.0
-            C = contact.ncp(lam, g)
+            C = ncp(lam, g)
             ncp_ok = bool(np.all(np.abs(C) <= contact.c * gap_tol))
-            if not has_d and ncp_ok and res <= rtol * max(float(np.linalg.norm(f[asm.free])), fc) + atol:
+            res_ok = res <= rtol * max(float(np.linalg.norm(f[asm.free])), fc) + atol
+            if not has_d and ncp_ok and res_ok:
                 return True, "", it, residuals, changes
+            if not has_d and res_ok:
+                # a frozen node that pulls beyond the tolerance is released for good (once)
+                pull = frozen & frozen_state & (lam < -contact.c * gap_tol) & ~switched
+                frozen_state[pull] = False
+                switched |= pull
             if it == s.newton.max_iterations:
+                worst = int(np.argmax(np.abs(C) / (contact.c * gap_tol)))
+                log.debug("  out of iterations: residual %.2e (%s), worst complementarity at node %d (%s): force %.3e N, "
+                          "gap %.3e mm (%.2f x tolerance), frozen %s", res, "ok" if res_ok else "not ok",
+                          contact.node[worst], contact.names[contact.obstacle[worst]], lam[worst], g[worst],
+                          abs(C[worst]) / (contact.c[worst] * gap_tol[worst]), bool(frozen[worst]))
                 return False, "too many iterations", it, residuals, changes
             if len(residuals) > 3 and res > 1e3 * min(residuals[1:]):
                 return False, "diverging", it, residuals, changes
-            new_act = contact.active_set(lam, g)
+            new_act = contact.active_set(lam, g, n)
             if it > 0:
-                changes += int(np.count_nonzero(new_act != act))
+                changed = new_act != act
+                changes += int(np.count_nonzero(changed))
+                flips += changed
+                # a node back in a state it left cycles (degenerate: force and gap both near zero, where the
+                # two linearisations undo each other): its state is frozen active, so that Newton converges
+                # on a fixed set; the convergence test then holds its force and gap to the tolerance
+                newly = (flips >= 2) & ~frozen
+                frozen |= newly
+                frozen_state[newly] = True
+            new_act[frozen] = frozen_state[frozen]
             act = new_act
             du, lam_new = _step(asm, pattern, contact, data, Ke_bc, f, du_d, act, g, n, H, lam, timers, solver)
             if du is None:
                 return False, "linear solver failed", it, residuals, changes
             dlam = lam_new - lam
             phi0 = 0.5 * (float(R[asm.free] @ R[asm.free]) + float(C @ C))
+            merits.append(phi0)
+            # non-monotone Armijo test (Grippo, Lampariello and Lucidi 1986) against the largest of the last
+            # few merits: a change of the active set may raise the merit for one step on the way to the solution
+            phi_ref = max(merits[-s.newton.nonmonotone_memory:])
             step = 1.0
             for _ in range(s.newton.max_backtracks):
-                phi = merit(u + step * du, lam + step * dlam)
+                phi = merit(u + step * du, lam + step * dlam, ncp)
                 if has_d and np.isfinite(phi):
                     break
-                if phi <= (1.0 - 2.0 * s.newton.armijo * step) * phi0:
+                if phi <= phi_ref - 2.0 * s.newton.armijo * step * phi0:
                     break
                 step *= 0.5
             else:
+                log.debug("  it %d: no step along the direction lowers the merit %.3e (last tried %.3e)", it, phi0, phi)
                 return False, "line search failed", it, residuals, changes
             log.debug("  it %d res %.3e active %d step %.3g", it, res, int(act.sum()), step)
             u += step * du
@@ -530,26 +570,29 @@ def _step(asm, pattern, contact, data, Ke_bc, f, du_d, act, g, n, H, lam, timers
     """One semi-smooth Newton direction for active set ``act``: (du (n_dofs,), new multipliers (E,)), or
     (None, None) if the linear solve failed.
 
-    K~ = K - sum_A lam_i H_i; an active node's displacement is Q_i da_i with da_i[0] = -g_i prescribed;
-    the rest solve Q^T K~ Q da = -Q^T (f + K~ du_p + K_fd du_d) with the prescribed rows and columns
-    replaced by the identity; an active node's new force is n_i . (f + K~ du + K_fd du_d)_i.
+    K~ = K - sum lam_i H_i; an active node's displacement is Q_i da_i with its normal components prescribed
+    (n_i . du_i = -g_i for each active obstacle); the rest solve Q^T K~ Q da = -Q^T (f + K~ du_p + K_fd du_d)
+    with the prescribed rows and columns replaced by the identity; an active node's new force is the normal
+    part of its linearised reaction (f + K~ du + K_fd du_d)_i.
     """
     free = asm.free
     ia = np.flatnonzero(act)
-    fn = pattern.fnode[contact.node[ia]]  # free nodes of the active entries
     Kt = data.copy()
-    # the curvature of the obstacle: -lam H on the active nodes' diagonal blocks
-    if np.any(H[ia]):
-        db = pattern.diag_block[fn]
-        contrib = -lam[ia, None, None] * H[ia]
+    # the curvature of the obstacle: -lam H on the diagonal blocks of the nodes with a force (a released
+    # node's force goes to zero along the step, its derivative is still -lam H)
+    cur = np.flatnonzero(lam != 0)
+    if np.any(H[cur]):
+        db = pattern.diag_block[pattern.fnode[contact.node[cur]]]
+        contrib = -lam[cur, None, None] * H[cur]
         np.add.at(Kt, pattern.pos[db][:, _TRIU].ravel(), contrib[:, _TRIU].ravel())
     # prescribed parts: the bone's increment and the active normal displacements
     bc = asm.bc_force(Ke_bc, du_d) if np.any(du_d) else np.zeros(asm.n_dofs)
+    nodes, Q, k, a_p, lam_map = _node_frames(contact.node[ia], n[ia], g[ia])
+    fn = pattern.fnode[nodes]
     du_p = np.zeros(asm.n_dofs)
-    du_p.reshape(-1, 3)[contact.node[ia]] = -g[ia, None] * n[ia]
+    du_p.reshape(-1, 3)[nodes] = np.einsum("kia,ka->ki", Q, a_p)
     rhs = -(f + bc)[free] - _sym_matvec(asm, Kt, du_p[free])
-    # rotate the active nodes into their frames (n, t1, t2)
-    Q = _frames(n[ia])
+    # rotate the active nodes into their frames (normals first, then tangents)
     Qf = np.broadcast_to(np.eye(3), (len(pattern.free_node), 3, 3)).copy()
     Qf[fn] = Q
     blk = pattern.blocks_of(fn)
@@ -563,6 +606,7 @@ def _step(asm, pattern, contact, data, Ke_bc, f, du_d, act, g, n, H, lam, timers
     # eliminate the prescribed (normal) dofs
     pres = np.zeros(asm.n_free, bool)
     pres[3 * fn] = True
+    pres[3 * fn[k > 1] + 1] = True
     diag_pos = asm.indptr[:-1]
     dval = np.abs(Kr[diag_pos[pres]])
     hit = pres[pattern.rows] | pres[pattern.cols]
@@ -576,17 +620,53 @@ def _step(asm, pattern, contact, data, Ke_bc, f, du_d, act, g, n, H, lam, timers
         return None, None
     finally:
         timers["solve"] += time.perf_counter() - ts
+    if log.isEnabledFor(logging.DEBUG):
+        lin = _sym_matvec(asm, Kr, da) - rhs
+        log.debug("    linear solve: relative residual %.2e, mode %s", np.linalg.norm(lin) / max(np.linalg.norm(rhs), 1e-300),
+                  getattr(solver, "last_mode", None))
     da3 = da.reshape(-1, 3)
     da3[fn] = np.einsum("kia,ka->ki", Q, da3[fn])
     du = du_p.copy()
     du[free] += da
     du[asm.constrained] = du_d[asm.constrained]
-    # the linearised reactions of the active nodes
+    # the linearised reactions of the active nodes, in their frames, give the new forces
     f_lin = f + bc
     f_lin[free] += _sym_matvec(asm, Kt, du[free])
+    r_loc = np.einsum("kia,ki->ka", Q, f_lin.reshape(-1, 3)[nodes])
     lam_new = np.zeros_like(lam)
-    lam_new[ia] = np.einsum("ki,ki->k", n[ia], f_lin.reshape(-1, 3)[contact.node[ia]])
+    lam_new[ia] = lam_map(r_loc)
     return du, lam_new
+
+
+def _node_frames(node, n, g):
+    """Frames of the active nodes from their active entries (node (m,), normals (m, 3), gaps (m,)).
+
+    A node has one or two active entries (one per obstacle; two only with independent normals, see
+    :meth:`_NodalContact.active_set`). Returns the distinct nodes (p,), frames Q (p, 3, 3) whose first k
+    columns span the normals, k (p,), the prescribed local displacements a_p (p, 3) (N^T Q a = -g) and a
+    function mapping local reactions (p, 3) to the entries' forces (m,) (N lam = the reaction's normal part).
+    """
+    nodes, first, k = np.unique(node, return_index=True, return_counts=True)
+    Q = _frames(n[first])
+    a_p = np.zeros((len(nodes), 3))
+    a_p[:, 0] = -g[first]
+    pos = np.searchsorted(nodes, node)
+    Rk = {}
+    for j in np.flatnonzero(k > 1):
+        e = np.flatnonzero(pos == j)
+        N = n[e].T  # (3, 2)
+        q, r = np.linalg.qr(N)
+        Q[j] = np.column_stack([q, np.cross(q[:, 0], q[:, 1])])
+        a_p[j, :2] = np.linalg.solve(r.T, -g[e])
+        Rk[j] = (e, r)
+
+    def lam_map(r_loc):
+        lam = r_loc[pos, 0].copy()
+        for j, (e, r) in Rk.items():
+            lam[e] = np.linalg.solve(r, r_loc[j, :2])
+        return lam
+
+    return nodes, Q, k, a_p, lam_map
 
 
 def _clear_start(sched, contact, k_ind, u, clearance_mm):
