@@ -55,7 +55,8 @@ class NewtonSettings:
     atol_mu_rel: absolute floor of the residual in units of mu V^(2/3) [N]; max_iterations per increment;
     armijo: the merit function must fall by this fraction of its predicted decrease below the largest of the
     last ``nonmonotone_memory`` merits (1: the monotone test); max_backtracks: step halvings before the
-    increment is cut."""
+    direction is given up; kink_retries: directions computed again per increment after freezing the nodes
+    at a kink of the merit (then the increment is cut)."""
 
     rtol: float = 1e-6
     rtol_intermediate: float = 1e-3
@@ -64,6 +65,7 @@ class NewtonSettings:
     armijo: float = 1e-4
     max_backtracks: int = 12
     nonmonotone_memory: int = 5
+    kink_retries: int = 3
 
 
 @dataclass(frozen=True)
@@ -344,6 +346,7 @@ def solve_indentation_exact(mesh: TetMesh, *, material, indenter: Indenter | Non
         act = lam > 0
         flips = np.zeros(len(lam), int)  # active-set changes of each entry in this increment
         frozen, frozen_state, switched = (np.zeros(len(lam), bool) for _ in range(3))
+        kink_retries = 0
 
         def ncp(lam, g):
             # a frozen entry's complementarity function is the branch its state implies
@@ -374,15 +377,17 @@ def solve_indentation_exact(mesh: TetMesh, *, material, indenter: Indenter | Non
                 return False, "non-finite residual", it, residuals, changes
             fc = np.linalg.norm(lam[on, None] * n[on]) if np.any(on) else 0.0
             C = ncp(lam, g)
-            ncp_ok = bool(np.all(np.abs(C) <= contact.c * gap_tol))
+            # converged: equilibrium, and the true complementarity (frozen nodes too) within the tolerance
+            C_true = contact.ncp(lam, g)
+            ncp_ok = bool(np.all(np.abs(C_true) <= contact.c * gap_tol))
             res_ok = res <= rtol * max(float(np.linalg.norm(f[asm.free])), fc) + atol
             if not has_d and ncp_ok and res_ok:
                 return True, "", it, residuals, changes
             if not has_d and res_ok:
-                # a frozen node that pulls beyond the tolerance is released for good (once)
-                pull = frozen & frozen_state & (lam < -contact.c * gap_tol) & ~switched
-                frozen_state[pull] = False
-                switched |= pull
+                # a frozen node in the wrong state (pulling, or penetrating) beyond the tolerance switches, once
+                wrong = frozen & (np.abs(C_true) > contact.c * gap_tol) & ~switched
+                frozen_state[wrong] = ~frozen_state[wrong]
+                switched |= wrong
             if it == s.newton.max_iterations:
                 worst = int(np.argmax(np.abs(C) / (contact.c * gap_tol)))
                 log.debug("  out of iterations: residual %.2e (%s), worst complementarity at node %d (%s): force %.3e N, "
@@ -405,25 +410,51 @@ def solve_indentation_exact(mesh: TetMesh, *, material, indenter: Indenter | Non
                 frozen_state[newly] = True
             new_act[frozen] = frozen_state[frozen]
             act = new_act
-            du, lam_new = _step(asm, pattern, contact, data, Ke_bc, f, du_d, act, g, n, H, lam, timers, solver)
-            if du is None:
-                return False, "linear solver failed", it, residuals, changes
-            dlam = lam_new - lam
             phi0 = 0.5 * (float(R[asm.free] @ R[asm.free]) + float(C @ C))
             merits.append(phi0)
             # non-monotone Armijo test (Grippo, Lampariello and Lucidi 1986) against the largest of the last
             # few merits: a change of the active set may raise the merit for one step on the way to the solution
             phi_ref = max(merits[-s.newton.nonmonotone_memory:])
-            step = 1.0
-            for _ in range(s.newton.max_backtracks):
-                phi = merit(u + step * du, lam + step * dlam, ncp)
-                if has_d and np.isfinite(phi):
+            # the consistent direction first; where the merit rises within the shortest step (a nearly singular
+            # matrix, the obstacle's curvature term cancelling the tissue's stiffness in a pinch, gives a huge
+            # direction), the direction without the curvature term
+            for curvature in (1.0, 0.0):
+                du, lam_new = _step(asm, pattern, contact, data, Ke_bc, f, du_d, act, g, n, H, lam, timers, solver,
+                                    curvature=curvature)
+                if du is None:
+                    return False, "linear solver failed", it, residuals, changes
+                dlam = lam_new - lam
+                if log.isEnabledFor(logging.DEBUG) and not has_d:
+                    eps = 1e-7
+                    slope = (merit(u + eps * du, lam + eps * dlam, ncp) - phi0) / eps
+                    log.debug("    merit slope along the direction %.3e (Newton: %.3e), curvature %g", slope, -2.0 * phi0,
+                              curvature)
+                step = 1.0
+                for _ in range(s.newton.max_backtracks):
+                    phi = merit(u + step * du, lam + step * dlam, ncp)
+                    if has_d and np.isfinite(phi):
+                        break
+                    if phi <= phi_ref - 2.0 * s.newton.armijo * step * phi0:
+                        break
+                    step *= 0.5
+                else:
+                    step = None
+                if step is not None or not np.any(H[lam != 0]):
                     break
-                if phi <= phi_ref - 2.0 * s.newton.armijo * step * phi0:
-                    break
-                step *= 0.5
-            else:
+            if step is None:
                 log.debug("  it %d: no step along the direction lowers the merit %.3e (last tried %.3e)", it, phi0, phi)
+                # the merit has a kink here: nodes at the switch of min(lam, c g) change branch at once along
+                # the step. Freeze them in the branch they move into (the merit is then smooth in them) and
+                # compute the direction again from the same state.
+                gt, nt, _ = contact_state(u + 2.0 ** -s.newton.max_backtracks * du, lam)
+                moved = (contact.active_set(lam + 2.0 ** -s.newton.max_backtracks * dlam, gt, nt) != act) & ~frozen
+                if kink_retries < s.newton.kink_retries and np.any(moved):
+                    kink_retries += 1
+                    frozen |= moved
+                    frozen_state[moved] = ~act[moved]
+                    merits.clear()
+                    log.debug("  it %d: %d nodes at a kink of the merit frozen", it, int(moved.sum()))
+                    continue
                 return False, "line search failed", it, residuals, changes
             log.debug("  it %d res %.3e active %d step %.3g", it, res, int(act.sum()), step)
             u += step * du
@@ -566,11 +597,11 @@ def solve_indentation_exact(mesh: TetMesh, *, material, indenter: Indenter | Non
 _TRIU = np.arange(3)[:, None] <= np.arange(3)[None, :]  # the entries of a diagonal block stored in the data
 
 
-def _step(asm, pattern, contact, data, Ke_bc, f, du_d, act, g, n, H, lam, timers, solver):
+def _step(asm, pattern, contact, data, Ke_bc, f, du_d, act, g, n, H, lam, timers, solver, curvature=1.0):
     """One semi-smooth Newton direction for active set ``act``: (du (n_dofs,), new multipliers (E,)), or
     (None, None) if the linear solve failed.
 
-    K~ = K - sum lam_i H_i; an active node's displacement is Q_i da_i with its normal components prescribed
+    K~ = K - curvature sum lam_i H_i (curvature 1: the consistent tangent); an active node's displacement is Q_i da_i with its normal components prescribed
     (n_i . du_i = -g_i for each active obstacle); the rest solve Q^T K~ Q da = -Q^T (f + K~ du_p + K_fd du_d)
     with the prescribed rows and columns replaced by the identity; an active node's new force is the normal
     part of its linearised reaction (f + K~ du + K_fd du_d)_i.
@@ -583,7 +614,7 @@ def _step(asm, pattern, contact, data, Ke_bc, f, du_d, act, g, n, H, lam, timers
     cur = np.flatnonzero(lam != 0)
     if np.any(H[cur]):
         db = pattern.diag_block[pattern.fnode[contact.node[cur]]]
-        contrib = -lam[cur, None, None] * H[cur]
+        contrib = -curvature * lam[cur, None, None] * H[cur]
         np.add.at(Kt, pattern.pos[db][:, _TRIU].ravel(), contrib[:, _TRIU].ravel())
     # prescribed parts: the bone's increment and the active normal displacements
     bc = asm.bc_force(Ke_bc, du_d) if np.any(du_d) else np.zeros(asm.n_dofs)
