@@ -145,7 +145,7 @@ class _NodalContact:
     """
 
     def __init__(self, X, sets, excluded, young_mpa):
-        nodes, obst, h, self.names, self.surfaces = [], [], [], [], []
+        nodes, obst, h, self.names = [], [], [], []
         for k, (name, facets) in enumerate(sets):
             surf = ContactSurface(X, facets, order=2)
             hn = np.full(len(X), np.inf)
