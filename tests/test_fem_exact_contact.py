@@ -1,0 +1,121 @@
+"""Exact frictionless contact (nodal constraints, semi-smooth Newton): convergence rate, gap, forces, release."""
+
+import numpy as np
+import pytest
+
+from deeptissue.fem.exact_contact import ExactContactSettings, IncrementSettings, solve_indentation_exact
+from deeptissue.fem.indenters import Indenter
+from deeptissue.fem.material import Ogden
+from deeptissue.fem.shapes import block_mesh
+from deeptissue.fem.solver import BoneMotion, solve_indentation
+from deeptissue.mesh import TetMesh
+
+LAW = Ogden()
+R_MM = 1.5
+
+
+def _block(size=(6.0, 6.0, 3.0), h_mm=1.5, fine_mm=0.45, fine_radius_mm=1.0):
+    m = block_mesh(size, h_mm=h_mm, refine_point_mm=(size[0] / 2, size[1] / 2, size[2]), refine_h_mm=fine_mm,
+                   refine_radius_mm=fine_radius_mm, refine_growth=0.5)
+    return TetMesh(m.nodes_mm, m.tets, {"bone": m.facets["bottom"], "patch": m.facets["top"]})
+
+
+def _hertz_N(law, radius_mm, depth_mm):
+    # independent of the code under test: small-strain moduli from mu and K = 2 / D of the Ogden law
+    K, mu = 2.0 / law.d_mm2_per_n, law.mu_kpa * 1e-3
+    E = 9 * K * mu / (3 * K + mu)
+    nu = (3 * K - 2 * mu) / (2 * (3 * K + mu))
+    return 4.0 / 3.0 * E / (1 - nu**2) * np.sqrt(radius_mm) * depth_mm**1.5
+
+
+@pytest.fixture(scope="module")
+def pressed():
+    m = _block()
+    ind = Indenter("sphere", axis=(0, 0, -1), start_mm=(3.0, 3.0, 3.2), end_mm=(3.0, 3.0, 2.75), radius_mm=R_MM)
+    r = solve_indentation_exact(m, material=LAW, indenter=ind, bone_motion=BoneMotion())
+    return m, ind, r
+
+
+def test_converges_superlinearly_near_the_solution(pressed):
+    _, _, r = pressed
+    assert r.converged, r.reason
+    last = [h for h in r.history if h.converged][-1]
+    res = np.asarray(last.residuals)
+    assert len(res) >= 3
+    rates = res[1:] / res[:-1]
+    # the last contraction is far stronger than the one before it: the rate goes to zero (superlinear),
+    # a linear method keeps a constant rate
+    assert rates[-1] < 1e-2
+    assert rates[-1] < 0.1 * rates[-2]
+
+
+def test_few_newton_iterations_per_increment(pressed):
+    _, _, r = pressed
+    its = [h.iterations for h in r.history if h.converged and h.step == 4]
+    assert np.median(its) <= 5
+
+
+def test_gap_closed_at_the_nodes_and_no_tensile_force(pressed):
+    m, ind, r = pressed
+    nc = r.extra["nodal_contact"]
+    x = m.nodes_mm[nc["nodes"]] + r.displacement_mm[nc["nodes"]]
+    g = ind.gap(x, np.asarray(ind.end_mm))[0]
+    patch = m.facets["patch"]
+    h = np.sqrt(2 * 0.5 * np.linalg.norm(np.cross(*(m.nodes_mm[patch[:, i]] - m.nodes_mm[patch[:, 0]] for i in (1, 2))),
+                                         axis=1))
+    assert g.min() >= -1e-3 * h.min()
+    lam = nc["lam_N"]
+    assert np.count_nonzero(lam > 0) >= 10
+    assert lam.min() >= 0.0
+    # a node carrying force touches the sphere; a node off the sphere carries none
+    assert np.all(np.abs(g[lam > 0]) <= 1e-3 * h.min())
+    assert np.all(lam[g > 1e-3 * h.min()] == 0.0)
+    # the force is the sum of the nodal forces, along the axis (frictionless, symmetric)
+    f = r.force_on_tissue_N
+    assert r.indenter_force_N > 0
+    assert np.hypot(f[0], f[1]) < 0.02 * abs(f[2])
+
+
+def test_force_agrees_with_the_penalty_solver(pressed):
+    m, ind, r = pressed
+    ref = solve_indentation(m, material=LAW, indenter=ind, bone_motion=BoneMotion())
+    assert ref.converged
+    # the penalty solver lets the skin ~1 % of a facet into the sphere: the forces differ by about that
+    assert r.indenter_force_N == pytest.approx(ref.indenter_force_N, rel=0.02)
+
+
+def test_a_node_the_indenter_leaves_is_released():
+    # the sphere presses in while sliding 2 mm along x: the nodes it touched first are behind it at the end
+    m = _block((8.0, 6.0, 3.0), fine_mm=0.6, fine_radius_mm=1.5)
+    ind = Indenter("sphere", axis=(0, 0, -1), start_mm=(3.0, 3.0, 2.95), end_mm=(5.0, 3.0, 2.8), radius_mm=R_MM)
+    r = solve_indentation_exact(m, material=LAW, indenter=ind, bone_motion=BoneMotion(),
+                                settings=ExactContactSettings(increments=IncrementSettings(max_increment=0.25)))
+    assert r.converged, r.reason
+    seen = r.extra["active_nodes_per_increment"]
+    ever = np.unique(np.concatenate(seen))
+    final = seen[-1]
+    released = np.setdiff1d(ever, final)
+    assert len(released) > 0
+    x = m.nodes_mm[released] + r.displacement_mm[released]
+    g = ind.gap(x, np.asarray(ind.end_mm))[0]
+    assert g.min() > 0  # released and clear of the sphere
+
+
+def test_missing_facet_set_raises():
+    m = _block()
+    ind = Indenter("sphere", axis=(0, 0, -1), start_mm=(3.0, 3.0, 3.2), end_mm=(3.0, 3.0, 2.9))
+    with pytest.raises(ValueError, match="no facet set 'nope'"):
+        solve_indentation_exact(m, material=LAW, indenter=ind, bone_motion=BoneMotion(),
+                                settings=ExactContactSettings(indenter_set="nope"))
+
+
+@pytest.mark.slow
+def test_sphere_force_within_3_percent_of_hertz_at_small_depth():
+    from deeptissue.fem.verification import _block_with_top_patch
+
+    d = 0.06  # 0.04 R, the block and mesh of verification.hertz_curve
+    m = _block_with_top_patch((40.0, 40.0, 20.0), 6.0, 0.1, 0.4, (20.0, 20.0, 20.0), 0.5)
+    ind = Indenter("sphere", axis=(0, 0, -1), start_mm=(20.0, 20.0, 20.001), end_mm=(20.0, 20.0, 20.0 - d), radius_mm=R_MM)
+    r = solve_indentation_exact(m, material=LAW, indenter=ind, bone_motion=BoneMotion())
+    assert r.converged, r.reason
+    assert r.indenter_force_N == pytest.approx(_hertz_N(LAW, R_MM, d), rel=0.03)
