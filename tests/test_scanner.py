@@ -372,13 +372,13 @@ def test_study_from_scanner_copies_matches_its_nifti_twin(tmp_path):
             "dicom": {"pre": {"dicom": str(data / "dicom"), "series": 3}, "during": {"dicom": str(data / "dicom"), "series": 4}},
             "bruker": {"pre": {"bruker": str(data / "study"), "scan": 5}, "during": {"bruker": str(data / "study"), "scan": 6}},
         },
-        "study": {"variants": ["sphere"]},
+        "study": {"name": "scanners", "variants": ["sphere"]},
         "model": {"element_size_mm": 2.5, "refine_size_mm": 1.25},
     }
     (tmp_path / "study.yaml").write_text(yaml.safe_dump(cfg))
     wd = tmp_path / "wd"
     env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
-    r = subprocess.run([sys.executable, "-m", "snakemake", "results/summary/voi.csv", "--cores", "2", "-s", str(ROOT / "Snakefile"),
+    r = subprocess.run([sys.executable, "-m", "snakemake", "results/summary/scanners/voi.csv", "--cores", "2", "-s", str(ROOT / "Snakefile"),
                         "--directory", str(wd), "--configfile", str(tmp_path / "study.yaml")],
                        env=env, capture_output=True, text=True, timeout=3000)
     assert r.returncode == 0, r.stderr[-3000:]
@@ -388,7 +388,7 @@ def test_study_from_scanner_copies_matches_its_nifti_twin(tmp_path):
             np.testing.assert_array_equal(got.data, vols[s])
             np.testing.assert_array_equal(got.affine, ph.affine)
         assert json.loads((wd / "results" / animal / "mri" / "pre.json").read_text())["kind"] == animal
-    voi = pd.read_csv(wd / "results" / "summary" / "voi.csv").set_index("animal")
+    voi = pd.read_csv(wd / "results" / "summary" / "scanners" / "voi.csv").set_index("animal")
     # every number but the timings (columns ending in _s) is the same
     numeric = [c for c in voi.select_dtypes("number").columns if not c.endswith("_s")]
     assert voi.loc["twin", "converged"]
