@@ -28,9 +28,11 @@ of exact solves.
 'amg': pyamg smoothed aggregation with rigid-body modes + CG (low memory).
 'superlu': scipy (slow, reference).
 With more than one thread, PARDISO's numerical factorisation schedules its work dynamically and its
-reductions follow the threads' timing, so repeated factorisations of one matrix differ in the last bits (mixed and double
-precision alike) and a Newton path that thresholds on them can differ by a few iterations; one thread,
-or :func:`pin_reproducible` before the first PARDISO call, gives bitwise identical solves.
+reductions follow the threads' timing, so repeated factorisations of one matrix differ in the last bits
+(mixed and double precision alike) and a Newton path that thresholds on them can differ by a few
+iterations; one thread, or :func:`pin_reproducible` before the first PARDISO call, gives bitwise
+identical solves and, with the assembly's sums in a fixed order (numpy, scipy, OpenBLAS), identical
+Newton paths.
 """
 
 from __future__ import annotations
