@@ -90,6 +90,7 @@ def pin_reproducible() -> None:
         raise RuntimeError(f"MKL refused the reproducible mode (MKL_CBWR_Set status {status}): it must be "
                            "set before the first MKL computation of the process")
     lib.MKL_Set_Dynamic(0)
+    _log.info("MKL in reproducible mode: code branch COMPATIBLE, %d threads", lib.MKL_Get_Max_Threads())
 
 
 def _pattern_key(U: sp.csr_matrix) -> tuple:
