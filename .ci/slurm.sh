@@ -4,6 +4,7 @@
 # the profile's squeue status command is what keeps the run from hanging), runs config/test.yaml in a copy
 # of the repository, and compares every voi.csv and bins.csv it writes with the local run's file at the
 # same path under results/. Every daemon and job it started is stopped on exit. Runs as root.
+# SNAKEMAKE=/path/to/snakemake runs another environment's Snakemake (default: the repository's .venv).
 set -euo pipefail
 repo="$(cd "$(dirname "$0")/.." && pwd)"
 snakemake="${SNAKEMAKE:-$repo/.venv/bin/snakemake}"
