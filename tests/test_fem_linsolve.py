@@ -1,5 +1,11 @@
 """FE core: the sparse symmetric solvers of the Newton tangent (PARDISO in mixed and double precision)."""
 
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -160,3 +166,74 @@ def test_reuse_settings_are_validated():
 
     with pytest.raises(ValueError, match="linear_reuse_rtol 1.5"):
         SolverSettings(linear_reuse_rtol=1.5)
+
+
+# --------------------------------------------------------------------------- reproducible mode
+# MKL's mode is per process and fixed by its first computation, so each check runs in its own process,
+# with two threads (the tests themselves run with one).
+
+_ROOT = Path(__file__).resolve().parents[1]
+
+
+def _run_two_threads(code: str) -> str:
+    env = dict(os.environ, PYTHONPATH=str(_ROOT / "src"), MKL_NUM_THREADS="2", OMP_NUM_THREADS="2")
+    env.pop("MKL_CBWR", None)
+    p = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], env=env, capture_output=True, text=True,
+                       timeout=600)
+    assert p.returncode == 0, p.stderr[-3000:]
+    return p.stdout.strip().splitlines()[-1]
+
+
+def test_pin_reproducible_is_refused_after_mkl_has_computed():
+    out = _run_two_threads("""
+        import numpy as np, scipy.sparse as sp
+        from deeptissue.fem.linsolve import PardisoSymmetric, pin_reproducible
+        PardisoSymmetric("double").solve(sp.identity(3, format="csr"), np.ones(3))
+        try:
+            pin_reproducible()
+        except RuntimeError as e:
+            print("refused:", e)
+        """)
+    assert out.startswith("refused:") and "before the first MKL computation" in out
+
+
+@pytest.mark.slow
+def test_pinned_factorisations_of_one_matrix_are_bitwise_identical():
+    # a 3-D Laplacian of 17 576 dofs: large enough for PARDISO to factorise with both threads, where
+    # unpinned repetitions of this loop give two or three different answers in twenty
+    out = _run_two_threads("""
+        import numpy as np, scipy.sparse as sp
+        from deeptissue.fem.linsolve import PardisoSymmetric, pin_reproducible
+        pin_reproducible()
+        n = 26
+        T, I = sp.diags([-1.0, 2.0, -1.0], [-1, 0, 1], shape=(n, n)), sp.identity(n)
+        K = sp.kron(sp.kron(T, I), I) + sp.kron(sp.kron(I, T), I) + sp.kron(sp.kron(I, I), T)
+        rng = np.random.default_rng(0)
+        U = sp.triu(K + sp.diags(1e-3 * rng.random(n**3))).tocsr()
+        U.sort_indices()
+        b = rng.random(n**3)
+        answers = set()
+        for precision in ("mixed", "double"):
+            for _ in range(6):
+                s = PardisoSymmetric(precision)
+                answers.add((precision, s.solve(U, b).tobytes()))
+                s.close()
+        print(len(answers))
+        """)
+    assert out == "2"  # one answer per precision
+
+
+@pytest.mark.slow
+def test_two_reproducible_contact_solves_take_identical_newton_iterations():
+    code = """
+        import hashlib
+        from deeptissue.fem.linsolve import pin_reproducible
+        pin_reproducible()
+        from deeptissue.fem.material import Ogden
+        from deeptissue.fem.verification import _indent_limb, reference_limb
+        r = _indent_limb(reference_limb(h_mm=2.5), Ogden(), kind="sphere", depth_mm=1.5)
+        assert r.converged, r.reason
+        print(r.increments, r.newton_iterations, hashlib.sha256(r.displacement_mm.tobytes()).hexdigest())
+        """
+    first, second = _run_two_threads(code), _run_two_threads(code)
+    assert first == second  # increments, Newton iterations and the displacement field, bit for bit

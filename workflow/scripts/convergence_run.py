@@ -1,9 +1,12 @@
 """Glue of rule convergence_run: one animal x variant x setting -> one row (JSON)."""
 
 from deeptissue.convergence import run_convergence_job
+from deeptissue.fem.linsolve import pin_reproducible
 from deeptissue.io import script_log
 
 with script_log(snakemake.log[0], "convergence_run"):
+    if snakemake.params.fem.get("reproducible"):
+        pin_reproducible()  # before the first MKL call of this process
     run_convergence_job(
         animal=snakemake.wildcards.animal,
         variant=snakemake.wildcards.conv_variant,

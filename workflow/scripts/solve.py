@@ -1,9 +1,12 @@
 """Glue of rule solve: one animal x variant -> summary.json and result.vtu."""
 
+from deeptissue.fem.linsolve import pin_reproducible
 from deeptissue.io import script_log
 from deeptissue.study import run_solve
 
 with script_log(snakemake.log[0], "solve"):
+    if snakemake.params.fem.get("reproducible"):
+        pin_reproducible()  # before the first MKL call of this process
     run_solve(
         animal=snakemake.wildcards.animal,
         variant=snakemake.wildcards.variant,

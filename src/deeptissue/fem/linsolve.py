@@ -27,6 +27,12 @@ same answer); at reuse_rtol 1e-10 (the solver's default) the demo's solves take 
 of exact solves.
 'amg': pyamg smoothed aggregation with rigid-body modes + CG (low memory).
 'superlu': scipy (slow, reference).
+With more than one thread, PARDISO's numerical factorisation schedules its work dynamically and its
+reductions follow the threads' timing, so repeated factorisations of one matrix differ in the last bits
+(mixed and double precision alike) and a Newton path that thresholds on them can differ by a few
+iterations; one thread, or :func:`pin_reproducible` before the first PARDISO call, gives bitwise
+identical solves and, with the assembly's sums in a fixed order (numpy, scipy, OpenBLAS), identical
+Newton paths.
 """
 
 from __future__ import annotations
@@ -39,7 +45,8 @@ import scipy.sparse as sp
 
 _log = logging.getLogger(__name__)
 
-__all__ = ["PRECISIONS", "AMGSolver", "NotPositiveDefinite", "PardisoSymmetric", "SuperLUSolver", "make_solver"]
+__all__ = ["PRECISIONS", "AMGSolver", "NotPositiveDefinite", "PardisoSymmetric", "SuperLUSolver", "make_solver",
+           "pin_reproducible"]
 
 
 PRECISIONS = ("mixed", "double")  # of PardisoSymmetric
@@ -63,6 +70,27 @@ def _mkl_pardiso():
                   _P(_I32)]
     f.restype = None
     return f
+
+
+_MKL_CBWR_COMPATIBLE = 3  # mkl_cbwr.h: SSE2 code path without approximation instructions
+
+
+def pin_reproducible() -> None:
+    """Put MKL in conditional numerical reproducibility mode (code branch COMPATIBLE: deterministic
+    reductions and static scheduling) with a fixed number of threads, so that PARDISO solves are bitwise
+    identical from run to run with the same thread count, on any x86-64 CPU. COMPATIBLE rather than AUTO
+    because a cluster's nodes may differ in instruction set. MKL allows this only before its first
+    computation in the process: RuntimeError after that."""
+    import pypardiso
+
+    lib = pypardiso.PyPardisoSolver().libmkl
+    lib.MKL_CBWR_Set.argtypes = lib.MKL_Set_Dynamic.argtypes = [ctypes.c_int]
+    status = lib.MKL_CBWR_Set(_MKL_CBWR_COMPATIBLE)
+    if status != 0:
+        raise RuntimeError(f"MKL refused the reproducible mode (MKL_CBWR_Set status {status}): it must be "
+                           "set before the first MKL computation of the process")
+    lib.MKL_Set_Dynamic(0)
+    _log.info("MKL in reproducible mode: code branch COMPATIBLE, %d threads", lib.MKL_Get_Max_Threads())
 
 
 def _pattern_key(U: sp.csr_matrix) -> tuple:
