@@ -26,14 +26,13 @@ from .fem.solver import (BoneState, EndState, SolverSettings, end_state, load_bo
 from .io import save_npz
 from .mesh import TetMesh, load_tetmesh
 from .pose import Pose, load_pose
-from .rigid import BoneMotion
 from .strain import DEFAULT_BIN_EDGES, element_strain
 from .summary import Summary, failed_summary, qc_warnings_of, summarize_solution, write_result_vtu, write_summary
 from .variants import parse_variant, variant_travel
 
 log = logging.getLogger(__name__)
 
-__all__ = ["StudySettings", "bone_motion", "run_bone_state", "run_solve", "solve_variant", "variant_indenter"]
+__all__ = ["StudySettings", "run_bone_state", "run_solve", "solve_variant", "variant_indenter"]
 
 
 @dataclass(frozen=True)
@@ -77,11 +76,6 @@ def variant_indenter(pose: Pose, variant_name: str, *, radius_mm: float = 1.5, b
     axis, start, end = variant_travel(v, axis=pose.indenter_axis, tip_start_mm=pose.tip_start_mm, tip_end_mm=pose.tip_end_mm)
     return Indenter(kind=v.indenter, axis=tuple(axis), start_mm=tuple(start), end_mm=tuple(end),
                     radius_mm=radius_mm, bar_length_mm=bar_length_mm)
-
-
-def bone_motion(pose: Pose) -> BoneMotion:
-    """The rigid bone motion of ``pose``: rotation [deg] about the bone centre of mass [mm], then translation [mm]."""
-    return pose.bone_motion
 
 
 def solve_variant(
@@ -164,7 +158,7 @@ def solve_variant(
                         "start", animal, variant, base_variant, result.reason)
     if turned is None:
         first = result
-        result = solve_indentation(mesh, material=material, indenter=indenter, bone_motion=bone_motion(pose),
+        result = solve_indentation(mesh, material=material, indenter=indenter, bone_motion=pose.bone_motion,
                                    cast=cast, settings=settings, start=start)
         if first is not None:  # the failed turn's cost is part of this variant's
             result = replace(result, **summed_costs(result, first), wall_s=result.wall_s + first.wall_s,
@@ -190,7 +184,7 @@ def solve_variant(
                                  n_elements=int(mesh.n_tets), **info)
         return summary, result.displacement_mm, strain
     if end_state_path is not None:
-        save_end_state(end_state_path, end_state(result, mesh, indenter=indenter, bone_motion=bone_motion(pose),
+        save_end_state(end_state_path, end_state(result, mesh, indenter=indenter, bone_motion=pose.bone_motion,
                                                  settings=settings))
     energy = ogden_energy(result.deformation_gradient, material)
     summary, strain = summarize_solution(
@@ -229,7 +223,7 @@ def run_bone_state(*, mesh_path, cast_path, pose_path, state_path, fem_cfg: dict
         pose = load_pose(pose_path)
         cast = Cast.load(cast_path) if cast_path else None
         settings = solver_settings_from_config(fem_cfg.get("solver"))
-        r, state = solve_bone_rotation(mesh, material=Ogden(**fem_cfg.get("material", {})), bone_motion=bone_motion(pose),
+        r, state = solve_bone_rotation(mesh, material=Ogden(**fem_cfg.get("material", {})), bone_motion=pose.bone_motion,
                                        cast=cast, settings=settings)
         why = r.reason
     except Exception as exc:  # the variants then solve the rotation themselves
