@@ -21,10 +21,12 @@ Per slice (arrays indexed [i, j] as in the NIfTI, converted to world mm by the a
    contour, tissue 8-connected. Automatic level: half the skin/subcutaneous plateau, the median
    of ``N`` in a one-pixel band 1.5 blur widths inside the edge — first the rough mask's edge,
    then twice more inside the traced contour itself, so the band does not move with the noise.
-6. **Tibia**: closed contours of ``find_contours(N, bone_level)`` around dark regions inside the
-   skin; the largest (``bone_select: largest``) or the most anterior of those at least half as
-   large as the largest (``anterior``). Automatic level: half the median muscle value of ``N``
-   (cortical bone gives no signal).
+6. **Tibia**, chosen in 3D (:func:`_choose_tibia`): of the closed contours of ``find_contours(N,
+   bone_level)`` around dark regions inside the skin, linked from slice to slice into tracks, the
+   one that runs through the slab: the largest (``bone_select: largest``) or the most anterior of
+   those at least half as large (``anterior``). A slice without it is refused by number, never given
+   another structure. Automatic level: half the median muscle value of ``N`` (cortical bone gives
+   no signal).
 7. **Fibula** (``fibula: true``): of the other dark regions inside the skin (same level, outside
    the tibia) with an area from ``fibula_min_area_mm2`` up to ``fibula_max_area_ratio`` times the
    tibia's and round (4 pi A / P^2 >= 0.5, not a thin or ragged gap), the largest. A volume where
@@ -44,7 +46,8 @@ Per slice (arrays indexed [i, j] as in the NIfTI, converted to world mm by the a
    about its own area centroid.
 
 Hand-drawn contours (a YAML file, see :func:`load_overrides`) replace the automatic result on
-the slices and structures they name.
+the slices and structures they name. Where the legs touch, :func:`deeptissue.imaging.select_leg` keeps
+the one holding ``leg_point_mm`` before the contours are traced.
 """
 
 from __future__ import annotations
@@ -503,7 +506,7 @@ def segment_volume(vol: Volume, *, settings: SegmentationSettings = Segmentation
     SegmentationError
         Naming animal, file and slice, if a slice has no closed skin or bone contour, or a bone or
         fibula contour lies outside the skin, or the tibia is hidden by the indenter on more than half
-        the slices.
+        the slices; naming the slices where the tibia chosen in 3D is missing (:func:`_choose_tibia`).
     ValueError
         For an unknown ``bone_select``.
     """
@@ -783,6 +786,11 @@ def segment_files(image, *, contours_out, qc_out, animal: str, state: str, setti
     import logging
 
     log = logging.getLogger(__name__)
+    if leg_point_mm is not None:
+        from .imaging import body_mask
+
+        log.info("%s %s: the leg at leg_point_mm %s is segmented: %d of the body's %d voxels", animal, state,
+                 list(leg_point_mm), int(body_mask(leg).sum()), int(body_mask(vol).sum()))
     indenter = pre = None
     if state == "during" and settings.indenter_mask:
         skins, _ = segment_volume(leg, settings=settings, state=state, overrides=ov, _skin_only=True)
