@@ -119,6 +119,11 @@ def test_the_readme_command_runs_through_snakemake(calf, tmp_path):
     assert r.returncode == 0, r.stderr[-3000:]
     assert (repo / "results/calf/qc/segmentation_pre.png").stat().st_size > 0
     np.testing.assert_allclose(load_contours(repo / "results/calf/contours/pre.npz").bone, calf[1].bone)
+    # the default target of a pre-only study segments and solves nothing
+    r = subprocess.run([*snakemake, "-n", "--cores", "2", "--configfile", "config/calf.yaml"], cwd=repo, env=env,
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "Nothing to be done" in r.stdout + r.stderr
     # the study is pre-only: only the convergence target, when asked for, says it has nothing to run on
     r = subprocess.run([*snakemake, "-n", "convergence", "--cores", "2", "--configfile", "config/calf.yaml"],
                        cwd=repo, env=env, capture_output=True, text=True, timeout=300)

@@ -126,7 +126,11 @@ def test_figure_and_convergence_animal_defaults():
     assert figure_animal(cfg) == "rat03" and convergence_animal(cfg) == "rat03"
     # an animal without a during scan is skipped; with none, only the convergence target needs one
     cfg = validate_config({"animals": {"calf": {"pre": "config/config.yaml"}}}, SCHEMA, base_dir=ROOT)
-    assert figure_animal(cfg) == "calf" and convergence_animal(cfg) is None
+    assert figure_animal(cfg) is None and convergence_animal(cfg) is None
+    cfg["study"]["figure_animal"] = "calf"
+    with pytest.raises(ConfigError, match=r"config key study\.figure_animal: 'calf' has no during scan"):
+        check_config(cfg)
+    cfg["study"]["figure_animal"] = None
     with pytest.raises(ConfigError, match=r"config key convergence\.animal: null, and no configured animal has a during scan"):
         convergence_animal(cfg, required=True)
     # a study of pre-only animals is valid with the animal named too: only the convergence target refuses it

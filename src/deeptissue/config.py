@@ -320,8 +320,9 @@ def has_during_scan(animal: dict[str, Any]) -> bool:
     return "phantom" in animal or "during" in animal
 
 
-def figure_animal(config: dict[str, Any]) -> str:
-    """The animal drawn in the study's section figures: ``study.figure_animal``, or the first configured animal.
+def figure_animal(config: dict[str, Any]) -> str | None:
+    """The animal drawn in the study's section figures: ``study.figure_animal``, or the first configured animal
+    with a during scan (None if there is none: a study of pre-only animals has no FE results to draw).
 
     Parameters
     ----------
@@ -330,9 +331,12 @@ def figure_animal(config: dict[str, Any]) -> str:
 
     Returns
     -------
-    str
+    str or None
     """
-    return config["study"]["figure_animal"] or next(iter(config["animals"]))
+    named = config["study"]["figure_animal"]
+    if named is not None:
+        return named
+    return next((a for a, c in config["animals"].items() if has_during_scan(c)), None)
 
 
 def convergence_animal(config: dict[str, Any], *, required: bool = False) -> str | None:
@@ -391,6 +395,8 @@ def _check_figure_animal(config: dict[str, Any]) -> None:
     animals = list(config["animals"])
     if name is not None and name not in animals:
         raise ConfigError(f"config key study.figure_animal: {name!r} is not a configured animal {animals}")
+    if name is not None and not has_during_scan(config["animals"][name]):
+        raise ConfigError(f"config key study.figure_animal: {name!r} has no during scan: it has no FE results to draw")
 
 
 def _check_convergence_animal(config: dict[str, Any]) -> None:
