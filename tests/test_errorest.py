@@ -97,7 +97,7 @@ def test_the_true_error_of_a_known_field_is_within_twice_the_estimate(h):
 def test_sampling_difference_of_two_statistics():
     a = voi_statistics([0.35, 0.2, 0.45], [1.0, 1.0, 2.0])
     b = voi_statistics([0.35, 0.35, 0.45], [1.0, 1.0, 2.0])
-    d_voi, d_bins = sampling_difference(a, b)
+    d_voi, d_bins = sampling_difference(a.voi_mm3, a.bins_percent, b.voi_mm3, b.bins_percent)
     assert d_voi == pytest.approx(1.0)
     assert d_bins["0.3-0.4"] == pytest.approx(50.0 - 100.0 / 3) and d_bins[">1.0"] == 0
 
@@ -152,3 +152,20 @@ def test_a_strain_jump_across_the_threshold_is_estimated_in_the_summary_and_voi_
     # centroid sampling: the estimate of the centroid numbers (one point per element)
     c, _ = summarize_solution(m, u, animal="a", variant="sphere", gamma_sampling="centroid")
     assert c.voi_err_mm3 >= 0 and set(c.bins_err_pp) == set(s.bins_percent)
+
+
+def test_cylinder_scene_on_a_coarse_mesh_gives_the_curve_and_the_estimated_voi():
+    from deeptissue.fem.cylinder import CylinderMesh, cylinder_scene
+    from deeptissue.fem.material import Ogden
+
+    coarse = CylinderMesh(element_size_mm=4.0, refine_size_mm=2.0, refine_radius_mm=2.0, refine_transition_mm=1.0,
+                          refine_depth_mm=3.0)
+    curve, voi = cylinder_scene(Ogden(), coarse, curve_depths_mm=[0.25], voi_depths_mm=[0.5], threshold=0.05,
+                                bin_edges=(0.05, 0.1, 0.2))
+    assert list(curve["depth_mm"]) == [0.25, 0.5] and curve["converged"].all()
+    assert 0 < curve["force_N"].iloc[0] < curve["force_N"].iloc[1]
+    assert curve.attrs["mesh"] == "4 / 2 mm" and curve.attrs["n_dofs"] > 0
+    row = voi.iloc[0]
+    assert row["voi_mm3"] > 0 and row["voi_err_mm3"] == row["est_patch_moved_voi_mm3"] > 0
+    assert sum(row[f"bins_percent.{b}"] for b in ("0.05-0.1", "0.1-0.2", ">0.2")) == pytest.approx(100)
+    assert {"bins_err_pp.0.05-0.1", "est_sampling_voi_mm3", "est_average_diff_voi_mm3"} <= set(voi.columns)

@@ -196,8 +196,8 @@ def element_indicator(mesh: TetMesh, displacement_mm, **kw) -> np.ndarray:
     return voi_error_estimate(mesh, displacement_mm, **kw).indicator_mm3
 
 
-def sampling_difference(points, centroid) -> tuple[float, dict]:
-    """The two-samplings estimate: ``(|VOI_points − VOI_centroid| [mm³], {bin: |Δp| [pp]})`` from the
-    :class:`deeptissue.strain.VoiStatistics` of γh sampled at 64 points and at the centroids."""
-    return (abs(points.voi_mm3 - centroid.voi_mm3),
-            {k: abs(points.bins_percent[k] - centroid.bins_percent[k]) for k in points.bins_percent})
+def sampling_difference(voi_points_mm3: float, bins_points: dict, voi_centroid_mm3: float,
+                        bins_centroid: dict) -> tuple[float, dict]:
+    """The two-samplings estimate: ``(|VOI_points − VOI_centroid| [mm³], {bin: |Δp| [pp]})``, γh sampled
+    at 64 points per element against the centroids (``voi_sampled_mm3`` and ``voi_centroid_mm3`` of a summary)."""
+    return abs(voi_points_mm3 - voi_centroid_mm3), {k: abs(bins_points[k] - bins_centroid[k]) for k in bins_points}
