@@ -169,3 +169,21 @@ def test_cylinder_scene_on_a_coarse_mesh_gives_the_curve_and_the_estimated_voi()
     assert row["voi_mm3"] > 0 and row["voi_err_mm3"] == row["est_patch_moved_voi_mm3"] > 0
     assert sum(row[f"bins_percent.{b}"] for b in ("0.05-0.1", "0.1-0.2", ">0.2")) == pytest.approx(100)
     assert {"bins_err_pp.0.05-0.1", "est_sampling_voi_mm3", "est_average_diff_voi_mm3"} <= set(voi.columns)
+
+
+def test_effectivity_table_divides_each_estimate_by_the_true_error_against_the_finest():
+    import pandas as pd
+
+    from deeptissue.fem.cylinder import effectivity_table
+
+    base = {"bins_percent.0.3-0.4": 70.0, "bins_percent.>1.0": 30.0, "bins_err_pp.0.3-0.4": 1.0, "bins_err_pp.>1.0": 2.0,
+            "est_sampling_voi_mm3": 0.5, "est_sampling_bins_pp": 4.0}
+    voi = pd.DataFrame([dict(base, mesh="fine", n_dofs=100, depth_mm=2.0, voi_mm3=10.0, voi_err_mm3=0.1),
+                        dict(base, mesh="coarse", n_dofs=10, depth_mm=2.0, voi_mm3=10.4, voi_err_mm3=0.8,
+                             **{"bins_percent.0.3-0.4": 71.0, "bins_percent.>1.0": 29.0})])
+    t = effectivity_table(voi)
+    assert len(t) == 1 and t.loc[0, "mesh"] == "coarse"
+    assert t.loc[0, "true_voi_percent"] == pytest.approx(4.0) and t.loc[0, "true_bins_pp"] == pytest.approx(1.0)
+    assert t.loc[0, "patch, moved volume (the summary's): voi"] == pytest.approx(2.0)
+    assert t.loc[0, "patch, moved volume (the summary's): bins"] == pytest.approx(2.0)  # the largest bin estimate
+    assert t.loc[0, "two samplings: voi"] == pytest.approx(1.25) and t.loc[0, "two samplings: bins"] == pytest.approx(4.0)

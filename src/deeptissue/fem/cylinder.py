@@ -22,8 +22,8 @@ from ..rigid import BoneMotion
 from .indenters import Indenter
 from .solver import SolverSettings, solve_indentation
 
-__all__ = ["CURVE_DEPTHS_MM", "CylinderMesh", "REFERENCE_MESH", "VOI_DEPTHS_MM", "cylinder_mesh", "cylinder_scene",
-           "mesh_convergence"]
+__all__ = ["CURVE_DEPTHS_MM", "CylinderMesh", "ESTIMATES", "REFERENCE_MESH", "VOI_DEPTHS_MM", "cylinder_mesh",
+           "cylinder_scene", "effectivity_table", "mesh_convergence"]
 
 CURVE_DEPTHS_MM = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)  # depths of the force-depth curve [mm]
 VOI_DEPTHS_MM = (1.5, 2.0, 3.0)  # depths at which the VOI and bins are computed [mm]
@@ -178,3 +178,46 @@ def mesh_convergence(material, meshes: Sequence[CylinderMesh], **kw) -> tuple[pd
         curves.append(c.assign(**info))
         vois.append(v.assign(**info))
     return pd.concat(curves, ignore_index=True), pd.concat(vois, ignore_index=True)
+
+
+# the estimates of cylinder_voi.csv: name -> (VOI column [mm³], largest-bin column [pp])
+ESTIMATES = {
+    "patch, moved volume (the summary's)": ("voi_err_mm3", None),
+    "patch, signed difference": ("est_patch_diff_voi_mm3", "est_patch_diff_bins_pp"),
+    "patch, moved volume": ("est_patch_moved_voi_mm3", "est_patch_moved_bins_pp"),
+    "nodal average, signed difference": ("est_average_diff_voi_mm3", "est_average_diff_bins_pp"),
+    "nodal average, moved volume": ("est_average_moved_voi_mm3", "est_average_moved_bins_pp"),
+    "two samplings": ("est_sampling_voi_mm3", "est_sampling_bins_pp"),
+}
+
+
+def effectivity_table(voi: pd.DataFrame) -> pd.DataFrame:
+    """Effectivity (estimate / true error) of every estimate of ``voi`` (cylinder_voi.csv) for each mesh
+    but the finest (most DOFs) at each depth: columns mesh, depth_mm, true_voi_mm3 (signed), true_voi_percent,
+    true_bins_pp (largest over the bins), then per estimate ``<name>: voi`` and ``<name>: bins``. The
+    summary's bin estimate is the largest of its ``bins_err_pp.*``; an effectivity >= 0.5 means the
+    true error is within twice the estimate."""
+    bins = [c for c in voi.columns if c.startswith("bins_percent.")]
+    ref_mesh = voi.loc[voi["n_dofs"].idxmax(), "mesh"]
+    ref = voi[voi["mesh"] == ref_mesh].set_index("depth_mm")
+    rows = []
+    for _, r in voi[voi["mesh"] != ref_mesh].iterrows():
+        f = ref.loc[r["depth_mm"]]
+        true_voi = r["voi_mm3"] - f["voi_mm3"]
+        true_bins = max(abs(r[b] - f[b]) for b in bins)
+        row = dict(mesh=r["mesh"], depth_mm=r["depth_mm"], true_voi_mm3=true_voi, true_voi_percent=100 * true_voi / f["voi_mm3"],
+                   true_bins_pp=true_bins)
+        for name, (cv, cb) in ESTIMATES.items():
+            if cv in r:
+                row[f"{name}: voi"] = r[cv] / abs(true_voi) if true_voi else np.inf
+            est_b = max(r[c] for c in voi.columns if c.startswith("bins_err_pp.")) if cb is None else r.get(cb, np.nan)
+            row[f"{name}: bins"] = est_b / true_bins if true_bins else np.inf
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+if __name__ == "__main__":  # python -m deeptissue.fem.cylinder results/verification/cylinder_voi.csv
+    import sys
+
+    pd.set_option("display.width", 250)
+    print(effectivity_table(pd.read_csv(sys.argv[1])).round(3).T.to_string())
