@@ -1,21 +1,23 @@
-"""Discretisation-error estimate of the VOI and its bins (recovered-strain, Zienkiewicz–Zhu type).
+"""Discretisation-error estimate of the VOI and its bins (recovered strain, Zienkiewicz–Zhu type).
 
 γmax of a quadratic-tetrahedral solution jumps between elements; where the VOI's surface
 (γ = threshold) and the bin edges cross coarse elements, which side of an edge a sub-volume falls
-on is decided by that discontinuous field. The estimate recovers a continuous field γ* by nodal
-averaging (every element's own γ at each of its nodes, averaged over the elements sharing the node
-with their volumes as weights, interpolated with the element's shape functions) and compares the
-VOI and the bins of γ* with those of the element field γh, both sampled at the same points
+on is decided by that discontinuous element field γh. The estimate recovers a continuous field γ*
+by superconvergent patch recovery (:func:`patch_recovered_gamma`: at every node, the linear
+least-squares fit of γmax at the Gauss points of the elements sharing it, interpolated with the
+element's shape functions) and compares γ* with γh at the same sample points as the VOI
 (:func:`deeptissue.strain.gamma_at_points`):
 
-- ``voi_err_mm3 = |VOI(γ*) − VOI(γh)|`` and ``bins_err_pp[k] = |p_k(γ*) − p_k(γh)|`` [pp];
-- the per-element indicator (:func:`element_indicator`) is the volume of each element whose class
-  (below the threshold or in which bin) differs between γ* and γh [mm³]: it is non-zero only in
-  elements that straddle the threshold or a bin edge, and is what a refinement loop refines by.
+- ``voi_err_mm3``: the volume on different sides of the threshold under γ* and γh [mm³] (at least
+  ``|VOI(γ*) − VOI(γh)|``: where errors of both signs cancel in the VOI, they still count);
+- ``bins_err_pp[k] = |p_k(γ*) − p_k(γh)|`` [percentage points of the VOI];
+- the per-element indicator (:func:`element_indicator`): the volume of each element whose class
+  (below the threshold, or which bin) differs between γ* and γh [mm³]; non-zero only in elements
+  that straddle the threshold or a bin edge, it is what a refinement loop refines by.
 
-A second estimate, ``|VOI(points) − VOI(centroid)|`` (the two samplings of γh), is returned by
-:func:`sampling_difference` for comparison. ``workflow/scripts/verify_fem_cylinder.py`` measures
-both against a finer mesh on the cylinder scene (their effectivity, estimate / true error).
+The nodal average of each element's own nodal γ (``recovery='average'``) and the difference of two
+samplings of γh (:func:`sampling_difference`) are kept for comparison: on the cylinder scene
+(:func:`deeptissue.fem.cylinder.effectivity_table`) they miss errors the patch recovery bounds.
 """
 
 from __future__ import annotations
@@ -29,8 +31,8 @@ from .mesh import TetMesh
 from .strain import (DEFAULT_BIN_EDGES, GMSH_TET10_EDGES, _DL, bin_labels, gamma_at_points, tet10_shape_functions,
                      tet10_shape_gradients, tet_subdivision, voi_statistics)
 
-__all__ = ["VoiErrorEstimate", "element_indicator", "gamma_at_nodes", "recovered_gamma", "sampling_difference",
-           "voi_error_estimate"]
+__all__ = ["GAUSS_XI", "NODE_XI", "VoiErrorEstimate", "element_indicator", "gamma_at_nodes", "patch_recovered_gamma",
+           "recovered_gamma", "sampling_difference", "voi_error_estimate"]
 
 _CORNERS = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
 # reference coordinates of the 10 nodes of a gmsh Tetrahedron10 (corners, then the mid-edge nodes)
