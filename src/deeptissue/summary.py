@@ -19,10 +19,10 @@ from typing import Sequence
 
 import numpy as np
 
+from .errorest import voi_error_estimate
 from .geometry import point_triangle_distance, surface_distance_mm  # noqa: F401 (part of this module's API)
 from .io import atomic_path, read_json, write_json
 from .mesh import TetMesh
-from .errorest import voi_error_estimate
 from .strain import DEFAULT_BIN_EDGES, STRAIN_MEASURES, ElementStrain, element_strain, gamma_at_points, voi_statistics
 
 __all__ = ["GAMMA_SAMPLINGS", "SAMPLING_LEVELS", "Summary", "deformed_surface", "failed_summary", "point_triangle_distance",
