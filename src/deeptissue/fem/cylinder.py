@@ -216,8 +216,9 @@ def effectivity_table(voi: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-if __name__ == "__main__":  # python -m deeptissue.fem.cylinder results/verification/cylinder_voi.csv
+if __name__ == "__main__":  # python -m deeptissue.fem.cylinder results/verification/cylinder_voi.csv [more.csv ...]
     import sys
 
     pd.set_option("display.width", 250)
-    print(effectivity_table(pd.read_csv(sys.argv[1])).round(3).T.to_string())
+    tables = pd.concat([pd.read_csv(p) for p in sys.argv[1:]], ignore_index=True)
+    print(effectivity_table(tables).round(3).T.to_string())
