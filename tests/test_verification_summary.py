@@ -133,3 +133,16 @@ def test_cylinder_rows_hold_each_mesh_to_the_finest():
     assert s.loc["cylinder: 1.6 / 0.8 mm mesh: force at 0.5 mm: |F / F_finest - 1|", "status"] == "known-failure"
     assert "too coarse" in s.loc["cylinder: 1.6 / 0.8 mm mesh: force at 0.5 mm: |F / F_finest - 1|", "note"]
     assert s.loc["cylinder: 1.6 / 0.8 mm mesh: VOI at 3 mm: true error / estimate", "status"] == "fail"
+
+
+def test_the_cylinder_rows_are_read_from_their_csv_files(tmp_path):
+    paths = {}
+    curve, voi = _cylinder()
+    for name, df in {**_tables(), "cylinder_curve": curve, "cylinder_voi": voi}.items():
+        paths[name] = tmp_path / f"{name}.csv"
+        df.to_csv(paths[name], index=False)
+    s = write_verification_summary(point_csv=paths["points"], hertz_csv=paths["hertz"], curve_csv=paths["curve"],
+                                   locking_csv=paths["locking"], checks_csv=paths["checks"], hard_csv=paths["hard"],
+                                   benchmark_csv=paths["benchmark"], summary_csv=tmp_path / "summary.csv",
+                                   cylinder_curve_csv=paths["cylinder_curve"], cylinder_voi_csv=paths["cylinder_voi"])
+    assert s["check"].str.startswith("cylinder:").sum() == 11 and not failed_checks(s)
