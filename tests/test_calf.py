@@ -1,6 +1,11 @@
-"""The real scan (human calves, ../shared/data/calf): closed skin hugging the non-zero region, tibia area."""
+"""The real scan (human calves, ../shared/data/calf): closed skin hugging the non-zero region, the tibia on every
+slice (area, and a centroid that does not jump), the leg picked by a point, and the README's command through
+snakemake."""
 
 import os
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -10,8 +15,8 @@ from scipy import ndimage
 from skimage.measure import find_contours
 
 from deeptissue.config import validate_config
-from deeptissue.contours import point_to_polygon_distance, points_in_polygon, polygon_area_centroid
-from deeptissue.imaging import crop_volume, load_nifti
+from deeptissue.contours import load_contours, point_to_polygon_distance, points_in_polygon, polygon_area_centroid
+from deeptissue.imaging import crop_volume, load_nifti, select_leg
 from deeptissue.segment import SegmentationSettings, segment_volume
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -22,14 +27,18 @@ SCAN = SHARED / "data" / "calf" / "water.nii.gz"
 pytestmark = pytest.mark.skipif(not SCAN.is_file(), reason=f"real calf scan not found at {SCAN} (set DEEPTISSUE_SHARED)")
 
 
-@pytest.fixture(scope="module")
-def calf():
+def _config():
     cfg = yaml.safe_load((ROOT / "config" / "calf.yaml").read_text())
     # the config names the scan relative to the repository; validate it where the scan is
     cfg = validate_config(cfg, ROOT / "workflow" / "schemas" / "config.schema.yaml", base_dir=SHARED)
     a = cfg["animals"]["calf"]
+    return a, SegmentationSettings.from_config(cfg["segmentation"], a.get("segmentation"))
+
+
+@pytest.fixture(scope="module")
+def calf():
+    a, settings = _config()
     vol = crop_volume(load_nifti(SCAN, animal="calf"), a["crop_mm"])
-    settings = SegmentationSettings.from_config(cfg["segmentation"], a.get("segmentation"))
     contours, info = segment_volume(vol, settings=settings, state="pre")
     return vol, contours
 
@@ -68,3 +77,55 @@ def test_tibia_inside_skin_anterior_and_matching_the_dark_region(calf):
         assert lab[ij[0], ij[1]] > 0, f"slice {k}: contour centroid not in a dark region"
         area_dark = (lab == lab[ij[0], ij[1]]).sum() * px[0] * px[1]
         assert a_bone == pytest.approx(area_dark, rel=0.10), f"slice {k}"
+
+
+def test_tibia_centroid_does_not_jump(calf):
+    # one bone 6 mm further along the leg moves by less than a pixel here (0.8 mm at most); the fibula lies
+    # about 50 mm from the tibia, so a slice that took it (or a vessel) for the tibia moves the centroid far more
+    vol, c = calf
+    cen = np.array([polygon_area_centroid(c.bone[k, :, :2])[1] for k in range(vol.n_slices)])
+    step_mm = np.linalg.norm(np.diff(cen, axis=0), axis=1)
+    assert step_mm.max() < vol.pixel_mm[0], step_mm.round(2).tolist()
+
+
+def test_a_point_in_the_leg_gives_the_crop_box_contours(calf):
+    # both legs in the box; the point inside the leg at lower x picks the same leg the config's crop box holds
+    vol, c = calf
+    a, settings = _config()
+    both = crop_volume(load_nifti(SCAN, animal="calf"), [[300.0, 700.0], *a["crop_mm"][1:]])
+    picked, _ = segment_volume(select_leg(both, [400.0, 460.0, 130.0]), settings=settings, state="pre")
+    np.testing.assert_allclose(picked.skin, c.skin, atol=1e-9)
+    np.testing.assert_allclose(picked.bone, c.bone, atol=1e-9)
+
+
+def _clone_beside_the_data(tmp_path):
+    """The workflow's files in tmp_path/deeptissue with the shared data at tmp_path/shared, as in a clean clone."""
+    repo = tmp_path / "deeptissue"
+    repo.mkdir()
+    for name in ("workflow", "config"):
+        shutil.copytree(ROOT / name, repo / name)
+    shutil.copy(ROOT / "Snakefile", repo)
+    (tmp_path / "shared").symlink_to(SHARED.resolve(), target_is_directory=True)
+    return repo
+
+
+@pytest.mark.slow
+def test_the_readme_command_runs_through_snakemake(calf, tmp_path):
+    repo = _clone_beside_the_data(tmp_path)
+    env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
+    snakemake = [sys.executable, "-m", "snakemake"]
+    r = subprocess.run([*snakemake, "results/calf/qc/segmentation_pre.png", "--cores", "2", "--configfile",
+                        "config/calf.yaml"], cwd=repo, env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert (repo / "results/calf/qc/segmentation_pre.png").stat().st_size > 0
+    np.testing.assert_allclose(load_contours(repo / "results/calf/contours/pre.npz").bone, calf[1].bone)
+    # the default target of a pre-only study segments and solves nothing
+    r = subprocess.run([*snakemake, "-n", "--cores", "2", "--configfile", "config/calf.yaml"], cwd=repo, env=env,
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "Nothing to be done" in r.stdout + r.stderr
+    # the study is pre-only: only the convergence target, when asked for, says it has nothing to run on
+    r = subprocess.run([*snakemake, "-n", "convergence", "--cores", "2", "--configfile", "config/calf.yaml"],
+                       cwd=repo, env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode != 0
+    assert "config key convergence.animal: null, and no configured animal has a during scan ['calf']" in r.stdout + r.stderr

@@ -99,10 +99,11 @@ def _demo():
         (lambda c: c["study"].update(threshold=0.25), r"config key study\.bin_edges: must start at study\.threshold \(0\.25\), got 0\.3"),
         (lambda c: c["study"].update(bin_edges=[0.3, 0.5, 0.4]), r"config key study\.bin_edges: not strictly increasing: \[0\.3, 0\.5, 0\.4\]"),
         (lambda c: c["study"].update(figure_animal="rat09"), r"config key study\.figure_animal: 'rat09' is not a configured animal"),
-        (lambda c: c["convergence"].update(animal="rat09"), r"config key convergence\.animal: 'rat09' is not a configured animal with a during scan"),
+        (lambda c: c["convergence"].update(animal="rat09"), r"config key convergence\.animal: 'rat09' is not a configured animal \["),
         (
-            lambda c: (c["animals"].update(calf={"pre": "config/config.yaml"}), c["convergence"].update(animal="calf")),
-            r"config key convergence\.animal: 'calf' is not a configured animal with a during scan",
+            lambda c: (c["animals"].update(calf={"pre": "config/config.yaml", "crop_mm": [[0, 1], [0, 1], [0, 1]],
+                                                 "leg_point_mm": [0.5, 2.0, 0.5]})),
+            r"config key animals\.calf\.leg_point_mm: \[0\.5, 2\.0, 0\.5\] lies outside animals\.calf\.crop_mm",
         ),
     ],
 )
@@ -125,8 +126,20 @@ def test_figure_and_convergence_animal_defaults():
     assert figure_animal(cfg) == "rat03" and convergence_animal(cfg) == "rat03"
     # an animal without a during scan is skipped; with none, only the convergence target needs one
     cfg = validate_config({"animals": {"calf": {"pre": "config/config.yaml"}}}, SCHEMA, base_dir=ROOT)
-    assert figure_animal(cfg) == "calf" and convergence_animal(cfg) is None
+    assert figure_animal(cfg) is None and convergence_animal(cfg) is None
+    cfg["study"]["figure_animal"] = "calf"
+    with pytest.raises(ConfigError, match=r"config key study\.figure_animal: 'calf' has no during scan"):
+        check_config(cfg)
+    cfg["study"]["figure_animal"] = None
     with pytest.raises(ConfigError, match=r"config key convergence\.animal: null, and no configured animal has a during scan"):
         convergence_animal(cfg, required=True)
+    # a study of pre-only animals is valid with the animal named too: only the convergence target refuses it
+    cfg["convergence"]["animal"] = "calf"
+    check_config(cfg)
+    assert convergence_animal(cfg) is None
+    with pytest.raises(ConfigError, match=r"config key convergence\.animal: 'calf' has no during scan; the convergence "
+                                          r"target solves an indentation and needs an animal with one"):
+        convergence_animal(cfg, required=True)
+    cfg["convergence"]["animal"] = None
     cfg["animals"] = {"calf": {"pre": "a.nii.gz"}, "rat": {"phantom": {}}}
     assert convergence_animal(cfg) == "rat"

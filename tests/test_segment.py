@@ -1,5 +1,6 @@
 """Segmentation against the phantom truth (snr 12), PCHIP resampling, manual override, bad input."""
 
+import re
 from pathlib import Path
 
 import nibabel as nib
@@ -7,6 +8,7 @@ import numpy as np
 import pytest
 import yaml
 
+from deeptissue.config import ConfigError
 from deeptissue.contours import points_in_polygon, polygon_area_centroid, resample_closed
 from deeptissue.imaging import ImagingError, Volume, check_matching, crop_volume, load_nifti, write_nifti
 from deeptissue.phantom import PhantomSpec, _Scene, make_phantom
@@ -211,6 +213,19 @@ def test_override_bone_outside_skin_is_an_error(ph, tmp_path):
     far = [[9, 9], [10, 9], [10, 10], [9, 10]]
     with pytest.raises(SegmentationError, match=r"animal ratT, file pre\.nii\.gz, slice 5: bone contour outside the skin"):
         segment_volume(vol, state="pre", overrides={"pre": {"bone": {5: np.array(far, float)}}})
+
+
+def test_override_slice_given_twice_names_file_and_key(tmp_path):
+    pts = "[[0, 0], [1, 0], [1, 1], [0, 1]]"
+    f = tmp_path / "ov.yaml"
+    f.write_text(f"pre:\n  bone:\n    4: {pts}\n    5: {pts}\n    4: {pts}\n")
+    with pytest.raises(ConfigError, match=rf"config file {re.escape(str(f))}, line 5: key '4' is given twice \(lines 3 and 5\)"):
+        load_overrides(f)
+    f.write_text(f"pre:\n  bone:\n    4: {pts}\n    '04': {pts}\n")  # YAML reads these as two keys: one slice
+    with pytest.raises(ValueError, match=rf"{re.escape(str(f))}: pre\.bone: slice 4 is given twice \(key '04'\)"):
+        load_overrides(f)
+    f.write_text(f"during:\n  bone:\n    4: {pts}\n  skin:\n    4: {pts}\n")  # one slice per structure is fine
+    assert sorted(load_overrides(f)["during"]) == ["bone", "skin"]
 
 
 # --- bad input ------------------------------------------------------------------------------------

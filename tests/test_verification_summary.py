@@ -101,3 +101,48 @@ def test_the_summary_is_written_from_the_csv_files(tmp_path):
     back = pd.read_csv(out)
     assert list(back.columns) == SUMMARY_COLUMNS and len(back) == len(s)
     assert failed_checks(back) == ["fem check: patch test, straight distorted: max_displacement_error_mm"]
+
+
+def _cylinder(force_error=0.001, voi_error=0.01, estimate_mm3=0.2):
+    meshes = [("1.6 / 0.8 mm", 29577), ("1.2 / 0.4 mm", 70503)]
+    curve = pd.DataFrame([dict(mesh=m, n_dofs=n, depth_mm=d, force_N=0.04 * d**1.5 * (1 + (force_error if n < 50000 else 0)),
+                               converged=True) for m, n in meshes for d in (0.5, 1.5, 3.0)])
+    bins = {"bins_percent.0.3-0.4": 60.0, "bins_percent.>1.0": 40.0, "bins_err_pp.0.3-0.4": 0.5, "bins_err_pp.>1.0": 0.5}
+    voi = pd.DataFrame([dict(mesh=m, n_dofs=n, depth_mm=d, voi_mm3=10 * d * (1 + (voi_error if n < 50000 else 0)),
+                             voi_err_mm3=estimate_mm3 * d, **bins) for m, n in meshes for d in (1.5, 3.0)])
+    return curve, voi
+
+
+def test_cylinder_rows_hold_each_mesh_to_the_finest():
+    curve, voi = _cylinder()
+    s = verification_summary(**_tables(), cylinder_curve=curve, cylinder_voi=voi).set_index("check")
+    rows = s[s.index.str.startswith("cylinder:")]
+    assert len(rows) == 3 + 4 * 2  # forces at 3 depths; VOI, bins and their estimates at 2 depths; not the finest
+    assert (rows["status"] == "pass").all() and not rows.index.str.contains("0.4 mm mesh").any()
+    assert rows.loc["cylinder: 1.6 / 0.8 mm mesh: VOI at 3 mm: |VOI / VOI_finest - 1|", "value"] == pytest.approx(0.01)
+    # 0.3 mm^3 true error against an estimate of 0.6 mm^3
+    assert rows.loc["cylinder: 1.6 / 0.8 mm mesh: VOI at 1.5 mm: true error / estimate", "value"] == pytest.approx(0.5)
+    curve, voi = _cylinder(force_error=0.006, voi_error=0.03, estimate_mm3=0.1)
+    assert rows.loc["cylinder: 1.6 / 0.8 mm mesh: bins at 3 mm: largest true error / largest estimate", "value"] == 0
+    failed = failed_checks(verification_summary(**_tables(), cylinder_curve=curve, cylinder_voi=voi, known_failures={}))
+    assert "cylinder: 1.6 / 0.8 mm mesh: force at 0.5 mm: |F / F_finest - 1|" in failed
+    assert "cylinder: 1.6 / 0.8 mm mesh: VOI at 3 mm: |VOI / VOI_finest - 1|" in failed
+    assert "cylinder: 1.6 / 0.8 mm mesh: VOI at 3 mm: true error / estimate" in failed  # 0.9 against 0.3 mm^3
+    # the default mesh's misses are known failures of the mesh; the estimate's are not
+    s = verification_summary(**_tables(), cylinder_curve=curve, cylinder_voi=voi).set_index("check")
+    assert s.loc["cylinder: 1.6 / 0.8 mm mesh: force at 0.5 mm: |F / F_finest - 1|", "status"] == "known-failure"
+    assert "too coarse" in s.loc["cylinder: 1.6 / 0.8 mm mesh: force at 0.5 mm: |F / F_finest - 1|", "note"]
+    assert s.loc["cylinder: 1.6 / 0.8 mm mesh: VOI at 3 mm: true error / estimate", "status"] == "fail"
+
+
+def test_the_cylinder_rows_are_read_from_their_csv_files(tmp_path):
+    paths = {}
+    curve, voi = _cylinder()
+    for name, df in {**_tables(), "cylinder_curve": curve, "cylinder_voi": voi}.items():
+        paths[name] = tmp_path / f"{name}.csv"
+        df.to_csv(paths[name], index=False)
+    s = write_verification_summary(point_csv=paths["points"], hertz_csv=paths["hertz"], curve_csv=paths["curve"],
+                                   locking_csv=paths["locking"], checks_csv=paths["checks"], hard_csv=paths["hard"],
+                                   benchmark_csv=paths["benchmark"], summary_csv=tmp_path / "summary.csv",
+                                   cylinder_curve_csv=paths["cylinder_curve"], cylinder_voi_csv=paths["cylinder_voi"])
+    assert s["check"].str.startswith("cylinder:").sum() == 11 and not failed_checks(s)

@@ -320,8 +320,9 @@ def has_during_scan(animal: dict[str, Any]) -> bool:
     return "phantom" in animal or "during" in animal
 
 
-def figure_animal(config: dict[str, Any]) -> str:
-    """The animal drawn in the study's section figures: ``study.figure_animal``, or the first configured animal.
+def figure_animal(config: dict[str, Any]) -> str | None:
+    """The animal drawn in the study's section figures: ``study.figure_animal``, or the first configured animal
+    with a during scan (None if there is none: a study of pre-only animals has no FE results to draw).
 
     Parameters
     ----------
@@ -330,9 +331,12 @@ def figure_animal(config: dict[str, Any]) -> str:
 
     Returns
     -------
-    str
+    str or None
     """
-    return config["study"]["figure_animal"] or next(iter(config["animals"]))
+    named = config["study"]["figure_animal"]
+    if named is not None:
+        return named
+    return next((a for a, c in config["animals"].items() if has_during_scan(c)), None)
 
 
 def convergence_animal(config: dict[str, Any], *, required: bool = False) -> str | None:
@@ -348,8 +352,8 @@ def convergence_animal(config: dict[str, Any], *, required: bool = False) -> str
     Returns
     -------
     str or None
-        ``convergence.animal``, or the first configured animal with a during scan; None if no
-        animal has one.
+        ``convergence.animal`` if it has a during scan, or with ``convergence.animal`` null the first configured
+        animal with one; None if there is none (a study of pre-only animals: only the convergence target needs one).
 
     Raises
     ------
@@ -357,12 +361,20 @@ def convergence_animal(config: dict[str, Any], *, required: bool = False) -> str
         If ``required`` and no animal qualifies.
     """
     named = config["convergence"]["animal"]
+    animals = config["animals"]
     if named is not None:
-        return named
-    found = next((a for a, cfg in config["animals"].items() if has_during_scan(cfg)), None)
+        if has_during_scan(animals[named]):
+            return named
+        if required:
+            raise ConfigError(
+                f"config key convergence.animal: {named!r} has no during scan; the convergence target solves an "
+                f"indentation and needs an animal with one {list(animals)}"
+            )
+        return None
+    found = next((a for a, cfg in animals.items() if has_during_scan(cfg)), None)
     if found is None and required:
         raise ConfigError(
-            f"config key convergence.animal: null, and no configured animal has a during scan {list(config['animals'])}"
+            f"config key convergence.animal: null, and no configured animal has a during scan {list(animals)}"
         )
     return found
 
@@ -383,15 +395,29 @@ def _check_figure_animal(config: dict[str, Any]) -> None:
     animals = list(config["animals"])
     if name is not None and name not in animals:
         raise ConfigError(f"config key study.figure_animal: {name!r} is not a configured animal {animals}")
+    if name is not None and not has_during_scan(config["animals"][name]):
+        raise ConfigError(f"config key study.figure_animal: {name!r} has no during scan: it has no FE results to draw")
 
 
 def _check_convergence_animal(config: dict[str, Any]) -> None:
+    """A named ``convergence.animal`` must be configured; one without a during scan is refused only by the
+    ``convergence`` target (:func:`convergence_animal` with ``required``), so a study of pre-only animals runs."""
     name = config["convergence"]["animal"]
-    animals = config["animals"]
-    if name is not None and (name not in animals or not has_during_scan(animals[name])):
-        raise ConfigError(
-            f"config key convergence.animal: {name!r} is not a configured animal with a during scan {list(animals)}"
-        )
+    animals = list(config["animals"])
+    if name is not None and name not in animals:
+        raise ConfigError(f"config key convergence.animal: {name!r} is not a configured animal {animals}")
+
+
+def _check_leg_points(config: dict[str, Any]) -> None:
+    """``animals.<a>.leg_point_mm`` must lie inside the animal's ``crop_mm`` box, where the leg is looked for."""
+    for animal, cfg in config["animals"].items():
+        point, box = cfg.get("leg_point_mm"), cfg.get("crop_mm")
+        if point is None or box is None:
+            continue
+        if not all(lo <= p <= hi for p, (lo, hi) in zip(point, box)):
+            raise ConfigError(
+                f"config key animals.{animal}.leg_point_mm: {list(point)} lies outside animals.{animal}.crop_mm {box}"
+            )
 
 
 def _check_reserved_names(config: dict[str, Any]) -> None:
@@ -423,7 +449,8 @@ def check_config(config: dict[str, Any]) -> None:
     No animal is named like a folder of the study's own outputs (:data:`RESERVED_ANIMAL_NAMES`); every
     phantom's indenter can be imaged (:func:`deeptissue.phantom.check_indenter`);
     ``study.bin_edges`` starts at ``study.threshold`` and increases strictly; ``study.figure_animal``
-    is a configured animal; ``convergence.animal`` is a configured animal with a during scan.
+    is a configured animal; ``convergence.animal`` is a configured animal (the ``convergence`` target
+    asks for a during scan); an animal's ``leg_point_mm`` lies inside its ``crop_mm``.
 
     Parameters
     ----------
@@ -440,6 +467,7 @@ def check_config(config: dict[str, Any]) -> None:
     _check_bin_edges(config)
     _check_figure_animal(config)
     _check_convergence_animal(config)
+    _check_leg_points(config)
 
 
 # --- the reference page docs/config.md, rendered from the schema ---

@@ -1,4 +1,4 @@
-"""NIfTI input/output: loading with validation, crop boxes in world mm, atomic writing.
+"""NIfTI input/output: loading with validation, crop boxes in world mm, one leg of touching legs, atomic writing.
 
 Every problem with an input image is an :class:`ImagingError` whose one-line message names the
 animal, the file, the slice (where one is at fault) and the problem.
@@ -6,15 +6,26 @@ animal, the file, the slice (where one is at fault) and the problem.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import nibabel as nib
 import numpy as np
+from scipy import ndimage
 
 from .io import atomic_path
 
-__all__ = ["ImagingError", "Volume", "check_matching", "crop_volume", "load_nifti", "write_nifti"]
+__all__ = ["ImagingError", "Volume", "check_matching", "crop_volume", "load_nifti", "select_leg", "write_nifti",
+           "body_mask"]
+
+#: touching legs are parted by in-plane erosions of this step, as a fraction of the widest leg's inscribed radius,
+#: up to LEG_ERODE_MAX: at half the radius a convex leg keeps its core and a seam up to the leg's radius long is cut
+LEG_ERODE_STEP, LEG_ERODE_MAX = 0.05, 0.5
+#: a core is a leg if it holds at least this share of the largest core's volume (not a toe of tissue cut off)
+LEG_MIN_SHARE = 0.2
+#: pixels of the other leg kept along the cut: the cut is jagged by a pixel, and a gap in the leg's own skin
+#: would open its fat (0 in a masked scan) to the background and let the skin contour run inside
+LEG_CUT_MARGIN_PX = 2
 
 
 class ImagingError(ValueError):
@@ -156,6 +167,88 @@ def crop_volume(vol: Volume, crop_mm) -> Volume:
     data = np.ascontiguousarray(vol.data[sl[0], sl[1], sl[2]])
     return Volume(data=data, affine=aff, path=vol.path, animal=vol.animal,
                   index_offset=tuple(int(o + p) for o, p in zip(off, vol.index_offset)))
+
+
+def body_mask(vol: Volume) -> np.ndarray:
+    """The voxels (same shape as ``vol.data``) above the background: ``> 0`` for a masked scan (background exactly
+    0), else above its noise floor (median + 6 robust spreads of the border frame of each slice), holes filled
+    slice by slice."""
+    d = vol.data
+    frame = np.concatenate([d[:3].ravel(), d[-3:].ravel(), d[:, :3].ravel(), d[:, -3:].ravel()])
+    bg = float(np.median(frame))
+    noise = float(1.4826 * np.median(np.abs(frame - bg)))
+    body = d > bg + 6 * noise + 1e-6 * max(float(np.percentile(d, 99)) - bg, 1e-12)
+    return np.stack([ndimage.binary_fill_holes(body[:, :, k]) for k in range(d.shape[2])], axis=-1)
+
+
+def select_leg(vol: Volume, point_mm) -> Volume:
+    """``vol`` with everything but the leg that holds ``point_mm`` set to the background, for legs that touch.
+
+    The body (:func:`body_mask`) is eroded in-plane ever deeper, in steps of :data:`LEG_ERODE_STEP` of its
+    largest in-plane distance from the edge (the widest leg's inscribed radius) up to :data:`LEG_ERODE_MAX`, until
+    its 3D connected cores (in-plane 8-connected, face to face through the slices) are two or more legs: parts of
+    at least :data:`LEG_MIN_SHARE` of the largest one's volume. Touching legs part there, where the bridge or the
+    seam between them is narrower than the eroded depth; one leg stays one core (a leg is about convex), and its
+    core runs through the slices. Each body voxel goes to the core it is reached from first by a watershed of the
+    distance from the edge (:func:`skimage.segmentation.watershed`), so the cut runs along the narrowest part
+    between the legs. The leg is the part that holds the point, with :data:`LEG_CUT_MARGIN_PX` pixels more along
+    the cut.
+
+    Parameters
+    ----------
+    vol : Volume
+        The (cropped) image.
+    point_mm : (3,) array_like
+        A point inside the leg to keep [mm, world].
+
+    Returns
+    -------
+    Volume
+        The same grid; voxels outside the leg hold the median of the image's border frame (0 for a masked scan).
+
+    Raises
+    ------
+    ImagingError
+        Naming animal and file, if the point lies outside the image or outside the body.
+    """
+    from skimage.segmentation import watershed
+
+    point = np.asarray(point_mm, float)
+    ijk = vol.voxel(point)
+    idx = np.round(ijk).astype(int)
+    if np.any(idx < 0) or np.any(idx >= vol.data.shape):
+        raise ImagingError(f"{vol.where()}: leg_point_mm {point.tolist()} lies outside the image "
+                           f"(voxel {np.round(ijk, 1).tolist()} of shape {list(vol.data.shape)})")
+    body = body_mask(vol)
+    if not body[tuple(idx)]:
+        raise ImagingError(f"{vol.where(int(idx[2]))}: leg_point_mm {point.tolist()} lies outside the body "
+                           "(in the background of the image): give a point inside the leg to segment")
+    px = vol.pixel_mm
+    dist = np.stack([ndimage.distance_transform_edt(body[:, :, k], sampling=px) for k in range(body.shape[2])], -1)
+    structure = np.zeros((3, 3, 3), bool)
+    structure[:, :, 1] = True
+    structure[1, 1, :] = True
+    lab, n = ndimage.label(body, structure=structure)
+    for fraction in np.arange(LEG_ERODE_STEP, LEG_ERODE_MAX + 1e-9, LEG_ERODE_STEP):
+        core, m = ndimage.label(dist > fraction * dist.max(), structure=structure)
+        sizes = np.bincount(core.ravel(), minlength=m + 1)[1:]
+        if m >= 2 and np.sort(sizes)[-2] >= LEG_MIN_SHARE * sizes.max():
+            keep = sizes >= LEG_MIN_SHARE * sizes.max()
+            markers = np.where(np.isin(core, 1 + np.nonzero(keep)[0]), core, 0)
+            lab = np.stack([watershed(-dist[:, :, k], markers[:, :, k], mask=body[:, :, k])
+                            for k in range(body.shape[2])], -1)
+            break
+    if lab[tuple(idx)] == 0:  # the point lies in a body part that no leg's core reaches on its slice
+        raise ImagingError(f"{vol.where(int(idx[2]))}: leg_point_mm {point.tolist()} lies in a part of the body "
+                           "that belongs to no leg; give a point nearer the leg's centre")
+    # LEG_CUT_MARGIN_PX more in-plane, so the cut, jagged by a pixel, leaves the leg's own skin whole
+    in_plane = np.zeros((3, 3, 3), bool)
+    in_plane[:, :, 1] = ndimage.generate_binary_structure(2, 1)
+    leg = ndimage.binary_dilation(lab == lab[tuple(idx)], structure=in_plane, iterations=LEG_CUT_MARGIN_PX) & body
+    d = vol.data
+    frame = np.concatenate([d[:3].ravel(), d[-3:].ravel(), d[:, :3].ravel(), d[:, -3:].ravel()])
+    data = np.where(leg, d, np.float32(np.median(frame))).astype(np.float32)
+    return replace(vol, data=data)
 
 
 def write_nifti(path: str | Path, data: np.ndarray, affine: np.ndarray) -> None:

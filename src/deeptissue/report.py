@@ -48,7 +48,7 @@ def exclusions(summaries: Sequence[Summary]) -> dict[str, str]:
             + "; ".join(f"{v}: {why}" for v, why in r) for a, r in out.items()}
 
 
-_DICT_FIELDS = ("bins_percent", "bins_sampled_percent", "bins_centroid_percent", "voi_by_measure_mm3",
+_DICT_FIELDS = ("bins_percent", "bins_err_pp", "bins_sampled_percent", "bins_centroid_percent", "voi_by_measure_mm3",
                 "peak_gamma_by_measure")
 
 
@@ -158,8 +158,11 @@ def plot_voi(voi: pd.DataFrame, path: str | Path, *, measure_label: str = "γmax
             if not bool(sub.loc[v, "converged"]) or val is None or not np.isfinite(float(val)):
                 ax.plot(x, 0, marker="x", color="k", ms=5)
                 continue
+            err = float(pd.to_numeric(pd.Series([sub.loc[v, "voi_err_mm3"]]), errors="coerce").iloc[0]) \
+                if "voi_err_mm3" in sub else np.nan
             ax.bar(x, float(val), width, color=EXCLUDED_COLOUR if excluded else colours[v],
-                   hatch=EXCLUDED_HATCH if excluded else None, edgecolor="0.4" if excluded else "none")
+                   hatch=EXCLUDED_HATCH if excluded else None, edgecolor="0.4" if excluded else "none",
+                   yerr=err if np.isfinite(err) else None, error_kw=dict(elinewidth=0.8, capsize=2, ecolor="k"))
         if excluded:
             _mark_excluded(ax, i, sub["exclusion_reason"].iloc[0], 1.25 * top)
     handles = [plt.Rectangle((0, 0), 1, 1, color=colours[v]) for v in variants]
@@ -172,18 +175,26 @@ def plot_voi(voi: pd.DataFrame, path: str | Path, *, measure_label: str = "γmax
     sampled = set(voi["gamma_sampling"].dropna()) if "gamma_sampling" in voi else set()
     where = {"points": "64 points per element", "centroid": "element centroids"}
     at = f", sampled at {' / '.join(where.get(x, str(x)) for x in sorted(sampled))}" if sampled else ""
-    ax.set_title(f"Volume with {measure_label} above threshold{at} (x: not converged)", fontsize=10)
+    bars = ", error bar: estimated discretisation error" if "voi_err_mm3" in voi else ""
+    ax.set_title(f"Volume with {measure_label} above threshold{at} (x: not converged{bars})", fontsize=10)
     _save(fig, path)
 
 
-def plot_bins(bins: pd.DataFrame, path: str | Path) -> None:
-    """Fig. 7B style: stacked % of the VOI per strain bin, one bar per animal × variant."""
+def plot_bins(bins: pd.DataFrame, path: str | Path, *, voi: pd.DataFrame | None = None) -> None:
+    """Fig. 7B style: stacked % of the VOI per strain bin, one bar per animal × variant; with the
+    ``voi`` table, the largest estimated bin error (its ``bins_err_pp.*`` columns) is written above each bar."""
     plt = _plt()
     animals = list(dict.fromkeys(bins["animal"]))
     variants = list(dict.fromkeys(bins["variant"]))
     labels = list(dict.fromkeys(bins["bin"]))
     cmap = plt.get_cmap("viridis")
     colours = {b: cmap(k / max(1, len(labels) - 1)) for k, b in enumerate(labels)}
+    worst_err = {}
+    err_cols = [c for c in (voi.columns if voi is not None else []) if c.startswith("bins_err_pp.")]
+    if err_cols:
+        errs = voi[err_cols].apply(pd.to_numeric, errors="coerce").to_numpy(float)
+        worst_err = {(a, v): float(np.nanmax(e)) if np.isfinite(e).any() else np.nan
+                     for a, v, e in zip(voi["animal"], voi["variant"], errs)}
     fig, ax = plt.subplots(figsize=(max(6, 0.35 * len(animals) * len(variants) + 2), 4))
     x, ticks, ticklabels = 0.0, [], []
     for a in animals:
@@ -197,6 +208,9 @@ def plot_bins(bins: pd.DataFrame, path: str | Path) -> None:
                     ax.bar(x, p, 0.8, bottom=bottom, color=colours[b], hatch=EXCLUDED_HATCH if excluded else None,
                            edgecolor="0.3" if excluded else "none", alpha=0.35 if excluded else 1.0)
                     bottom += p
+            err = worst_err.get((a, v), np.nan)
+            if np.isfinite(err):  # the largest estimated bin error, above the bar
+                ax.text(x, 101, f"±{err:.1f}", ha="center", va="bottom", fontsize=5, rotation=90)
             pcts = sub["percent"].to_numpy(float) if len(sub) else np.array([np.nan])
             if not np.isfinite(pcts).any():
                 ax.text(x, 2, "n.c.", ha="center", fontsize=6, rotation=90)
@@ -207,11 +221,12 @@ def plot_bins(bins: pd.DataFrame, path: str | Path) -> None:
             x += 1
         x += 0.6
     ax.set_xticks(ticks, ticklabels, rotation=90, fontsize=6)
-    ax.set_ylim(0, 105)
+    ax.set_ylim(0, 115 if worst_err else 105)
     ax.set_ylabel("% of VOI")
     handles = [plt.Rectangle((0, 0), 1, 1, color=colours[b]) for b in labels]
     ax.legend(handles, labels, title="γmax bin", fontsize=7, bbox_to_anchor=(1.01, 1), loc="upper left")
-    ax.set_title("Distribution of the VOI over strain bins (hatched: excluded animal; n.c.: not converged)")
+    ax.set_title("Distribution of the VOI over strain bins (hatched: excluded animal; n.c.: not converged;\n"
+                 "±: largest estimated bin error [pp])")
     _save(fig, path)
 
 
@@ -523,7 +538,7 @@ def aggregate_study(
     write_csv(outputs["bins_csv"], bins)
     label = MEASURE_LABELS[strain_measure]
     plot_voi(voi, outputs["voi_png"], measure_label=label)
-    plot_bins(bins, outputs["bins_png"])
+    plot_bins(bins, outputs["bins_png"], voi=voi)
     plot_voi_change(voi, outputs["voi_change_png"], reference=reference)
 
     by_key = {(s.animal, s.variant): s for s in summaries}

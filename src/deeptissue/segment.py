@@ -21,10 +21,12 @@ Per slice (arrays indexed [i, j] as in the NIfTI, converted to world mm by the a
    contour, tissue 8-connected. Automatic level: half the skin/subcutaneous plateau, the median
    of ``N`` in a one-pixel band 1.5 blur widths inside the edge — first the rough mask's edge,
    then twice more inside the traced contour itself, so the band does not move with the noise.
-6. **Tibia**: closed contours of ``find_contours(N, bone_level)`` around dark regions inside the
-   skin; the largest (``bone_select: largest``) or the most anterior of those at least half as
-   large as the largest (``anterior``). Automatic level: half the median muscle value of ``N``
-   (cortical bone gives no signal).
+6. **Tibia**, chosen in 3D (:func:`_choose_tibia`): of the closed contours of ``find_contours(N,
+   bone_level)`` around dark regions inside the skin, linked from slice to slice into tracks, the
+   one that runs through the slab: the largest (``bone_select: largest``) or the most anterior of
+   those at least half as large (``anterior``). A slice without it is refused by number, never given
+   another structure. Automatic level: half the median muscle value of ``N`` (cortical bone gives
+   no signal).
 7. **Fibula** (``fibula: true``): of the other dark regions inside the skin (same level, outside
    the tibia) with an area from ``fibula_min_area_mm2`` up to ``fibula_max_area_ratio`` times the
    tibia's and round (4 pi A / P^2 >= 0.5, not a thin or ragged gap), the largest. A volume where
@@ -44,7 +46,8 @@ Per slice (arrays indexed [i, j] as in the NIfTI, converted to world mm by the a
    about its own area centroid.
 
 Hand-drawn contours (a YAML file, see :func:`load_overrides`) replace the automatic result on
-the slices and structures they name.
+the slices and structures they name. Where the legs touch, :func:`deeptissue.imaging.select_leg` keeps
+the one holding ``leg_point_mm`` before the contours are traced.
 """
 
 from __future__ import annotations
@@ -53,7 +56,6 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
-import yaml
 from scipy import ndimage
 
 from .contours import Contours, point_to_polygon_distance, points_in_polygon, polygon_area_centroid, resample_closed
@@ -67,10 +69,13 @@ STRUCTURES = ("skin", "bone", "fibula")
 _BAND_SIGMAS, _BAND_PX = 1.5, 0.0
 # a fibula candidate's isoperimetric ratio 4 pi A / P^2 (1 for a circle; the phantom's ~0.95)
 _FIBULA_MIN_ROUNDNESS = 0.5
+# dark regions on neighbouring slices are one structure only if their areas differ by at most this factor: a bone's
+# section changes slowly along the leg, a tibia merged with the fat around it is several times larger
+_LINK_AREA_RATIO = 2.0
 
 
-class SegmentationError(ValueError):
-    """A slice that cannot be segmented; the message names animal, file, slice and problem."""
+class SegmentationError(ImagingError):
+    """A scan that cannot be segmented; the message names animal, file, the slices and the problem."""
 
 
 @dataclass(frozen=True)
@@ -112,10 +117,13 @@ def load_overrides(path: str | Path) -> dict:
 
     ``state`` is ``pre`` or ``during``, ``structure`` ``skin``, ``bone`` (the tibia) or ``fibula``, ``slice`` the axial
     slice index in the NIfTI file (0-based), points world mm (x, y) of a closed curve (at least 4,
-    in either orientation; it is resampled like an automatic contour).
+    in either orientation; it is resampled like an automatic contour). The file is read strictly
+    (:func:`deeptissue.config.load_config_file`): a slice given twice for one structure, which YAML would
+    silently reduce to the last, is a :class:`deeptissue.config.ConfigError` naming the file, the key and both lines.
     """
-    with open(path) as fh:
-        data = yaml.safe_load(fh) or {}
+    from .config import load_config_file
+
+    data = load_config_file(path)
     out: dict = {}
     for state, per in data.items():
         if state not in ("pre", "during"):
@@ -127,7 +135,10 @@ def load_overrides(path: str | Path) -> dict:
                 a = np.asarray(pts, float)
                 if a.ndim != 2 or a.shape[1] < 2 or len(a) < 4:
                     raise ValueError(f"{path}: {state}.{structure}.{k}: expected at least 4 points [x, y]")
-                out.setdefault(state, {}).setdefault(structure, {})[int(k)] = a[:, :2]
+                per_slice = out.setdefault(state, {}).setdefault(structure, {})
+                if int(k) in per_slice:  # 9 and '09': one slice written twice
+                    raise ValueError(f"{path}: {state}.{structure}: slice {int(k)} is given twice (key {k!r})")
+                per_slice[int(k)] = a[:, :2]
     return out
 
 
@@ -220,6 +231,37 @@ class _SliceResult:
     bone_level: float
     fibula_ij: np.ndarray | None = None
     bone_touch_mm: float | None = None  # the tibia contour's smallest distance from the indenter (None: no indenter)
+    # the tibia's candidates: (area [px], (i, j) contour) of the closed dark regions inside the skin; None when the
+    # bones were not traced or the tibia is hidden against the indenter
+    bone_candidates: list | None = None
+    trace: dict | None = None  # what _finish_bones needs: the image the bones were traced on, dark contours, sd
+
+    def finish(self, choice: int | None, *, px_mm: float, settings: SegmentationSettings) -> "_SliceResult":
+        """Set the tibia to candidate ``choice`` (None: the per-slice rule of ``bone_select``), then the fibula and
+        the tibia's distance from the indenter."""
+        if not self.bone_candidates:
+            return self
+        s = settings
+        if choice is None:
+            choice = _pick_per_slice(self.bone_candidates, s.bone_select)
+        bone_a, bone = self.bone_candidates[choice]
+        t = self.trace
+        self.bone_ij = bone
+        if s.fibula:
+            self.fibula_ij = _pick_fibula(t["Nb"], t["dark"], self.skin_ij, bone, bone_a, self.bone_level,
+                                          px_mm=px_mm, settings=s)
+        if t["sd"] is not None:
+            self.bone_touch_mm = float(ndimage.map_coordinates(t["sd"], bone.T, order=1, mode="nearest").min())
+        return self
+
+
+def _pick_per_slice(cands: list, select: str) -> int:
+    """Index of the largest candidate, or (``anterior``) the most anterior of those at least half as large."""
+    amax = max(a for a, _ in cands)
+    if select == "anterior":
+        big = [i for i, (a, _) in enumerate(cands) if a >= 0.5 * amax]
+        return max(big, key=lambda i: cands[i][1][:, 1].mean())  # the caller maps j to +y
+    return max(range(len(cands)), key=lambda i: cands[i][0])
 
 
 def _segment_slice(img, *, bg, noise, px_mm, settings: SegmentationSettings, where: str, need_bone: bool = True,
@@ -313,17 +355,91 @@ def _segment_slice(img, *, bg, noise, px_mm, settings: SegmentationSettings, whe
                 return _SliceResult(skin, None, skin_level, bone_level, None, -np.inf)
         if not cands:
             raise SegmentationError(f"{where}: no closed bone contour inside the skin at level {bone_level:.3g}")
-        amax = max(a for a, _ in cands)
-        if s.bone_select == "anterior":
-            big = [(a, c) for a, c in cands if a >= 0.5 * amax]
-            bone_a, bone = max(big, key=lambda ac: ac[1][:, 1].mean())  # caller maps j to +y
-        else:
-            bone_a, bone = max(cands, key=lambda ac: ac[0])
-        if s.fibula:
-            fibula = _pick_fibula(Nb, dark, skin, bone, bone_a, bone_level, px_mm=px_mm, settings=s)
-        if indenter_sd is not None:
-            touch = float(ndimage.map_coordinates(indenter_sd, bone.T, order=1, mode="nearest").min())
+        # the tibia is chosen among the candidates in 3D (_choose_tibia), then _SliceResult.finish
+        return _SliceResult(skin, None, skin_level, bone_level, None, None, bone_candidates=cands,
+                            trace={"Nb": Nb, "dark": dark, "sd": indenter_sd})
     return _SliceResult(skin, bone, skin_level, bone_level, fibula, touch)
+
+
+def _choose_tibia(candidates: list, *, select: str, vol: Volume, flip_j: bool) -> list:
+    """The tibia's candidate on every slice, chosen in 3D: the index into each slice's ``candidates`` (None on the
+    slices given as None: not traced, drawn by hand, or hidden against the indenter).
+
+    Candidates on successive traced slices are linked into tracks (dark structures along the leg) when the centroid
+    of one lies inside the other and their areas differ by at most :data:`_LINK_AREA_RATIO`, nearest centroids
+    first; a track may skip the slices given as None. Of the tracks on at least half of the traced slices, the
+    tibia is the largest (median area) or, with ``anterior``, the most anterior of those at least half as large.
+    It must be on every traced slice: a slice where it is missing has the tibia's dark region open into another
+    dark one (on a masked scan, its cortex into the fat) or no tibia at all, and another structure there would be
+    taken for the tibia without a word.
+
+    Raises
+    ------
+    SegmentationError
+        Naming animal, file and the slices (in the file) where the tibia is missing, or that no dark structure
+        runs through half of the slices.
+    """
+    ks = [k for k, c in enumerate(candidates) if c is not None]
+    out: list = [None] * len(candidates)
+    if not ks:
+        return out
+    geom = {(k, i): (a, polygon_area_centroid(c)[1]) for k in ks for i, (a, c) in enumerate(candidates[k])}
+    tracks: list[dict] = []  # {slice: candidate index}
+    for k in ks:
+        pairs = []
+        for t, track in enumerate(tracks):
+            kl = max(track)
+            al, cl = geom[(kl, track[kl])]
+            poly_l = candidates[kl][track[kl]][1]
+            for i, (a, c) in enumerate(candidates[k]):
+                cen = geom[(k, i)][1]
+                if max(a, al) > _LINK_AREA_RATIO * min(a, al):
+                    continue
+                if points_in_polygon(cen[None], poly_l)[0] or points_in_polygon(cl[None], c)[0]:
+                    pairs.append((float(np.hypot(*(cen - cl))), t, i))
+        used_t, used_i = set(), set()
+        for _, t, i in sorted(pairs):
+            if t not in used_t and i not in used_i:
+                tracks[t][k] = i
+                used_t.add(t)
+                used_i.add(i)
+        tracks += [{k: i} for i in range(len(candidates[k])) if i not in used_i]
+    n = len(ks)
+    off = vol.index_offset[2]
+    long = [t for t in tracks if 2 * len(t) >= n]
+    if not long:
+        best = max(tracks, key=len)
+        raise SegmentationError(
+            f"{vol.where()}: no dark structure runs through half of the {n} traced slices (the longest is on "
+            f"{len(best)}: slices {_slice_list(sorted(best), off)}), so none is taken for the tibia; check "
+            "segmentation.bone_level and crop_mm, or draw the tibia in an overrides file")
+    area = [float(np.median([geom[(k, i)][0] for k, i in t.items()])) for t in long]
+    if select == "anterior":
+        big = [j for j in range(len(long)) if area[j] >= 0.5 * max(area)]
+        j = max(big, key=lambda j: np.mean([geom[(k, i)][1][1] for k, i in long[j].items()]))
+    else:
+        j = int(np.argmax(area))
+    tibia = long[j]
+    missing = [k for k in ks if k not in tibia]
+    if missing:
+        k0 = next(iter(tibia))
+        cen = geom[(k0, tibia[k0])][1]
+        ij = np.array([cen[0], vol.data.shape[1] - 1 - cen[1] if flip_j else cen[1], k0])
+        x, y = vol.world(ij)[:2]
+        raise SegmentationError(
+            f"{vol.where()}: the tibia ({'the most anterior' if select == 'anterior' else 'the largest'} dark "
+            f"structure along the leg, near x {x:.1f} mm, y {y:.1f} mm) is not a closed dark region inside the skin "
+            f"on slice(s) {_slice_list(missing, off)} of {n}: its dark region opens into another there (on a masked "
+            "scan, the cortex into the fat) and another structure would be taken for it; draw the tibia on those "
+            "slices in an overrides file, or crop them away")
+    for k, i in tibia.items():
+        out[k] = i
+    return out
+
+
+def _slice_list(ks, off: int) -> str:
+    """Slice indices in the file, comma-separated."""
+    return ", ".join(str(int(k) + off) for k in ks)
 
 
 def _pick_fibula(N, contours, skin, bone, bone_area_px, level, *, px_mm, settings: SegmentationSettings):
@@ -390,7 +506,7 @@ def segment_volume(vol: Volume, *, settings: SegmentationSettings = Segmentation
     SegmentationError
         Naming animal, file and slice, if a slice has no closed skin or bone contour, or a bone or
         fibula contour lies outside the skin, or the tibia is hidden by the indenter on more than half
-        the slices.
+        the slices; naming the slices where the tibia chosen in 3D is missing (:func:`_choose_tibia`).
     ValueError
         For an unknown ``bone_select``.
     """
@@ -411,6 +527,7 @@ def segment_volume(vol: Volume, *, settings: SegmentationSettings = Segmentation
     flip_j = vol.affine[1, 1] < 0
     skins, bones, fibulas, info_slices = [], [], [], []
     hidden = np.zeros(vol.n_slices, bool)
+    traced = []  # (manual contours, _SliceResult or None) per slice
     ii, jj = np.meshgrid(np.arange(vol.data.shape[0]), np.arange(vol.data.shape[1]), indexing="ij")
     for k in range(vol.n_slices):
         where = vol.where(k)
@@ -437,6 +554,15 @@ def segment_volume(vol: Volume, *, settings: SegmentationSettings = Segmentation
                 if manual["bone"] is None or manual["skin"] is None:
                     raise
                 res = None  # skin and tibia drawn by hand: no automatic fibula on this slice
+        traced.append((manual, res))
+    # the tibia in 3D: the one dark structure that runs through every slice whose tibia is traced
+    choice = _choose_tibia([res.bone_candidates if res is not None and manual["bone"] is None else None
+                            for manual, res in traced], select=s.bone_select, vol=vol, flip_j=flip_j)
+    for k, (manual, res) in enumerate(traced):
+        where = vol.where(k)
+        kf = k + off
+        if res is not None:
+            res.finish(choice[k], px_mm=px_mm, settings=s)
         z_c = float(vol.world([(vol.data.shape[0] - 1) / 2, (vol.data.shape[1] - 1) / 2, k])[2])
         out = {}
         touch = None if res is None else res.bone_touch_mm
@@ -606,7 +732,7 @@ def contour_accuracy(seg: Contours, truth: Contours | dict) -> list[dict]:
 
 
 def segment_files(image, *, contours_out, qc_out, animal: str, state: str, settings: dict | SegmentationSettings,
-                  crop_mm=None, reference=None, overrides=None, truth=None, pre_contours=None,
+                  crop_mm=None, leg_point_mm=None, reference=None, overrides=None, truth=None, pre_contours=None,
                   pose_options: dict | None = None) -> Contours:
     """The rule ``segment``: load and check the image, segment, write contours and the QC figure.
 
@@ -624,6 +750,9 @@ def segment_files(image, *, contours_out, qc_out, animal: str, state: str, setti
         Config ``segmentation`` mapping (merged by :meth:`SegmentationSettings.from_config`) or settings.
     crop_mm : (3, 2) array_like or None
         World box [[xmin, xmax], [ymin, ymax], [zmin, zmax]] [mm] to crop to before segmenting.
+    leg_point_mm : (3,) array_like or None
+        A point inside the leg to segment [mm, world], for legs that touch: the skin and bones are traced on
+        :func:`deeptissue.imaging.select_leg` of the (cropped) image; the indenter is looked for in the whole image.
     reference : str or Path or None
         The pre image that a during ``image`` must match slice by slice.
     overrides : str or Path or None
@@ -642,7 +771,7 @@ def segment_files(image, *, contours_out, qc_out, animal: str, state: str, setti
         What was written to ``contours_out``.
     """
     from .contours import load_contours, save_contours
-    from .imaging import check_matching, crop_volume, load_nifti
+    from .imaging import check_matching, crop_volume, load_nifti, select_leg
     from .qc import plot_segmentation
 
     vol = load_nifti(image, animal=animal)
@@ -650,15 +779,21 @@ def segment_files(image, *, contours_out, qc_out, animal: str, state: str, setti
         check_matching(load_nifti(reference, animal=animal), vol)
     if crop_mm is not None:
         vol = crop_volume(vol, crop_mm)
+    leg = vol if leg_point_mm is None else select_leg(vol, leg_point_mm)
     if not isinstance(settings, SegmentationSettings):
         settings = SegmentationSettings.from_config(settings)
     ov = load_overrides(overrides) if overrides else None
     import logging
 
     log = logging.getLogger(__name__)
+    if leg_point_mm is not None:
+        from .imaging import body_mask
+
+        log.info("%s %s: the leg at leg_point_mm %s is segmented: %d of the body's %d voxels", animal, state,
+                 list(leg_point_mm), int(body_mask(leg).sum()), int(body_mask(vol).sum()))
     indenter = pre = None
     if state == "during" and settings.indenter_mask:
-        skins, _ = segment_volume(vol, settings=settings, state=state, overrides=ov, _skin_only=True)
+        skins, _ = segment_volume(leg, settings=settings, state=state, overrides=ov, _skin_only=True)
         indenter = find_indenter(vol, skins.skin, radius_mm=float((pose_options or {}).get("head_radius_mm", 1.5)),
                                  pose_options=pose_options)
         if indenter is not None:
@@ -666,7 +801,7 @@ def segment_files(image, *, contours_out, qc_out, animal: str, state: str, setti
                      animal, state, np.round(indenter.head_centre_mm, 3), np.round(indenter.axis, 4),
                      indenter.fluid_radius_mm, indenter.wall_mm)
         pre = load_contours(pre_contours) if pre_contours else None
-    contours, info = segment_volume(vol, settings=settings, state=state, overrides=ov, indenter=indenter, pre=pre)
+    contours, info = segment_volume(leg, settings=settings, state=state, overrides=ov, indenter=indenter, pre=pre)
     if info["bone_hidden"]:
         log.info("%s %s: the tibia touches the indenter on slice(s) %s: their contour is the pre tibia moved by "
                  "the rigid fit of the other slices", animal, state, info["bone_hidden"])

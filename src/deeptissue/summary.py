@@ -19,6 +19,7 @@ from typing import Sequence
 
 import numpy as np
 
+from .errorest import voi_error_estimate
 from .geometry import point_triangle_distance, surface_distance_mm  # noqa: F401 (part of this module's API)
 from .io import atomic_path, read_json, write_json
 from .mesh import TetMesh
@@ -50,6 +51,8 @@ class Summary:
     threshold: float = 0.3  # γmax threshold of the VOI [-]
     voi_mm3: float | None = None  # reference volume with γmax > threshold (gamma_sampling) [mm^3]
     bins_percent: dict | None = None  # bin label -> % of the VOI volume
+    voi_err_mm3: float | None = None  # estimated discretisation error of voi_mm3 (deeptissue.errorest) [mm^3]
+    bins_err_pp: dict | None = None  # bin label -> estimated error of that bin's % [percentage points]
     below_threshold_percent: float | None = None  # % of the whole model volume with γmax <= threshold
     peak_gamma: float | None = None  # max centroid γmax over elements [-]
     strain_energy_mJ: float | None = None  # strain energy in the VOI [mJ]
@@ -226,7 +229,9 @@ def summarize_solution(
     Returns
     -------
     summary : Summary
-        ``converged`` True; ``peak_gamma`` is the largest centroid γmax.
+        ``converged`` True; ``peak_gamma`` is the largest centroid γmax; ``voi_err_mm3`` and
+        ``bins_err_pp`` the recovered-strain estimate of the discretisation error of ``voi_mm3`` and
+        ``bins_percent`` (:func:`deeptissue.errorest.voi_error_estimate`).
     strain : ElementStrain
         Per-element strain at the centroids (for ``result.vtu``).
     """
@@ -248,6 +253,11 @@ def summarize_solution(
     centroid, sampled = stats(strain_measure, "centroid", w), stats(strain_measure, "points", w)
     st = sampled if gamma_sampling == "points" else centroid
     by = {m: (st if m == strain_measure else stats(m, gamma_sampling)) for m in STRAIN_MEASURES}
+    # the error estimate of the reported numbers: γh at the same points as voi_mm3 against the recovered γ*
+    at = ((g_pts[strain_measure], v_pts) if gamma_sampling == "points"
+          else (s.gamma(strain_measure)[:, None], s.volume_mm3[:, None]))
+    est = voi_error_estimate(mesh, displacement_mm, threshold=threshold, bin_edges=bin_edges, strain_measure=strain_measure,
+                             levels=SAMPLING_LEVELS if gamma_sampling == "points" else 0, sampled=at)
     skin = {}
     if skin_contours_mm is not None:
         verts, tris = deformed_surface(mesh, displacement_mm, facet="skin")
@@ -260,6 +270,7 @@ def summarize_solution(
     summary = Summary(
         animal=animal, variant=variant, converged=True, reason=None, strain_measure=strain_measure,
         threshold=float(threshold), voi_mm3=st.voi_mm3, bins_percent=st.bins_percent,
+        voi_err_mm3=est.voi_err_mm3, bins_err_pp=est.bins_err_pp,
         below_threshold_percent=st.below_threshold_percent, peak_gamma=centroid.peak_gamma,
         strain_energy_mJ=st.strain_energy_mJ, n_elements=int(mesh.n_tets), gamma_sampling=gamma_sampling,
         voi_sampled_mm3=sampled.voi_mm3, bins_sampled_percent=sampled.bins_percent,

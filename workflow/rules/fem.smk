@@ -77,6 +77,20 @@ rule verify_locking:
         "../scripts/verify_fem_locking.py"
 
 
+rule verify_cylinder:
+    output:
+        curve="results/verification/cylinder_curve.csv",
+        voi="results/verification/cylinder_voi.csv",
+    params:
+        material=config["fem"]["material"],
+    log:
+        "results/logs/verify_cylinder.log",
+    conda:
+        "../envs/deeptissue.yaml"
+    script:
+        "../scripts/verify_fem_cylinder.py"
+
+
 rule verify_summary:
     input:
         points=rules.verify_material.output.points,
@@ -86,6 +100,8 @@ rule verify_summary:
         checks=rules.verify_fem_cases.output.checks,
         hard=rules.verify_fem_cases.output.hard,
         benchmark=rules.verify_fem_benchmark.output.benchmark,
+        cylinder_curve=rules.verify_cylinder.output.curve,
+        cylinder_voi=rules.verify_cylinder.output.voi,
     output:
         summary="results/verification/summary.csv",
     log:
@@ -105,6 +121,7 @@ rule verify:
         rules.verify_fem_cases.output,
         rules.verify_fem_benchmark.output,
         rules.verify_locking.output,
+        rules.verify_cylinder.output,
         summary=rules.verify_summary.output.summary,
     log:
         "results/logs/verify.log",

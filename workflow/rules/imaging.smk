@@ -39,6 +39,8 @@ rule segment:
     params:
         settings=lambda wc: {**config["segmentation"], **animal_cfg(wc.animal).get("segmentation", {})},
         crop_mm=lambda wc: animal_cfg(wc.animal).get("crop_mm"),
+        # a point inside the leg to segment, where the legs touch (none: the whole body inside crop_mm)
+        leg_point_mm=lambda wc: animal_cfg(wc.animal).get("leg_point_mm"),
         # how the contrast fluid is found and the indenter's radius, for the during scan's indenter mask
         pose_options=config["pose"],
     log:

@@ -8,6 +8,8 @@ STUDY = config["study"]
 # the study's tables and figures: a folder per study.name, so studies in one checkout keep their own
 SUMMARY = f"results/summary/{STUDY_NAME}"
 VARIANTS = list(STUDY["variants"])
+# the animals with a during scan are solved; pre-only animals are only segmented
+STUDY_ANIMALS = [a for a in ANIMALS if has_during(a)]
 FIGURE_ANIMAL = figure_animal(config)
 # variants drawn in the section figures: sphere vs bar, and every sphere orientation
 SECTION_VARIANTS = [v for v in VARIANTS if v == "bar" or parse_variant(v).indenter == "sphere"]
@@ -22,14 +24,14 @@ STUDY_OUTPUTS = [
     f"{SUMMARY}/sections.png",
     f"{SUMMARY}/orientations.png",
 ]
-# final targets of the study (tables and figures): part of the default target
-study_outputs = lambda: list(STUDY_OUTPUTS)
-FINAL_OUTPUTS.extend(STUDY_OUTPUTS)
+# final targets of the study (tables and figures): part of the default target when an animal has a during scan
+study_outputs = lambda: list(STUDY_OUTPUTS) if STUDY_ANIMALS else []
+FINAL_OUTPUTS.extend(study_outputs())
 
 
 rule aggregate:
     input:
-        summaries=expand("results/{animal}/{variant}/summary.json", animal=ANIMALS, variant=VARIANTS),
+        summaries=expand("results/{animal}/{variant}/summary.json", animal=STUDY_ANIMALS, variant=VARIANTS),
         results=expand("results/{animal}/{variant}/result.vtu", animal=[FIGURE_ANIMAL], variant=SECTION_VARIANTS),
         pose=f"results/{FIGURE_ANIMAL}/pose.json",
     output:
@@ -64,7 +66,7 @@ rule aggregate:
             subcategory="Sections",
         ),
     params:
-        animals=ANIMALS,
+        animals=STUDY_ANIMALS,
         variants=VARIANTS,
         section_variants=SECTION_VARIANTS,
         figure_animal=FIGURE_ANIMAL,

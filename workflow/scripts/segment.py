@@ -13,6 +13,7 @@ with script_log(snakemake.log[0], "segment"):  # noqa: F821
         state=snakemake.wildcards.state,
         settings=snakemake.params.settings,
         crop_mm=snakemake.params.crop_mm,
+        leg_point_mm=snakemake.params.leg_point_mm,
         reference=inp.get("reference"),
         overrides=inp.get("overrides"),
         truth=inp.get("truth"),

@@ -271,6 +271,18 @@ def write_case_verification(material, *, checks_csv, hard_csv) -> None:
     _write_csv(hard_cases(material), hard_csv)
 
 
+def write_cylinder_verification(material, *, curve_csv, voi_csv, meshes=None) -> None:
+    """The cylinder scene (:mod:`deeptissue.fem.cylinder`) on the default mesh and the reference mesh
+    (``meshes``: :class:`~deeptissue.fem.cylinder.CylinderMesh` list, the finest last; default the
+    study's 1.6 / 0.8 mm and :data:`~deeptissue.fem.cylinder.REFERENCE_MESH`): curve_csv (mesh,
+    depth_mm, force_N, ...), voi_csv (mesh, depth_mm, voi_mm3, voi_err_mm3, bins_percent.*, bins_err_pp.*, ...)."""
+    from .cylinder import REFERENCE_MESH, CylinderMesh, mesh_convergence
+
+    curve, voi = mesh_convergence(material, [CylinderMesh(), REFERENCE_MESH] if meshes is None else meshes)
+    _write_csv(curve, curve_csv)
+    _write_csv(voi, voi_csv)
+
+
 def write_locking_check(material, *, locking_csv) -> None:
     """The u-p decision, measured: :func:`locking_check` at D = 57, 5.7 and 0.57 mm^2/N (locking_csv)."""
     _write_csv(locking_check(material), locking_csv)
@@ -308,6 +320,24 @@ KNOWN_FAILURES = {
         "open hard case: the coarser copy of the 30 deg bar; neither try of the solver reaches the full "
         "depth on the project's machine"),
 }
+
+# cylinder scene, each mesh against the finest: the accuracy goal of the study's numbers (force within
+# 0.5 % from 0.5 to 3 mm; VOI within 2 % and every bin within 1 pp at 1.5, 2 and 3 mm), and the error
+# estimate's goal (the true VOI error within 2 x the estimate)
+CYLINDER_FORCE_LIMIT = 0.005
+CYLINDER_VOI_LIMIT = 0.02
+CYLINDER_BINS_LIMIT_PP = 1.0
+ESTIMATE_FACTOR = 2.0
+
+# the default mesh on the cylinder scene misses the goal against the 0.4 mm mesh (the solves converge;
+# the finer mesh moves the numbers): the scene asks for a finer mesh than the default
+_CYLINDER_MESH_REASON = ("the default mesh is too coarse for this scene (the solve converges, the finer mesh "
+                         "moves the number): what mesh refinement from the error estimate is for")
+KNOWN_FAILURES.update({f"cylinder: 1.6 / 0.8 mm mesh: force at {d:g} mm: |F / F_finest - 1|": _CYLINDER_MESH_REASON
+                       for d in (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)})
+KNOWN_FAILURES.update({f"cylinder: 1.6 / 0.8 mm mesh: bins at {d:g} mm: max |p - p_finest| [pp]": _CYLINDER_MESH_REASON
+                       for d in (1.5, 2.0, 3.0)})
+KNOWN_FAILURES["cylinder: 1.6 / 0.8 mm mesh: VOI at 2 mm: |VOI / VOI_finest - 1|"] = _CYLINDER_MESH_REASON
 
 _HOMOGENEOUS_CASES = ("uniaxial", "equibiaxial", "simple_shear")
 
@@ -387,9 +417,57 @@ def _solve_checks(df: pd.DataFrame, prefix: str) -> list[dict]:
     return rows
 
 
+def _cylinder_checks(curve: pd.DataFrame, voi: pd.DataFrame) -> list[dict]:
+    """cylinder_curve.csv and cylinder_voi.csv: every mesh but the finest (most DOFs) against the
+    finest: |F / F_ref - 1| per curve depth, |VOI / VOI_ref - 1| and the largest bin difference [pp]
+    per VOI depth, and the true VOI and largest bin errors over their estimates (voi_err_mm3, the
+    largest bins_err_pp)."""
+    rows = []
+    ref_mesh = curve.loc[curve["n_dofs"].idxmax(), "mesh"]
+    ref_c = curve[curve["mesh"] == ref_mesh].set_index("depth_mm")
+    ref_v = voi[voi["mesh"] == ref_mesh].set_index("depth_mm")
+    bins = [c for c in voi.columns if c.startswith("bins_percent.")]
+    for mesh in [m for m in dict.fromkeys(curve["mesh"]) if m != ref_mesh]:
+        c = curve[curve["mesh"] == mesh].set_index("depth_mm")
+        for d, r in c.iterrows():
+            err = abs(r.force_N / ref_c.loc[d, "force_N"] - 1) if d in ref_c.index else np.nan
+            ok = bool(r.converged) and np.isfinite(err) and err <= CYLINDER_FORCE_LIMIT
+            rows.append(_check(f"cylinder: {mesh} mesh: force at {d:g} mm: |F / F_finest - 1|", err, CYLINDER_FORCE_LIMIT,
+                               ok, f"finest {ref_mesh}; {r.force_N:.5g} N against {ref_c.loc[d, 'force_N']:.5g} N"
+                               if d in ref_c.index else "finest mesh has no solve at this depth"))
+        v = voi[voi["mesh"] == mesh].set_index("depth_mm")
+        for d in ref_v.index:
+            if d not in v.index:
+                rows.append(_check(f"cylinder: {mesh} mesh: VOI at {d:g} mm: |VOI / VOI_finest - 1|", np.nan,
+                                   CYLINDER_VOI_LIMIT, False, "not converged"))
+                continue
+            r, ref = v.loc[d], ref_v.loc[d]
+            true = r.voi_mm3 - ref.voi_mm3
+            rel = abs(true) / ref.voi_mm3
+            note = f"{r.voi_mm3:.3f} mm^3 against {ref.voi_mm3:.3f} mm^3; estimate {r.voi_err_mm3:.3f} mm^3"
+            rows.append(_check(f"cylinder: {mesh} mesh: VOI at {d:g} mm: |VOI / VOI_finest - 1|", rel,
+                               CYLINDER_VOI_LIMIT, rel <= CYLINDER_VOI_LIMIT, note))
+            diff = (r[bins] - ref[bins]).abs()
+            worst = diff.astype(float).idxmax()
+            est = r.get(worst.replace("bins_percent.", "bins_err_pp."), np.nan)
+            rows.append(_check(f"cylinder: {mesh} mesh: bins at {d:g} mm: max |p - p_finest| [pp]", diff.max(),
+                               CYLINDER_BINS_LIMIT_PP, diff.max() <= CYLINDER_BINS_LIMIT_PP,
+                               f"largest in bin {worst.split('.', 1)[1]}; estimate {est:.2f} pp"))
+            ratio = abs(true) / r.voi_err_mm3 if r.voi_err_mm3 > 0 else (0.0 if true == 0 else np.inf)
+            rows.append(_check(f"cylinder: {mesh} mesh: VOI at {d:g} mm: true error / estimate", ratio, ESTIMATE_FACTOR,
+                               ratio <= ESTIMATE_FACTOR, f"true {true:+.3f} mm^3, estimate {r.voi_err_mm3:.3f} mm^3"))
+            est_b = float(r[[c for c in voi.columns if c.startswith("bins_err_pp.")]].max())
+            ratio = diff.max() / est_b if est_b > 0 else (0.0 if diff.max() == 0 else np.inf)
+            rows.append(_check(f"cylinder: {mesh} mesh: bins at {d:g} mm: largest true error / largest estimate", ratio,
+                               ESTIMATE_FACTOR, ratio <= ESTIMATE_FACTOR,
+                               f"true {diff.max():.2f} pp, estimate {est_b:.2f} pp"))
+    return rows
+
+
 def verification_summary(*, points: pd.DataFrame, hertz: pd.DataFrame, curve: pd.DataFrame,
                          locking: pd.DataFrame, checks: pd.DataFrame, hard: pd.DataFrame,
-                         benchmark: pd.DataFrame, radius_mm: float = HERTZ_RADIUS_MM,
+                         benchmark: pd.DataFrame, cylinder_curve: pd.DataFrame | None = None,
+                         cylinder_voi: pd.DataFrame | None = None, radius_mm: float = HERTZ_RADIUS_MM,
                          known_failures: dict[str, str] | None = None) -> pd.DataFrame:
     """One row per check of the ``verify`` target, from the tables its rules write.
 
@@ -405,6 +483,9 @@ def verification_summary(*, points: pd.DataFrame, hertz: pd.DataFrame, curve: pd
     checks, hard, benchmark : DataFrame
         fem_checks.csv, hard_cases.csv and benchmark.csv (case, converged, load_reached, ...); the
         benchmark's wall time depends on the machine and is reported in the note, not checked.
+    cylinder_curve, cylinder_voi : DataFrame, optional
+        cylinder_curve.csv and cylinder_voi.csv (:func:`write_cylinder_verification`): each mesh
+        against the finest (:func:`_cylinder_checks`); None: no cylinder rows.
     radius_mm : float
         Radius of the Hertz sphere [mm].
     known_failures : dict, optional
@@ -419,7 +500,8 @@ def verification_summary(*, points: pd.DataFrame, hertz: pd.DataFrame, curve: pd
     known = KNOWN_FAILURES if known_failures is None else known_failures
     rows = (_material_checks(points) + _hertz_checks(hertz, radius_mm) + _hertz_curve_checks(curve, radius_mm)
             + _locking_checks(locking) + _fem_case_checks(checks) + _solve_checks(hard, "hard case")
-            + _solve_checks(benchmark, "benchmark"))
+            + _solve_checks(benchmark, "benchmark")
+            + ([] if cylinder_curve is None or cylinder_voi is None else _cylinder_checks(cylinder_curve, cylinder_voi)))
     for row in rows:
         if row.pop("ok"):
             row["status"] = "pass"
@@ -437,11 +519,14 @@ def failed_checks(summary: pd.DataFrame) -> list[str]:
 
 
 def write_verification_summary(*, point_csv, hertz_csv, curve_csv, locking_csv, checks_csv, hard_csv,
-                               benchmark_csv, summary_csv) -> pd.DataFrame:
-    """Read the verification CSVs, write :func:`verification_summary` to summary_csv and return it."""
+                               benchmark_csv, summary_csv, cylinder_curve_csv=None, cylinder_voi_csv=None) -> pd.DataFrame:
+    """Read the verification CSVs, write :func:`verification_summary` to summary_csv and return it
+    (the cylinder rows when both cylinder CSVs are given)."""
+    cyl = cylinder_curve_csv is not None and cylinder_voi_csv is not None
     summary = verification_summary(
         points=pd.read_csv(point_csv), hertz=pd.read_csv(hertz_csv), curve=pd.read_csv(curve_csv),
         locking=pd.read_csv(locking_csv), checks=pd.read_csv(checks_csv), hard=pd.read_csv(hard_csv),
-        benchmark=pd.read_csv(benchmark_csv))
+        benchmark=pd.read_csv(benchmark_csv), cylinder_curve=pd.read_csv(cylinder_curve_csv) if cyl else None,
+        cylinder_voi=pd.read_csv(cylinder_voi_csv) if cyl else None)
     _write_csv(summary, summary_csv)
     return summary

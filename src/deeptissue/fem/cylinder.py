@@ -1,0 +1,224 @@
+"""The cylinder scene: the 1.5 mm sphere pushed into the centre of the top face of a tissue cylinder.
+
+A cylinder of radius 8 mm and height 8 mm (axis z, bottom face z = 0 fixed, side and top free) of
+the study's Ogden tissue, meshed with gmsh in quadratic tetrahedra, fine under the indenter and
+coarse elsewhere; the sphere travels along -z into the centre of the top face. Its force-depth
+curve and its max-shear-strain VOI and bins, computed with the study's own functions, are compared
+between mesh sizes (:func:`mesh_convergence`): a scene with a known geometry on which the
+discretisation error of the study's numbers and its estimate (:mod:`deeptissue.errorest`) are measured.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import pandas as pd
+
+from ..mesh import TetMesh
+from ..rigid import BoneMotion
+from .indenters import Indenter
+from .solver import SolverSettings, solve_indentation
+
+__all__ = ["CURVE_DEPTHS_MM", "CylinderMesh", "ESTIMATES", "REFERENCE_MESH", "VOI_DEPTHS_MM", "cylinder_mesh",
+           "cylinder_scene", "effectivity_table", "mesh_convergence"]
+
+CURVE_DEPTHS_MM = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)  # depths of the force-depth curve [mm]
+VOI_DEPTHS_MM = (1.5, 2.0, 3.0)  # depths at which the VOI and bins are computed [mm]
+
+
+@dataclass(frozen=True)
+class CylinderMesh:
+    """Sizes of the cylinder mesh [mm]: ``element_size_mm`` away from the indenter, ``refine_size_mm``
+    within ``refine_radius_mm`` of the axis segment from the top centre ``refine_depth_mm`` down,
+    growing back over ``refine_transition_mm``. The defaults are the study's default mesh (1.6 mm,
+    0.8 mm within 4 mm of the indenter's travel to 4 mm beyond the deepest tip)."""
+
+    element_size_mm: float = 1.6
+    refine_size_mm: float = 0.8
+    refine_radius_mm: float = 4.0
+    refine_transition_mm: float = 2.0
+    refine_depth_mm: float = 7.0
+
+    @property
+    def label(self) -> str:
+        """``'1.6 / 0.8 mm'``: global and refined size."""
+        return f"{self.element_size_mm:g} / {self.refine_size_mm:g} mm"
+
+
+# the finest mesh of the verification case: 0.4 mm within 2.5 mm of the contact, 1.2 mm elsewhere (70 503
+# DOFs); 0.3 mm (126 600 DOFs) takes over 20 minutes for one 3 mm solve on a shared core
+REFERENCE_MESH = CylinderMesh(element_size_mm=1.2, refine_size_mm=0.4, refine_radius_mm=2.5, refine_transition_mm=2.0,
+                              refine_depth_mm=4.0)
+
+
+def cylinder_mesh(sizes: CylinderMesh = CylinderMesh(), *, radius_mm: float = 8.0, height_mm: float = 8.0,
+                  order: int = 2) -> TetMesh:
+    """The tissue cylinder ``x² + y² <= radius², 0 <= z <= height`` meshed with gmsh.
+
+    Facet sets: ``bone`` (bottom face z = 0, fixed), ``patch`` (top face, the indenter's contact
+    set), ``side``, and ``skin`` (top and side: every free face). Sizes: :class:`CylinderMesh`.
+    """
+    from .shapes import _finish, _start
+
+    if sizes.refine_size_mm > sizes.element_size_mm:
+        raise ValueError(f"refine_size_mm {sizes.refine_size_mm} > element_size_mm {sizes.element_size_mm}")
+    gmsh = _start("cylinder")
+    try:
+        gmsh.model.occ.addCylinder(0, 0, 0, 0, 0, height_mm, radius_mm)
+        gmsh.model.occ.synchronize()
+        gmsh.model.addPhysicalGroup(3, [t for _, t in gmsh.model.getEntities(3)], name="tissue")
+        groups = {"bone": [], "patch": [], "side": []}
+        for _, t in gmsh.model.getEntities(2):
+            z = gmsh.model.occ.getCenterOfMass(2, t)[2]
+            groups["bone" if abs(z) < 1e-6 else "patch" if abs(z - height_mm) < 1e-6 else "side"].append(t)
+        for name, tags in groups.items():
+            gmsh.model.addPhysicalGroup(2, tags, name=name)
+        gmsh.model.addPhysicalGroup(2, groups["patch"] + groups["side"], name="skin")
+        h, hr = float(sizes.element_size_mm), float(sizes.refine_size_mm)
+        opt = gmsh.option.setNumber
+        opt("Mesh.MeshSizeMax", h)
+        opt("Mesh.MeshSizeMin", 0.5 * hr)
+        for k in ("MeshSizeExtendFromBoundary", "MeshSizeFromPoints", "MeshSizeFromCurvature"):
+            opt(f"Mesh.{k}", 0)
+        if hr < h:  # distance to points along the axis below the top centre, then a linear ramp
+            n = max(2, int(np.ceil(sizes.refine_depth_mm / (0.25 * hr))) + 1)
+            z = np.linspace(height_mm, max(0.0, height_mm - sizes.refine_depth_mm), n)
+            pts = [gmsh.model.occ.addPoint(0.0, 0.0, float(zi)) for zi in z]
+            gmsh.model.occ.synchronize()
+            fd = gmsh.model.mesh.field.add("Distance")
+            gmsh.model.mesh.field.setNumbers(fd, "PointsList", pts)
+            ft = gmsh.model.mesh.field.add("Threshold")
+            for k, v in dict(InField=fd, SizeMin=hr, SizeMax=h, DistMin=sizes.refine_radius_mm,
+                             DistMax=sizes.refine_radius_mm + sizes.refine_transition_mm).items():
+                gmsh.model.mesh.field.setNumber(ft, k, v)
+            gmsh.model.mesh.field.setAsBackgroundMesh(ft)
+        return _finish(gmsh, order)
+    finally:
+        gmsh.finalize()
+
+
+def _indenter(depth_mm: float, height_mm: float, radius_mm: float = 1.5) -> Indenter:
+    return Indenter("sphere", axis=(0.0, 0.0, -1.0), start_mm=(0.0, 0.0, height_mm + 1e-3),
+                    end_mm=(0.0, 0.0, height_mm - depth_mm), radius_mm=radius_mm)
+
+
+def _other_estimates(mesh, u, summary, threshold, edges) -> dict:
+    """The estimates the summary's is compared with (columns ``est_<candidate>_voi_mm3`` and
+    ``est_<candidate>_bins_pp``, the largest over the bins): the signed-difference form of the patch
+    recovery, both forms of the nodal-average recovery, and the difference of the two samplings."""
+    from ..errorest import sampling_difference, voi_error_estimate
+
+    out = {}
+    for rec in ("patch", "average"):
+        e = voi_error_estimate(mesh, u, threshold=threshold, bin_edges=edges, recovery=rec)
+        out.update({f"est_{rec}_diff_voi_mm3": abs(e.voi_diff_mm3), f"est_{rec}_diff_bins_pp": max(e.bins_err_pp.values()),
+                    f"est_{rec}_moved_voi_mm3": e.voi_err_mm3, f"est_{rec}_moved_bins_pp": max(e.bins_moved_pp.values())})
+    d_voi, d_bins = sampling_difference(summary.voi_sampled_mm3, summary.bins_sampled_percent, summary.voi_centroid_mm3,
+                                        summary.bins_centroid_percent)
+    out.update(est_sampling_voi_mm3=d_voi, est_sampling_bins_pp=max(d_bins.values()))
+    return out
+
+
+def cylinder_scene(material, sizes: CylinderMesh = CylinderMesh(), *, curve_depths_mm: Sequence[float] = CURVE_DEPTHS_MM,
+                   voi_depths_mm: Sequence[float] = VOI_DEPTHS_MM, height_mm: float = 8.0, threshold: float = 0.3,
+                   bin_edges=None, settings: SolverSettings | None = None, mesh: TetMesh | None = None
+                   ) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Solve the cylinder scene on one mesh: a force-depth curve and the VOI at each of ``voi_depths_mm``.
+
+    Each depth is its own solve to that depth with the solver's defaults (no cast, zero bone motion),
+    so every number is a converged end state; the VOI, bins and their error estimate are those of
+    the study (:func:`deeptissue.summary.summarize_solution`).
+
+    Returns
+    -------
+    curve : DataFrame
+        depth_mm, force_N, converged, increments, newton_iterations, wall_s, one row per depth of
+        ``curve_depths_mm`` ∪ ``voi_depths_mm``; attrs n_dofs, n_tets, mesh (label).
+    voi : DataFrame
+        One row per depth of ``voi_depths_mm``: depth_mm, voi_mm3, voi_err_mm3, bins_percent.<bin>,
+        bins_err_pp.<bin> and voi_centroid_mm3 (:func:`deeptissue.summary.summarize_solution`).
+    """
+    from ..strain import DEFAULT_BIN_EDGES
+    from ..summary import summarize_solution
+
+    edges = DEFAULT_BIN_EDGES if bin_edges is None else tuple(bin_edges)
+    m = cylinder_mesh(sizes, height_mm=height_mm) if mesh is None else mesh
+    st = SolverSettings() if settings is None else settings
+    rows, vois = [], []
+    for d in sorted(set(map(float, curve_depths_mm)) | set(map(float, voi_depths_mm))):
+        t0 = time.perf_counter()
+        r = solve_indentation(m, material=material, indenter=_indenter(d, height_mm), bone_motion=BoneMotion(), settings=st)
+        rows.append(dict(depth_mm=d, force_N=r.indenter_force_N if r.converged else np.nan, converged=r.converged,
+                         increments=r.increments, newton_iterations=r.newton_iterations,
+                         wall_s=time.perf_counter() - t0))
+        if d in voi_depths_mm and r.converged:
+            s, _ = summarize_solution(m, r.displacement_mm, animal="cylinder", variant=f"{d:g}mm", threshold=threshold,
+                                      bin_edges=edges)
+            vois.append(dict(depth_mm=d, voi_mm3=s.voi_mm3, voi_err_mm3=s.voi_err_mm3, voi_centroid_mm3=s.voi_centroid_mm3,
+                             **{f"bins_percent.{b}": p for b, p in s.bins_percent.items()},
+                             **{f"bins_err_pp.{b}": p for b, p in s.bins_err_pp.items()},
+                             **_other_estimates(m, r.displacement_mm, s, threshold, edges)))
+    curve = pd.DataFrame(rows)
+    curve.attrs.update(n_dofs=3 * len(m.nodes_mm), n_tets=int(m.n_tets), mesh=sizes.label)
+    return curve, pd.DataFrame(vois)
+
+
+def mesh_convergence(material, meshes: Sequence[CylinderMesh], **kw) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """:func:`cylinder_scene` on each of ``meshes`` (the last is the reference): the curves and VOI
+    tables stacked, with columns mesh (label), n_dofs, n_tets and mesh_wall_s (all solves of the mesh)."""
+    curves, vois = [], []
+    for sizes in meshes:
+        t0 = time.perf_counter()
+        c, v = cylinder_scene(material, sizes, **kw)
+        info = dict(mesh=sizes.label, n_dofs=c.attrs["n_dofs"], n_tets=c.attrs["n_tets"],
+                    mesh_wall_s=time.perf_counter() - t0)
+        curves.append(c.assign(**info))
+        vois.append(v.assign(**info))
+    return pd.concat(curves, ignore_index=True), pd.concat(vois, ignore_index=True)
+
+
+# the estimates of cylinder_voi.csv: name -> (VOI column [mm³], largest-bin column [pp])
+ESTIMATES = {
+    "patch, moved volume (the summary's)": ("voi_err_mm3", None),
+    "patch, signed difference": ("est_patch_diff_voi_mm3", "est_patch_diff_bins_pp"),
+    "patch, moved volume": ("est_patch_moved_voi_mm3", "est_patch_moved_bins_pp"),
+    "nodal average, signed difference": ("est_average_diff_voi_mm3", "est_average_diff_bins_pp"),
+    "nodal average, moved volume": ("est_average_moved_voi_mm3", "est_average_moved_bins_pp"),
+    "two samplings": ("est_sampling_voi_mm3", "est_sampling_bins_pp"),
+}
+
+
+def effectivity_table(voi: pd.DataFrame) -> pd.DataFrame:
+    """Effectivity (estimate / true error) of every estimate of ``voi`` (cylinder_voi.csv) for each mesh
+    but the finest (most DOFs) at each depth: columns mesh, depth_mm, true_voi_mm3 (signed), true_voi_percent,
+    true_bins_pp (largest over the bins), then per estimate ``<name>: voi`` and ``<name>: bins``. The
+    summary's bin estimate is the largest of its ``bins_err_pp.*``; an effectivity >= 0.5 means the
+    true error is within twice the estimate."""
+    bins = [c for c in voi.columns if c.startswith("bins_percent.")]
+    ref_mesh = voi.loc[voi["n_dofs"].idxmax(), "mesh"]
+    ref = voi[voi["mesh"] == ref_mesh].set_index("depth_mm")
+    rows = []
+    for _, r in voi[voi["mesh"] != ref_mesh].iterrows():
+        f = ref.loc[r["depth_mm"]]
+        true_voi = r["voi_mm3"] - f["voi_mm3"]
+        true_bins = max(abs(r[b] - f[b]) for b in bins)
+        row = dict(mesh=r["mesh"], depth_mm=r["depth_mm"], true_voi_mm3=true_voi, true_voi_percent=100 * true_voi / f["voi_mm3"],
+                   true_bins_pp=true_bins)
+        for name, (cv, cb) in ESTIMATES.items():
+            if cv in r:
+                row[f"{name}: voi"] = r[cv] / abs(true_voi) if true_voi else np.inf
+            est_b = max(r[c] for c in voi.columns if c.startswith("bins_err_pp.")) if cb is None else r.get(cb, np.nan)
+            row[f"{name}: bins"] = est_b / true_bins if true_bins else np.inf
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+if __name__ == "__main__":  # python -m deeptissue.fem.cylinder results/verification/cylinder_voi.csv [more.csv ...]
+    import sys
+
+    pd.set_option("display.width", 250)
+    tables = pd.concat([pd.read_csv(p) for p in sys.argv[1:]], ignore_index=True)
+    print(effectivity_table(tables).round(3).T.to_string())
