@@ -24,7 +24,7 @@ from .shapes import distort_interior
 from .solver import SolverSettings, solve_indentation
 from .verification import _bar_footprint, _limb_indenter, reference_limb
 
-__all__ = ["CASES", "FORMULATIONS", "comparison_row", "plot_comparison"]
+__all__ = ["CASES", "DEMO_VARIANTS", "FORMULATIONS", "comparison_row", "plot_comparison", "variant_row"]
 
 FORMULATIONS = ("penalty", "exact")
 
@@ -64,6 +64,46 @@ CASES = {
 }
 
 
+# demo variants solved from the start with both formulations: the pinched bars cost the workflow's solver most
+DEMO_VARIANTS = ("rat01_sphere", "rat01_bar", "rat02_bar")
+
+
+def _solve(formulation, mesh, *, material, indenter, motion, cast=None, indenter_set="patch", max_wall_s):
+    if formulation == "exact":
+        return solve_indentation_exact(mesh, material=material, indenter=indenter, bone_motion=motion, cast=cast,
+                                       settings=ExactContactSettings(max_wall_s=max_wall_s, indenter_set=indenter_set))
+    return solve_indentation(mesh, material=material, indenter=indenter, bone_motion=motion, cast=cast,
+                             settings=SolverSettings(max_wall_s=max_wall_s, indenter_set=indenter_set))
+
+
+def _row(r, wall_s, **keys) -> dict:
+    its = [h.iterations for h in r.history if h.converged and h.step == 4]
+    return dict(**keys, converged=r.converged, reason=r.reason, load_reached=r.load_reached, increments=r.increments,
+                newton_iterations=r.newton_iterations,
+                median_newton_per_increment=float(np.median(its)) if its else np.nan,
+                indenter_force_N=r.indenter_force_N, max_penetration_rel=r.max_penetration_rel, n_dofs=r.n_dofs,
+                wall_s=wall_s)
+
+
+def variant_row(material, *, mesh, pose, cast, animal: str, variant: str, formulation: str, bar_length_mm: float = 10.0,
+                max_wall_s: float = 1800.0) -> dict:
+    """One study variant (its model, pose and cast) solved from the start with ``formulation``: the row of
+    :func:`comparison_row` plus the VOI [mm^3] and bin percentages of the study's default strain statistics."""
+    from ..study import variant_indenter
+    from ..summary import summarize_solution
+
+    indenter = variant_indenter(pose, variant, bar_length_mm=bar_length_mm)
+    set_name = f"patch_{variant}" if f"patch_{variant}" in mesh.facets else "patch"
+    t = time.perf_counter()
+    r = _solve(formulation, mesh, material=material, indenter=indenter, motion=pose.bone_motion, cast=cast,
+               indenter_set=set_name, max_wall_s=max_wall_s)
+    row = _row(r, time.perf_counter() - t, case=f"{animal}_{variant}", formulation=formulation)
+    if r.converged:
+        summary, _ = summarize_solution(mesh, r.displacement_mm, animal=animal, variant=variant)
+        row.update(voi_mm3=summary.voi_mm3, **{f"bins_percent.{k}": v for k, v in summary.bins_percent.items()})
+    return row
+
+
 def comparison_row(material, case: str, formulation: str, *, max_wall_s: float = 900.0) -> dict:
     """Solve ``case`` of :data:`CASES` with ``formulation`` ('penalty' or 'exact'); one row of the table."""
     if case not in CASES:
@@ -72,18 +112,8 @@ def comparison_row(material, case: str, formulation: str, *, max_wall_s: float =
         raise ValueError(f"contact comparison: unknown formulation {formulation!r} (one of {FORMULATIONS})")
     mesh, indenter, motion = CASES[case]()
     t = time.perf_counter()
-    if formulation == "exact":
-        r = solve_indentation_exact(mesh, material=material, indenter=indenter, bone_motion=motion,
-                                    settings=ExactContactSettings(max_wall_s=max_wall_s))
-    else:
-        r = solve_indentation(mesh, material=material, indenter=indenter, bone_motion=motion,
-                              settings=SolverSettings(max_wall_s=max_wall_s))
-    its = [h.iterations for h in r.history if h.converged and h.step == 4]
-    return dict(case=case, formulation=formulation, converged=r.converged, reason=r.reason,
-                load_reached=r.load_reached, increments=r.increments, newton_iterations=r.newton_iterations,
-                median_newton_per_increment=float(np.median(its)) if its else np.nan,
-                indenter_force_N=r.indenter_force_N, max_penetration_rel=r.max_penetration_rel,
-                n_dofs=r.n_dofs, wall_s=time.perf_counter() - t)
+    r = _solve(formulation, mesh, material=material, indenter=indenter, motion=motion, max_wall_s=max_wall_s)
+    return _row(r, time.perf_counter() - t, case=case, formulation=formulation)
 
 
 def plot_comparison(df: pd.DataFrame, path) -> None:

@@ -59,6 +59,8 @@ from .solver import BoneMotion, BoneState, IncrementRecord, SolveResult, _bone_c
 
 log = logging.getLogger(__name__)
 
+__all__ = ["ContactSettings", "ExactContactSettings", "IncrementSettings", "NewtonSettings", "solve_indentation_exact"]
+
 
 @dataclass(frozen=True)
 class NewtonSettings:
