@@ -1,32 +1,45 @@
-"""Quasi-static indentation with exact frictionless contact: nodal constraints and a semi-smooth Newton method.
+"""Quasi-static indentation with exact frictionless contact: weighted gaps and a semi-smooth Newton method.
 
-Every obstacle is rigid (the analytical indenter, the rigid cast), so contact is a condition on the skin
-nodes alone: each node i of a contact facet set has a gap g_i(x_i) = g(x_i) to the obstacle (signed
-distance, outward normal n_i = grad g, H_i = grad n_i) and a contact force lam_i n_i [N] on the tissue,
-with the complementarity conditions lam_i >= 0, g_i >= 0, lam_i g_i = 0, written as the equation
-``C_i = min(lam_i, c g_i) = 0`` (c [N/mm] only scales the gap into a force). Equilibrium reads
-``R(u, lam) = f_int(u) - sum_i lam_i n_i(u) = 0`` on the free dofs.
+Every obstacle is rigid (the analytical indenter, the rigid cast) and given by its signed distance g(x)
+(outward normal n = grad g, H = grad n). Contact is a condition on the skin's quadratic facets, imposed
+node by node on weighted gaps: for a node j of a contact facet set,
+``gw_j = sum_q A_q psi_j(q) g(x_q) / m_j`` with ``m_j = sum_q A_q psi_j(q)``, where q runs over the
+quadrature points of the facets around j (reference area weights A_q, current positions x_q) and psi_j is
+j's piecewise-linear hat on the facets split into four subtriangles (positive, a partition of unity: the
+mid-edge and corner nodes of a quadratic facet both get a positive weight, which the facet's own quadratic
+shape functions do not give the corners). Its multiplier lam_j [N] is the node's share of the contact force:
+the pressure ``p(q) = sum_j lam_j psi_j(q) / m_j`` is non-negative wherever every lam_j is, and the force
+on the tissue is ``G^T lam`` with ``G = d gw / d u``. Complementarity lam_j >= 0, gw_j >= 0, lam_j gw_j = 0
+is the equation ``C_j = min(lam_j, c_j gw_j) = 0`` (c_j = E h_j [N/mm] scales a gap into a force).
+Equilibrium reads ``R(u, lam) = f_int(u) - G(u)^T lam = 0`` on the free dofs.
 
 Newton's method on (R, C) with the generalised derivative of min is the primal-dual active-set method
-(Hintermueller, Ito and Kunisch 2002): at each iteration the active set is A = {i : lam_i - c g_i > 0};
-an active node's linearised gap is closed, g_i + n_i . du_i = 0, and an inactive node's force set to
-zero. The active nodes' normal displacements are therefore prescribed; in a frame (n_i, t1_i, t2_i) at
-each active node (du = Q da, Q orthogonal) they are eliminated like Dirichlet dofs, so the matrix solved
-is ``Q^T (K - sum_A lam_i H_i) Q`` with those rows and columns replaced by the identity: symmetric,
-the size and sparsity pattern of the displacement problem (the PARDISO analysis is done once), and the
-new forces are the active nodes' linearised normal reactions. Displacement, active set and forces
-converge together, superlinearly near the solution; there is no penalty and no multiplier update loop.
-A backtracking line search on the merit function 0.5 (|R|^2 + |C|^2) globalises each step.
+(Hintermueller, Ito and Kunisch 2002; Hueber and Wohlmuth 2005 for contact): at each iteration the active
+set is A = {j : lam_j - c_j gw_j > 0}; an active node's linearised weighted gap is closed,
+``gw_j + G_j du = 0``, an inactive node's force is zero. Displacement, multipliers and active set come
+from one symmetric saddle-point system ``[[K - sum_q A p N N H, G_A^T], [G_A, 0]]`` over the free dofs and
+the candidate nodes (an inactive node's row is the identity), factorised by PARDISO in symmetric
+indefinite mode; they converge together, superlinearly near the solution, with no penalty and no
+multiplier update loop. A backtracking line search on the merit function 0.5 (|R|^2 + |C|^2) globalises
+each step. The weighted gaps average the gap over each node's facets, so a facet cannot slip into a
+curved obstacle between its nodes without closing a weighted gap (with constraints at the nodes alone, a
+30 deg bar's rim cuts ~20 % of a facet into the skin and the active set cycles at the quadratic facets'
+corner nodes, whose consistent share of a pressure is near zero).
 
-An increment is converged when |R| <= rtol max(|f_int|, |contact force|) + atol and every candidate node
-satisfies the complementarity to the gap tolerance: |min(lam_i, c g_i)| <= c gap_tol_rel h_i (h_i the
-size of the node's facets), i.e. no node penetrates more than gap_tol_rel h_i and no node pulls on the
-obstacle by more than the force that would close that gap. Increments grow after few Newton iterations
-and few active-set changes, shrink after many, and are cut after a failure.
+An increment is converged when |R| <= rtol max(|f_int|, |G^T lam|) + atol and every candidate node
+satisfies the complementarity to the gap tolerance: |min(lam_j, c_j gw_j)| <= c_j gap_tol_rel h_j (h_j the
+size of the node's facets), i.e. no weighted gap is closed beyond gap_tol_rel h_j and no node pulls on the
+obstacle by more than the force that would close that gap. It is also converged, with an unchanged active set,
+the residual within rtol_intermediate and no longer falling tenfold in two iterations, when the Newton
+correction moves no node by more than gap_tol_rel h_min (the correction is applied): the state is then
+fixed to the gap tolerance, and the residual left is that of a point on an edge of the piecewise-flat cast,
+whose normal jumps there (Newton alternates between the two faces).
+Increments grow after few Newton iterations and few active-set changes, shrink after many, and are cut
+after a failure.
 
 The load schedule (bone rotation about x, y, z, then translation with the indenter's travel), the
-assembler, the linear solvers, the facet sets and the result type are those of
-:mod:`deeptissue.fem.solver`. Units: mm, N, MPa, mJ, s.
+assembler, the facet sets and the result type are those of :mod:`deeptissue.fem.solver`.
+Units: mm, N, MPa, mJ, s.
 """
 
 from __future__ import annotations
@@ -36,16 +49,18 @@ import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+import scipy.sparse as sp
 
 from ..mesh import TetMesh
 from .assembly import Assembler, as_material_law
 from .cast import Cast
-from .contact import ContactSurface
+from .contact import ContactSurface, tri6_shape
 from .indenters import Indenter
-from .linsolve import make_solver
 from .solver import BoneMotion, BoneState, IncrementRecord, SolveResult, _bone_clearance_mm, _Schedule
 
 log = logging.getLogger(__name__)
+
+__all__ = ["ContactSettings", "ExactContactSettings", "IncrementSettings", "NewtonSettings", "solve_indentation_exact"]
 
 
 @dataclass(frozen=True)
@@ -55,8 +70,7 @@ class NewtonSettings:
     atol_mu_rel: absolute floor of the residual in units of mu V^(2/3) [N]; max_iterations per increment;
     armijo: the merit function must fall by this fraction of its predicted decrease below the largest of the
     last ``nonmonotone_memory`` merits (1: the monotone test); max_backtracks: step halvings before the
-    direction is given up; kink_retries: directions computed again per increment after freezing the nodes
-    at a kink of the merit (then the increment is cut)."""
+    direction is given up (then the increment is cut)."""
 
     rtol: float = 1e-6
     rtol_intermediate: float = 1e-3
@@ -65,7 +79,6 @@ class NewtonSettings:
     armijo: float = 1e-4
     max_backtracks: int = 12
     nonmonotone_memory: int = 5
-    kink_retries: int = 3
 
 
 @dataclass(frozen=True)
@@ -96,8 +109,8 @@ class IncrementSettings:
 
 @dataclass(frozen=True)
 class ContactSettings:
-    """gap_tol_rel: the complementarity tolerance as a penetration over the node's facet size (0.1 %: the
-    accuracy statement of a converged state); candidate_distance_rel: nodes closer than this many largest
+    """gap_tol_rel: the complementarity tolerance as a weighted penetration over the node's facet size (0.1 %:
+    the accuracy statement of a converged state); candidate_distance_rel: nodes closer than this many largest
     facet sizes to the indenter (cast_candidate_distance_mm to the cast) at the start of an increment are
     tested for contact (others are checked for penetration at convergence); report_quadrature_order: the
     facets' quadrature on which the reported penetration between nodes is measured."""
@@ -109,23 +122,12 @@ class ContactSettings:
 
 
 @dataclass(frozen=True)
-class LinearSettings:
-    """The linear solver of :func:`deeptissue.fem.linsolve.make_solver` and its options."""
-
-    solver: str = "pardiso"
-    precision: str = "mixed"
-    reuse_iterations: int = 20
-    reuse_rtol: float = 1e-10
-
-
-@dataclass(frozen=True)
 class ExactContactSettings:
     """All settings of :func:`solve_indentation_exact`; the facet sets default to those of SolverSettings."""
 
     newton: NewtonSettings = field(default_factory=NewtonSettings)
     increments: IncrementSettings = field(default_factory=IncrementSettings)
     contact: ContactSettings = field(default_factory=ContactSettings)
-    linear: LinearSettings = field(default_factory=LinearSettings)
     quadrature_order: int = 2
     min_bone_clearance_mm: float = 0.0
     max_wall_s: float | None = None
@@ -137,29 +139,65 @@ class ExactContactSettings:
 # --------------------------------------------------------------------------------------------- contact
 
 
-class _NodalContact:
-    """The (node, obstacle) pairs of all contact facet sets, their multipliers and their gaps.
 
-    Entries e = 0..E-1: node[e] (TetMesh index), obstacle[e] (index into ``gapfns``), h[e] facet size [mm],
-    lam[e] normal force [N] (>= 0 at a solution), cand[e] tested in this increment.
+# the 4-subtriangle split of the reference 6-node triangle (gmsh order: corners 0,1,2; midsides 3 (0-1), 4 (1-2), 5 (2-0))
+_LOCAL = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [0.5, 0.0], [0.5, 0.5], [0.0, 0.5]])
+_SUB = np.array([[0, 3, 5], [3, 1, 4], [5, 4, 2], [3, 4, 5]])
+
+
+def _weight_quadrature():
+    """Points (Q, 2) on the reference triangle, weights (Q,) (summing to its area 1/2) and the values (Q, 6) of
+    the piecewise-linear weight functions psi_j of the 4-subtriangle split (positive, a partition of unity):
+    a degree-2 rule on each subtriangle."""
+    bary = np.array([[2 / 3, 1 / 6, 1 / 6], [1 / 6, 2 / 3, 1 / 6], [1 / 6, 1 / 6, 2 / 3]])
+    pts, w, psi = [], [], []
+    for tri in _SUB:
+        pts.append(bary @ _LOCAL[tri])
+        w.append(np.full(3, 1 / 24))  # subtriangle area 1/8, three equal weights
+        v = np.zeros((3, 6))
+        v[:, tri] = bary
+        psi.append(v)
+    return np.concatenate(pts), np.concatenate(w), np.concatenate(psi)
+
+
+class _WeightedContact:
+    """Weighted gaps of the skin nodes against the rigid obstacles, and their derivatives.
+
+    For a node j of a contact facet set, its weighted gap is the average of the gap over the facets around it,
+    weighted by the positive piecewise-linear function psi_j of the facets' 4-subtriangle split:
+    ``gw_j = sum_q A_q psi_j(q) g(x_q) / m_j``, ``m_j = sum_q A_q psi_j(q)`` (A_q the reference area weight of
+    quadrature point q, x_q its current position). The constraint is gw_j >= 0; its multiplier lam_j [N]
+    is the node's share of the contact force, the pressure being ``p(q) = sum_j lam_j psi_j(q) / m_j`` >= 0
+    wherever every lam_j >= 0. Entries e (one per node and obstacle) as in :class:`_NodalContact`.
     """
 
     def __init__(self, X, sets, excluded, young_mpa):
-        nodes, obst, h, self.names = [], [], [], []
+        xi, w, self.psi = _weight_quadrature()
+        self.N, dN = tri6_shape(xi[:, 0], xi[:, 1])
+        nodes, obst, h, self.names, self.sets = [], [], [], [], []
         for k, (name, facets) in enumerate(sets):
-            surf = ContactSurface(X, facets, order=2)
-            hn = np.full(len(X), np.inf)
-            np.minimum.at(hn, np.asarray(facets).ravel(), np.repeat(surf.h_mm, np.asarray(facets).shape[1]))
+            facets = np.asarray(facets, np.int64)
+            Xf = X[facets]
+            a1 = np.einsum("qa,kai->kqi", dN[..., 0], Xf)
+            a2 = np.einsum("qa,kai->kqi", dN[..., 1], Xf)
+            A = np.linalg.norm(np.cross(a1, a2), axis=-1) * w  # (F, Q) [mm^2]
+            hf = np.sqrt(2.0 * A.sum(axis=1))
             nd = np.setdiff1d(np.unique(facets), excluded)
+            hn = np.full(len(X), np.inf)
+            np.minimum.at(hn, facets.ravel(), np.repeat(hf, 6))
+            # local entry index of each facet node (-1: excluded node, no constraint)
+            ent = np.full(len(X), -1, np.int64)
+            ent[nd] = np.arange(len(nd)) + sum(len(n) for n in nodes)
+            self.sets.append(dict(facets=facets, X=np.einsum("qa,kai->kqi", self.N, Xf), A=A, entry=ent[facets]))
             nodes.append(nd)
             obst.append(np.full(len(nd), k))
             h.append(hn[nd])
             self.names.append(name)
         self.X = X
-        self.node = np.concatenate(nodes) if nodes else np.zeros(0, np.int64)
-        self.obstacle = np.concatenate(obst) if obst else np.zeros(0, np.int64)
-        self.h = np.concatenate(h) if h else np.zeros(0)
-        self.c = young_mpa * self.h  # [N/mm]: scales a gap into a force in min(lam, c g)
+        self.node = np.concatenate(nodes)
+        self.obstacle = np.concatenate(obst)
+        self.h = np.concatenate(h)
+        self.c = young_mpa * self.h
         self.lam = np.zeros(len(self.node))
         self.cand = np.ones(len(self.node), bool)
         self.gapfns = [None] * len(sets)
@@ -179,84 +217,69 @@ class _NodalContact:
                     H[sel] = Hk
         return g, n, H
 
-    def active_set(self, lam, g, n):
-        """Entries with lam - c g > 0; a node active against two obstacles whose normals are within ~8 deg
-        of each other (the constraints are then nearly dependent) keeps only the entry with the larger score."""
-        score = lam - self.c * g
-        act = score > 0
-        idx = np.flatnonzero(act)
-        if len(idx) > len(np.unique(self.node[idx])):
-            order = idx[np.lexsort((-score[idx], self.node[idx]))]
-            second = np.flatnonzero(self.node[order][1:] == self.node[order][:-1])
-            a, b = order[second], order[second + 1]
-            close = np.abs(np.einsum("ij,ij->i", n[a], n[b])) > 0.99
-            act[b[close]] = False
-        return act
-
     def ncp(self, lam, g):
         """min(lam, c g) per entry [N] (0 at a solution; 0 outside the candidates)."""
         return np.where(np.isfinite(g), np.minimum(lam, self.c * np.where(np.isfinite(g), g, 0.0)), 0.0)
 
+    def weighted(self, u, which, lam=None, curvature=True):
+        """Weighted gaps of the entries ``which`` at u.
 
-def _frames(n):
-    """Orthonormal frames (m, 3, 3) with columns (n, t1, t2)."""
-    m = len(n)
-    e = np.zeros((m, 3))
-    e[np.arange(m), np.argmin(np.abs(n), axis=1)] = 1.0
-    t1 = np.cross(n, e)
-    t1 /= np.linalg.norm(t1, axis=1)[:, None]
-    t2 = np.cross(n, t1)
-    return np.stack([n, t1, t2], axis=2)
-
-
-class _BlockPattern:
-    """The node-block structure of the Assembler's upper-triangular CSR pattern of the free dofs.
-
-    Free dofs come in whole nodes (the bone's nodes have all three dofs constrained), free index 3 m + i for
-    free node m. blocks (nb, 3, 3) hold for node pair (a <= b) the data positions of entries (i, j) (the
-    lower entries of a diagonal block point to their mirror), so a block is ``data[pos]``.
-    """
-
-    def __init__(self, asm: Assembler):
-        n_free = asm.n_free
-        if n_free % 3 or np.any(asm.free.reshape(-1, 3) // 3 != (asm.free[0::3] // 3)[:, None]):
-            raise ValueError("exact contact: the constrained dofs must be whole nodes")
-        self.free_node = asm.free[0::3] // 3  # TetMesh node of free node m
-        self.fnode = np.full(asm.n_nodes, -1, np.int64)
-        self.fnode[self.free_node] = np.arange(len(self.free_node))
-        rows = np.repeat(np.arange(n_free), np.diff(asm.indptr))
-        cols = asm.indices.astype(np.int64)
-        self.rows, self.cols = rows, cols
-        a, b = rows // 3, cols // 3
-        key = a * len(self.free_node) + b
-        ukey, inv = np.unique(key, return_inverse=True)
-        self.block_a, self.block_b = ukey // len(self.free_node), ukey % len(self.free_node)
-        pos = np.full((len(ukey), 3, 3), -1, np.int64)
-        e = np.arange(len(rows))
-        pos[inv, rows % 3, cols % 3] = e
-        diag = self.block_a == self.block_b
-        low = diag[:, None, None] & (np.arange(3)[:, None] > np.arange(3)[None, :])[None]
-        pos[low] = np.transpose(pos, (0, 2, 1))[low]
-        if np.any(pos < 0):
-            raise ValueError("exact contact: the tangent pattern is not node-block complete")
-        self.pos = pos
-        self.is_diag = diag
-        self.diag_block = np.full(len(self.free_node), -1, np.int64)
-        self.diag_block[self.block_a[diag]] = np.flatnonzero(diag)
-
-    def blocks_of(self, fn_active):
-        """Indices of the blocks touching free nodes fn_active."""
-        mark = np.zeros(len(self.free_node), bool)
-        mark[fn_active] = True
-        return np.flatnonzero(mark[self.block_a] | mark[self.block_b])
-
-
-def _sym_matvec(asm, data, v):
-    U = asm.csr(data)
-    return U @ v + U.T @ v - U.diagonal() * v
-
-
-# ------------------------------------------------------------------------------------------------ solve
+        Returns gw (E,) [mm] (inf outside ``which`` and where no quadrature point around the node can touch),
+        the rows of d gw / d u as COO (entry, dof, value [1]), and with ``lam`` (E,) [N] the curvature of the
+        obstacles under the pressure those multipliers make: (dofs (F, 18), blocks (F, 18, 18) [N/mm]) of
+        ``-sum_q A_q p_q N_a N_b H_q`` (empty without ``curvature``), and the contact force on the tissue
+        (n_dofs,) [N] (G^T lam).
+        """
+        E = len(self.node)
+        m, num = np.zeros(E), np.zeros(E)
+        u3 = u.reshape(-1, 3)
+        parts = []
+        for k, st in enumerate(self.sets):
+            on = np.append(which & (self.obstacle == k), False)  # index -1 (no entry) -> False
+            fsel = np.flatnonzero(on[st["entry"]].any(axis=1))
+            if not len(fsel):
+                continue
+            fac, A, en = st["facets"][fsel], st["A"][fsel], st["entry"][fsel]
+            x = st["X"][fsel] + np.einsum("qa,fai->fqi", self.N, u3[fac])
+            F, Q = A.shape
+            g, n, H = self.gapfns[k](x.reshape(-1, 3))
+            g, n = g.reshape(F, Q), n.reshape(F, Q, 3)
+            fin = np.isfinite(g)
+            Aq = np.where(fin, A, 0.0)
+            valid = en >= 0
+            np.add.at(m, en[valid], np.einsum("fq,qj->fj", Aq, self.psi)[valid])
+            np.add.at(num, en[valid], np.einsum("fq,qj->fj", Aq * np.where(fin, g, 0.0), self.psi)[valid])
+            B = np.einsum("fq,qj,qa,fqi->fjai", Aq, self.psi, self.N, np.where(fin[..., None], n, 0.0))
+            Hq = None if H is None else np.where(fin[..., None, None], H.reshape(F, Q, 3, 3), 0.0)
+            parts.append((fac, Aq, en, valid, B, Hq))
+        ok = which & (m > 0)
+        gw = np.full(E, np.inf)
+        gw[ok] = num[ok] / m[ok]
+        inv_m = np.where(m > 0, 1.0 / np.where(m > 0, m, 1.0), 0.0)
+        rows, cols, vals = [], [], []
+        force = np.zeros(u.size) if lam is not None else None
+        geo = []
+        for fac, Aq, en, valid, B, Hq in parts:
+            e_safe = np.where(valid, en, 0)
+            scale = np.where(valid, inv_m[e_safe], 0.0) * ok[e_safe]  # (F, 6)
+            Bs = B * scale[:, :, None, None]  # d gw_j / d x_a (F, 6 j, 6 a, 3)
+            dof = 3 * fac[:, :, None] + np.arange(3)  # (F, 6, 3)
+            keep = np.broadcast_to((valid & ok[e_safe])[:, :, None, None], Bs.shape)
+            rows.append(np.broadcast_to(e_safe[:, :, None, None], Bs.shape)[keep])
+            cols.append(np.broadcast_to(dof[:, None], Bs.shape)[keep])
+            vals.append(Bs[keep])
+            if lam is not None:
+                lj = np.where(valid, lam[e_safe], 0.0) * scale  # lam_j / m_j
+                np.add.at(force, dof.ravel(), np.einsum("fj,fjai->fai", lj, B).ravel())
+                if curvature and Hq is not None:
+                    p = np.einsum("fj,qj->fq", lj, self.psi)  # pressure at the points [MPa]
+                    blk = -np.einsum("fq,qa,qb,fqij->faibj", Aq * p, self.N, self.N, Hq)
+                    geo.append((dof.reshape(len(fac), 18), blk.reshape(len(fac), 18, 18)))
+        G = (np.concatenate(rows) if rows else np.zeros(0, np.int64), np.concatenate(cols) if cols else np.zeros(0, np.int64),
+             np.concatenate(vals) if vals else np.zeros(0))
+        if lam is None:
+            return gw, G
+        return gw, G, geo, force
 
 
 def solve_indentation_exact(mesh: TetMesh, *, material, indenter: Indenter | None, bone_motion: BoneMotion,
@@ -269,7 +292,8 @@ def solve_indentation_exact(mesh: TetMesh, *, material, indenter: Indenter | Non
     not used: the first Newton iteration finds the contact forces). Never raises for non-convergence
     (converged=False with the reason and the last converged state); ValueError for missing facet sets.
     ``extra``: 'active_nodes' (count per pair name), 'active_nodes_per_increment' (the TetMesh nodes in contact
-    after each converged increment), 'active_set_changes', 'node_penetration_rel',
+    after each converged increment), 'active_set_changes', 'node_penetration_rel' (the deepest node over its
+    facet size), 'contact_entries' (per node and obstacle: node, obstacle, force lam_N, weighted_gap_mm, h_mm),
     'min_force_N' (the most tensile contact force), 'infeasible', 'bone_clearance_mm', 'start_backoff_mm'.
     """
     t_wall = time.perf_counter()
@@ -290,11 +314,10 @@ def solve_indentation_exact(mesh: TetMesh, *, material, indenter: Indenter | Non
     constrained = np.zeros(X.size, bool)
     constrained[(3 * bone_nodes[:, None] + np.arange(3)).ravel()] = True
     asm = Assembler(mesh, law, constrained=constrained, intorder=s.quadrature_order)
-    pattern = _BlockPattern(asm)
     sched = _Schedule(bone_motion, indenter)
     pair_sets = [(n, mesh.facets[fs]) for n, fs, on in (("indenter", s.indenter_set, indenter is not None),
                                                         ("cast", s.cast_set, cast is not None)) if on]
-    contact = _NodalContact(X, pair_sets, bone_nodes, law.young_mpa)
+    contact = _WeightedContact(X, pair_sets, bone_nodes, law.young_mpa)
     surfaces = {n: ContactSurface(X, f, order=s.contact.report_quadrature_order) for n, f in pair_sets}
     k_ind = contact.names.index("indenter") if indenter is not None else None
     k_cast = contact.names.index("cast") if cast is not None else None
@@ -304,10 +327,10 @@ def solve_indentation_exact(mesh: TetMesh, *, material, indenter: Indenter | Non
     cand_dist = np.where(contact.obstacle == k_cast, s.contact.cast_candidate_distance_mm,
                          s.contact.candidate_distance_rel * h_max)
     gap_tol = s.contact.gap_tol_rel * contact.h  # [mm]
+    h_min = float(contact.h.min()) if len(contact.h) else 1.0
     force_unit = law.mu_mpa * asm.volume_mm3 ** (2.0 / 3.0)
     atol = s.newton.atol_mu_rel * force_unit
-    solver = make_solver(s.linear.solver, coords_mm=X, free=asm.free, precision=s.linear.precision,
-                         reuse_iterations=s.linear.reuse_iterations, reuse_rtol=s.linear.reuse_rtol)
+    solver = _SaddleSolver()
     timers = dict(assembly=0.0, solve=0.0, contact=0.0)
 
     def set_time(t):
@@ -315,123 +338,85 @@ def solve_indentation_exact(mesh: TetMesh, *, material, indenter: Indenter | Non
             tip, ind = sched.tip(t), sched.indenter(t)
             contact.gapfns[k_ind] = lambda x: ind.gap(x, tip)
 
-    def contact_state(u, lam, which=None):
+    def weighted_state(u, lam, curvature=True):
         tc = time.perf_counter()
-        g, n, H = contact.evaluate(u, which)
+        out = contact.weighted(u, contact.cand, lam, curvature=curvature)
         timers["contact"] += time.perf_counter() - tc
-        return g, n, H
+        return out
 
-    def residual(f, lam, act, n):
-        R = f.copy()
-        R3 = R.reshape(-1, 3)
-        np.add.at(R3, contact.node[act], -lam[act, None] * n[act])
-        return R
-
-    def merit(u, lam, ncp):
-        """0.5 (|R_free|^2 + |C|^2) at (u, lam), C = ncp(lam, g); inf if inverted."""
+    def merit(u, lam):
+        """0.5 (|R_free|^2 + |C|^2) at (u, lam), R = f_int - G^T lam, C = min(lam, c gw); inf if inverted."""
         ta = time.perf_counter()
         _, f = asm.force(u)
         timers["assembly"] += time.perf_counter() - ta
         if f is None:
             return np.inf
-        g, n, _ = contact_state(u, lam)
-        on = lam != 0
-        R = residual(f, lam, on, n)[asm.free]
-        C = ncp(lam, g)
+        gw, _, _, fc = weighted_state(u, lam, curvature=False)
+        R = (f - fc)[asm.free]
+        C = contact.ncp(lam, gw)
         return 0.5 * (float(R @ R) + float(C @ C))
 
     def newton(u, lam, target_d, rtol):
         """Solve one increment in place on (u, lam). Returns (ok, reason, iterations, residuals, changes)."""
         residuals, changes, merits = [], 0, []
         act = lam > 0
-        flips = np.zeros(len(lam), int)  # active-set changes of each entry in this increment
-        frozen, frozen_state, switched = (np.zeros(len(lam), bool) for _ in range(3))
-        kink_retries = 0
-
-        def ncp(lam, g):
-            # a frozen entry's complementarity function is the branch its state implies
-            C = contact.ncp(lam, g)
-            fa, fi = frozen & frozen_state, frozen & ~frozen_state
-            C[fa] = contact.c[fa] * g[fa]
-            C[fi] = lam[fi]
-            return C
-
         for it in range(s.newton.max_iterations + 1):
             ta = time.perf_counter()
             W, f, data, Ke_bc = asm.tangent(u)
             timers["assembly"] += time.perf_counter() - ta
             if not np.isfinite(W):
                 return False, "inverted element", it, residuals, changes
-            g, n, H = contact_state(u, lam)
+            gw, G, geo, fc = weighted_state(u, lam)
             du_d = np.zeros(asm.n_dofs)
             du_d[constrained] = target_d - u[constrained]
             has_d = bool(np.any(np.abs(du_d) > 1e-12 * (1.0 + np.abs(target_d).max(initial=0.0))))
             if not has_d:
                 u[constrained] = target_d
                 du_d[:] = 0.0
-            on = lam != 0
-            R = residual(f, lam, on, n)
-            res = float(np.linalg.norm(R[asm.free]))
+            R = (f - fc)[asm.free]
+            res = float(np.linalg.norm(R))
             residuals.append(res)
             if not np.isfinite(res):
                 return False, "non-finite residual", it, residuals, changes
-            fc = np.linalg.norm(lam[on, None] * n[on]) if np.any(on) else 0.0
-            C = ncp(lam, g)
-            # converged: equilibrium, and the true complementarity (frozen nodes too) within the tolerance
-            C_true = contact.ncp(lam, g)
-            ncp_ok = bool(np.all(np.abs(C_true) <= contact.c * gap_tol))
-            res_ok = res <= rtol * max(float(np.linalg.norm(f[asm.free])), fc) + atol
+            C = contact.ncp(lam, gw)
+            ncp_ok = bool(np.all(np.abs(C) <= contact.c * gap_tol))
+            scale = max(float(np.linalg.norm(f[asm.free])), float(np.linalg.norm(fc[asm.free])))
+            res_ok = res <= rtol * scale + atol
             if not has_d and ncp_ok and res_ok:
                 return True, "", it, residuals, changes
-            if not has_d and res_ok:
-                # a frozen node in the wrong state (pulling, or penetrating) beyond the tolerance switches, once
-                wrong = frozen & (np.abs(C_true) > contact.c * gap_tol) & ~switched
-                frozen_state[wrong] = ~frozen_state[wrong]
-                switched |= wrong
             if it == s.newton.max_iterations:
-                worst = int(np.argmax(np.abs(C) / (contact.c * gap_tol)))
-                log.debug("  out of iterations: residual %.2e (%s), worst complementarity at node %d (%s): force %.3e N, "
-                          "gap %.3e mm (%.2f x tolerance), frozen %s", res, "ok" if res_ok else "not ok",
-                          contact.node[worst], contact.names[contact.obstacle[worst]], lam[worst], g[worst],
-                          abs(C[worst]) / (contact.c[worst] * gap_tol[worst]), bool(frozen[worst]))
                 return False, "too many iterations", it, residuals, changes
             if len(residuals) > 3 and res > 1e3 * min(residuals[1:]):
                 return False, "diverging", it, residuals, changes
-            new_act = contact.active_set(lam, g, n)
+            new_act = contact.cand & np.isfinite(gw) & (lam - contact.c * np.where(np.isfinite(gw), gw, 0.0) > 0)
             if it > 0:
-                changed = new_act != act
-                changes += int(np.count_nonzero(changed))
-                flips += changed
-                # a node back in a state it left cycles (degenerate: force and gap both near zero, where the
-                # two linearisations undo each other): its state is frozen active, so that Newton converges
-                # on a fixed set; the convergence test then holds its force and gap to the tolerance
-                newly = (flips >= 2) & ~frozen
-                frozen |= newly
-                frozen_state[newly] = True
-            new_act[frozen] = frozen_state[frozen]
+                changes += int(np.count_nonzero(new_act != act))
             act = new_act
-            phi0 = 0.5 * (float(R[asm.free] @ R[asm.free]) + float(C @ C))
+            phi0 = 0.5 * (float(R @ R) + float(C @ C))
             merits.append(phi0)
             # non-monotone Armijo test (Grippo, Lampariello and Lucidi 1986) against the largest of the last
             # few merits: a change of the active set may raise the merit for one step on the way to the solution
             phi_ref = max(merits[-s.newton.nonmonotone_memory:])
-            # the consistent direction first; where the merit rises within the shortest step (a nearly singular
-            # matrix, the obstacle's curvature term cancelling the tissue's stiffness in a pinch, gives a huge
-            # direction), the direction without the curvature term
+            # the consistent direction first; where the merit rises within the shortest step, the direction
+            # without the obstacles' curvature (which can make the tangent indefinite in a pinch)
             for curvature in (1.0, 0.0):
-                du, lam_new = _step(asm, pattern, contact, data, Ke_bc, f, du_d, act, g, n, H, lam, timers, solver,
+                du, lam_new = _step(asm, contact, data, Ke_bc, f, du_d, act, gw, G, geo, timers, solver,
                                     curvature=curvature)
                 if du is None:
                     return False, "linear solver failed", it, residuals, changes
+                if (curvature and not has_d and ncp_ok and not np.any(new_act != (lam > 0)) and len(residuals) > 2
+                        and res > 0.1 * residuals[-3] and res <= s.newton.rtol_intermediate * scale
+                        and float(np.abs(du).max()) <= s.contact.gap_tol_rel * h_min):
+                    # the residual stalls while the corrections no longer move the state beyond the gap
+                    # tolerance: what is left is the kink of a piecewise-flat obstacle (the cast's facets) that
+                    # a point sits on, not an error Newton can remove
+                    u += du
+                    lam[:] = lam_new
+                    return True, "", it + 1, residuals, changes
                 dlam = lam_new - lam
-                if log.isEnabledFor(logging.DEBUG) and not has_d:
-                    eps = 1e-7
-                    slope = (merit(u + eps * du, lam + eps * dlam, ncp) - phi0) / eps
-                    log.debug("    merit slope along the direction %.3e (Newton: %.3e), curvature %g", slope, -2.0 * phi0,
-                              curvature)
                 step = 1.0
                 for _ in range(s.newton.max_backtracks):
-                    phi = merit(u + step * du, lam + step * dlam, ncp)
+                    phi = merit(u + step * du, lam + step * dlam)
                     if has_d and np.isfinite(phi):
                         break
                     if phi <= phi_ref - 2.0 * s.newton.armijo * step * phi0:
@@ -439,24 +424,19 @@ def solve_indentation_exact(mesh: TetMesh, *, material, indenter: Indenter | Non
                     step *= 0.5
                 else:
                     step = None
-                if step is not None or not np.any(H[lam != 0]):
+                if step is not None or not geo:
                     break
             if step is None:
-                log.debug("  it %d: no step along the direction lowers the merit %.3e (last tried %.3e)", it, phi0, phi)
-                # the merit has a kink here: nodes at the switch of min(lam, c g) change branch at once along
-                # the step. Freeze them in the branch they move into (the merit is then smooth in them) and
-                # compute the direction again from the same state.
-                gt, nt, _ = contact_state(u + 2.0 ** -s.newton.max_backtracks * du, lam)
-                moved = (contact.active_set(lam + 2.0 ** -s.newton.max_backtracks * dlam, gt, nt) != act) & ~frozen
-                if kink_retries < s.newton.kink_retries and np.any(moved):
-                    kink_retries += 1
-                    frozen |= moved
-                    frozen_state[moved] = ~act[moved]
-                    merits.clear()
-                    log.debug("  it %d: %d nodes at a kink of the merit frozen", it, int(moved.sum()))
-                    continue
                 return False, "line search failed", it, residuals, changes
-            log.debug("  it %d res %.3e active %d step %.3g", it, res, int(act.sum()), step)
+            if log.isEnabledFor(logging.DEBUG):
+                viol = np.abs(C) / (contact.c * gap_tol)
+                w = int(np.argmax(viol))
+                tol = rtol * max(float(np.linalg.norm(f[asm.free])), float(np.linalg.norm(fc[asm.free]))) + atol
+                log.debug("  it %d res %.3e (%.1f x tol) active %d (%s) step %.3g; worst complementarity %.2f x tol at "
+                          "node %d (%s, lam %.2e N, gw %.2e mm)", it, res, res / tol, int(act.sum()),
+                          ", ".join(f"{nm} {int(np.count_nonzero(act & (contact.obstacle == k)))}"
+                                    for k, nm in enumerate(contact.names)), step, viol[w], contact.node[w],
+                          contact.names[contact.obstacle[w]], lam[w], gw[w])
             u += step * du
             lam += step * dlam
         return False, "too many iterations", s.newton.max_iterations, residuals, changes
@@ -590,114 +570,109 @@ def solve_indentation_exact(mesh: TetMesh, *, material, indenter: Indenter | Non
                "active_nodes": active, "active_nodes_per_increment": tuple(active_per_increment),
                "active_set_changes": total_changes, "node_penetration_rel": max(node_pen, 0.0),
                "min_force_N": float(lam.min(initial=0.0)), "started_from_bone_state": start is not None,
-               "nodal_contact": {"nodes": contact.node.copy(), "obstacle": contact.obstacle.copy(), "lam_N": lam.copy()}},
+               "contact_entries": {"nodes": contact.node.copy(), "obstacle": contact.obstacle.copy(), "lam_N": lam.copy(),
+                                   "weighted_gap_mm": contact.weighted(u, contact.cand)[0], "h_mm": contact.h.copy()}},
     )
 
 
-_TRIU = np.arange(3)[:, None] <= np.arange(3)[None, :]  # the entries of a diagonal block stored in the data
 
-
-def _step(asm, pattern, contact, data, Ke_bc, f, du_d, act, g, n, H, lam, timers, solver, curvature=1.0):
+def _step(asm, contact, data, Ke_bc, f, du_d, act, gw, G, geo, timers, solver, curvature=1.0):
     """One semi-smooth Newton direction for active set ``act``: (du (n_dofs,), new multipliers (E,)), or
     (None, None) if the linear solve failed.
 
-    K~ = K - curvature sum lam_i H_i (curvature 1: the consistent tangent); an active node's displacement is Q_i da_i with its normal components prescribed
-    (n_i . du_i = -g_i for each active obstacle); the rest solve Q^T K~ Q da = -Q^T (f + K~ du_p + K_fd du_d)
-    with the prescribed rows and columns replaced by the identity; an active node's new force is the normal
-    part of its linearised reaction (f + K~ du + K_fd du_d)_i.
+    Solves the symmetric saddle-point system of the free dofs and the candidate entries with a weighted gap
+    ``[[K~, (S G_A)^T], [S G_A, 0]] [du; -lam_A / S] = [-(f + K_fd du_d); -S gw_A]`` (K~ = K - curvature
+    sum_q A p N N H, S = c the entries' scale [N/mm] that gives both blocks the size of the stiffness); an
+    inactive entry's row is its multiplier set to zero (identity row times S), so the pattern is that of all
+    candidates and PARDISO's analysis is shared by every active set of an increment.
     """
-    free = asm.free
-    ia = np.flatnonzero(act)
-    Kt = data.copy()
-    # the curvature of the obstacle: -lam H on the diagonal blocks of the nodes with a force (a released
-    # node's force goes to zero along the step, its derivative is still -lam H)
-    cur = np.flatnonzero(lam != 0)
-    if np.any(H[cur]):
-        db = pattern.diag_block[pattern.fnode[contact.node[cur]]]
-        contrib = -curvature * lam[cur, None, None] * H[cur]
-        np.add.at(Kt, pattern.pos[db][:, _TRIU].ravel(), contrib[:, _TRIU].ravel())
-    # prescribed parts: the bone's increment and the active normal displacements
+    free, n_free = asm.free, asm.n_free
+    fmap = np.full(asm.n_dofs, -1, np.int64)
+    fmap[free] = np.arange(n_free)
+    Ku = asm.csr(data).tocoo()
+    r_parts, c_parts, v_parts = [Ku.row], [Ku.col], [Ku.data]
+    if curvature and geo:
+        for dofs, blk in geo:
+            fr, fc = fmap[dofs][:, :, None], fmap[dofs][:, None, :]
+            keep = (fr >= 0) & (fc >= 0) & (fr <= fc)
+            fr, fc = np.broadcast_to(fr, blk.shape), np.broadcast_to(fc, blk.shape)
+            r_parts.append(fr[keep])
+            c_parts.append(fc[keep])
+            v_parts.append(curvature * blk[keep])
+    rows, cols, vals = G
+    cand = np.flatnonzero(contact.cand & np.isfinite(gw))
+    m = len(cand)
+    rmap = np.full(len(contact.node), -1, np.int64)
+    rmap[cand] = np.arange(m)
+    S = contact.c[cand]
+    a_row = act[cand]
+    keep = (fmap[cols] >= 0) & (rmap[rows] >= 0)
+    rr = rmap[rows[keep]]
+    r_parts.append(fmap[cols[keep]])
+    c_parts.append(n_free + rr)
+    v_parts.append(vals[keep] * S[rr] * a_row[rr])
+    r_parts.append(n_free + np.arange(m))
+    c_parts.append(n_free + np.arange(m))
+    v_parts.append(np.where(a_row, 0.0, S))
+    N = n_free + m
+    U = sp.coo_matrix((np.concatenate(v_parts), (np.concatenate(r_parts), np.concatenate(c_parts))), shape=(N, N)).tocsr()
+    U.sort_indices()
     bc = asm.bc_force(Ke_bc, du_d) if np.any(du_d) else np.zeros(asm.n_dofs)
-    nodes, Q, k, a_p, lam_map = _node_frames(contact.node[ia], n[ia], g[ia])
-    fn = pattern.fnode[nodes]
-    du_p = np.zeros(asm.n_dofs)
-    du_p.reshape(-1, 3)[nodes] = np.einsum("kia,ka->ki", Q, a_p)
-    rhs = -(f + bc)[free] - _sym_matvec(asm, Kt, du_p[free])
-    # rotate the active nodes into their frames (normals first, then tangents)
-    Qf = np.broadcast_to(np.eye(3), (len(pattern.free_node), 3, 3)).copy()
-    Qf[fn] = Q
-    blk = pattern.blocks_of(fn)
-    B = Kt[pattern.pos[blk]]  # (nb', 3, 3)
-    Br = np.einsum("kia,kij,kjb->kab", Qf[pattern.block_a[blk]], B, Qf[pattern.block_b[blk]])
-    Kr = Kt.copy()
-    up = _TRIU[None] | ~pattern.is_diag[blk][:, None, None]
-    Kr[pattern.pos[blk][up]] = Br[up]
-    rhs3 = rhs.reshape(-1, 3)
-    rhs3[fn] = np.einsum("kia,ki->ka", Q, rhs3[fn])
-    # eliminate the prescribed (normal) dofs
-    pres = np.zeros(asm.n_free, bool)
-    pres[3 * fn] = True
-    pres[3 * fn[k > 1] + 1] = True
-    diag_pos = asm.indptr[:-1]
-    dval = np.abs(Kr[diag_pos[pres]])
-    hit = pres[pattern.rows] | pres[pattern.cols]
-    Kr[hit] = 0.0
-    Kr[diag_pos[pres]] = np.maximum(dval, 1e-12 * np.abs(Kr[diag_pos]).max())
-    rhs[pres] = 0.0
+    b = np.concatenate([-(f + bc)[free], np.where(a_row, -S * gw[cand], 0.0)])
     ts = time.perf_counter()
     try:
-        da = solver.solve(asm.csr(Kr), rhs)
+        x = solver.solve(U, b)
     except np.linalg.LinAlgError:
         return None, None
     finally:
         timers["solve"] += time.perf_counter() - ts
-    if log.isEnabledFor(logging.DEBUG):
-        lin = _sym_matvec(asm, Kr, da) - rhs
-        log.debug("    linear solve: relative residual %.2e, mode %s", np.linalg.norm(lin) / max(np.linalg.norm(rhs), 1e-300),
-                  getattr(solver, "last_mode", None))
-    da3 = da.reshape(-1, 3)
-    da3[fn] = np.einsum("kia,ka->ki", Q, da3[fn])
-    du = du_p.copy()
-    du[free] += da
+    du = np.zeros(asm.n_dofs)
+    du[free] = x[:n_free]
     du[asm.constrained] = du_d[asm.constrained]
-    # the linearised reactions of the active nodes, in their frames, give the new forces
-    f_lin = f + bc
-    f_lin[free] += _sym_matvec(asm, Kt, du[free])
-    r_loc = np.einsum("kia,ki->ka", Q, f_lin.reshape(-1, 3)[nodes])
-    lam_new = np.zeros_like(lam)
-    lam_new[ia] = lam_map(r_loc)
+    lam_new = np.zeros(len(contact.node))
+    lam_new[cand[a_row]] = -S[a_row] * x[n_free:][a_row]
     return du, lam_new
 
 
-def _node_frames(node, n, g):
-    """Frames of the active nodes from their active entries (node (m,), normals (m, 3), gaps (m,)).
+class _SaddleSolver:
+    """Symmetric indefinite solves by PARDISO (Bunch-Kaufman pivoting, scaling and weighted matching as MKL
+    recommends for saddle-point matrices), the analysis kept while the pattern is unchanged, refined in
+    double precision until the backward error stops falling."""
 
-    A node has one or two active entries (one per obstacle; two only with independent normals, see
-    :meth:`_NodalContact.active_set`). Returns the distinct nodes (p,), frames Q (p, 3, 3) whose first k
-    columns span the normals, k (p,), the prescribed local displacements a_p (p, 3) (N^T Q a = -g) and a
-    function mapping local reactions (p, 3) to the entries' forces (m,) (N lam = the reaction's normal part).
-    """
-    nodes, first, k = np.unique(node, return_index=True, return_counts=True)
-    Q = _frames(n[first])
-    a_p = np.zeros((len(nodes), 3))
-    a_p[:, 0] = -g[first]
-    pos = np.searchsorted(nodes, node)
-    Rk = {}
-    for j in np.flatnonzero(k > 1):
-        e = np.flatnonzero(pos == j)
-        N = n[e].T  # (3, 2)
-        q, r = np.linalg.qr(N)
-        Q[j] = np.column_stack([q, np.cross(q[:, 0], q[:, 1])])
-        a_p[j, :2] = np.linalg.solve(r.T, -g[e])
-        Rk[j] = (e, r)
+    def __init__(self):
+        from .linsolve import _mkl_pardiso
 
-    def lam_map(r_loc):
-        lam = r_loc[pos, 0].copy()
-        for j, (e, r) in Rk.items():
-            lam[e] = np.linalg.solve(r, r_loc[j, :2])
-        return lam
+        self._call = _mkl_pardiso()
+        self._f = None
 
-    return nodes, Q, k, a_p, lam_map
+    def solve(self, U, b):
+        from .linsolve import _Factor, _pattern_key, _symmetric_matvec
+
+        key = _pattern_key(U)
+        if self._f is None or self._f.key != key:
+            if self._f is not None:
+                self._f.free()
+            self._f = _Factor(self._call, U, -2, False, key)
+        if not self._f.factor(U):
+            raise np.linalg.LinAlgError("PARDISO: symmetric indefinite factorisation failed")
+        diag = U.diagonal()
+        x = self._f.solve(b)
+        err = np.inf
+        for _ in range(4):
+            r = b - _symmetric_matvec(U, diag, x)
+            e = np.linalg.norm(r) / max(np.linalg.norm(b), 1e-300)
+            if not e < 0.5 * err or e < 1e-13:
+                break
+            err = e
+            x = x + self._f.solve(r)
+        if not np.all(np.isfinite(x)):
+            raise np.linalg.LinAlgError("PARDISO: non-finite solution")
+        return x
+
+    def close(self):
+        if self._f is not None:
+            self._f.free()
+            self._f = None
 
 
 def _clear_start(sched, contact, k_ind, u, clearance_mm):
@@ -720,12 +695,11 @@ def _clear_start(sched, contact, k_ind, u, clearance_mm):
 
 def _forces(contact, u, lam, k_ind, k_cast):
     """(force of the indenter on the tissue (3,), force of the cast on the tissue (3,)) [N]."""
-    on = lam != 0
-    g, n, _ = contact.evaluate(u, on)
     out = []
     for k in (k_ind, k_cast):
-        sel = on & (contact.obstacle == k) if k is not None else np.zeros_like(on)
-        out.append((lam[sel, None] * n[sel]).sum(axis=0) if np.any(sel) else np.zeros(3))
+        sel = (lam != 0) & (contact.obstacle == k) if k is not None else np.zeros(len(lam), bool)
+        out.append(contact.weighted(u, sel, np.where(sel, lam, 0.0), curvature=False)[3].reshape(-1, 3).sum(axis=0) if np.any(sel)
+                   else np.zeros(3))
     return out[0], out[1]
 
 
