@@ -39,7 +39,8 @@ def make_row(setting, *, variant="sphere", family="P2 uniform", n_dofs, voi, for
         reason=None if converged else "cut-back limit", n_elements=n_dofs // 10, n_dofs=n_dofs, increments=5,
         newton_iterations=20, voi_mm3=voi, bins_percent=bins, gamma_sampling="points", voi_sampled_mm3=voi,
         bins_sampled_percent=bins, voi_centroid_mm3=voi if voi_centroid is None else voi_centroid,
-        bins_centroid_percent=bins if bins_centroid is None else bins_centroid, peak_gamma=0.5, indenter_force_N=force,
+        bins_centroid_percent=bins if bins_centroid is None else bins_centroid, voi_err_mm3=None, bins_err_pp=None,
+        peak_gamma=0.5, indenter_force_N=force,
         mesh_s=1.0, assembly_s=0.3 * wall_s, linear_solve_s=0.5 * wall_s, contact_s=0.05 * wall_s,
         solver_other_s=0.0, post_s=0.1, solve_s=0.85 * wall_s, wall_s=wall_s, linear_setup_s=0.1,
         linear_assembly_s=0.1, linear_factor_solve_s=0.1, linear_wall_s=0.3, cost_ratio=0.85 * wall_s / 0.3,
@@ -210,7 +211,8 @@ def test_aggregate_writes_csv_figure_and_summary_with_benchmarks(tmp_path):
                                png_path=out / "error_vs_time.png", md_path=out / "summary.md",
                                default_name="p2_n27000")
     back = pd.read_csv(out / "convergence.csv")
-    dict_columns = {"bins_percent", "bins_sampled_percent", "bins_centroid_percent"}  # flattened to bin_* columns
+    # flattened to bin_* columns, or reduced to bin_err_max_pp
+    dict_columns = {"bins_percent", "bins_sampled_percent", "bins_centroid_percent", "bins_err_pp"}
     assert len(back) == 4 and set(ROW_COLUMNS) - dict_columns <= set(back.columns)
     assert np.allclose(back["benchmark_max_rss_mb"], back["peak_rss_mb"] + 5)
     assert (out / "error_vs_time.png").read_bytes()[:4] == b"\x89PNG"
@@ -296,3 +298,18 @@ def test_slurm_profile_dry_run_plans_the_study_and_the_ladder():
     assert ["convergence_run", str(n_ladder)] in stats, out[-2000:]
     assert "runtime=120, cpus_per_task=2" in out  # solve
     assert "mem_mb=8000" in out and "runtime=240" in out  # convergence_run
+
+
+def test_effectivity_of_the_runs_own_error_estimate():
+    rows = ladder_rows()
+    for r in rows:  # an estimate of half the true VOI error of n1000 and twice its bin error
+        r["voi_err_mm3"], r["bins_err_pp"] = 1.0, {"0.3-0.4": 0.5, "0.4-0.5": 2.0, ">0.5": None}
+    df = convergence_table(rows).set_index("setting")
+    voi_abs = abs(df.loc["p2_n1000", "voi_mm3"] - df.loc["p2_n64000", "voi_mm3"])
+    assert df.loc["p2_n1000", "voi_effectivity"] == pytest.approx(1.0 / voi_abs, rel=1e-12)
+    assert df.loc["p2_n1000", "bin_err_max_pp"] == 2.0
+    assert df.loc["p2_n1000", "bin_effectivity"] == pytest.approx(2.0 / df.loc["p2_n1000", "bin_max_error_pp"], rel=1e-12)
+    # the reference has no error to compare with; rows without an estimate have none either
+    assert np.isnan(df.loc["p2_n64000", "voi_effectivity"])
+    assert "bins_err_pp" not in df.columns
+    assert np.isnan(convergence_table(ladder_rows()).set_index("setting").loc["p2_n1000", "voi_effectivity"])

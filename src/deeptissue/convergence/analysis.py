@@ -220,6 +220,15 @@ def convergence_table(rows, *, goal: AccuracyGoal = AccuracyGoal(), measure: str
             r["meets_goal_richardson"] = None
         for k in labels:
             r[f"bin_{k}"] = (r.get("bins_percent") or {}).get(k)
+        # the run's own error estimate against its error from the reference: effectivity = estimate / error
+        # (the estimate bounds the error within 2 x where the effectivity is 0.5 or more)
+        est_bins = [v for v in (r.get("bins_err_pp") or {}).values() if v is not None]
+        r["bin_err_max_pp"] = max(est_bins) if est_bins else float("nan")
+        voi_err = r.get("voi_err_mm3")
+        voi_abs = abs(r["voi_mm3"] - ref["voi_mm3"]) if ok else float("nan")
+        r["voi_effectivity"] = voi_err / voi_abs if (ok and voi_err is not None and voi_abs > 0) else float("nan")
+        r["bin_effectivity"] = (r["bin_err_max_pp"] / r["bin_max_error_pp"]
+                                if ok and r["bin_max_error_pp"] > 0 else float("nan"))
         for est in ESTIMATES:  # the errors of both γ samplings, whichever voi_mm3 is
             voi, bins = f"voi_{est}_mm3", f"bins_{est}_percent"
             ok_e = ok and r.get(voi) is not None and ref.get(voi) is not None
@@ -233,7 +242,7 @@ def convergence_table(rows, *, goal: AccuracyGoal = AccuracyGoal(), measure: str
             for k in labels:
                 r[f"bin_{est}_{k}"] = (r.get(bins) or {}).get(k)
     df = pd.DataFrame(rows)
-    df = df.drop(columns=[c for c in ("bins_percent", *(f"bins_{e}_percent" for e in ESTIMATES)) if c in df])
+    df = df.drop(columns=[c for c in ("bins_percent", "bins_err_pp", *(f"bins_{e}_percent" for e in ESTIMATES)) if c in df])
     df["pareto"] = False
     for variant, idx in df.groupby("variant").groups.items():
         sub = df.loc[idx]
