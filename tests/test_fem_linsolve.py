@@ -237,3 +237,26 @@ def test_two_reproducible_contact_solves_take_identical_newton_iterations():
         """
     first, second = _run_two_threads(code), _run_two_threads(code)
     assert first == second  # increments, Newton iterations and the displacement field, bit for bit
+
+
+def test_solve_indefinite_solves_a_saddle_point_system():
+    from deeptissue.fem.linsolve import PardisoSymmetric
+
+    rng = np.random.default_rng(4)
+    A = rng.standard_normal((12, 12))
+    K = A @ A.T + 12 * np.eye(12)  # SPD block
+    G = rng.standard_normal((3, 12))  # three constraints
+    M = np.block([[K, G.T], [G, np.zeros((3, 3))]])  # indefinite: Cholesky is impossible
+    r, c = np.nonzero(np.triu(M))
+    r, c = np.concatenate([r, np.arange(12, 15)]), np.concatenate([c, np.arange(12, 15)])  # the zero diagonal, stored
+    U = sp.coo_matrix((M[r, c], (r, c)), shape=(15, 15)).tocsr()
+    U.sort_indices()
+    assert U.nnz == np.count_nonzero(np.triu(M)) + 3
+    b = rng.standard_normal(15)
+    s = PardisoSymmetric("double")
+    try:
+        x = s.solve_indefinite(U, b)
+    finally:
+        s.close()
+    np.testing.assert_allclose(x, np.linalg.solve(M, b), rtol=1e-9, atol=1e-12)
+    assert s.last_mode == -2 and s.factorisations == 1

@@ -56,6 +56,7 @@ from .assembly import Assembler, as_material_law
 from .cast import Cast
 from .contact import ContactSurface, tri6_shape
 from .indenters import Indenter
+from .linsolve import PardisoSymmetric
 from .solver import BoneMotion, BoneState, IncrementRecord, SolveResult, _bone_clearance_mm, _Schedule
 
 log = logging.getLogger(__name__)
@@ -330,7 +331,7 @@ def solve_indentation_exact(mesh: TetMesh, *, material, indenter: Indenter | Non
     h_min = float(contact.h.min()) if len(contact.h) else 1.0
     force_unit = law.mu_mpa * asm.volume_mm3 ** (2.0 / 3.0)
     atol = s.newton.atol_mu_rel * force_unit
-    solver = _SaddleSolver()
+    solver = PardisoSymmetric("double")
     timers = dict(assembly=0.0, solve=0.0, contact=0.0)
 
     def set_time(t):
@@ -621,7 +622,7 @@ def _step(asm, contact, data, Ke_bc, f, du_d, act, gw, G, geo, timers, solver, c
     b = np.concatenate([-(f + bc)[free], np.where(a_row, -S * gw[cand], 0.0)])
     ts = time.perf_counter()
     try:
-        x = solver.solve(U, b)
+        x = solver.solve_indefinite(U, b)
     except np.linalg.LinAlgError:
         return None, None
     finally:
@@ -632,47 +633,6 @@ def _step(asm, contact, data, Ke_bc, f, du_d, act, gw, G, geo, timers, solver, c
     lam_new = np.zeros(len(contact.node))
     lam_new[cand[a_row]] = -S[a_row] * x[n_free:][a_row]
     return du, lam_new
-
-
-class _SaddleSolver:
-    """Symmetric indefinite solves by PARDISO (Bunch-Kaufman pivoting, scaling and weighted matching as MKL
-    recommends for saddle-point matrices), the analysis kept while the pattern is unchanged, refined in
-    double precision until the backward error stops falling."""
-
-    def __init__(self):
-        from .linsolve import _mkl_pardiso
-
-        self._call = _mkl_pardiso()
-        self._f = None
-
-    def solve(self, U, b):
-        from .linsolve import _Factor, _pattern_key, _symmetric_matvec
-
-        key = _pattern_key(U)
-        if self._f is None or self._f.key != key:
-            if self._f is not None:
-                self._f.free()
-            self._f = _Factor(self._call, U, -2, False, key)
-        if not self._f.factor(U):
-            raise np.linalg.LinAlgError("PARDISO: symmetric indefinite factorisation failed")
-        diag = U.diagonal()
-        x = self._f.solve(b)
-        err = np.inf
-        for _ in range(4):
-            r = b - _symmetric_matvec(U, diag, x)
-            e = np.linalg.norm(r) / max(np.linalg.norm(b), 1e-300)
-            if not e < 0.5 * err or e < 1e-13:
-                break
-            err = e
-            x = x + self._f.solve(r)
-        if not np.all(np.isfinite(x)):
-            raise np.linalg.LinAlgError("PARDISO: non-finite solution")
-        return x
-
-    def close(self):
-        if self._f is not None:
-            self._f.free()
-            self._f = None
 
 
 def _clear_start(sched, contact, k_ind, u, clearance_mm):

@@ -298,6 +298,32 @@ class PardisoSymmetric:
             raise NotPositiveDefinite("PARDISO: the matrix is not positive definite")
         raise np.linalg.LinAlgError("PARDISO failed in SPD and symmetric-indefinite mode")
 
+    def solve_indefinite(self, U: sp.csr_matrix, b: np.ndarray, *, max_refinements: int = 4) -> np.ndarray:
+        """Solve K x = b for a symmetric indefinite K (a saddle-point matrix) given by its upper triangle U:
+        Bunch-Kaufman factorisation in double precision (mtype -2, the analysis kept while the pattern is
+        unchanged), refined while the relative residual |b - K x|_2 / |b|_2 at least halves and is above
+        1e-13. LinAlgError if the factorisation fails or the solution is not finite."""
+        b = np.asarray(b, dtype=np.float64).ravel()
+        f = self._factor("-2", U, -2, False, _pattern_key(U))
+        self.factorisations += 1
+        if not f.factor(U):
+            raise np.linalg.LinAlgError("PARDISO: symmetric indefinite factorisation failed")
+        diag = U.diagonal()
+        x = f.solve(b)
+        err = np.inf
+        for _ in range(max_refinements):
+            r = b - _symmetric_matvec(U, diag, x)
+            e = np.linalg.norm(r) / max(np.linalg.norm(b), 1e-300)
+            if not e < 0.5 * err or e < 1e-13:
+                break
+            err = e
+            self.refinements += 1
+            x = x + f.solve(r)
+        if not np.all(np.isfinite(x)):
+            raise np.linalg.LinAlgError("PARDISO: non-finite solution")
+        self.last_mode = -2
+        return x
+
     def close(self):
         """Free every factor."""
         for f in self._factors.values():
