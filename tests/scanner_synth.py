@@ -60,6 +60,19 @@ def rotated(affine: np.ndarray, angles_deg) -> np.ndarray:
     return out
 
 
+def _new_instance(sop_class_uid: str) -> Dataset:
+    """An empty SOP instance of that class with its file meta (explicit VR little endian) and a new UID."""
+    meta = FileMetaDataset()
+    meta.MediaStorageSOPClassUID = sop_class_uid
+    meta.MediaStorageSOPInstanceUID = generate_uid()
+    meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds = Dataset()
+    ds.file_meta = meta
+    ds.SOPClassUID = sop_class_uid
+    ds.SOPInstanceUID = meta.MediaStorageSOPInstanceUID
+    return ds
+
+
 def write_series(folder, data: np.ndarray, affine: np.ndarray, *, patient_position: str = "HFS",
                  series_number: int = 1, description: str = "T2 RARE", echo_time_ms: float = 12.0,
                  echo_number: int = 1, repetition_time_ms: float = 2500.0, study_uid: str | None = None,
@@ -85,14 +98,7 @@ def write_series(folder, data: np.ndarray, affine: np.ndarray, *, patient_positi
     ks = list(range(data.shape[2])) if slices is None else list(slices)
     paths = []
     for n, k in enumerate(ks):
-        meta = FileMetaDataset()
-        meta.MediaStorageSOPClassUID = MR_IMAGE_STORAGE
-        meta.MediaStorageSOPInstanceUID = generate_uid()
-        meta.TransferSyntaxUID = ExplicitVRLittleEndian
-        ds = Dataset()
-        ds.file_meta = meta
-        ds.SOPClassUID = MR_IMAGE_STORAGE
-        ds.SOPInstanceUID = meta.MediaStorageSOPInstanceUID
+        ds = _new_instance(MR_IMAGE_STORAGE)
         ds.StudyInstanceUID = study_uid
         ds.SeriesInstanceUID = series_uid
         ds.FrameOfReferenceUID = frame_uid
@@ -243,14 +249,7 @@ def write_enhanced(path, data: np.ndarray, affine: np.ndarray, *, echo_times_ms=
     lps = LPS @ np.asarray(affine, float)[:3]
     row_dir = lps[:, 0] / np.linalg.norm(lps[:, 0])
     col_dir = lps[:, 1] / np.linalg.norm(lps[:, 1])
-    meta = FileMetaDataset()
-    meta.MediaStorageSOPClassUID = ENHANCED_MR_IMAGE_STORAGE
-    meta.MediaStorageSOPInstanceUID = generate_uid()
-    meta.TransferSyntaxUID = ExplicitVRLittleEndian
-    ds = Dataset()
-    ds.file_meta = meta
-    ds.SOPClassUID = ENHANCED_MR_IMAGE_STORAGE
-    ds.SOPInstanceUID = meta.MediaStorageSOPInstanceUID
+    ds = _new_instance(ENHANCED_MR_IMAGE_STORAGE)
     ds.StudyInstanceUID, ds.SeriesInstanceUID, ds.FrameOfReferenceUID = generate_uid(), generate_uid(), generate_uid()
     ds.Modality, ds.Manufacturer = "MR", "Bruker BioSpin MRI GmbH"
     ds.PatientName = ds.PatientID = "phantom"

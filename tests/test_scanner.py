@@ -60,6 +60,19 @@ ORIENTATIONS = {
 }
 
 
+def assert_read_back(ph, affine, aff, vol, *, axial):
+    """A converted stack (vol) of the phantom written with voxel-to-world ``aff`` (the phantom's ``affine``
+    reordered): the same voxels at the same world positions; the slice axis stays the third voxel axis
+    (later stages read slices as data[:, :, k]); an axial stack comes back ordered and flipped toward
+    +x, +y, +z world, as the phantom's own array."""
+    assert_same_geometry(quantised(ph.pre), affine, vol.data, vol.affine)
+    normal_in, normal_out = aff[:3, 2] / np.linalg.norm(aff[:3, 2]), vol.affine[:3, 2] / np.linalg.norm(vol.affine[:3, 2])
+    assert abs(abs(normal_in @ normal_out) - 1.0) < 1e-6
+    if axial:
+        np.testing.assert_allclose(vol.data, quantised(ph.pre), rtol=0, atol=1e-5 * float(ph.pre.max()))
+        np.testing.assert_allclose(vol.affine, ph.affine, atol=1e-5)
+
+
 @pytest.mark.parametrize("name", sorted(ORIENTATIONS))
 def test_dicom_geometry_round_trip(ph, tmp_path, name):
     perm, flip, rot, position = ORIENTATIONS[name]
@@ -69,14 +82,7 @@ def test_dicom_geometry_round_trip(ph, tmp_path, name):
     assert_same_geometry(ph.pre, affine, data, aff)
     write_series(tmp_path / "dcm", data, aff, patient_position=position)
     vol, meta = read_dicom(tmp_path / "dcm", animal="rat")
-    assert_same_geometry(quantised(ph.pre), affine, vol.data, vol.affine)
-    # the slice axis stays the third voxel axis (later stages read slices as data[:, :, k])
-    normal_in, normal_out = aff[:3, 2] / np.linalg.norm(aff[:3, 2]), vol.affine[:3, 2] / np.linalg.norm(vol.affine[:3, 2])
-    assert abs(abs(normal_in @ normal_out) - 1.0) < 1e-6
-    # axes ordered and flipped toward +x, +y, +z world: the phantom's own array for every axial stack
-    if perm == (0, 1, 2) and rot is None:
-        np.testing.assert_allclose(vol.data, quantised(ph.pre), rtol=0, atol=1e-5 * float(ph.pre.max()))
-        np.testing.assert_allclose(vol.affine, ph.affine, atol=1e-5)
+    assert_read_back(ph, affine, aff, vol, axial=perm == (0, 1, 2) and rot is None)
     assert all(vol.affine[np.argmax(np.abs(vol.affine[:3, a])), a] > 0 for a in range(3))
     assert meta["converter"] == "dcm2niix" and meta["patient_position"] == position
     assert meta["field_strength_t"] == 7.0 and meta["echo_time_ms"] == 12.0 and meta["repetition_time_ms"] == 2500.0
@@ -289,12 +295,7 @@ def test_paravision_geometry_round_trip(ph, tmp_path, name):
     data, aff = reorder(ph.pre, affine, perm=perm, flip=flip)
     write_paravision(tmp_path / "study", 5, data, aff, subject_position="Foot_Prone" if "feet" in name else "Head_Prone")
     vol, meta = read_bruker(tmp_path / "study", scan=5, reco=1, animal="rat")
-    assert_same_geometry(quantised(ph.pre), affine, vol.data, vol.affine)
-    normal_in, normal_out = aff[:3, 2] / np.linalg.norm(aff[:3, 2]), vol.affine[:3, 2] / np.linalg.norm(vol.affine[:3, 2])
-    assert abs(abs(normal_in @ normal_out) - 1.0) < 1e-6
-    if perm == (0, 1, 2) and rot is None:
-        np.testing.assert_allclose(vol.data, quantised(ph.pre), rtol=0, atol=1e-5 * float(ph.pre.max()))
-        np.testing.assert_allclose(vol.affine, ph.affine, atol=1e-5)
+    assert_read_back(ph, affine, aff, vol, axial=perm == (0, 1, 2) and rot is None)
     assert meta["converter"] == "brkraw" and meta["scan"] == 5 and meta["sequence"] == "<Bruker:RARE>"
     assert meta["echo_time_ms"] == 12.0 and meta["repetition_time_ms"] == 2500.0 and meta["field_strength_t"] == 7.053
 
