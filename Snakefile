@@ -28,7 +28,6 @@ include: "workflow/rules/model.smk"
 include: "workflow/rules/material.smk"
 include: "workflow/rules/fem.smk"
 include: "workflow/rules/study.smk"
-include: "workflow/rules/contact.smk"
 include: "workflow/rules/convergence.smk"
 include: "workflow/rules/docs.smk"
 

@@ -63,8 +63,9 @@ def test_every_schema_key_is_documented():
     for section in ("segmentation", "pose", "model", "fem", "study", "convergence"):
         for key in schema["properties"][section]["properties"]:
             assert documented(f"{section}.{key}"), f"{section}.{key}"
-    for key in schema["properties"]["fem"]["properties"]["solver"]["properties"]:
-        assert documented(f"fem.solver.{key}"), key
+    for key, sub in schema["properties"]["fem"]["properties"]["solver"]["properties"].items():
+        for path in [f"fem.solver.{key}.{k}" for k in sub["properties"]] if "properties" in sub else [f"fem.solver.{key}"]:
+            assert documented(path), path
     for key in schema["definitions"]["phantom"]["properties"]:
         assert documented(f"animals.<name>.phantom.{key}"), key
 

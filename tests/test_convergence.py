@@ -34,7 +34,7 @@ def make_row(setting, *, variant="sphere", family="P2 uniform", n_dofs, voi, for
              bins_centroid=None):
     return dict(
         animal="rat01", variant=variant, setting=setting, family=family, element_order=2, element_size_mm=h,
-        refine_size_mm=None, tolerance=tolerance, rtol=rtol, penetration_tol=0.01,
+        refine_size_mm=None, tolerance=tolerance, rtol=rtol, gap_tol_rel=1e-3,
         mesh_key=f"p2_h{h:g}_rnone", is_default=is_default, converged=converged,
         reason=None if converged else "cut-back limit", n_elements=n_dofs // 10, n_dofs=n_dofs, increments=5,
         newton_iterations=20, voi_mm3=voi, bins_percent=bins, gamma_sampling="points", voi_sampled_mm3=voi,
@@ -226,13 +226,13 @@ def test_aggregate_writes_csv_figure_and_summary_with_benchmarks(tmp_path):
 def test_default_ladder_contains_default_families_of_both_orders():
     lad = default_ladder({"element_orders": [1, 2], "element_sizes_mm": [1.6, 0.9], "refined_element_sizes_mm": [1.2, 1.0],
                           "refine_ratio": 0.5, "tolerances": [{"name": "loose", "rtol": 1e-5}, {"name": "default"}]},
-                         model_cfg={"element_size_mm": 1.0, "refine_size_mm": 0.5}, solver_cfg={"rtol": 1e-7, "penetration_tol": 0.01})
+                         model_cfg={"element_size_mm": 1.0, "refine_size_mm": 0.5}, solver_cfg={"newton": {"rtol": 1e-7}, "contact": {"gap_tol_rel": 1e-3}})
     names = lad.names
     assert len(names) == len(set(names))
     assert lad.default_name == "p2_h1_r0.5" and lad.default_name in names
     p2 = {"p2_h1.6", "p2_h0.9", "p2_h1.2_r0.6", "p2_h1_r0.5", "p2_h1_r0.5_loose"}
     assert p2 | {n.replace("p2_", "p1_") for n in p2} == set(names)
-    assert lad.by_name("p2_h1_r0.5_loose").rtol == 1e-5 and lad.by_name("p2_h1_r0.5_loose").penetration_tol == 0.01
+    assert lad.by_name("p2_h1_r0.5_loose").rtol == 1e-5 and lad.by_name("p2_h1_r0.5_loose").gap_tol_rel == 1e-3
     assert lad.by_name("p2_h1.6").model_settings({"refine_radius_mm": 4.0}) == {
         "refine_radius_mm": 4.0, "element_size_mm": 1.6, "refine_size_mm": 1.6, "element_order": 2}
     assert lad.by_name("p1_h1.6").model_settings({"element_order": 2})["element_order"] == 1

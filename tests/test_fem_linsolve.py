@@ -11,7 +11,7 @@ import pytest
 import scipy.sparse as sp
 
 from deeptissue.fem.assembly import Assembler, as_material_law
-from deeptissue.fem.linsolve import NotPositiveDefinite, PardisoSymmetric, make_solver
+from deeptissue.fem.linsolve import NotPositiveDefinite, PardisoSymmetric
 from deeptissue.fem.material import Ogden
 from deeptissue.fem.shapes import block_mesh
 
@@ -88,7 +88,7 @@ def test_an_indefinite_matrix_is_refused_in_spd_mode_and_solved_by_ldlt(elastici
     K = _full(U)
     lam_min = sp.linalg.eigsh(K, k=1, sigma=0, which="LM", return_eigenvectors=False)[0]
     Ui = (U - 3.0 * lam_min * sp.eye(U.shape[0], format="csr")).tocsr()
-    s = make_solver("pardiso", precision=precision)
+    s = PardisoSymmetric(precision)
     with pytest.raises(NotPositiveDefinite):
         s.solve(Ui, b, spd_only=True)
     x = s.solve(Ui, b)
@@ -100,13 +100,6 @@ def test_an_indefinite_matrix_is_refused_in_spd_mode_and_solved_by_ldlt(elastici
 def test_precision_is_validated():
     with pytest.raises(ValueError, match="precision 'single'"):
         PardisoSymmetric("single")
-    from deeptissue.fem.solver import SolverSettings
-
-    with pytest.raises(ValueError, match="linear_precision"):
-        SolverSettings(linear_precision="half")
-    with pytest.raises(ValueError, match="retry_linear_precision"):
-        SolverSettings(retry_linear_precision="single")
-    assert SolverSettings(retry_linear_precision=None).retry_linear_precision is None
 
 
 def test_reuse_solves_a_nearby_matrix_by_conjugate_gradients_on_the_last_factor(elasticity):
@@ -162,10 +155,6 @@ def test_reuse_settings_are_validated():
         PardisoSymmetric("mixed", reuse_iterations=-1)
     with pytest.raises(ValueError, match="reuse_rtol 0"):
         PardisoSymmetric("mixed", reuse_iterations=5, reuse_rtol=0.0)
-    from deeptissue.fem.solver import SolverSettings
-
-    with pytest.raises(ValueError, match="linear_reuse_rtol 1.5"):
-        SolverSettings(linear_reuse_rtol=1.5)
 
 
 # --------------------------------------------------------------------------- reproducible mode

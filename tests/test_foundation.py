@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import yaml
 
-from deeptissue.config import ConfigError, validate_config
+from deeptissue.config import ConfigError, load_schema, validate_config
 from deeptissue.contours import Contours, load_contours, save_contours
 from deeptissue.pose import Pose, load_pose, save_pose
 from deeptissue.rigid import apply_rigid, euler_xyz_deg, rotation_matrix
@@ -168,5 +168,15 @@ def test_schema_solver_defaults_are_the_solvers_own():
 
     cfg = validate_config(_demo(), SCHEMA, base_dir=ROOT)
     solver_cfg = cfg["fem"]["solver"]
-    assert {"easy_iterations", "max_iterations", "penalty_factor", "pinch_clearance_mm"} <= set(solver_cfg)
+    assert {"newton", "increments", "contact", "max_wall_s"} <= set(solver_cfg)
+    assert {"rtol", "max_iterations"} <= set(solver_cfg["newton"]) and "gap_tol_rel" in solver_cfg["contact"]
     assert solver_settings_from_config(solver_cfg) == SolverSettings()
+    # at most 20 settings, every one described
+    props = load_schema(SCHEMA)["properties"]["fem"]["properties"]["solver"]["properties"]
+    leaves = [k for k, v in props.items() if "properties" not in v] + [
+        f"{g}.{k}" for g, v in props.items() if "properties" in v for k in v["properties"]]
+    assert len(leaves) <= 20, leaves
+    with pytest.raises(ValueError, match=r"fem.solver.newton: unknown keys \['rtoll'\]"):
+        solver_settings_from_config({"newton": {"rtoll": 1e-6}})
+    with pytest.raises(ValueError, match=r"fem.solver: unknown keys \['penalty_factor'\]"):
+        solver_settings_from_config({"penalty_factor": 30})

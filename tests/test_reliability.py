@@ -203,14 +203,14 @@ def test_two_studies_in_one_checkout_write_their_own_tables(tmp_path):
 
 
 def _bone_state(n=30):
-    return BoneState(displacement_mm=np.arange(n, dtype=float), cast_lam_mpa=np.ones((2, 3)), cast_eps=np.ones(2),
+    return BoneState(displacement_mm=np.arange(n, dtype=float), contact={"cast": (np.arange(3), np.ones(3))},
                      strain_energy_mJ=1.5, history=(), newton_iterations=4, wall_s=1.0, assembly_s=0.5,
                      linear_solve_s=0.3, contact_s=0.1, settings=SolverSettings())
 
 
 def _end_state(n=30):
     return EndState(displacement_mm=np.arange(n, dtype=float),
-                    contact={"indenter": (np.zeros((2, 6), int), np.ones((2, 3)), np.ones(2))},
+                    contact={"indenter": (np.arange(2), np.ones(2))},
                     indenter=Indenter(), bone_motion=BoneMotion(), settings=SolverSettings())
 
 

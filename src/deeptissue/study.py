@@ -20,7 +20,7 @@ from .contours import load_contours
 from .fem.cast import Cast
 from .fem.indenters import Indenter
 from .fem.material import Ogden, ogden_energy
-from .fem.solver import (BoneState, EndState, SolverSettings, end_state, load_bone_state, load_end_state,
+from .fem.solver import (BoneState, EndState, FacetSets, SolverSettings, end_state, load_bone_state, load_end_state,
                          save_bone_state, save_end_state, solve_bone_rotation, solve_indentation, solve_turned,
                          solver_settings_from_config, summed_costs)
 from .io import save_npz
@@ -114,7 +114,7 @@ def solve_variant(
     material : Ogden
         Tissue law.
     settings : SolverSettings
-        Solver settings; the contact set is set here to the variant's patch.
+        Solver settings (the indenter's contact set is the variant's patch).
     study : StudySettings
         Threshold, bins, strain measure and sampling of the summary.
     skin_contours_mm : (..., 3) array_like or None
@@ -147,10 +147,11 @@ def solve_variant(
     t0 = time.perf_counter()
     indenter = variant_indenter(pose, variant, bar_length_mm=bar_length_mm)
     set_name = f"patch_{variant}" if f"patch_{variant}" in mesh.facets else "patch"
-    settings = replace(settings, indenter_set=set_name)
+    sets = FacetSets(indenter=set_name)
     result, turned = None, None
     if base is not None:
-        result = solve_turned(mesh, material=material, base=base, indenter=indenter, cast=cast, settings=settings)
+        result = solve_turned(mesh, material=material, base=base, indenter=indenter, cast=cast, settings=settings,
+                              sets=sets)
         if result.converged:
             turned = base_variant
         else:
@@ -159,7 +160,7 @@ def solve_variant(
     if turned is None:
         first = result
         result = solve_indentation(mesh, material=material, indenter=indenter, bone_motion=pose.bone_motion,
-                                   cast=cast, settings=settings, start=start)
+                                   cast=cast, settings=settings, sets=sets, start=start)
         if first is not None:  # the failed turn's cost is part of this variant's
             result = replace(result, **summed_costs(result, first), wall_s=result.wall_s + first.wall_s,
                              extra={**result.extra, "turn_failed": first.reason})
@@ -169,9 +170,8 @@ def solve_variant(
         solver_wall_s=result.wall_s, assembly_s=result.assembly_s, linear_solve_s=result.linear_solve_s,
         contact_s=result.contact_s, max_penetration_mm=result.max_penetration_mm,
         max_penetration_rel=result.max_penetration_rel,
-        load_reached=result.load_reached, contact_set=set_name, attempts=result.extra.get("attempts", 1),
-        bone_clearance_mm=result.extra.get("bone_clearance_mm"), pinch_first=result.extra.get("pinch_first", False),
-        shifted=result.extra.get("shifted", False),
+        load_reached=result.load_reached, contact_set=set_name,
+        active_set_changes=result.extra.get("active_set_changes"), bone_clearance_mm=result.extra.get("bone_clearance_mm"),
         started_from_bone_state=result.extra.get("started_from_bone_state", False),
         turned_from=turned, turn_failed=result.extra.get("turn_failed"),
     )

@@ -83,12 +83,12 @@ def _ok(r: dict) -> bool:
 
 
 def reference_rows(rows) -> dict:
-    """{variant: the finest converged row}: most DOFs, then tightest rtol and penetration tolerance."""
+    """{variant: the finest converged row}: most DOFs, then tightest rtol and gap tolerance."""
     ref = {}
     for r in rows:
         if not _ok(r):
             continue
-        key = (r.get("n_dofs") or 0, -float(r.get("rtol") or 1.0), -float(r.get("penetration_tol") or 1.0))
+        key = (r.get("n_dofs") or 0, -float(r.get("rtol") or 1.0), -float(r.get("gap_tol_rel") or 1.0))
         cur = ref.get(r["variant"])
         if cur is None or key > cur[0]:
             ref[r["variant"]] = (key, r)

@@ -35,9 +35,9 @@ class Discretisation:
 
     element_size_mm: global element size; refine_size_mm: element size near the indenter travel
     (None: no local refinement); element_order: 1 (4-node) or 2 (10-node tetrahedra); rtol: Newton
-    residual tolerance at step ends (``fem.solver.rtol``); penetration_tol: allowed contact
-    penetration over facet size (``fem.solver.penetration_tol``); tolerance: the name of that
-    tolerance pair; family: the plot line the setting belongs to.
+    residual tolerance at step ends (``fem.solver.newton.rtol``); gap_tol_rel: contact gap tolerance over
+    facet size (``fem.solver.contact.gap_tol_rel``); tolerance: the name of that tolerance pair; family: the
+    plot line the setting belongs to.
     """
 
     name: str
@@ -45,8 +45,8 @@ class Discretisation:
     element_size_mm: float
     refine_size_mm: float | None = None
     element_order: int = 2
-    rtol: float = 1e-7
-    penetration_tol: float = 0.01
+    rtol: float = 1e-6
+    gap_tol_rel: float = 1e-3
     tolerance: str = "default"
 
     def __post_init__(self):
@@ -54,7 +54,7 @@ class Discretisation:
             raise ValueError(f"setting {self.name}: element_order must be 1 or 2, got {self.element_order}")
         if not self.element_size_mm > 0 or (self.refine_size_mm is not None and not self.refine_size_mm > 0):
             raise ValueError(f"setting {self.name}: element sizes must be > 0")
-        if not (self.rtol > 0 and self.penetration_tol > 0):
+        if not (self.rtol > 0 and self.gap_tol_rel > 0):
             raise ValueError(f"setting {self.name}: tolerances must be > 0")
 
     @property
@@ -75,8 +75,8 @@ class Discretisation:
     def solver_config(self, solver_cfg: dict | None = None) -> dict:
         """The ``fem.solver`` config with this setting's tolerances."""
         d = dict(solver_cfg or {})
-        d["rtol"] = float(self.rtol)
-        d["penetration_tol"] = float(self.penetration_tol)
+        d["newton"] = {**dict(d.get("newton") or {}), "rtol": float(self.rtol)}
+        d["contact"] = {**dict(d.get("contact") or {}), "gap_tol_rel": float(self.gap_tol_rel)}
         return d
 
     def to_dict(self) -> dict:
@@ -125,8 +125,8 @@ def default_ladder(conv_cfg: dict | None = None, *, model_cfg: dict | None = Non
     (``element_sizes_mm``, no local refinement), ``P<o> refined x<ratio>`` (``refined_element_sizes_mm``
     with refinement ``refine_ratio`` x size), ``P<o> tolerance`` (the configured default mesh at each
     of ``tolerances``), and the configured default itself (family ``P<o> default`` if it is not
-    already one of the above). Sizes use the ``default`` tolerance (``fem.solver.rtol`` /
-    ``penetration_tol``).
+    already one of the above). Sizes use the ``default`` tolerance (``fem.solver.newton.rtol`` /
+    ``fem.solver.contact.gap_tol_rel``).
 
     Parameters
     ----------
@@ -148,8 +148,10 @@ def default_ladder(conv_cfg: dict | None = None, *, model_cfg: dict | None = Non
     c = dict(conv_cfg or {})
     m = dict(model_cfg or {})
     sv = dict(solver_cfg or {})
-    base_rtol = float(sv.get("rtol", 1e-7))
-    base_pen = float(sv.get("penetration_tol", 0.01))
+    from ..fem.solver import solver_settings_from_config
+
+    base = solver_settings_from_config(sv)
+    base_rtol, base_gap = base.newton.rtol, base.contact.gap_tol_rel
     from ..model import ModelSettings  # the model stage's defaults, one definition
 
     h0 = float(m.get("element_size_mm", ModelSettings.element_size_mm))
@@ -157,8 +159,8 @@ def default_ladder(conv_cfg: dict | None = None, *, model_cfg: dict | None = Non
     r0 = None if r0 >= h0 else r0
     tols = {}
     for t in c.get("tolerances", [{"name": "default"}]):
-        tols[t["name"]] = (float(t.get("rtol", base_rtol)), float(t.get("penetration_tol", base_pen)))
-    tols.setdefault("default", (base_rtol, base_pen))
+        tols[t["name"]] = (float(t.get("rtol", base_rtol)), float(t.get("gap_tol_rel", base_gap)))
+    tols.setdefault("default", (base_rtol, base_gap))
     ratio = float(c.get("refine_ratio", 0.5))
     notes = []
     orders = []
@@ -178,7 +180,7 @@ def default_ladder(conv_cfg: dict | None = None, *, model_cfg: dict | None = Non
         name = setting_name(element_size_mm=h, refine_size_mm=r, element_order=order, tolerance=tol)
         if name not in out:
             out[name] = Discretisation(name=name, family=family, element_size_mm=float(h), refine_size_mm=r,
-                                       element_order=order, rtol=rt, penetration_tol=pt, tolerance=tol)
+                                       element_order=order, rtol=rt, gap_tol_rel=pt, tolerance=tol)
         return name
 
     for o in orders:

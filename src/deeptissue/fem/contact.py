@@ -1,27 +1,25 @@
-"""Frictionless penalty / augmented-Lagrangian contact at the quadrature points of quadratic facets.
+"""Frictionless contact of skin facets with rigid obstacles: weighted gaps, and the penetration between nodes.
 
-The slave side is a set of 6-node skin triangles (TetMesh facets, gmsh Triangle6 order), or of
-3-node triangles with linear shape functions for a first-order mesh; the master
-is rigid and given by a gap function ``gap(x) -> (g, n, H)``: signed distance g [mm] (negative =
-penetration), outward unit normal n = grad g and its gradient H = grad n [1/mm] (None if flat).
+Every obstacle is rigid (the analytical indenter, the rigid cast) and given by a gap function
+``gap(x) -> (g, n, H)``: signed distance g [mm] (negative = penetration), outward unit normal n = grad g and
+its gradient H = grad n [1/mm] (None if flat). The skin side is a set of 6-node triangles (TetMesh facets,
+gmsh Triangle6 order), or 3-node triangles of a first-order mesh.
 
-Per quadrature point (a material point of the skin) with multiplier lam [MPa] and penalty eps
-[N/mm^3], the pressure is p = ramp(lam - eps g) (max(0, .) with its kink rounded over a tiny band)
-and the potential ``Pi_c = sum_q dA0 (psi(lam - eps g) - psi(lam)) / eps`` with psi' = ramp
-(integrated over the reference area). Its gradient is the contact force ``-sum_q dA0 p n N_a`` and
-its Hessian the consistent tangent ``sum_q dA0 N_a N_b (eps ramp' n n^T - p H)`` (symmetric). The multipliers are updated
-lam <- p between Newton solves until the penetration is below a fraction of the facet size.
+Contact is imposed node by node on weighted gaps (:class:`WeightedContact`): for a node j of a contact facet
+set, ``gw_j = sum_q A_q psi_j(q) g(x_q) / m_j`` with ``m_j = sum_q A_q psi_j(q)``, where q runs over the
+quadrature points of the facets around j (reference area weights A_q, current positions x_q) and psi_j is
+j's piecewise-linear hat on the facets split into four subtriangles (positive, a partition of unity: the
+mid-edge and corner nodes of a quadratic facet both get a positive weight, which the facet's own quadratic
+shape functions do not give the corners); on a 3-node facet psi_j is the linear shape function. Its
+multiplier lam_j [N] is the node's share of the contact force: the pressure
+``p(q) = sum_j lam_j psi_j(q) / m_j`` is non-negative wherever every lam_j is, and the force on the tissue
+is ``G^T lam`` with ``G = d gw / d u``. Averaging over each node's facets keeps a facet from slipping into a
+curved obstacle between its nodes without closing a weighted gap (with constraints at the nodes alone, a
+bar tilted 30 deg cuts ~20 % of a facet into the skin and the active set cycles at the quadratic facets'
+corner nodes, whose consistent share of a pressure is near zero).
 
-Optionally (``barrier``) a penetration barrier is added at each point: with the distance to a limit
-surface s = g + limit (limit > 0: the deepest penetration the solver ever accepts) and
-s_hat = limit - onset, the IPC-type potential b(s) = -kappa (s - s_hat)^2 ln(s / s_hat) for
-0 < s < s_hat (zero for penetrations below onset; C2 and convex), continued below s = 0.01 s_hat by its
-second-order Taylor polynomial so that every state keeps a finite energy (an increment's predictor may
-start beyond the limit). Its pressure -b'(s) adds to p and its stiffness b''(s) (about kappa s_hat^2 /
-s^2 near the limit) to the normal tangent. A finite penalty lets pinched tissue lower its energy by
-pushing through a curved indenter (the bar tilted 30 deg of the hard cases, docs/verification.md); the
-barrier makes that way out cost more the deeper it goes, and is zero in the states the multiplier
-updates deliver (penetration below penetration_tol < onset).
+:class:`ContactSurface` measures the penetration that is left between the nodes, at the facets' quadrature
+points (reported, not constrained).
 """
 
 from __future__ import annotations
@@ -29,6 +27,8 @@ from __future__ import annotations
 import numpy as np
 from skfem.quadrature import get_quadrature
 from skfem.refdom import RefTri
+
+__all__ = ["ContactSurface", "WeightedContact", "tri3_shape", "tri6_shape"]
 
 
 def tri6_shape(xi: np.ndarray, eta: np.ndarray):
@@ -48,47 +48,167 @@ def tri3_shape(xi: np.ndarray, eta: np.ndarray):
     return N, np.stack([dxi, deta], -1)
 
 
-def _ramp(z, delta):
-    """p = max(0, z) rounded over |z| < delta (C1), its derivative and its integral psi (psi' = p)."""
-    z = np.asarray(z, float)
-    delta = np.broadcast_to(np.asarray(delta, float), z.shape) if np.ndim(delta) else np.full(z.shape, float(delta))
-    if not np.any(delta > 0):
-        p = np.maximum(z, 0.0)
-        return p, (z > 0).astype(float), 0.5 * p * p
-    d = np.maximum(delta, 1e-300)
-    band = np.abs(z) < d
-    hi = z >= d
-    zb = z + d
-    p = np.where(hi, z, np.where(band, zb * zb / (4 * d), 0.0))
-    dp = np.where(hi, 1.0, np.where(band, zb / (2 * d), 0.0))
-    psi = np.where(hi, 0.5 * z * z + d * d / 6.0, np.where(band, zb**3 / (12 * d), 0.0))
-    return p, dp, psi
+# the 4-subtriangle split of the reference 6-node triangle (gmsh order: corners 0,1,2; midsides 3 (0-1), 4 (1-2), 5 (2-0))
+_LOCAL = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [0.5, 0.0], [0.5, 0.5], [0.0, 0.5]])
+_SUB = np.array([[0, 3, 5], [3, 1, 4], [5, 4, 2], [3, 4, 5]])
 
 
-def _barrier(s, s_hat, kappa, s_min_rel=0.01):
-    """b(s) = -kappa (s - s_hat)^2 ln(s / s_hat) for s < s_hat (0 beyond), continued below
-    s_min = s_min_rel s_hat by its second-order Taylor polynomial; returns b, db/ds, d2b/ds2."""
-    s = np.asarray(s, float)
-    sh = np.broadcast_to(s_hat, s.shape)
-    k = np.broadcast_to(kappa, s.shape)
-    x = np.clip(s, s_min_rel * sh, sh)
-    r, lg = x - sh, np.log(x / sh)
-    b = -k * r * r * lg
-    b1 = -k * (2 * r * lg + r * r / x)
-    b2 = -k * (2 * lg + 4 * r / x - r * r / (x * x))
-    ds = np.minimum(s - x, 0.0)  # < 0 only below s_min (0 beyond s_hat, where b is 0: no inf * 0 for a gap of inf)
-    b, b1 = b + b1 * ds + 0.5 * b2 * ds * ds, b1 + b2 * ds
-    on = s < sh
-    return np.where(on, b, 0.0), np.where(on, b1, 0.0), np.where(on, b2, 0.0)
+def _weight_quadrature(n_nodes: int = 6):
+    """Points (Q, 2) on the reference triangle, weights (Q,) (summing to its area 1/2) and the values (Q, n_nodes)
+    of the weight functions psi_j: for 6-node facets the piecewise-linear hats of the 4-subtriangle split
+    (positive, a partition of unity), for 3-node facets the linear shape functions; a degree-2 rule on each
+    subtriangle (12 points)."""
+    bary = np.array([[2 / 3, 1 / 6, 1 / 6], [1 / 6, 2 / 3, 1 / 6], [1 / 6, 1 / 6, 2 / 3]])
+    pts, w, psi = [], [], []
+    for tri in _SUB:
+        pts.append(bary @ _LOCAL[tri])
+        w.append(np.full(3, 1 / 24))  # subtriangle area 1/8, three equal weights
+        v = np.zeros((3, 6))
+        v[:, tri] = bary
+        psi.append(v)
+    pts, w, psi = np.concatenate(pts), np.concatenate(w), np.concatenate(psi)
+    if n_nodes == 3:
+        psi = tri3_shape(pts[:, 0], pts[:, 1])[0]
+    elif n_nodes != 6:
+        raise ValueError(f"contact facets must have 3 or 6 nodes, got {n_nodes}")
+    return pts, w, psi
+
+
+class WeightedContact:
+    """Weighted gaps of the skin nodes against the rigid obstacles, and their derivatives.
+
+    For a node j of a contact facet set, its weighted gap is the average of the gap over the facets around it,
+    weighted by the positive piecewise-linear function psi_j of the facets' 4-subtriangle split:
+    ``gw_j = sum_q A_q psi_j(q) g(x_q) / m_j``, ``m_j = sum_q A_q psi_j(q)`` (A_q the reference area weight of
+    quadrature point q, x_q its current position). The constraint is gw_j >= 0; its multiplier lam_j [N]
+    is the node's share of the contact force, the pressure being ``p(q) = sum_j lam_j psi_j(q) / m_j`` >= 0
+    wherever every lam_j >= 0. One entry per node and obstacle (a node of both facet sets has two);
+    ``sets`` is a list of (obstacle name, facets (K, 6) or (K, 3) TetMesh node ids), ``excluded`` the nodes
+    that get no entry (the bone's: prescribed), young_mpa scales a gap into a force (c = E h [N/mm]).
+    Attributes: node, obstacle (index into names), h (the smallest facet size around the node [mm]), c,
+    lam (multipliers [N]), cand (the candidate entries), gapfns (per obstacle: x -> (g, n, H)).
+    """
+
+    def __init__(self, X, sets, excluded, young_mpa):
+        nodes, obst, h, self.names, self.sets = [], [], [], [], []
+        for k, (name, facets) in enumerate(sets):
+            facets = np.asarray(facets, np.int64)
+            xi, w, psi = _weight_quadrature(facets.shape[1])
+            N, dN = (tri6_shape if facets.shape[1] == 6 else tri3_shape)(xi[:, 0], xi[:, 1])
+            Xf = X[facets]
+            a1 = np.einsum("qa,kai->kqi", dN[..., 0], Xf)
+            a2 = np.einsum("qa,kai->kqi", dN[..., 1], Xf)
+            A = np.linalg.norm(np.cross(a1, a2), axis=-1) * w  # (F, Q) [mm^2]
+            hf = np.sqrt(2.0 * A.sum(axis=1))
+            nd = np.setdiff1d(np.unique(facets), excluded)
+            hn = np.full(len(X), np.inf)
+            np.minimum.at(hn, facets.ravel(), np.repeat(hf, facets.shape[1]))
+            # local entry index of each facet node (-1: excluded node, no constraint)
+            ent = np.full(len(X), -1, np.int64)
+            ent[nd] = np.arange(len(nd)) + sum(len(n) for n in nodes)
+            self.sets.append(dict(facets=facets, N=N, psi=psi, X=np.einsum("qa,kai->kqi", N, Xf), A=A, entry=ent[facets]))
+            nodes.append(nd)
+            obst.append(np.full(len(nd), k))
+            h.append(hn[nd])
+            self.names.append(name)
+        self.X = X
+        self.node = np.concatenate(nodes) if nodes else np.zeros(0, np.int64)
+        self.obstacle = np.concatenate(obst) if obst else np.zeros(0, np.int64)
+        self.h = np.concatenate(h) if h else np.zeros(0)
+        self.c = young_mpa * self.h
+        self.lam = np.zeros(len(self.node))
+        self.cand = np.ones(len(self.node), bool)
+        self.gapfns = [None] * len(sets)
+
+    def evaluate(self, u, which=None):
+        """g (E,) [mm] (inf outside ``which``, default the candidates), n (E, 3), H (E, 3, 3) at u."""
+        which = self.cand if which is None else which
+        E = len(self.node)
+        g, n, H = np.full(E, np.inf), np.zeros((E, 3)), np.zeros((E, 3, 3))
+        x = self.X[self.node] + u.reshape(-1, 3)[self.node]
+        for k, fn in enumerate(self.gapfns):
+            sel = np.flatnonzero(which & (self.obstacle == k))
+            if len(sel):
+                gk, nk, Hk = fn(x[sel])
+                g[sel], n[sel] = gk, nk
+                if Hk is not None:
+                    H[sel] = Hk
+        return g, n, H
+
+    def ncp(self, lam, g):
+        """min(lam, c g) per entry [N] (0 at a solution; 0 outside the candidates)."""
+        return np.where(np.isfinite(g), np.minimum(lam, self.c * np.where(np.isfinite(g), g, 0.0)), 0.0)
+
+    def weighted(self, u, which, lam=None, curvature=True):
+        """Weighted gaps of the entries ``which`` at u.
+
+        Returns gw (E,) [mm] (inf outside ``which`` and where no quadrature point around the node can touch),
+        the rows of d gw / d u as COO (entry, dof, value [1]), and with ``lam`` (E,) [N] the curvature of the
+        obstacles under the pressure those multipliers make: (dofs (F, 18), blocks (F, 18, 18) [N/mm]; 9 for 3-node facets) of
+        ``-sum_q A_q p_q N_a N_b H_q`` (empty without ``curvature``), and the contact force on the tissue
+        (n_dofs,) [N] (G^T lam).
+        """
+        E = len(self.node)
+        m, num = np.zeros(E), np.zeros(E)
+        u3 = u.reshape(-1, 3)
+        parts = []
+        for k, st in enumerate(self.sets):
+            on = np.append(which & (self.obstacle == k), False)  # index -1 (no entry) -> False
+            fsel = np.flatnonzero(on[st["entry"]].any(axis=1))
+            if not len(fsel):
+                continue
+            fac, A, en, N, psi = st["facets"][fsel], st["A"][fsel], st["entry"][fsel], st["N"], st["psi"]
+            x = st["X"][fsel] + np.einsum("qa,fai->fqi", N, u3[fac])
+            F, Q = A.shape
+            g, n, H = self.gapfns[k](x.reshape(-1, 3))
+            g, n = g.reshape(F, Q), n.reshape(F, Q, 3)
+            fin = np.isfinite(g)
+            Aq = np.where(fin, A, 0.0)
+            valid = en >= 0
+            np.add.at(m, en[valid], np.einsum("fq,qj->fj", Aq, psi)[valid])
+            np.add.at(num, en[valid], np.einsum("fq,qj->fj", Aq * np.where(fin, g, 0.0), psi)[valid])
+            B = np.einsum("fq,qj,qa,fqi->fjai", Aq, psi, N, np.where(fin[..., None], n, 0.0))
+            Hq = None if H is None else np.where(fin[..., None, None], H.reshape(F, Q, 3, 3), 0.0)
+            parts.append((fac, Aq, en, valid, B, Hq, N, psi))
+        ok = which & (m > 0)
+        gw = np.full(E, np.inf)
+        gw[ok] = num[ok] / m[ok]
+        inv_m = np.where(m > 0, 1.0 / np.where(m > 0, m, 1.0), 0.0)
+        rows, cols, vals = [], [], []
+        force = np.zeros(u.size) if lam is not None else None
+        geo = []
+        for fac, Aq, en, valid, B, Hq, N, psi in parts:
+            e_safe = np.where(valid, en, 0)
+            scale = np.where(valid, inv_m[e_safe], 0.0) * ok[e_safe]  # (F, 6)
+            Bs = B * scale[:, :, None, None]  # d gw_j / d x_a (F, j, a, 3)
+            dof = 3 * fac[:, :, None] + np.arange(3)  # (F, nodes, 3)
+            keep = np.broadcast_to((valid & ok[e_safe])[:, :, None, None], Bs.shape)
+            rows.append(np.broadcast_to(e_safe[:, :, None, None], Bs.shape)[keep])
+            cols.append(np.broadcast_to(dof[:, None], Bs.shape)[keep])
+            vals.append(Bs[keep])
+            if lam is not None:
+                lj = np.where(valid, lam[e_safe], 0.0) * scale  # lam_j / m_j
+                np.add.at(force, dof.ravel(), np.einsum("fj,fjai->fai", lj, B).ravel())
+                if curvature and Hq is not None:
+                    p = np.einsum("fj,qj->fq", lj, psi)  # pressure at the points [MPa]
+                    blk = -np.einsum("fq,qa,qb,fqij->faibj", Aq * p, N, N, Hq)
+                    nd = dof.shape[1] * 3
+                    geo.append((dof.reshape(len(fac), nd), blk.reshape(len(fac), nd, nd)))
+        G = (np.concatenate(rows) if rows else np.zeros(0, np.int64), np.concatenate(cols) if cols else np.zeros(0, np.int64),
+             np.concatenate(vals) if vals else np.zeros(0))
+        if lam is None:
+            return gw, G
+        return gw, G, geo, force
 
 
 class ContactSurface:
-    """Quadrature on a set of quadratic skin facets (the contact slave side), or linear ones.
+    """Quadrature on a set of quadratic skin facets, or linear ones: where the penetration between the nodes
+    is measured (the weighted gaps close it on average over each node's facets, not point by point).
 
     nodes_mm (n_nodes, 3), facets6 (K, 6) TetMesh node indices (or (K, 3) 3-node facets of a
-    first-order mesh: then N (Q, 3), dofs (K, 9) and the matrices below are 9 x 9). Attributes: N (Q, 6), dofs (K, 18),
+    first-order mesh: then N (Q, 3), dofs (K, 9)). Attributes: N (Q, 6), dofs (K, 18),
     X (K, Q, 3) reference quadrature points [mm], dA0 (K, Q) reference area weights [mm^2],
-    h_mm (K,) facet size sqrt(2 * area) [mm], lam (K, Q) multipliers [MPa].
+    h_mm (K,) facet size sqrt(2 * area) [mm].
     """
 
     def __init__(self, nodes_mm: np.ndarray, facets6: np.ndarray, *, order: int = 4):
@@ -107,7 +227,6 @@ class ContactSurface:
         self.facets6 = facets6
         self.dofs = (3 * facets6[:, :, None] + np.arange(3)).reshape(len(facets6), 3 * facets6.shape[1])
         self.h_mm = np.sqrt(2.0 * self.dA0.sum(axis=1))
-        self.lam = np.zeros_like(self.dA0)
         self.n_facets, self.n_qp = self.dA0.shape
 
     def positions(self, u: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
@@ -122,55 +241,3 @@ class ContactSurface:
         x = self.positions(u, idx)
         g = gapfn(x.reshape(-1, 3))[0]
         return g.reshape(x.shape[:2])
-
-    def evaluate(self, u: np.ndarray, gapfn, eps: np.ndarray, idx: np.ndarray, *, tangent: bool = True,
-                 smoothing_mm: float = 0.0, near_mm: float = 0.0, barrier=None):
-        """Contact potential, force and tangent of candidate facets idx.
-
-        eps (K,) penalty per facet [N/mm^3]; smoothing_mm: the kink of p = max(0, z), z = lam - eps g,
-        is rounded to a C1 ramp over |z| < eps * smoothing_mm (a penetration-equivalent width), which
-        keeps Newton from cycling when points enter and leave contact; near_mm: points closer than
-        this (not yet in contact) get the penalty stiffness in the tangent too, so a Newton step does
-        not drive them deep into the master (a stabilised, not exactly consistent tangent: only the
-        search direction changes, the potential and force stay exact); barrier: None or (onset_mm, limit_mm,
-        kappa) per candidate facet (K', 1) [mm, mm, N/mm^3], the penetration barrier of the module
-        docstring (pressure and tangent include it). Returns dict: energy [mJ], force (n_dofs,) [N] (internal
-        force contribution), traction_sum (3,) [N] (force applied by the master on the skin),
-        pressure (K', Q) [MPa], gap (K', Q) [mm], and if tangent: Kf (K', 18, 18) [N/mm] (normal part,
-        positive semi-definite), Kf_geo (K', 18, 18) (curvature part -p grad n, absent for flat masters;
-        the consistent tangent is Kf + Kf_geo), dofs (K', 18).
-        """
-        n_dofs = u.size
-        nd = self.dofs.shape[1]  # 18 (6-node facets) or 9 (3-node)
-        x = self.positions(u, idx)
-        K, Q = x.shape[:2]
-        g, nrm, H = gapfn(x.reshape(-1, 3))
-        g = g.reshape(K, Q)
-        nrm = nrm.reshape(K, Q, 3)
-        lam = self.lam[idx]
-        e = eps[idx][:, None]
-        z = lam - e * g
-        p, dp, psi = _ramp(z, e * smoothing_mm)
-        psi0 = _ramp(lam, e * smoothing_mm)[2]
-        dA = self.dA0[idx]
-        energy = float(np.sum(dA * (psi - psi0) / e))
-        k_b = 0.0
-        if barrier is not None:
-            onset_mm, limit_mm, kappa = barrier
-            b, b1, k_b = _barrier(g + limit_mm, limit_mm - onset_mm, kappa)
-            energy += float(np.sum(dA * b))
-            p = p - b1
-        t = (dA * p)[..., None] * nrm  # (K, Q, 3) force on the skin
-        fe = -np.einsum("qa,kqi->kai", self.N, t).reshape(K, nd)
-        force = np.bincount(self.dofs[idx].ravel(), weights=fe.ravel(), minlength=n_dofs)
-        out = dict(energy=energy, force=force, traction_sum=t.sum(axis=(0, 1)), pressure=p, gap=g)
-        if tangent:
-            if near_mm is not None and np.any(np.asarray(near_mm) > 0):
-                dp = np.maximum(dp, (g < near_mm).astype(float))
-            kq = (dA * (e * dp + k_b))[..., None, None] * nrm[..., :, None] * nrm[..., None, :]
-            out["Kf"] = np.einsum("qa,qb,kqij->kaibj", self.N, self.N, kq).reshape(K, nd, nd)
-            if H is not None:
-                kg = -(dA * p)[..., None, None] * H.reshape(K, Q, 3, 3)
-                out["Kf_geo"] = np.einsum("qa,qb,kqij->kaibj", self.N, self.N, kg).reshape(K, nd, nd)
-            out["dofs"] = self.dofs[idx]
-        return out

@@ -1,38 +1,24 @@
-"""Sparse symmetric solvers for the Newton tangent (upper-triangle CSR of the free dofs).
+"""Sparse symmetric solves (upper-triangle CSR) by MKL PARDISO (the library pypardiso ships, called through ctypes).
 
-Default: MKL PARDISO (the library pypardiso ships and locates, called directly through ctypes) in
-SPD mode (mtype 2) with the symbolic analysis (fill-in reducing ordering) done once per sparsity
-pattern and only numerical factorisation + solve per Newton iteration; falls back to symmetric
-indefinite mode (mtype -2, double precision) if the matrix is not positive definite.
-precision 'mixed' (default): the Cholesky factor in single precision, refined in double precision
-(x <- x + L^-T L^-1 (b - K x) with K applied in double) until the normwise backward error
-|b - K x|_inf / (|K|_inf |x|_inf + |b|_inf) is below refine_eta (1e-14; a double-precision
-factorisation reaches ~1e-16); a matrix whose refinement does not halve that error at every step (an
-ill-conditioned one: single precision carries ~7 digits) is factorised again in double. A small
-backward error does not make the component along a nearly singular mode accurate (at a bifurcation,
-where the solver's retry works), so the retry solves in double (SolverSettings.retry_linear_precision).
-Mixed precision is the default because the single-precision factorisation takes 55-60 % of the time
-of the double one on a rat's limb in contact (41.6 k free dofs, 21.6 M factor entries, one core),
-and its refinement steps (typically two) cost about 5 % of it each.
-reuse_iterations > 0 (mixed precision): a matrix of the same pattern as the last one factorised is
-first solved by conjugate gradients preconditioned by that factor (one single-precision solve and one
-matvec per iteration: about 30 of them cost one factorisation at 41.6 k dofs), to a
-relative residual |b - K x|_2 <= reuse_rtol |b|_2 within reuse_iterations; a direction of
-non-positive curvature proves the matrix indefinite without a failed factorisation; otherwise (slower
-than geometric progress to reuse_rtol over reuse_iterations) the matrix is factorised and that factor
-becomes the preconditioner. Newton itself needs no exact direction, but its path does: increments
-are cut, contact facets stiffened and multipliers updated on thresholds, and a direction inexact at
-1e-6 can move a solve onto another path (the demo's rat02 sphere_rx-15: 22 increments instead of 11,
-same answer); at reuse_rtol 1e-10 (the solver's default) the demo's solves take the Newton iterations
-of exact solves.
-'amg': pyamg smoothed aggregation with rigid-body modes + CG (low memory).
-'superlu': scipy (slow, reference).
+The FE solver's Newton systems are symmetric saddle-point matrices (tangent and contact constraints):
+:meth:`PardisoSymmetric.solve_indefinite` factorises them in symmetric indefinite mode (mtype -2, Bunch-Kaufman
+pivoting, double precision) and refines the solution while its residual halves.
+
+:meth:`PardisoSymmetric.solve` solves a positive definite matrix (the linear-elastic reference of the
+convergence study) in SPD mode (mtype 2), with the symbolic analysis (fill-in reducing ordering) done once per
+sparsity pattern; it falls back to indefinite mode if the matrix is not positive definite. precision 'mixed'
+(default): the Cholesky factor in single precision, refined in double precision until the normwise backward
+error |b - K x|_inf / (|K|_inf |x|_inf + |b|_inf) is below refine_eta (1e-14); a matrix whose refinement does
+not halve that error at every step is factorised again in double. The single-precision factorisation takes
+55-60 % of the time of the double one on a rat's limb (41.6 k free dofs, one core). reuse_iterations > 0: a
+matrix of the same pattern as the last one factorised is first solved by conjugate gradients preconditioned by
+that factor to a relative residual reuse_rtol, and factorised when they fall behind a geometric decrease.
+
 With more than one thread, PARDISO's numerical factorisation schedules its work dynamically and its
 reductions follow the threads' timing, so repeated factorisations of one matrix differ in the last bits
-(mixed and double precision alike) and a Newton path that thresholds on them can differ by a few
-iterations; one thread, or :func:`pin_reproducible` before the first PARDISO call, gives bitwise
-identical solves and, with the assembly's sums in a fixed order (numpy, scipy, OpenBLAS), identical
-Newton paths.
+and a Newton path that thresholds on them can differ by a few iterations; one thread, or
+:func:`pin_reproducible` before the first PARDISO call, gives bitwise identical solves and, with the
+assembly's sums in a fixed order (numpy, scipy, OpenBLAS), identical Newton paths.
 """
 
 from __future__ import annotations
@@ -45,8 +31,7 @@ import scipy.sparse as sp
 
 _log = logging.getLogger(__name__)
 
-__all__ = ["PRECISIONS", "AMGSolver", "NotPositiveDefinite", "PardisoSymmetric", "SuperLUSolver", "make_solver",
-           "pin_reproducible"]
+__all__ = ["PRECISIONS", "NotPositiveDefinite", "PardisoSymmetric", "pin_reproducible"]
 
 
 PRECISIONS = ("mixed", "double")  # of PardisoSymmetric
@@ -329,70 +314,3 @@ class PardisoSymmetric:
         for f in self._factors.values():
             f.free()
         self._factors = {}
-
-
-class AMGSolver:
-    """K x = b by conjugate gradients preconditioned by pyamg smoothed aggregation with rigid-body modes
-    (low memory; relative tolerance ``rtol``, at most 500 iterations, LinAlgError if not converged)."""
-
-    def __init__(self, coords_mm: np.ndarray | None = None, free: np.ndarray | None = None, rtol: float = 1e-8):
-        self.coords = coords_mm
-        self.free = free
-        self.rtol = rtol
-        self.last_mode = "amg"
-
-    def solve(self, U, b, spd_only: bool = False):
-        """Solve K x = b, K given by its upper triangle U (CSR); ``spd_only`` is ignored."""
-        import pyamg
-        from scipy.sparse.linalg import cg
-
-        K = (U + sp.triu(U, 1).T).tocsr()
-        B = None
-        if self.coords is not None:
-            c = self.coords - self.coords.mean(axis=0)
-            n = len(c)
-            B = np.zeros((3 * n, 6))
-            for i in range(3):
-                B[i::3, i] = 1.0
-            B[0::3, 3], B[1::3, 3] = -c[:, 1], c[:, 0]
-            B[1::3, 4], B[2::3, 4] = -c[:, 2], c[:, 1]
-            B[0::3, 5], B[2::3, 5] = c[:, 2], -c[:, 0]
-            if self.free is not None:
-                B = B[self.free]
-        ml = pyamg.smoothed_aggregation_solver(K, B=B, max_coarse=500)
-        x, info = cg(K, b, rtol=self.rtol, maxiter=500, M=ml.aspreconditioner())
-        if info != 0:
-            raise np.linalg.LinAlgError(f"AMG-CG did not converge (info {info})")
-        return x
-
-    def close(self):
-        """Nothing to free."""
-
-
-class SuperLUSolver:
-    """K x = b by scipy's SuperLU on the full matrix (slow; a reference)."""
-
-    last_mode = "superlu"
-
-    def solve(self, U, b, spd_only: bool = False):
-        """Solve K x = b, K given by its upper triangle U (CSR); ``spd_only`` is ignored."""
-        from scipy.sparse.linalg import spsolve
-
-        K = (U + sp.triu(U, 1).T).tocsc()
-        return spsolve(K, b)
-
-    def close(self):
-        """Nothing to free."""
-
-
-def make_solver(name: str, *, coords_mm: np.ndarray | None = None, free: np.ndarray | None = None,
-                precision: str = "mixed", reuse_iterations: int = 0, reuse_rtol: float = 1e-10):
-    """'pardiso' (default; precision 'mixed' or 'double', reuse_* for mixed), 'amg' (coords_mm
-    (n_nodes, 3) and free dof indices for the rigid-body modes), 'superlu'."""
-    if name == "pardiso":
-        return PardisoSymmetric(precision, reuse_iterations=reuse_iterations, reuse_rtol=reuse_rtol)
-    if name == "amg":
-        return AMGSolver(coords_mm, free)
-    if name == "superlu":
-        return SuperLUSolver()
-    raise ValueError(f"linear solver {name!r}: expected 'pardiso', 'amg' or 'superlu'")
