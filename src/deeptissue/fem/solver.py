@@ -646,6 +646,8 @@ def _solve_increment(p: _Problem, u, lam, target_d, rtol, atol):
                 break
         if step is None:
             return False, "line search failed", it, residuals, changes
+        log.debug("  it %d res %.3e active %d (changed %d) step %.3g min lam %.2e", it, res, int(act.sum()),
+                  int(np.count_nonzero(new_act != (lam > 0))), step, float(lam_new.min(initial=0.0)))
         u += step * du
         lam += step * dlam
     return False, "too many iterations", s.newton.max_iterations, residuals, changes

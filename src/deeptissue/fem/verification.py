@@ -333,7 +333,10 @@ HERTZ_RADIUS_MM = 1.5
 
 # Checks that fail on the project's machine for a known reason: status ``known-failure`` instead of
 # ``fail`` (a passing check stays ``pass``). Remove an entry once its check passes again.
-KNOWN_FAILURES = {}
+_PINCH = ("open hard case: the tissue pinched against the rigid core stalls in the last increments (active-set "
+          "changes without descent; the force stops growing) on the project's machine")
+KNOWN_FAILURES = {f"hard case: {c}": _PINCH for c in (
+    "sphere to depth 2.5R (3.75 mm)", "sphere pinched 0.1 mm from the bone", "bar tilted 45 deg, 1.5 mm")}
 
 # cylinder scene, each mesh against the finest: the accuracy goal of the study's numbers (force within
 # 0.5 % from 0.5 to 3 mm; VOI within 2 % and every bin within 1 pp at 1.5, 2 and 3 mm), and the error
