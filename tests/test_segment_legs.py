@@ -1,9 +1,10 @@
-"""Touching legs parted by a point inside one (leg_point_mm), and the tibia chosen in 3D on masked scans."""
+"""Touching legs parted by a point inside one (leg_point_mm), and the tibia and fibula chosen in 3D on masked scans."""
 
 import numpy as np
 import pytest
 from masked_legs import Leg, masked_legs
 
+from deeptissue import segment
 from deeptissue.contours import load_contours, polygon_area_centroid
 from deeptissue.imaging import ImagingError, body_mask, select_leg, write_nifti
 from deeptissue.segment import SegmentationError, SegmentationSettings, segment_files, segment_volume
@@ -122,3 +123,45 @@ def test_no_structure_along_the_leg_is_refused():
     with pytest.raises(SegmentationError, match=r"animal twin, file legs\.nii\.gz: no dark structure runs through half "
                                                 r"of the 8 traced slices \(the longest is on 3: slices 0, 1, 2\)"):
         segment_volume(vol, settings=MASKED)
+
+
+# --- the fibula in 3D -------------------------------------------------------------------------------
+
+FIBULA = np.add((0.0, 0.0), Leg((0.0, 0.0)).fibula_mm)  # the fibula's centre on every slice [mm]
+
+
+def _fibula_centres(c):
+    return [None if not np.isfinite(c.fibula[k]).all() else polygon_area_centroid(c.fibula[k, :, :2])[1]
+            for k in range(c.n_slices)]
+
+
+def test_masked_fibula_on_every_slice_not_a_larger_dark_spot_on_one():
+    # on slice 3 a round dark spot larger than the fibula, 2.6 mm from it: slice by slice the largest would be taken
+    vol = masked_legs([Leg((0.0, 0.0))], extra={3: (-2.0, 1.2, 0.9)})
+    c, info = segment_volume(vol, settings=MASKED)
+    assert info["fibula_slices"] == vol.n_slices
+    for k, cen in enumerate(_fibula_centres(c)):
+        assert np.hypot(*(cen - FIBULA)) < PX_MM, f"slice {k}"
+
+
+def test_a_dark_spot_where_the_fibula_is_missing_is_not_taken(monkeypatch):
+    # on slice 4 the fibula is not seen (filled with muscle) and a smaller round dark spot lies 1.6 mm from where it
+    # runs: it is the only fibula candidate there, and slice by slice it would be taken
+    n = (112, 96, 8)
+    legs = masked_legs([Leg((0.0, 0.0))], n=n)
+    gap = masked_legs([Leg((0.0, 0.0), fibula_radius_mm=0.0)], n=n, extra={4: (-1.6, -2.5, 0.55)})
+    data = legs.data.copy()
+    data[:, :, 4] = gap.data[:, :, 4]
+    vol = type(legs)(data=data, affine=legs.affine, path=legs.path, animal=legs.animal)
+    seen = []  # each slice's fibula candidates
+    real = segment._fibula_candidates
+    monkeypatch.setattr(segment, "_fibula_candidates", lambda *a, **kw: seen.append(real(*a, **kw)) or seen[-1])
+    c, info = segment_volume(vol, settings=MASKED)
+    assert len(seen[4]) == 1  # the premise
+    assert np.hypot(*(vol.world([*polygon_area_centroid(seen[4][0][1])[1], 4])[:2] - (-1.6, -2.5))) < PX_MM
+    cens = _fibula_centres(c)
+    assert cens[4] is None and info["slices"][4]["fibula_source"] == "none"
+    assert info["fibula_slices"] == vol.n_slices - 1
+    for k, cen in enumerate(cens):
+        if k != 4:
+            assert np.hypot(*(cen - FIBULA)) < PX_MM, f"slice {k}"

@@ -27,12 +27,13 @@ Per slice (arrays indexed [i, j] as in the NIfTI, converted to world mm by the a
    those at least half as large (``anterior``). A slice without it is refused by number, never given
    another structure. Automatic level: half the median muscle value of ``N`` (cortical bone gives
    no signal).
-7. **Fibula** (``fibula: true``): of the other dark regions inside the skin (same level, outside
-   the tibia) with an area from ``fibula_min_area_mm2`` up to ``fibula_max_area_ratio`` times the
-   tibia's and round (4 pi A / P^2 >= 0.5, not a thin or ragged gap), the largest. A volume where
-   fewer than ``fibula_min_slices`` slices have one has no fibula (a stray dark spot is not a bone
-   that runs along the leg); the slices without one are NaN in the ``fibula`` array of the
-   contour file.
+7. **Fibula** (``fibula: true``), chosen in 3D (:func:`_choose_fibula`): the other dark regions inside
+   the skin (same level, outside the tibia) with an area from ``fibula_min_area_mm2`` up to
+   ``fibula_max_area_ratio`` times the tibia's and round (4 pi A / P^2 >= 0.5, not a thin or ragged
+   gap) are linked from slice to slice like the tibia's candidates, and the longest track is the
+   fibula. A track on fewer than ``fibula_min_slices`` slices is no fibula (a stray dark spot is not a
+   bone that runs along the leg); the slices where the track has no candidate are NaN in the
+   ``fibula`` array of the contour file.
 8. **Indenter** (during scan, ``indenter_mask``): the indenter is found from its contrast fluid
    (:func:`find_indenter`: the pose stage's fluid component and axis, the head and fluid radius from the
    fluid's edge, the outer radius ``pose.head_radius_mm``). Pixels within ``indenter_guard_mm`` of its
@@ -234,11 +235,13 @@ class _SliceResult:
     # the tibia's candidates: (area [px], (i, j) contour) of the closed dark regions inside the skin; None when the
     # bones were not traced or the tibia is hidden against the indenter
     bone_candidates: list | None = None
+    # the fibula's candidates, (area [px], (i, j) contour), once the tibia is set (finish); None: not searched
+    fibula_candidates: list | None = None
     trace: dict | None = None  # what _finish_bones needs: the image the bones were traced on, dark contours, sd
 
     def finish(self, choice: int | None, *, px_mm: float, settings: SegmentationSettings) -> "_SliceResult":
-        """Set the tibia to candidate ``choice`` (None: the per-slice rule of ``bone_select``), then the fibula and
-        the tibia's distance from the indenter."""
+        """Set the tibia to candidate ``choice`` (None: the per-slice rule of ``bone_select``), then the fibula's
+        candidates (chosen in 3D by :func:`_choose_fibula`) and the tibia's distance from the indenter."""
         if not self.bone_candidates:
             return self
         s = settings
@@ -248,8 +251,8 @@ class _SliceResult:
         t = self.trace
         self.bone_ij = bone
         if s.fibula:
-            self.fibula_ij = _pick_fibula(t["Nb"], t["dark"], self.skin_ij, bone, bone_a, self.bone_level,
-                                          px_mm=px_mm, settings=s)
+            self.fibula_candidates = _fibula_candidates(t["Nb"], t["dark"], self.skin_ij, bone, bone_a,
+                                                        self.bone_level, px_mm=px_mm, settings=s)
         if t["sd"] is not None:
             self.bone_touch_mm = float(ndimage.map_coordinates(t["sd"], bone.T, order=1, mode="nearest").min())
         return self
@@ -361,13 +364,53 @@ def _segment_slice(img, *, bg, noise, px_mm, settings: SegmentationSettings, whe
     return _SliceResult(skin, bone, skin_level, bone_level, fibula, touch)
 
 
+def _track(candidates: list, *, overlap: bool = False) -> tuple[list[dict], dict]:
+    """Dark structures along the leg: the candidates of successive slices linked into tracks.
+
+    ``candidates`` holds, per slice, a list of ``(area [px], (i, j) contour)`` or None (a slice not searched). A
+    candidate joins a track when its centroid lies inside the track's contour on the track's last slice, or that
+    contour's centroid inside it (with ``overlap``: when the discs of their areas about their centroids overlap),
+    and their areas differ by at most :data:`_LINK_AREA_RATIO`, nearest centroids first; a track may skip slices
+    (the structure not closed or not searched there). ``overlap`` serves a thin bone crossing the slices obliquely:
+    the phantom's fibula, 0.8 mm across, moves by up to 0.6 mm between its 1 mm slices, so its sections do not
+    contain each other's centroids. Returns the tracks (``{slice: candidate index}``) and
+    ``{(slice, index): (area, centroid)}``.
+    """
+    ks = [k for k, c in enumerate(candidates) if c is not None]
+    geom = {(k, i): (a, polygon_area_centroid(c)[1]) for k in ks for i, (a, c) in enumerate(candidates[k])}
+    tracks: list[dict] = []
+    for k in ks:
+        pairs = []
+        for t, track in enumerate(tracks):
+            kl = max(track)
+            al, cl = geom[(kl, track[kl])]
+            poly_l = candidates[kl][track[kl]][1]
+            for i, (a, c) in enumerate(candidates[k]):
+                cen = geom[(k, i)][1]
+                if max(a, al) > _LINK_AREA_RATIO * min(a, al):
+                    continue
+                d = float(np.hypot(*(cen - cl)))
+                if overlap:
+                    linked = d < np.sqrt(a / np.pi) + np.sqrt(al / np.pi)
+                else:
+                    linked = points_in_polygon(cen[None], poly_l)[0] or points_in_polygon(cl[None], c)[0]
+                if linked:
+                    pairs.append((d, t, i))
+        used_t, used_i = set(), set()
+        for _, t, i in sorted(pairs):
+            if t not in used_t and i not in used_i:
+                tracks[t][k] = i
+                used_t.add(t)
+                used_i.add(i)
+        tracks += [{k: i} for i in range(len(candidates[k])) if i not in used_i]
+    return tracks, geom
+
+
 def _choose_tibia(candidates: list, *, select: str, vol: Volume, flip_j: bool) -> list:
     """The tibia's candidate on every slice, chosen in 3D: the index into each slice's ``candidates`` (None on the
     slices given as None: not traced, drawn by hand, or hidden against the indenter).
 
-    Candidates on successive traced slices are linked into tracks (dark structures along the leg) when the centroid
-    of one lies inside the other and their areas differ by at most :data:`_LINK_AREA_RATIO`, nearest centroids
-    first; a track may skip the slices given as None. Of the tracks on at least half of the traced slices, the
+    Candidates are linked into tracks by :func:`_track`. Of the tracks on at least half of the traced slices, the
     tibia is the largest (median area) or, with ``anterior``, the most anterior of those at least half as large.
     It must be on every traced slice: a slice where it is missing has the tibia's dark region open into another
     dark one (on a masked scan, its cortex into the fat) or no tibia at all, and another structure there would be
@@ -383,27 +426,7 @@ def _choose_tibia(candidates: list, *, select: str, vol: Volume, flip_j: bool) -
     out: list = [None] * len(candidates)
     if not ks:
         return out
-    geom = {(k, i): (a, polygon_area_centroid(c)[1]) for k in ks for i, (a, c) in enumerate(candidates[k])}
-    tracks: list[dict] = []  # {slice: candidate index}
-    for k in ks:
-        pairs = []
-        for t, track in enumerate(tracks):
-            kl = max(track)
-            al, cl = geom[(kl, track[kl])]
-            poly_l = candidates[kl][track[kl]][1]
-            for i, (a, c) in enumerate(candidates[k]):
-                cen = geom[(k, i)][1]
-                if max(a, al) > _LINK_AREA_RATIO * min(a, al):
-                    continue
-                if points_in_polygon(cen[None], poly_l)[0] or points_in_polygon(cl[None], c)[0]:
-                    pairs.append((float(np.hypot(*(cen - cl))), t, i))
-        used_t, used_i = set(), set()
-        for _, t, i in sorted(pairs):
-            if t not in used_t and i not in used_i:
-                tracks[t][k] = i
-                used_t.add(t)
-                used_i.add(i)
-        tracks += [{k: i} for i in range(len(candidates[k])) if i not in used_i]
+    tracks, geom = _track(candidates)
     n = len(ks)
     off = vol.index_offset[2]
     long = [t for t in tracks if 2 * len(t) >= n]
@@ -442,16 +465,16 @@ def _slice_list(ks, off: int) -> str:
     return ", ".join(str(int(k) + off) for k in ks)
 
 
-def _pick_fibula(N, contours, skin, bone, bone_area_px, level, *, px_mm, settings: SegmentationSettings):
-    """The fibula's (i, j) contour in one slice, or None: of the closed ``contours`` at ``level``, the largest dark one
-    inside the skin and outside the tibia with an area from ``fibula_min_area_mm2`` to
-    ``fibula_max_area_ratio`` x the tibia's (``bone_area_px``, pixels)."""
+def _fibula_candidates(N, contours, skin, bone, bone_area_px, level, *, px_mm, settings: SegmentationSettings) -> list:
+    """The fibula's candidates in one slice, ``(area [px], (i, j) contour)``: of the closed ``contours`` at ``level``,
+    the dark ones inside the skin and outside the tibia (``bone``), round (:data:`_FIBULA_MIN_ROUNDNESS`), with an
+    area from ``fibula_min_area_mm2`` to ``fibula_max_area_ratio`` x the tibia's (``bone_area_px``, pixels)."""
     s = settings
     lo, hi = s.fibula_min_area_mm2 / px_mm**2, s.fibula_max_area_ratio * bone_area_px
-    best = None
+    out = []
     for c in contours:
         area = abs(polygon_area_centroid(c)[0])
-        if not lo <= area <= hi or (best is not None and area <= best[0]):
+        if not lo <= area <= hi:
             continue
         perimeter = float(np.linalg.norm(np.diff(c, axis=0), axis=1).sum())
         if 4 * np.pi * area / max(perimeter, 1e-12) ** 2 < _FIBULA_MIN_ROUNDNESS:
@@ -460,8 +483,29 @@ def _pick_fibula(N, contours, skin, bone, bone_area_px, level, *, px_mm, setting
             continue  # outside the skin, the tibia itself, or a region inside / around it
         if _contour_mean(N, c) >= level:
             continue  # a bright island
-        best = (area, c)
-    return None if best is None else best[1]
+        out.append((area, c))
+    return out
+
+
+def _choose_fibula(candidates: list, *, min_slices: int) -> tuple[list, list]:
+    """The fibula's candidate per slice, chosen in 3D, and the slices of a track too short to be it.
+
+    ``candidates`` as for :func:`_track` (None: a slice not searched), linked where their sections overlap. The
+    fibula is the longest track (the largest median area of equally long ones), on at least ``min_slices``
+    slices: a dark spot on a slice or two is not a bone that runs along the leg. Returns the index into each
+    slice's candidates (None where the track has none) and, when the longest track is shorter than
+    ``min_slices``, its slices (else an empty list).
+    """
+    out: list = [None] * len(candidates)
+    tracks, geom = _track(candidates, overlap=True)
+    if not tracks:
+        return out, []
+    fibula = max(tracks, key=lambda t: (len(t), float(np.median([geom[(k, i)][0] for k, i in t.items()]))))
+    if len(fibula) < min_slices:
+        return out, sorted(fibula)
+    for k, i in fibula.items():
+        out[k] = i
+    return out, []
 
 
 def segment_volume(vol: Volume, *, settings: SegmentationSettings = SegmentationSettings(), state: str = "pre",
@@ -498,7 +542,8 @@ def segment_volume(vol: Volume, *, settings: SegmentationSettings = Segmentation
     info : dict
         ``background`` and ``noise`` (image units), ``slices`` (one row per slice: ``slice`` index in
         the file, ``z_mm``, ``skin_level`` / ``bone_level`` in N units, ``*_source`` auto / manual /
-        none / dropped / hidden), ``bone_touch_mm`` (distance from the indenter, with one), ``settings``,
+        none / hidden, and for the fibula dropped: on a track shorter than ``fibula_min_slices``),
+        ``bone_touch_mm`` (distance from the indenter, with one), ``settings``,
         ``fibula_slices`` (count), ``bone_hidden`` (slice indices in the file).
 
     Raises
@@ -559,10 +604,17 @@ def segment_volume(vol: Volume, *, settings: SegmentationSettings = Segmentation
     choice = _choose_tibia([res.bone_candidates if res is not None and manual["bone"] is None else None
                             for manual, res in traced], select=s.bone_select, vol=vol, flip_j=flip_j)
     for k, (manual, res) in enumerate(traced):
-        where = vol.where(k)
-        kf = k + off
         if res is not None:
             res.finish(choice[k], px_mm=px_mm, settings=s)
+    # the fibula in 3D: the longest dark structure along the leg among the other round dark regions
+    fib_choice, fib_short = _choose_fibula(
+        [res.fibula_candidates if res is not None and manual["fibula"] is None else None for manual, res in traced],
+        min_slices=s.fibula_min_slices)
+    for k, (manual, res) in enumerate(traced):
+        where = vol.where(k)
+        kf = k + off
+        if res is not None and fib_choice[k] is not None:
+            res.fibula_ij = res.fibula_candidates[fib_choice[k]][1]
         z_c = float(vol.world([(vol.data.shape[0] - 1) / 2, (vol.data.shape[1] - 1) / 2, k])[2])
         out = {}
         touch = None if res is None else res.bone_touch_mm
@@ -615,13 +667,8 @@ def segment_volume(vol: Volume, *, settings: SegmentationSettings = Segmentation
         return Contours(skin=np.stack(skins), bone=np.stack(skins)), {"slices": info_slices}
     if hidden.any():
         bones = _fill_hidden(vol, bones, fibulas, hidden, pre, s)
-    n_auto = sum(1 for r in info_slices if r["fibula_source"] == "auto")
-    if s.fibula and 0 < n_auto < s.fibula_min_slices:
-        # a dark spot on a slice or two is not a bone that runs along the leg: drop the automatic ones
-        for k, r in enumerate(info_slices):
-            if r["fibula_source"] == "auto":
-                fibulas[k] = None
-                r["fibula_source"] = "dropped"
+    for k in fib_short:  # a dark spot on a slice or two is not a bone that runs along the leg
+        info_slices[k]["fibula_source"] = "dropped"
     found = [f is not None for f in fibulas]
     fibula = None
     if any(found):
