@@ -164,6 +164,29 @@ def test_the_loop_stops_on_the_goal_and_refines_where_the_indicator_is(coarse_cy
     assert len(adapt(build, solve, est, AdaptSettings(force_goal_percent=None)).passes) == 2
 
 
+def test_only_the_quantity_that_misses_its_goal_is_refined(coarse_cylinder):
+    m = coarse_cylinder
+    far_apart = np.argmax(np.linalg.norm(_centroids(m) - _centroids(m)[0], axis=1))
+    fields = []
+
+    def estimate(mesh, sol):  # the VOI (element 0) within its goal, the bins (element far_apart) not
+        eta, voi = np.zeros(mesh.n_tets), np.zeros(mesh.n_tets)
+        eta[0] = voi[0] = 0.01
+        eta[far_apart] = 0.05
+        return PassEstimate(voi_mm3=1.0, voi_err_mm3=0.01, bins_err_pp=3.0, force_N=1.0, indicator_mm3=eta,
+                            voi_indicator_mm3=voi)
+
+    adapt(lambda f: fields.append(f) or m, lambda mm: SimpleNamespace(converged=True, indenter_force_N=1.0,
+                                                                       displacement_mm=np.zeros_like(mm.nodes_mm)),
+          estimate, AdaptSettings(max_passes=2, force_goal_percent=None))
+    h = element_sizes(m)
+    before = node_sizes(m, h, current_mm=h)[np.unique(m.tets)]
+    after = fields[1].size_mm
+    index = np.searchsorted(np.unique(m.tets), m.tets[:, :4])
+    assert np.all(after[index[far_apart]] < 0.8 * before[index[far_apart]])
+    assert np.allclose(after[index[0]], before[index[0]])
+
+
 def test_the_loop_stops_on_its_budget_and_on_a_failed_solve(coarse_cylinder):
     m = coarse_cylinder
     build, solve, est, _ = _fake(m, [10.0] * 5)

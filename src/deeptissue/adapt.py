@@ -219,8 +219,10 @@ class PassEstimate:
     """Estimated discretisation error of one solve (the estimator's answer to :func:`adapt`).
 
     ``indicator_mm3`` (n_tets,): the per-element indicator of the VOI and bins
-    (:func:`deeptissue.errorest.element_indicator`); ``contact_tets`` (n_tets,) bool or None: the
-    elements of the indenter's contact zone, refined while the force's estimate misses its goal.
+    (:func:`deeptissue.errorest.element_indicator`); ``voi_indicator_mm3`` (n_tets,) or None: its
+    part on different sides of the threshold (the rest is the bins'), so that only what misses its
+    goal is refined; ``contact_tets`` (n_tets,) bool or None: the elements of the indenter's
+    contact zone, refined while the force's estimate misses its goal.
     """
 
     voi_mm3: float
@@ -230,6 +232,7 @@ class PassEstimate:
     indicator_mm3: np.ndarray
     contact_tets: np.ndarray | None = None
     bins_percent: dict = field(default_factory=dict)  # bin label -> % of the VOI
+    voi_indicator_mm3: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -365,14 +368,24 @@ def adapt(build_mesh: Callable[[SizeField | None], TetMesh], solve: Callable[[Te
 
 
 def _next_sizes(h, volume_mm3, est: PassEstimate, voi_pc: float, force_err: float, st: AdaptSettings) -> np.ndarray:
-    """The next pass's element sizes: the indicator's elements by :func:`target_sizes`, aiming the
-    indicator's total at ``safety`` over the worst of the VOI's and the bins' ratio of estimate to
-    goal; the contact zone shrunk by (safety goal / estimate)^(1/2) while the force misses its goal
-    (by max_shrink^(1/2) while its estimate is not known); then the refined sizes scaled up together
+    """The next pass's element sizes: for the VOI and for the bins, each missing its goal, the
+    elements of its indicator by :func:`target_sizes`, aiming its total at ``safety`` over its ratio
+    of estimate to goal (one indicator and the worse ratio where the estimator does not split them);
+    the contact zone shrunk by (safety goal / estimate)^(1/2) while the force misses its goal (by
+    max_shrink^(1/2) while its estimate is not known); then the refined sizes scaled up together
     until the estimated element count fits ``max_tets``."""
-    ratio = max(voi_pc / st.voi_goal_percent, est.bins_err_pp / st.bins_goal_pp)
-    total = float(np.sum(est.indicator_mm3))
-    new_h = h.copy() if total <= 0 or ratio <= st.safety else target_sizes(h, est.indicator_mm3, st.safety * total / ratio, st)
+    r_voi, r_bins = voi_pc / st.voi_goal_percent, est.bins_err_pp / st.bins_goal_pp
+    eta = np.asarray(est.indicator_mm3, float)
+    if est.voi_indicator_mm3 is None:
+        parts = [(eta, max(r_voi, r_bins))]
+    else:
+        eta_voi = np.asarray(est.voi_indicator_mm3, float)
+        parts = [(eta_voi, r_voi), (np.maximum(eta - eta_voi, 0.0), r_bins)]
+    new_h = h.copy()
+    for part, ratio in parts:
+        total = float(part.sum())
+        if total > 0 and ratio > st.safety:
+            new_h = np.minimum(new_h, target_sizes(h, part, st.safety * total / ratio, st))
     if st.force_goal_percent is not None and est.contact_tets is not None and not force_err <= st.force_goal_percent:
         f = np.sqrt(st.max_shrink) if not np.isfinite(force_err) else np.clip(
             (st.safety * st.force_goal_percent / force_err) ** 0.5, st.max_shrink, 1.0)

@@ -25,7 +25,7 @@ from .solver import SolverSettings, solve_indentation
 
 __all__ = ["CURVE_DEPTHS_MM", "CylinderMesh", "ESTIMATES", "REFERENCE_MESH", "VOI_DEPTHS_MM", "adaptive_comparison",
            "adaptive_cylinder", "contact_tets", "cylinder_estimate", "cylinder_mesh", "cylinder_scene", "effectivity_table",
-           "mesh_convergence", "plot_adaptive"]
+           "mesh_convergence", "plot_adaptive", "write_adaptive_cylinder"]
 
 CURVE_DEPTHS_MM = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)  # depths of the force-depth curve [mm]
 VOI_DEPTHS_MM = (1.5, 2.0, 3.0)  # depths at which the VOI and bins are computed [mm]
@@ -256,7 +256,8 @@ def cylinder_estimate(mesh: TetMesh, solution, indenter: Indenter, *, threshold:
     e = voi_error_estimate(mesh, u, threshold=threshold, bin_edges=edges, levels=SAMPLING_LEVELS, sampled=(g, v))
     return PassEstimate(voi_mm3=s.voi_mm3, voi_err_mm3=e.voi_err_mm3, bins_err_pp=max(e.bins_err_pp.values()),
                         force_N=solution.indenter_force_N, indicator_mm3=e.indicator_mm3,
-                        contact_tets=contact_tets(mesh, u, indenter), bins_percent=dict(s.bins_percent))
+                        contact_tets=contact_tets(mesh, u, indenter), bins_percent=dict(s.bins_percent),
+                        voi_indicator_mm3=e.threshold_indicator_mm3)
 
 
 def adaptive_cylinder(material, depth_mm: float, settings=None, *, start: CylinderMesh = CylinderMesh(),
@@ -347,6 +348,32 @@ def plot_adaptive(table: pd.DataFrame, path) -> None:
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=120, format="png")
     plt.close(fig)
+
+
+def write_adaptive_cylinder(material, *, voi_csv, curve_csv, out_csv, figure_png,
+                            depths_mm: Sequence[float] = VOI_DEPTHS_MM, settings=None) -> pd.DataFrame:
+    """:func:`adaptive_cylinder` at each of ``depths_mm`` against the fixed meshes of the verification
+    (``voi_csv``, ``curve_csv``: cylinder_voi.csv and cylinder_curve.csv, whose finest mesh is the
+    reference): the table of :func:`adaptive_comparison` with a stop_reason column (out_csv) and
+    :func:`plot_adaptive` (figure_png). Each pass is logged."""
+    import logging
+
+    from ..io import atomic_path
+
+    logger = logging.getLogger(__name__)
+    runs = []
+    for d in depths_mm:
+        r = adaptive_cylinder(material, float(d), settings, log=lambda line, d=d: logger.info("%g mm: %s", d, line))
+        runs.append(r.table().assign(depth_mm=float(d), stop_reason=r.stop_reason))
+    passes = pd.concat(runs, ignore_index=True)
+    table = adaptive_comparison(passes, pd.read_csv(voi_csv), pd.read_csv(curve_csv))
+    table["stop_reason"] = table["depth_mm"].map(passes.groupby("depth_mm")["stop_reason"].first()).where(
+        table["kind"] == "adaptive")
+    Path(out_csv).parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out_csv) as tmp:
+        table.to_csv(tmp, index=False)
+    plot_adaptive(table, figure_png)
+    return table
 
 
 if __name__ == "__main__":  # python -m deeptissue.fem.cylinder results/verification/cylinder_voi.csv [more.csv ...]
