@@ -260,3 +260,23 @@ def test_adaptive_cylinder_at_2mm_meets_the_goal_with_fewer_dofs_than_the_fixed_
     assert last["voi_err_percent"] <= 2.0 and last["bins_err_pp"] <= 1.0 and last["force_err_percent"] <= 2.0
     # the fixed 1.6 / 0.6 mm mesh that meets the goal against the reference has 35 244 DOFs
     assert last["n_dofs"] < 35244, t.to_string()
+
+
+def test_the_limb_mesher_follows_a_background_size():
+    from model_synth import leg_contours
+
+    from deeptissue.mesh import mesh_limb
+
+    c = leg_contours(n_slices=8, z0_mm=-3.5)
+    kw = dict(element_size_mm=1.6, order=1, animal="r", min_scaled_jacobian=0.01)  # the sizes are tested here, not the gate
+    m0, _ = mesh_limb(c.skin, c.bone, **kw)
+    spot = c.skin[4, 0]  # a skin point at mid-length: where an indenter would press
+    near = np.linalg.norm(_centroids(m0) - spot, axis=1) < 2.0
+    field = SizeField.from_mesh(m0, node_sizes(m0, np.where(near, 0.5, element_sizes(m0)), grading=0.4,
+                                               current_mm=element_sizes(m0)))
+    m, _ = mesh_limb(c.skin, c.bone, size_field=field, **kw)
+    h, d = element_sizes(m), np.linalg.norm(_centroids(m) - spot, axis=1)
+    h0, d0 = element_sizes(m0), np.linalg.norm(_centroids(m0) - spot, axis=1)
+    assert h[d < 1.0].mean() == pytest.approx(0.5, rel=0.25)
+    assert h[d > 6.0].mean() == pytest.approx(h0[d0 > 6.0].mean(), rel=0.15)
+    assert m.n_tets > m0.n_tets

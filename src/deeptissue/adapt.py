@@ -60,7 +60,7 @@ class AdaptSettings:
     h_max_mm: float = 1.6
     max_shrink: float = 0.5
     max_growth: float = 1.0
-    safety: float = 0.5
+    safety: float = 0.7
     grading: float = 0.4
     force_valid_shrink: float = 0.85
     max_tets: int = 20000
