@@ -41,14 +41,16 @@ class AdaptSettings:
     default element size. One pass shrinks an element at most by ``max_shrink`` (0.5: 8 times the
     elements in that region) and grows it at most by ``max_growth`` (1: no coarsening, since the loop
     starts from a coarse mesh and the field outside the indicator's elements is not estimated).
-    ``safety`` aims each remeshing at that fraction of the goal so the next pass meets it despite the
-    scatter of the indicator. ``grading`` bounds the size's growth away from a small element [mm/mm]
-    (gmsh honours a background field only where it varies gently). The force's estimate is the change
-    from the previous pass, valid where the contact elements' mean size shrank to at most
-    ``force_valid_shrink`` of the previous pass's (a barely changed contact zone changes the force
-    by nothing, whatever its error). ``max_tets`` caps the next mesh's estimated size
-    (:func:`estimated_tets`; 20 000 quadratic tetrahedra are about 90 000 DOFs, a few minutes per
-    solve on one core): the refined sizes are scaled up together until it fits.
+    ``safety`` 0.7 aims each remeshing at that fraction of the goal: the indicator follows the size
+    rule closely (on the cylinder at 2 mm, a pass aimed at 1.4 % gave 1.36 %), so a small margin
+    makes the next pass meet the goal without refining further than needed. ``grading`` bounds the
+    size's growth away from a small element [mm/mm] (gmsh honours a background size only where it
+    varies gently). The force's estimate is the change from the previous pass, valid where the
+    contact elements' mean size shrank to at most ``force_valid_shrink`` of the previous pass's (a
+    barely changed contact zone changes the force by nothing, whatever its error). ``max_tets`` caps
+    the next mesh's estimated size (:func:`estimated_tets`; 20 000 quadratic tetrahedra are about
+    90 000 DOFs, a few minutes per solve on one core): the refined sizes are scaled up together
+    until it fits.
     """
 
     voi_goal_percent: float = 2.0
