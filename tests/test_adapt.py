@@ -227,8 +227,8 @@ def test_contact_tets_are_the_elements_under_the_sphere(coarse_cylinder):
     assert np.array_equal(c, np.isin(m.tets, inside).any(axis=1))
 
 
-def test_adaptive_comparison_errors_against_the_reference():
-    from deeptissue.fem.cylinder import adaptive_comparison
+def test_adaptive_comparison_errors_against_the_reference(tmp_path):
+    from deeptissue.fem.cylinder import adaptive_comparison, plot_adaptive
 
     voi = pd.DataFrame(dict(mesh=["a", "ref"], depth_mm=[2.0, 2.0], n_dofs=[10, 100], voi_mm3=[10.5, 10.0],
                             voi_err_mm3=[1.0, 0.1], **{"bins_percent.x": [60.0, 58.0], "bins_percent.y": [40.0, 42.0],
@@ -246,6 +246,8 @@ def test_adaptive_comparison_errors_against_the_reference():
     assert t.loc["adaptive", "true_bins_pp"] == pytest.approx(0.5)
     assert t.loc["adaptive", "true_force_percent"] == pytest.approx(-0.2)
     assert t.loc["adaptive", "est_voi_percent"] == 1.5 and t.loc["adaptive", "pass_index"] == 1
+    plot_adaptive(t.reset_index(), tmp_path / "adaptive.png")
+    assert (tmp_path / "adaptive.png").read_bytes()[:4] == b"\x89PNG"
 
 
 @pytest.fixture(scope="module")
