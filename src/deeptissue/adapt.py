@@ -4,8 +4,8 @@ One pass solves on a mesh, estimates the discretisation error of the VOI, its bi
 (:class:`PassEstimate`), and stops when every estimate meets its goal (:class:`AdaptSettings`) or the
 budget of passes or wall time is spent; otherwise it turns the per-element indicator into a target
 element size (:func:`target_sizes`), carries the sizes to the nodes with a bounded gradation
-(:func:`node_sizes`), caps the count (:func:`fit_budget`) and hands them to the mesher as a gmsh background size field
-(:func:`set_background_size`). :func:`adapt` takes the mesher, the solver and the estimator as
+(:func:`node_sizes`), caps the element count (:func:`fit_budget`) and hands the sizes to the mesher
+as a gmsh background size field (:func:`set_background_size`). :func:`adapt` takes the mesher, the solver and the estimator as
 callables, so the same loop serves the cylinder scene (:mod:`deeptissue.fem.cylinder`) and a limb.
 """
 
@@ -20,8 +20,8 @@ import pandas as pd
 
 from .mesh import TetMesh
 
-__all__ = ["AdaptPass", "AdaptResult", "AdaptSettings", "PassEstimate", "SizeField", "adapt", "element_sizes",
-           "estimated_tets", "fit_budget", "node_sizes", "set_background_size", "target_sizes"]
+__all__ = ["AdaptPass", "AdaptResult", "AdaptSettings", "GMSH_EDGE_RATIO", "GMSH_TET_VOLUME", "PassEstimate", "SizeField",
+           "adapt", "element_sizes", "estimated_tets", "fit_budget", "node_sizes", "set_background_size", "target_sizes"]
 
 # the 6 edges of a tetrahedron by its corner indices
 _TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
