@@ -23,9 +23,9 @@ from ..rigid import BoneMotion
 from .indenters import Indenter
 from .solver import SolverSettings, solve_indentation
 
-__all__ = ["ADAPTIVE_START", "CURVE_DEPTHS_MM", "CylinderMesh", "ESTIMATES", "REFERENCE_MESH", "VOI_DEPTHS_MM", "adaptive_comparison",
-           "adaptive_cylinder", "contact_tets", "cylinder_estimate", "cylinder_mesh", "cylinder_scene", "effectivity_table",
-           "mesh_convergence", "plot_adaptive", "write_adaptive_cylinder"]
+__all__ = ["ADAPTIVE_START", "CURVE_DEPTHS_MM", "CylinderMesh", "ESTIMATES", "REFERENCE_MESH", "VOI_DEPTHS_MM",
+           "adaptive_comparison", "adaptive_cylinder", "contact_tets", "cylinder_estimate", "cylinder_mesh",
+           "cylinder_scene", "effectivity_table", "mesh_convergence", "plot_adaptive", "write_adaptive_cylinder"]
 
 CURVE_DEPTHS_MM = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)  # depths of the force-depth curve [mm]
 VOI_DEPTHS_MM = (1.5, 2.0, 3.0)  # depths at which the VOI and bins are computed [mm]
