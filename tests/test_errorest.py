@@ -82,6 +82,15 @@ def test_the_indicator_lives_where_gamma_crosses_an_edge_and_shrinks_with_the_me
     assert err[0] > err[1] > err[2] > 0
 
 
+def test_the_threshold_part_of_the_indicator_sums_to_the_voi_estimate():
+    m = _block(0.7)
+    est = voi_error_estimate(m, _shear_field(m))
+    assert est.threshold_indicator_mm3.sum() == pytest.approx(est.voi_err_mm3)
+    assert np.all(est.threshold_indicator_mm3 <= est.indicator_mm3 + 1e-15)
+    # the shear field crosses bin edges above the threshold: the bins add their own part
+    assert est.indicator_mm3.sum() > est.threshold_indicator_mm3.sum() > 0
+
+
 @pytest.mark.parametrize("h", [1.0, 0.7, 0.5])
 def test_the_true_error_of_a_known_field_is_within_twice_the_estimate(h):
     """u_x = K z^P on a block: γh of the quadratic elements against the exact γ at the same points."""

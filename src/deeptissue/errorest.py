@@ -13,7 +13,9 @@ element's shape functions) and compares γ* with γh at the same sample points a
 - ``bins_err_pp[k] = |p_k(γ*) − p_k(γh)|`` [percentage points of the VOI];
 - the per-element indicator (:func:`element_indicator`): the volume of each element whose class
   (below the threshold, or which bin) differs between γ* and γh [mm³]; non-zero only in elements
-  that straddle the threshold or a bin edge, it is what a refinement loop refines by.
+  that straddle the threshold or a bin edge, it is what a refinement loop refines by; its part on
+  different sides of the threshold (``threshold_indicator_mm3``) sums to ``voi_err_mm3``, the rest
+  is the volume moved between bins.
 
 The nodal average of each element's own nodal γ (``recovery='average'``) and the difference of two
 samplings of γh (:func:`sampling_difference`) are kept for comparison: on the cylinder scene
@@ -126,6 +128,7 @@ class VoiErrorEstimate:
     voi_diff_mm3: float  # VOI(γ*) − VOI(γh), signed (|.| <= voi_err_mm3) [mm³]
     bins_moved_pp: dict  # bin label -> volume in that bin under one field only, % of VOI(γh) (>= bins_err_pp)
     indicator_mm3: np.ndarray  # (n_tets,) volume per element whose class differs between γ* and γh [mm³]
+    threshold_indicator_mm3: np.ndarray  # (n_tets,) the part of it on different sides of the threshold [mm³]
 
 
 def voi_error_estimate(mesh: TetMesh, displacement_mm, *, threshold: float = 0.3,
@@ -188,7 +191,8 @@ def voi_error_estimate(mesh: TetMesh, displacement_mm, *, threshold: float = 0.3
         voi_recovered_mm3=r.voi_mm3,
         voi_diff_mm3=r.voi_mm3 - h.voi_mm3,
         bins_moved_pp=moved,
-        indicator_mm3=((c_s != c_h) * v).sum(axis=1))
+        indicator_mm3=((c_s != c_h) * v).sum(axis=1),
+        threshold_indicator_mm3=(((c_s > 0) != (c_h > 0)) * v).sum(axis=1))
 
 
 def element_indicator(mesh: TetMesh, displacement_mm, **kw) -> np.ndarray:

@@ -440,6 +440,7 @@ def mesh_limb(
     order: int = 2,
     animal: str = "?",
     msh_path=None,
+    size_field=None,
 ) -> tuple[TetMesh, dict]:
     """Quadratic (default) or linear tetrahedral mesh of the limb between a skin and a bone contour stack.
 
@@ -481,6 +482,10 @@ def mesh_limb(
         Named in every error message.
     msh_path : path, optional
         Where to write the gmsh ``.msh`` (physical groups, patches included).
+    size_field : deeptissue.adapt.SizeField, optional
+        A background size [mm] (a previous mesh's nodes and the sizes its solution asks for,
+        :func:`deeptissue.adapt.adapt`) in place of the refinement around ``refine_segments``;
+        capped at ``element_size_mm``.
 
     Returns
     -------
@@ -526,7 +531,8 @@ def mesh_limb(
         groups = _boundary_groups(gmsh, vol, skin, bone, animal=animal)
         _mesh_size_field(gmsh, element_size_mm=element_size_mm, refine_size_mm=refine_size_mm,
                          refine_radius_mm=refine_radius_mm, refine_transition_mm=refine_transition_mm,
-                         refine_segments=refine_segments, algorithm_3d=algorithm_3d, animal=animal)
+                         refine_segments=refine_segments, algorithm_3d=algorithm_3d, animal=animal,
+                         size_field=size_field)
         q = _generate_and_curve(gmsh, vol, groups, order=order, curved=curved, min_curved_ratio=min_curved_ratio,
                                 stats=stats)
         if patches:
@@ -587,9 +593,11 @@ def _boundary_groups(g, vol: int, skin: np.ndarray, bone: np.ndarray, *, animal:
 
 
 def _mesh_size_field(g, *, element_size_mm: float, refine_size_mm: float, refine_radius_mm: float,
-                     refine_transition_mm: float, refine_segments, algorithm_3d: str, animal: str) -> None:
+                     refine_transition_mm: float, refine_segments, algorithm_3d: str, animal: str,
+                     size_field=None) -> None:
     """Set the meshing options and the size field: ``element_size_mm`` everywhere, ``refine_size_mm``
-    within ``refine_radius_mm`` of each refine segment, a linear ramp back over ``refine_transition_mm``."""
+    within ``refine_radius_mm`` of each refine segment, a linear ramp back over ``refine_transition_mm``;
+    or, with ``size_field`` (:class:`deeptissue.adapt.SizeField`), that background size instead."""
     g.option.setNumber("Mesh.MeshSizeMax", element_size_mm)
     g.option.setNumber("Mesh.MeshSizeMin", min(refine_size_mm, element_size_mm) * 0.5)
     g.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
@@ -604,7 +612,12 @@ def _mesh_size_field(g, *, element_size_mm: float, refine_size_mm: float, refine
     g.option.setNumber("Mesh.ElementOrder", 1)
     g.option.setNumber("Mesh.SecondOrderLinear", 1)
     h, hr = float(element_size_mm), float(min(refine_size_mm, element_size_mm))
-    if refine_segments and hr < h:
+    if size_field is not None:
+        from .adapt import set_background_size
+
+        g.option.setNumber("Mesh.MeshSizeMin", 0.5 * min(size_field.h_min_mm, h))
+        set_background_size(g, size_field)
+    elif refine_segments and hr < h:
         # distance to points every refine_size/4 along each segment (free geometry points, not meshed
         # into the limb), then a linear ramp from refine_size to element_size
         occ = g.model.occ

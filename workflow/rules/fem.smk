@@ -91,6 +91,24 @@ rule verify_cylinder:
         "../scripts/verify_fem_cylinder.py"
 
 
+# the cylinder scene on meshes refined from their own solutions, against verify_cylinder's fixed meshes
+rule verify_cylinder_adaptive:
+    input:
+        curve=rules.verify_cylinder.output.curve,
+        voi=rules.verify_cylinder.output.voi,
+    output:
+        table="results/verification/cylinder_adaptive.csv",
+        figure="results/verification/cylinder_adaptive.png",
+    params:
+        material=config["fem"]["material"],
+    log:
+        "results/logs/verify_cylinder_adaptive.log",
+    conda:
+        "../envs/deeptissue.yaml"
+    script:
+        "../scripts/verify_fem_cylinder_adaptive.py"
+
+
 rule verify_summary:
     input:
         points=rules.verify_material.output.points,

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Sequence
 
 import numpy as np
@@ -22,8 +23,9 @@ from ..rigid import BoneMotion
 from .indenters import Indenter
 from .solver import SolverSettings, solve_indentation
 
-__all__ = ["CURVE_DEPTHS_MM", "CylinderMesh", "ESTIMATES", "REFERENCE_MESH", "VOI_DEPTHS_MM", "cylinder_mesh",
-           "cylinder_scene", "effectivity_table", "mesh_convergence"]
+__all__ = ["ADAPTIVE_START", "CURVE_DEPTHS_MM", "CylinderMesh", "ESTIMATES", "REFERENCE_MESH", "VOI_DEPTHS_MM",
+           "adaptive_comparison", "adaptive_cylinder", "contact_tets", "cylinder_estimate", "cylinder_mesh",
+           "cylinder_scene", "effectivity_table", "mesh_convergence", "plot_adaptive", "write_adaptive_cylinder"]
 
 CURVE_DEPTHS_MM = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)  # depths of the force-depth curve [mm]
 VOI_DEPTHS_MM = (1.5, 2.0, 3.0)  # depths at which the VOI and bins are computed [mm]
@@ -55,11 +57,13 @@ REFERENCE_MESH = CylinderMesh(element_size_mm=1.2, refine_size_mm=0.4, refine_ra
 
 
 def cylinder_mesh(sizes: CylinderMesh = CylinderMesh(), *, radius_mm: float = 8.0, height_mm: float = 8.0,
-                  order: int = 2) -> TetMesh:
+                  order: int = 2, size_field=None) -> TetMesh:
     """The tissue cylinder ``x² + y² <= radius², 0 <= z <= height`` meshed with gmsh.
 
     Facet sets: ``bone`` (bottom face z = 0, fixed), ``patch`` (top face, the indenter's contact
-    set), ``side``, and ``skin`` (top and side: every free face). Sizes: :class:`CylinderMesh`.
+    set), ``side``, and ``skin`` (top and side: every free face). Sizes: :class:`CylinderMesh`, or
+    a background size (:class:`deeptissue.adapt.SizeField`, capped at ``sizes.element_size_mm``)
+    that replaces its refinement around the axis.
     """
     from .shapes import _finish, _start
 
@@ -83,7 +87,12 @@ def cylinder_mesh(sizes: CylinderMesh = CylinderMesh(), *, radius_mm: float = 8.
         opt("Mesh.MeshSizeMin", 0.5 * hr)
         for k in ("MeshSizeExtendFromBoundary", "MeshSizeFromPoints", "MeshSizeFromCurvature"):
             opt(f"Mesh.{k}", 0)
-        if hr < h:  # distance to points along the axis below the top centre, then a linear ramp
+        if size_field is not None:
+            from ..adapt import set_background_size
+
+            opt("Mesh.MeshSizeMin", 0.5 * min(size_field.h_min_mm, h))
+            set_background_size(gmsh, size_field)
+        elif hr < h:  # distance to points along the axis below the top centre, then a linear ramp
             n = max(2, int(np.ceil(sizes.refine_depth_mm / (0.25 * hr))) + 1)
             z = np.linspace(height_mm, max(0.0, height_mm - sizes.refine_depth_mm), n)
             pts = [gmsh.model.occ.addPoint(0.0, 0.0, float(zi)) for zi in z]
@@ -214,6 +223,160 @@ def effectivity_table(voi: pd.DataFrame) -> pd.DataFrame:
             row[f"{name}: bins"] = est_b / true_bins if true_bins else np.inf
         rows.append(row)
     return pd.DataFrame(rows)
+
+
+def contact_tets(mesh: TetMesh, displacement_mm, indenter: Indenter, *, tol_mm: float = 0.02) -> np.ndarray:
+    """The elements (n_tets,) bool with a node of the ``patch`` facets that ends within ``tol_mm`` of the
+    sphere's surface or inside it: the contact zone that decides the indenter's force."""
+    if indenter.kind != "sphere":
+        raise ValueError(f"contact_tets: a sphere indenter only, got {indenter.kind!r}")
+    centre = np.asarray(indenter.end_mm, float) - indenter.radius_mm * indenter.unit_axis
+    nodes = np.unique(mesh.facets["patch"])
+    x = mesh.nodes_mm[nodes] + np.asarray(displacement_mm, float)[nodes]
+    touching = np.zeros(len(mesh.nodes_mm), bool)
+    touching[nodes[np.linalg.norm(x - centre, axis=1) <= indenter.radius_mm + tol_mm]] = True
+    return touching[mesh.tets].any(axis=1)
+
+
+def cylinder_estimate(mesh: TetMesh, solution, indenter: Indenter, *, threshold: float = 0.3, bin_edges=None):
+    """The estimate of one cylinder solve for :func:`deeptissue.adapt.adapt`: the VOI, its estimated error
+    and the largest bin's, as the study's summary computes them (γh at 64 points per element against
+    the patch-recovered γ*, :func:`deeptissue.errorest.voi_error_estimate`), its per-element indicator,
+    the force and the contact zone (:func:`contact_tets`)."""
+    from ..adapt import PassEstimate
+    from ..errorest import voi_error_estimate
+    from ..strain import DEFAULT_BIN_EDGES, gamma_at_points, voi_statistics
+    from ..summary import SAMPLING_LEVELS
+
+    edges = DEFAULT_BIN_EDGES if bin_edges is None else tuple(bin_edges)
+    u = solution.displacement_mm
+    g, v, _ = gamma_at_points(mesh, u, levels=SAMPLING_LEVELS, strain_measures=("green_lagrange",))
+    g = g["green_lagrange"]
+    s = voi_statistics(g.ravel(), v.ravel(), threshold=threshold, bin_edges=edges)
+    e = voi_error_estimate(mesh, u, threshold=threshold, bin_edges=edges, levels=SAMPLING_LEVELS, sampled=(g, v))
+    return PassEstimate(voi_mm3=s.voi_mm3, voi_err_mm3=e.voi_err_mm3, bins_err_pp=max(e.bins_err_pp.values()),
+                        force_N=solution.indenter_force_N, indicator_mm3=e.indicator_mm3,
+                        contact_tets=contact_tets(mesh, u, indenter), bins_percent=dict(s.bins_percent),
+                        voi_indicator_mm3=e.threshold_indicator_mm3)
+
+
+# the first mesh of the adaptive runs: the study's element size everywhere, no refinement around the axis
+ADAPTIVE_START = CylinderMesh(element_size_mm=1.6, refine_size_mm=1.6)
+
+
+def adaptive_cylinder(material, depth_mm: float, settings=None, *, start: CylinderMesh = ADAPTIVE_START,
+                      height_mm: float = 8.0, threshold: float = 0.3, bin_edges=None,
+                      solver_settings: SolverSettings | None = None, log=None):
+    """The cylinder scene at one depth on adaptive meshes (:func:`deeptissue.adapt.adapt`): the first
+    pass on ``start`` (uniform 1.6 mm: 10 809 DOFs, a quarter of the default mesh's solve), each next one remeshed from the previous solution's
+    estimate (:func:`cylinder_estimate`) until it meets the goal of ``settings``
+    (:class:`deeptissue.adapt.AdaptSettings`) or its budget is spent. Returns the AdaptResult."""
+    from ..adapt import AdaptSettings, adapt
+
+    ind = _indenter(depth_mm, height_mm)
+    st = SolverSettings() if solver_settings is None else solver_settings
+    return adapt(lambda field: cylinder_mesh(start, height_mm=height_mm, size_field=field),
+                 lambda m: solve_indentation(m, material=material, indenter=ind, bone_motion=BoneMotion(), settings=st),
+                 lambda m, r: cylinder_estimate(m, r, ind, threshold=threshold, bin_edges=bin_edges),
+                 AdaptSettings() if settings is None else settings, log=log)
+
+
+def adaptive_comparison(passes: pd.DataFrame, voi: pd.DataFrame, curve: pd.DataFrame) -> pd.DataFrame:
+    """The adaptive passes against the fixed meshes of the verification (cylinder_voi.csv and
+    cylinder_curve.csv, whose finest mesh is the reference), one row per pass and per fixed mesh and depth.
+
+    ``passes``: :meth:`deeptissue.adapt.AdaptResult.table` rows with a depth_mm column. Columns: kind
+    ('adaptive' or 'fixed'), mesh, depth_mm, pass_index (adaptive), n_dofs, wall_s (adaptive: every pass so far; fixed:
+    the one solve at that depth), est_voi_percent, est_bins_pp (largest bin), est_force_percent
+    (adaptive only), true_voi_percent, true_bins_pp, true_force_percent (against the reference),
+    goal_met (adaptive: by its own estimate). The reference's own rows are left out: its true errors are zero by definition.
+    """
+    bins = [c for c in voi.columns if c.startswith("bins_percent.")]
+    ref_mesh = voi.loc[voi["n_dofs"].idxmax(), "mesh"]
+    ref = voi[voi["mesh"] == ref_mesh].set_index("depth_mm")
+    ref_force = curve[curve["mesh"] == ref_mesh].set_index("depth_mm")["force_N"]
+    rows = []
+    for _, r in voi[voi["mesh"] != ref_mesh].iterrows():
+        d = r["depth_mm"]
+        c = curve[(curve["mesh"] == r["mesh"]) & (curve["depth_mm"] == d)].iloc[0]
+        rows.append(dict(kind="fixed", mesh=r["mesh"], depth_mm=d, n_dofs=r["n_dofs"], wall_s=c["wall_s"],
+                         est_voi_percent=100 * r["voi_err_mm3"] / r["voi_mm3"],
+                         est_bins_pp=max(r[c2] for c2 in voi.columns if c2.startswith("bins_err_pp.")),
+                         true_voi_percent=100 * (r["voi_mm3"] / ref.loc[d, "voi_mm3"] - 1),
+                         true_bins_pp=max(abs(r[b] - ref.loc[d, b]) for b in bins),
+                         true_force_percent=100 * (c["force_N"] / ref_force.loc[d] - 1)))
+    for _, p in passes.iterrows():
+        d = p["depth_mm"]
+        true_bins = max((abs(p[b] - ref.loc[d, b]) for b in bins if b in p), default=np.nan)
+        rows.append(dict(kind="adaptive", mesh="adaptive", depth_mm=d, pass_index=p["index"], n_dofs=p["n_dofs"],
+                         wall_s=p["wall_s"], est_voi_percent=p["voi_err_percent"], est_bins_pp=p["bins_err_pp"],
+                         est_force_percent=p["force_err_percent"],
+                         true_voi_percent=100 * (p["voi_mm3"] / ref.loc[d, "voi_mm3"] - 1), true_bins_pp=true_bins,
+                         true_force_percent=100 * (p["force_N"] / ref_force.loc[d] - 1), goal_met=p["goal_met"]))
+    return pd.DataFrame(rows)
+
+
+def plot_adaptive(table: pd.DataFrame, path) -> None:
+    """True VOI error [%] and largest bin error [pp] against wall time [s] (:func:`adaptive_comparison`'s
+    table): the adaptive passes of each depth as a line (open markers: estimate not yet within the
+    goal), the fixed meshes (but the reference) as squares, the goals as dotted lines."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..io import atomic_path
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.2))
+    for j, d in enumerate(sorted(table["depth_mm"].unique())):
+        colour = f"C{j}"
+        a = table[(table["kind"] == "adaptive") & (table["depth_mm"] == d)].sort_values("wall_s")
+        f = table[(table["kind"] == "fixed") & (table["depth_mm"] == d)]
+        for ax, col in zip(axes, ("true_voi_percent", "true_bins_pp")):
+            ax.plot(a["wall_s"], a[col].abs(), "-", color=colour, label=f"{d:g} mm adaptive")
+            met = a["goal_met"].astype(bool).to_numpy()
+            ax.plot(a["wall_s"][met], a[col].abs()[met], "o", color=colour)
+            ax.plot(a["wall_s"][~met], a[col].abs()[~met], "o", color=colour, mfc="none")
+            ax.plot(f["wall_s"], f[col].abs(), "s", color=colour, mfc="none", ms=8)
+    for ax, goal, label in zip(axes, (2.0, 1.0), ("|VOI error| against the reference [%]", "largest bin error [pp]")):
+        ax.axhline(goal, ls=":", color="k", lw=1)
+        ax.set_xscale("log")
+        ax.set_xlabel("wall time [s] (adaptive: all passes so far)")
+        ax.set_ylabel(label)
+    fixed = ", ".join(dict.fromkeys(table.loc[table["kind"] == "fixed", "mesh"]))
+    axes[0].legend(fontsize=8, title=f"squares: fixed {fixed}", title_fontsize=8)
+    fig.suptitle("Cylinder scene: adaptive meshes against fixed meshes")
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120, format="png")
+    plt.close(fig)
+
+
+def write_adaptive_cylinder(material, *, voi_csv, curve_csv, out_csv, figure_png,
+                            depths_mm: Sequence[float] = VOI_DEPTHS_MM, settings=None) -> pd.DataFrame:
+    """:func:`adaptive_cylinder` at each of ``depths_mm`` against the fixed meshes of the verification
+    (``voi_csv``, ``curve_csv``: cylinder_voi.csv and cylinder_curve.csv, whose finest mesh is the
+    reference): the table of :func:`adaptive_comparison` with a stop_reason column (out_csv) and
+    :func:`plot_adaptive` (figure_png). Each pass is logged."""
+    import logging
+
+    from ..io import atomic_path
+
+    logger = logging.getLogger(__name__)
+    runs = []
+    for d in depths_mm:
+        r = adaptive_cylinder(material, float(d), settings, log=lambda line, d=d: logger.info("%g mm: %s", d, line))
+        runs.append(r.table().assign(depth_mm=float(d), stop_reason=r.stop_reason))
+    passes = pd.concat(runs, ignore_index=True)
+    table = adaptive_comparison(passes, pd.read_csv(voi_csv), pd.read_csv(curve_csv))
+    table["stop_reason"] = table["depth_mm"].map(passes.groupby("depth_mm")["stop_reason"].first()).where(
+        table["kind"] == "adaptive")
+    Path(out_csv).parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out_csv) as tmp:
+        table.to_csv(tmp, index=False)
+    plot_adaptive(table, figure_png)
+    return table
 
 
 if __name__ == "__main__":  # python -m deeptissue.fem.cylinder results/verification/cylinder_voi.csv [more.csv ...]

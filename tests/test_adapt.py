@@ -1,0 +1,301 @@
+"""Solution-driven refinement: the size rule, the background size field, the loop, the cylinder scene."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from deeptissue.adapt import (AdaptSettings, PassEstimate, SizeField, adapt, element_sizes,
+                              estimated_tets, fit_budget, node_sizes, target_sizes)
+from deeptissue.fem.cylinder import CylinderMesh, cylinder_mesh
+
+COARSE = CylinderMesh(element_size_mm=2.0, refine_size_mm=2.0)
+
+
+@pytest.fixture(scope="module")
+def coarse_cylinder():
+    return cylinder_mesh(COARSE, order=1)
+
+
+def _centroids(mesh):
+    return mesh.nodes_mm[mesh.tets[:, :4]].mean(axis=1)
+
+
+def _volumes(mesh):
+    X = mesh.nodes_mm[mesh.tets[:, :4]]
+    return np.abs(np.linalg.det(X[:, 1:] - X[:, :1])) / 6.0
+
+
+def test_target_sizes_equidistribute_with_p2_and_stay_within_the_limits():
+    st = AdaptSettings(h_min_mm=0.3, h_max_mm=1.6, max_shrink=0.1, max_growth=1.0)
+    h = np.full(6, 1.0)
+    eta = np.array([0.0, 1e-4, 0.01, 0.04, 0.09, 5.0])
+    new = target_sizes(h, eta, target_total=0.05, settings=st)  # share 0.01 for each of the 5 non-zero elements
+    assert new[0] == 1.0  # no indicator: the size stays
+    assert new[1] == 1.0  # below its share: it would grow, and max_growth is 1
+    assert new[2] == pytest.approx(1.0)  # exactly its share
+    assert new[3] == pytest.approx(0.5)  # 4 shares: h (1/4)^(1/2)
+    assert new[4] == pytest.approx(1 / 3)  # 9 shares
+    assert new[5] == pytest.approx(0.3)  # 500 shares: 0.045, never below h_min
+    assert np.all(np.diff(new[1:]) <= 0)  # a larger indicator never gets a larger element
+    # a pass shrinks an element by at most max_shrink, and never grows one past h_max
+    capped = target_sizes(np.full(3, 2.0), [0.0, 1.0, 100.0], 0.01, AdaptSettings(max_shrink=0.5, max_growth=2.0))
+    assert capped[0] == 1.6 and capped[2] == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="differ"):
+        target_sizes(h, eta[:3], 0.05)
+    with pytest.raises(ValueError, match="h_min_mm"):
+        AdaptSettings(h_min_mm=2.0, h_max_mm=1.0)
+
+
+def test_estimated_tets_counts_gmsh_elements(coarse_cylinder):
+    # a uniform cylinder mesh at 1 mm: the estimate from the volume alone
+    m = cylinder_mesh(CylinderMesh(element_size_mm=1.0, refine_size_mm=1.0), order=1)
+    assert estimated_tets([np.pi * 64 * 8], [1.0]) == pytest.approx(m.n_tets, rel=0.15)
+    # the coarse mesh's own sizes: element_sizes is gmsh's size, so the estimate is its count
+    assert estimated_tets(_volumes(coarse_cylinder), element_sizes(coarse_cylinder)) == pytest.approx(
+        coarse_cylinder.n_tets, rel=0.15)
+    assert np.median(element_sizes(m)) == pytest.approx(1.0, rel=0.15)
+    assert estimated_tets([1.0, 1.0], [1.0, 0.5]) == pytest.approx(9 * estimated_tets([1.0], [1.0]))
+
+
+def test_node_sizes_take_the_smallest_element_and_grow_gently(coarse_cylinder):
+    m = coarse_cylinder
+    sizes = np.full(m.n_tets, 2.0)
+    fine = np.argmin(np.linalg.norm(_centroids(m) - [0, 0, 8.0], axis=1))
+    sizes[fine] = 0.3
+    n = node_sizes(m, sizes, grading=0.4)
+    assert np.allclose(n[m.tets[fine]], 0.3)
+    edges = m.tets[:, [0, 0, 0, 1, 1, 2]], m.tets[:, [1, 2, 3, 2, 3, 3]]
+    a, b = edges[0].ravel(), edges[1].ravel()
+    length = np.linalg.norm(m.nodes_mm[a] - m.nodes_mm[b], axis=1)
+    assert np.all(np.abs(n[a] - n[b]) <= 0.4 * length + 1e-12)
+    assert n.max() == 2.0 and n.min() == 0.3
+    # far from the fine element the element's own size comes back
+    gap = np.linalg.norm(m.nodes_mm[:, None] - m.nodes_mm[m.tets[fine]][None], axis=2).min(axis=1)
+    assert np.allclose(n[gap > 5.0], 2.0)  # 0.3 + 0.4 * 5 > 2
+    assert np.all(n[gap < 2.0] < 0.3 + 0.4 * 2.0 + 1e-9) and (gap > 5.0).sum() > 10
+
+
+def test_fit_budget_scales_the_refined_sizes_together():
+    v = np.full(4, 1.0)
+    h = np.full(4, 1.0)
+    new = np.array([1.0, 0.5, 0.25, 1.0])
+    assert np.array_equal(fit_budget(h, new, v, 1e9), new)  # fits: unchanged
+    budget = 0.5 * estimated_tets(v, new)
+    fitted = fit_budget(h, new, v, budget)
+    assert estimated_tets(v, fitted) == pytest.approx(budget, rel=1e-6)
+    assert fitted[0] == fitted[3] == 1.0  # unrefined sizes stay
+    assert fitted[2] / fitted[1] == pytest.approx(0.5)  # one common factor while under h
+    assert np.all(fitted <= h)
+    assert np.array_equal(fit_budget(h, new, v, 1.0), h)  # cannot fit: no refinement at all
+
+
+@pytest.mark.parametrize("method", ["view", "callback"])
+def test_the_remesher_makes_small_elements_where_asked(coarse_cylinder, method, monkeypatch):
+    import deeptissue.adapt as adapt_module
+
+    m0 = coarse_cylinder
+    c = _centroids(m0)
+    near_top = np.linalg.norm(c - [0, 0, 8.0], axis=1) < 2.0
+    near_side = np.linalg.norm(c - [8.0, 0, 4.0], axis=1) < 2.0  # on the curved face: outside the old flat facets
+    target = np.where(near_top | near_side, 0.5, 2.0)
+    field = SizeField.from_mesh(m0, node_sizes(m0, target, grading=0.4))
+    assert len(field.nodes_mm) == len(np.unique(m0.tets)) and field.tets.max() < len(field.nodes_mm)
+    real = adapt_module.set_background_size
+    monkeypatch.setattr(adapt_module, "set_background_size", lambda g, s: real(g, s, method=method))
+    m = cylinder_mesh(COARSE, size_field=field, order=1)
+    h, cc = element_sizes(m), _centroids(m)
+    top = np.linalg.norm(cc - [0, 0, 8.0], axis=1) < 1.5
+    side = np.linalg.norm(cc - [8.0, 0, 4.0], axis=1) < 1.5
+    far = (np.linalg.norm(cc - [0, 0, 8.0], axis=1) > 6.0) & (np.linalg.norm(cc - [8.0, 0, 4.0], axis=1) > 6.0)
+    assert h[top].mean() == pytest.approx(0.5, rel=0.2)
+    assert h[side].mean() == pytest.approx(0.5, rel=0.2)
+    assert h[far].mean() > 1.5
+    # the default mesh is unchanged by the new parameter
+    assert cylinder_mesh(COARSE, order=1).n_tets == m0.n_tets
+
+
+def _fake(mesh, errors_percent, *, forces=None, converged=None):
+    """A loop on a fixed mesh whose pass k reports errors_percent[k] for the VOI (1 mm³), the bins and
+    the force forces[k]; the indicator is non-zero in the first element."""
+    calls = {"fields": [], "k": -1}
+
+    def build(field):
+        calls["fields"].append(field)
+        calls["k"] += 1
+        return mesh
+
+    def solve(m):
+        k = calls["k"]
+        ok = True if converged is None else converged[k]
+        return SimpleNamespace(converged=ok, displacement_mm=np.zeros_like(m.nodes_mm),
+                               indenter_force_N=1.0 if forces is None else forces[k])
+
+    def estimate(m, sol):
+        k = calls["k"]
+        eta = np.zeros(m.n_tets)
+        eta[0] = errors_percent[k] / 100
+        return PassEstimate(voi_mm3=1.0, voi_err_mm3=errors_percent[k] / 100, bins_err_pp=errors_percent[k] / 4,
+                            force_N=sol.indenter_force_N, indicator_mm3=eta)
+
+    return build, solve, estimate, calls
+
+
+def test_the_loop_stops_on_the_goal_and_refines_where_the_indicator_is(coarse_cylinder):
+    m = coarse_cylinder
+    build, solve, est, calls = _fake(m, [10.0, 5.0, 2.5, 1.5, 1.0], forces=[1.0, 1.1, 1.15, 1.16, 1.161])
+    r = adapt(build, solve, est, AdaptSettings(max_passes=5))
+    # pass 3: VOI 1.5 %, bins 0.375 pp, force changed 0.9 % from pass 2
+    assert r.stop_reason == "goal" and len(r.passes) == 4 and r.goal_met
+    t = r.table()
+    assert list(t["goal_met"]) == [False, False, False, True]
+    assert np.isnan(t.loc[0, "force_err_percent"]) and t.loc[1, "force_err_percent"] == pytest.approx(100 * 0.1 / 1.1)
+    assert calls["fields"][0] is None  # the first pass on the mesher's own sizes
+    f = calls["fields"][1]
+    first = node_sizes(m, element_sizes(m))[m.tets[0, :4]]
+    assert np.all(f.size_mm[np.searchsorted(np.unique(m.tets), m.tets[0, :4])] < first)  # the indicator's element
+    far = np.linalg.norm(f.nodes_mm - m.nodes_mm[m.tets[0, :4]].mean(axis=0), axis=1) > 6.0
+    h = element_sizes(m)
+    unchanged = node_sizes(m, h, current_mm=h)[np.unique(m.tets)]
+    assert far.sum() > 10 and np.allclose(f.size_mm[far], unchanged[far])  # elsewhere the size stays
+    # without a force goal the first pass within the VOI and bin goals ends the loop
+    build, solve, est, _ = _fake(m, [10.0, 1.0, 1.0])
+    assert len(adapt(build, solve, est, AdaptSettings(force_goal_percent=None)).passes) == 2
+
+
+def test_only_the_quantity_that_misses_its_goal_is_refined(coarse_cylinder):
+    m = coarse_cylinder
+    far_apart = np.argmax(np.linalg.norm(_centroids(m) - _centroids(m)[0], axis=1))
+    fields = []
+
+    def estimate(mesh, sol):  # the VOI (element 0) within its goal, the bins (element far_apart) not
+        eta, voi = np.zeros(mesh.n_tets), np.zeros(mesh.n_tets)
+        eta[0] = voi[0] = 0.01
+        eta[far_apart] = 0.05
+        return PassEstimate(voi_mm3=1.0, voi_err_mm3=0.01, bins_err_pp=3.0, force_N=1.0, indicator_mm3=eta,
+                            voi_indicator_mm3=voi)
+
+    adapt(lambda f: fields.append(f) or m, lambda mm: SimpleNamespace(converged=True, indenter_force_N=1.0,
+                                                                       displacement_mm=np.zeros_like(mm.nodes_mm)),
+          estimate, AdaptSettings(max_passes=2, force_goal_percent=None))
+    h = element_sizes(m)
+    before = node_sizes(m, h, current_mm=h)[np.unique(m.tets)]
+    after = fields[1].size_mm
+    index = np.searchsorted(np.unique(m.tets), m.tets[:, :4])
+    assert np.all(after[index[far_apart]] < 0.8 * before[index[far_apart]])
+    assert np.allclose(after[index[0]], before[index[0]])
+
+
+def test_the_loop_stops_on_its_budget_and_on_a_failed_solve(coarse_cylinder):
+    m = coarse_cylinder
+    build, solve, est, _ = _fake(m, [10.0] * 5)
+    r = adapt(build, solve, est, AdaptSettings(max_passes=3))
+    assert r.stop_reason == "passes" and len(r.passes) == 3 and not r.goal_met
+    build, solve, est, _ = _fake(m, [10.0] * 5)
+    r = adapt(build, solve, est, AdaptSettings(max_wall_s=1e-9))
+    assert r.stop_reason == "wall" and len(r.passes) == 1
+    build, solve, est, _ = _fake(m, [10.0] * 5, converged=[True, False, True])
+    r = adapt(build, solve, est)
+    assert r.stop_reason == "not converged" and len(r.passes) == 2
+    assert r.mesh is m and r.estimate.voi_err_mm3 == pytest.approx(0.1)  # the last converged pass
+
+
+def test_the_force_estimate_needs_a_shrunk_contact_zone(coarse_cylinder):
+    m = coarse_cylinder
+    build, solve, est, _ = _fake(m, [1.0] * 4, forces=[1.0, 1.001, 1.001, 1.001])
+
+    def with_contact(mesh, sol):  # the contact zone: the first element, whose size the fake mesher never changes
+        e = est(mesh, sol)
+        c = np.zeros(mesh.n_tets, bool)
+        c[0] = True
+        return PassEstimate(e.voi_mm3, e.voi_err_mm3, e.bins_err_pp, e.force_N, e.indicator_mm3, c)
+
+    r = adapt(build, solve, with_contact, AdaptSettings(max_passes=3))
+    assert r.stop_reason == "passes" and np.isnan(r.table()["force_err_percent"]).all()
+
+
+def test_contact_tets_are_the_elements_under_the_sphere(coarse_cylinder):
+    from deeptissue.fem.cylinder import _indenter, contact_tets
+
+    m = coarse_cylinder
+    ind = _indenter(0.5, 8.0)  # the sphere's cap 0.5 mm into the undeformed top: radius sqrt(1.5² - 1²)
+    c = contact_tets(m, np.zeros_like(m.nodes_mm), ind, tol_mm=0.0)
+    top = np.unique(m.facets["patch"])
+    inside = top[np.hypot(m.nodes_mm[top, 0], m.nodes_mm[top, 1]) <= np.sqrt(1.5**2 - 1.0**2)]
+    assert len(inside) >= 1
+    assert np.array_equal(c, np.isin(m.tets, inside).any(axis=1))
+
+
+def test_adaptive_comparison_errors_against_the_reference(tmp_path):
+    from deeptissue.fem.cylinder import adaptive_comparison, plot_adaptive
+
+    voi = pd.DataFrame(dict(mesh=["a", "ref"], depth_mm=[2.0, 2.0], n_dofs=[10, 100], voi_mm3=[10.5, 10.0],
+                            voi_err_mm3=[1.0, 0.1], **{"bins_percent.x": [60.0, 58.0], "bins_percent.y": [40.0, 42.0],
+                                                        "bins_err_pp.x": [3.0, 0.2], "bins_err_pp.y": [1.0, 0.2]}))
+    curve = pd.DataFrame(dict(mesh=["a", "ref"], depth_mm=[2.0, 2.0], force_N=[1.01, 1.0], wall_s=[5.0, 50.0]))
+    passes = pd.DataFrame(dict(depth_mm=[2.0], index=[1], n_dofs=[20], wall_s=[12.0], voi_mm3=[9.9], voi_err_percent=[1.5],
+                               bins_err_pp=[0.5], force_N=[0.998], force_err_percent=[0.3], goal_met=[True],
+                               **{"bins_percent.x": [58.5], "bins_percent.y": [41.5]}))
+    t = adaptive_comparison(passes, voi, curve).set_index("kind")
+    assert len(t) == 2  # the reference itself is no row
+    assert t.loc["fixed", "true_voi_percent"] == pytest.approx(5.0)
+    assert t.loc["fixed", "true_bins_pp"] == pytest.approx(2.0) and t.loc["fixed", "est_bins_pp"] == 3.0
+    assert t.loc["fixed", "true_force_percent"] == pytest.approx(1.0) and t.loc["fixed", "wall_s"] == 5.0
+    assert t.loc["adaptive", "true_voi_percent"] == pytest.approx(-1.0)
+    assert t.loc["adaptive", "true_bins_pp"] == pytest.approx(0.5)
+    assert t.loc["adaptive", "true_force_percent"] == pytest.approx(-0.2)
+    assert t.loc["adaptive", "est_voi_percent"] == 1.5 and t.loc["adaptive", "pass_index"] == 1
+    plot_adaptive(t.reset_index(), tmp_path / "adaptive.png")
+    assert (tmp_path / "adaptive.png").read_bytes()[:4] == b"\x89PNG"
+
+
+@pytest.fixture(scope="module")
+def adaptive_2mm():
+    from deeptissue.fem.cylinder import adaptive_cylinder
+    from deeptissue.fem.material import Ogden
+
+    return adaptive_cylinder(Ogden(), 2.0)
+
+
+@pytest.mark.slow
+def test_adaptive_cylinder_at_2mm_meets_the_goal_by_its_own_estimate(adaptive_2mm):
+    r = adaptive_2mm
+    t = r.table()
+    assert r.stop_reason == "goal" and r.goal_met, t.to_string()
+    last = t.iloc[-1]
+    assert last["voi_err_percent"] <= 2.0 and last["bins_err_pp"] <= 1.0 and last["force_err_percent"] <= 2.0
+    assert np.all(np.diff(t["n_dofs"]) > 0) and np.all(np.diff(t["voi_err_percent"]) < 0)  # each pass finer, closer
+    # fewer DOFs than the verification's reference mesh (1.2 / 0.4 mm: 70 503 DOFs), whose own estimate at 2 mm
+    # misses the goal (VOI 4.2 %, bins 1.28 pp)
+    assert last["n_dofs"] < 70503, t.to_string()
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="measured: the goal by its own estimate at 61 083 DOFs (pass 3); the "
+                   "1.6 / 0.6 mm mesh meets the goal against the reference, not by its own estimate")
+def test_adaptive_cylinder_at_2mm_meets_the_goal_with_fewer_dofs_than_the_fixed_mesh(adaptive_2mm):
+    t = adaptive_2mm.table()
+    assert adaptive_2mm.goal_met
+    # the fixed 1.6 / 0.6 mm mesh that meets the goal against the reference has 35 244 DOFs
+    assert t.iloc[-1]["n_dofs"] < 35244, t.to_string()
+
+
+def test_the_limb_mesher_follows_a_background_size():
+    from model_synth import leg_contours
+
+    from deeptissue.mesh import mesh_limb
+
+    c = leg_contours(n_slices=8, z0_mm=-3.5)
+    kw = dict(element_size_mm=1.6, order=1, animal="r", min_scaled_jacobian=0.01)  # the sizes are tested here, not the gate
+    m0, _ = mesh_limb(c.skin, c.bone, **kw)
+    spot = c.skin[4, 0]  # a skin point at mid-length: where an indenter would press
+    near = np.linalg.norm(_centroids(m0) - spot, axis=1) < 2.0
+    field = SizeField.from_mesh(m0, node_sizes(m0, np.where(near, 0.5, element_sizes(m0)), grading=0.4,
+                                               current_mm=element_sizes(m0)))
+    m, _ = mesh_limb(c.skin, c.bone, size_field=field, **kw)
+    h, d = element_sizes(m), np.linalg.norm(_centroids(m) - spot, axis=1)
+    h0, d0 = element_sizes(m0), np.linalg.norm(_centroids(m0) - spot, axis=1)
+    assert h[d < 1.0].mean() == pytest.approx(0.5, rel=0.25)
+    assert h[d > 6.0].mean() == pytest.approx(h0[d0 > 6.0].mean(), rel=0.15)
+    assert m.n_tets > m0.n_tets
