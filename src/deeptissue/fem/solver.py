@@ -553,6 +553,8 @@ class _Problem:
         self.h_min = float(contact.h.min()) if len(contact.h) else 1.0
         self.atol = _ATOL_MU_REL * force_unit_N
         self.atol_intermediate = _ATOL_INTERMEDIATE_MU_REL * force_unit_N
+        self.fmap = np.full(asm.n_dofs, -1, np.int64)  # dof -> row of the free dofs (-1: prescribed)
+        self.fmap[asm.free] = np.arange(asm.n_free)
         self.solver = PardisoSymmetric("double")
         self.timers = dict(assembly=0.0, solve=0.0, contact=0.0)
 
@@ -664,9 +666,7 @@ def _direction(p: _Problem, data, Ke_bc, f, du_d, act, gw, G, geo, curvature=1.0
     candidates and PARDISO's analysis is shared by every active set of an increment.
     """
     asm, contact = p.asm, p.contact
-    free, n_free = asm.free, asm.n_free
-    fmap = np.full(asm.n_dofs, -1, np.int64)
-    fmap[free] = np.arange(n_free)
+    free, n_free, fmap = asm.free, asm.n_free, p.fmap
     Ku = asm.csr(data).tocoo()
     r_parts, c_parts, v_parts = [Ku.row], [Ku.col], [Ku.data]
     if curvature and geo:
