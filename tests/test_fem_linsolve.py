@@ -102,59 +102,71 @@ def test_precision_is_validated():
         PardisoSymmetric("single")
 
 
-def test_reuse_solves_a_nearby_matrix_by_conjugate_gradients_on_the_last_factor(elasticity):
-    U, b = elasticity
-    s = PardisoSymmetric("mixed", reuse_iterations=20, reuse_rtol=1e-8)
-    s.solve(U, b)
-    assert s.factorisations == 1
-    # a nearby matrix of the same pattern: two stiff "contact" springs switched on, the rest 2 % stiffer
-    d = np.zeros(U.shape[0])
-    d[np.random.default_rng(1).choice(U.shape[0], 2, replace=False)] = 10.0 * U.diagonal().max()
-    U2 = _plus_diagonal(_on_pattern(U, 1.02 * U.data), d)
-    x2 = s.solve(U2, b)
-    assert (s.reused, s.factorisations, s.last_mode) == (1, 1, "cg")
-    assert 1 <= s.cg_iterations <= 20
-    K2 = _full(U2)
-    assert np.linalg.norm(K2 @ x2 - b) <= 1e-8 * np.linalg.norm(b)
-    # a matrix far from the factor's: the conjugate gradients give up and it is factorised (and exact)
-    scale = np.exp(np.random.default_rng(2).uniform(-3, 3, U.shape[0]))
-    rows = np.repeat(np.arange(U.shape[0]), np.diff(U.indptr))
-    U3 = _on_pattern(U, U.data * scale[rows] * scale[U.indices])
-    its = s.cg_iterations
-    x3 = s.solve(U3, b)
-    assert (s.reuse_failed, s.factorisations, s.last_mode) == (1, 2, 2)
-    # given up after the third iteration, the first at which progress is judged: slower than geometric
-    # progress to reuse_rtol in reuse_iterations iterations is not worth more conjugate gradients
-    assert s.cg_iterations - its == 3
-    assert _backward_error(U3, x3, b) < 1e-14
-    s.close()
+def _saddle(U, G):
+    """The full saddle-point matrix [[K, -G^T], [G, 0]] of K = U + triu(U, 1)^T (unsymmetric sign convention
+    of solve_constrained: K x - G^T lam = r, G x = s)."""
+    return sp.bmat([[_full(U), -G.T], [G, None]]).tocsc()
 
 
-def test_reuse_finds_an_indefinite_matrix_without_a_failed_factorisation(elasticity):
+def _constraints(n, m, seed):
+    rng = np.random.default_rng(seed)
+    rows = np.repeat(np.arange(m), 6)
+    cols = rng.choice(n, 6 * m)
+    return sp.csr_matrix((rng.standard_normal(6 * m), (rows, cols)), shape=(m, n))
+
+
+@pytest.mark.parametrize("shift", [0.0, 1.0], ids=["spd", "indefinite-off-the-constraints"])
+def test_solve_constrained_solves_the_saddle_point_system(elasticity, shift):
     U, b = elasticity
-    s = PardisoSymmetric("mixed", reuse_iterations=20)
-    s.solve(U, b)
-    # shift so that the first conjugate-gradient direction p0 = K^-1 b has negative curvature
+    n, m = U.shape[0], 40
+    G = _constraints(n, m, 3)
+    rho = 1e3 * np.median(U.diagonal()) / np.asarray(G.multiply(G).sum(axis=1)).ravel()
+    if shift:
+        # K indefinite in directions the constraints fix (K - c P^T P with P a subset of G's rows, c ten times
+        # the stiffness there); the augmented matrix stays positive definite: one single-precision factor
+        P = G[:5]
+        c = 1e-2 * float(np.min(rho[:5]))
+        Uk = (U - shift * c * sp.triu(P.T @ P)).tocsr()
+    else:
+        Uk = U
+    Uk.sort_indices()
+    A = (Uk + sp.triu(G.T @ sp.diags(rho) @ G)).tocsr()
+    A.sort_indices()
+    s_ = np.random.default_rng(4).standard_normal(m) * 1e-2
+    solver = PardisoSymmetric()
+    x, lam = solver.solve_constrained(A, G, rho, b, s_)
+    ref = sp.linalg.spsolve(_saddle(Uk, G), np.concatenate([b, s_]))
+    assert np.allclose(x, ref[:n], rtol=0, atol=1e-9 * np.abs(ref[:n]).max())
+    assert np.allclose(lam, ref[n:], rtol=0, atol=1e-9 * np.abs(ref[n:]).max())
+    # one single-precision factorisation, a handful of corrections
+    assert (solver.factorisations, solver.double_fallbacks, solver.last_mode) == (1, 0, 2)
+    assert solver.refinements <= 8
+    solver.close()
+
+
+def test_solve_constrained_without_constraints_is_a_plain_solve(elasticity):
+    U, b = elasticity
+    G = sp.csr_matrix((0, U.shape[0]))
+    x, lam = PardisoSymmetric().solve_constrained(U, G, np.zeros(0), b, np.zeros(0))
+    assert lam.shape == (0,)
+    assert _backward_error(U, x, b) < 1e-13
+
+
+def test_solve_constrained_falls_back_to_an_indefinite_factorisation(elasticity):
+    U, b = elasticity
+    n = U.shape[0]
+    G = _constraints(n, 10, 5)
+    rho = 1e3 * np.median(U.diagonal()) / np.asarray(G.multiply(G).sum(axis=1)).ravel()
+    # an augmented matrix with a negative eigenvalue off the constraints: Cholesky fails, Bunch-Kaufman solves it
     p0 = PardisoSymmetric("double").solve(U, b)
-    c = 2.0 * float(p0 @ (_full(U) @ p0)) / float(p0 @ p0)
-    Ui = _plus_diagonal(U, -c)
-    with pytest.raises(NotPositiveDefinite, match="conjugate gradients"):
-        s.solve(Ui, b, spd_only=True)
-    assert (s.reuse_indefinite, s.factorisations) == (1, 1)
-    x = s.solve(Ui, b)  # not spd_only: straight to the LDL^T factorisation in double precision
-    assert s.last_mode == -2 and s.factorisations == 2
-    assert _backward_error(Ui, x, b) < 1e-12
-    # the SPD factor stays the preconditioner for the next matrix
-    s.solve(U, b)
-    assert s.last_mode == "cg" and s.factorisations == 2
-    s.close()
-
-
-def test_reuse_settings_are_validated():
-    with pytest.raises(ValueError, match="reuse_iterations -1"):
-        PardisoSymmetric("mixed", reuse_iterations=-1)
-    with pytest.raises(ValueError, match="reuse_rtol 0"):
-        PardisoSymmetric("mixed", reuse_iterations=5, reuse_rtol=0.0)
+    Ui = _plus_diagonal(U, -2.0 * float(p0 @ (_full(U) @ p0)) / float(p0 @ p0))
+    A = (Ui + sp.triu(G.T @ sp.diags(rho) @ G)).tocsr()
+    A.sort_indices()
+    solver = PardisoSymmetric()
+    x, lam = solver.solve_constrained(A, G, rho, b, np.zeros(10))
+    ref = sp.linalg.spsolve(_saddle(Ui, G), np.concatenate([b, np.zeros(10)]))
+    assert solver.last_mode == -2
+    assert np.allclose(x, ref[:n], rtol=0, atol=1e-8 * np.abs(ref[:n]).max())
 
 
 # --------------------------------------------------------------------------- reproducible mode
@@ -226,26 +238,3 @@ def test_two_reproducible_contact_solves_take_identical_newton_iterations():
         """
     first, second = _run_two_threads(code), _run_two_threads(code)
     assert first == second  # increments, Newton iterations and the displacement field, bit for bit
-
-
-def test_solve_indefinite_solves_a_saddle_point_system():
-    from deeptissue.fem.linsolve import PardisoSymmetric
-
-    rng = np.random.default_rng(4)
-    A = rng.standard_normal((12, 12))
-    K = A @ A.T + 12 * np.eye(12)  # SPD block
-    G = rng.standard_normal((3, 12))  # three constraints
-    M = np.block([[K, G.T], [G, np.zeros((3, 3))]])  # indefinite: Cholesky is impossible
-    r, c = np.nonzero(np.triu(M))
-    r, c = np.concatenate([r, np.arange(12, 15)]), np.concatenate([c, np.arange(12, 15)])  # the zero diagonal, stored
-    U = sp.coo_matrix((M[r, c], (r, c)), shape=(15, 15)).tocsr()
-    U.sort_indices()
-    assert U.nnz == np.count_nonzero(np.triu(M)) + 3
-    b = rng.standard_normal(15)
-    s = PardisoSymmetric("double")
-    try:
-        x = s.solve_indefinite(U, b)
-    finally:
-        s.close()
-    np.testing.assert_allclose(x, np.linalg.solve(M, b), rtol=1e-9, atol=1e-12)
-    assert s.last_mode == -2 and s.factorisations == 1

@@ -228,7 +228,10 @@ def test_variant_started_from_the_shared_bone_state_takes_the_same_path(limb, tm
     started = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=motion, cast=cast, start=back)
     assert started.converged and started.extra["started_from_bone_state"] and not whole.extra["started_from_bone_state"]
     assert started.newton_iterations == whole.newton_iterations
-    assert [(h.t_start, h.t_end, h.iterations) for h in started.history] == [(h.t_start, h.t_end, h.iterations) for h in whole.history]
+    # the same increments (up to the last bits of a first-touch size) and Newton counts
+    assert [h.iterations for h in started.history] == [h.iterations for h in whole.history]
+    np.testing.assert_allclose([(h.t_start, h.t_end) for h in started.history],
+                               [(h.t_start, h.t_end) for h in whole.history], rtol=0, atol=1e-12)
     np.testing.assert_allclose(started.displacement_mm, whole.displacement_mm, atol=1e-8)
     assert started.indenter_force_N == pytest.approx(whole.indenter_force_N, rel=1e-8)
     # a solve with other settings solves the rotation itself

@@ -1,8 +1,14 @@
 """Sparse symmetric solves (upper-triangle CSR) by MKL PARDISO (the library pypardiso ships, called through ctypes).
 
-The FE solver's Newton systems are symmetric saddle-point matrices (tangent and contact constraints):
-:meth:`PardisoSymmetric.solve_indefinite` factorises them in symmetric indefinite mode (mtype -2, Bunch-Kaufman
-pivoting, double precision) and refines the solution while its residual halves.
+:meth:`PardisoSymmetric.solve_constrained` solves the FE solver's Newton systems, symmetric saddle-point systems
+of a tangent K and active contact constraints G, ``K x - G^T lam = r, G x = s``, without factorising the
+indefinite saddle-point matrix: it factorises the augmented matrix ``A = K + G^T diag(rho) G`` of the size of K
+(positive definite wherever K is on the constraints' kernel, so Cholesky in single precision) and iterates the
+augmented-Lagrangian correction on the saddle-point residual, in double precision. With rho a thousand times
+the stiffness a constraint meets, a correction gains about three digits: four to six triangular solves reach a
+relative residual of 1e-12. On a rat's limb (41.3 k free dofs, 340-600 active constraints, one core) that is
+0.8 s for the single-precision Cholesky and 0.15 s of corrections, against 1.7 s for a Bunch-Kaufman
+factorisation of the saddle-point matrix in double precision.
 
 :meth:`PardisoSymmetric.solve` solves a positive definite matrix (the linear-elastic reference of the
 convergence study) in SPD mode (mtype 2), with the symbolic analysis (fill-in reducing ordering) done once per
@@ -10,9 +16,7 @@ sparsity pattern; it falls back to indefinite mode if the matrix is not positive
 (default): the Cholesky factor in single precision, refined in double precision until the normwise backward
 error |b - K x|_inf / (|K|_inf |x|_inf + |b|_inf) is below refine_eta (1e-14); a matrix whose refinement does
 not halve that error at every step is factorised again in double. The single-precision factorisation takes
-55-60 % of the time of the double one on a rat's limb (41.6 k free dofs, one core). reuse_iterations > 0: a
-matrix of the same pattern as the last one factorised is first solved by conjugate gradients preconditioned by
-that factor to a relative residual reuse_rtol, and factorised when they fall behind a geometric decrease.
+55-60 % of the time of the double one on a rat's limb (41.6 k free dofs, one core).
 
 With more than one thread, PARDISO's numerical factorisation schedules its work dynamically and its
 reductions follow the threads' timing, so repeated factorisations of one matrix differ in the last bits
@@ -141,33 +145,24 @@ class _Factor:
 
 
 class PardisoSymmetric:
-    """K x = b by MKL PARDISO; precision 'mixed' (single-precision Cholesky + refinement in double,
-    and with reuse_iterations > 0 conjugate gradients preconditioned by the last factor first) or
-    'double'. Counters: factorisations, double_fallbacks (mixed: refinement too slow, factorised again
-    in double), refinements (solve steps after the first), reused (solved by conjugate gradients
-    without a factorisation), reuse_failed (not converged: factorised), reuse_indefinite (non-positive
-    curvature found), cg_iterations."""
+    """Symmetric sparse solves by PARDISO: :meth:`solve` (K x = b, precision 'mixed': single-precision
+    Cholesky + refinement in double, or 'double') and :meth:`solve_constrained` (a saddle-point system through
+    its augmented matrix). Counters: factorisations, double_fallbacks (a single-precision factor whose
+    refinement was too slow, factorised again in double), refinements (solve steps after the first)."""
 
-    def __init__(self, precision: str = "mixed", *, refine_eta: float = 1e-14, max_refinements: int = 8,
-                 reuse_iterations: int = 0, reuse_rtol: float = 1e-10):
+    def __init__(self, precision: str = "mixed", *, refine_eta: float = 1e-14, max_refinements: int = 8):
         if precision not in PRECISIONS:
             raise ValueError(f"linear solver precision {precision!r}: expected one of {PRECISIONS}")
-        if reuse_iterations < 0 or not 0 < reuse_rtol < 1:
-            raise ValueError(f"linear solver: reuse_iterations {reuse_iterations} must be >= 0 and reuse_rtol "
-                             f"{reuse_rtol} in (0, 1)")
         self._call = _mkl_pardiso()
         self.precision, self.refine_eta, self.max_refinements = precision, refine_eta, max_refinements
-        self.reuse_iterations, self.reuse_rtol = reuse_iterations, reuse_rtol
         self._factors: dict = {}
         self.last_mode = None
         self.factorisations = self.double_fallbacks = self.refinements = 0
-        self.reused = self.reuse_failed = self.reuse_indefinite = self.cg_iterations = 0
 
     @property
     def counters(self) -> dict:
         """The counters of the class docstring, by name."""
-        return {k: getattr(self, k) for k in ("factorisations", "double_fallbacks", "refinements", "reused",
-                                              "reuse_failed", "reuse_indefinite", "cg_iterations")}
+        return {k: getattr(self, k) for k in ("factorisations", "double_fallbacks", "refinements")}
 
     def _factor(self, name: str, U: sp.csr_matrix, mtype: int, single: bool, key: tuple) -> _Factor:
         """The handle of this name, analysed again (and the old one freed) if U's pattern (key) changed."""
@@ -201,65 +196,14 @@ class PardisoSymmetric:
             x = x + f.solve(r)
         return None
 
-    def _preconditioned_cg(self, f: _Factor, U: sp.csr_matrix, b: np.ndarray):
-        """Conjugate gradients on K x = b (K = U + triu(U, 1)^T) preconditioned by the factor f of an
-        earlier matrix: x, or 'indefinite' (p^T K p <= 0 for a search direction p), or None (no
-        convergence to reuse_rtol, given up from the third iteration on as soon as the residual lags
-        behind a geometric decrease from |b| to reuse_rtol |b| over reuse_iterations)."""
-        diag = U.diagonal()
-        b_2 = float(np.linalg.norm(b)) or 1.0
-        x = np.zeros_like(b)
-        r = b.copy()
-        z = f.solve(r)
-        p = z.copy()
-        rz = float(r @ z)
-        for k in range(1, self.reuse_iterations + 1):
-            q = _symmetric_matvec(U, diag, p)
-            pq = float(p @ q)
-            self.cg_iterations += 1
-            if not pq > 0:
-                return "indefinite"
-            alpha = rz / pq
-            x += alpha * p
-            r -= alpha * q
-            eta = float(np.linalg.norm(r)) / b_2
-            if eta <= self.reuse_rtol:
-                _log.debug("    conjugate gradients on the last factor: %d iterations", k)
-                return x
-            if k >= 3 and eta > self.reuse_rtol ** (k / self.reuse_iterations):
-                return None  # slower than geometric progress to reuse_rtol in reuse_iterations: factorise
-            z = f.solve(r)
-            rz_new = float(r @ z)
-            p = z + (rz_new / rz) * p
-            rz = rz_new
-        return None
-
     def solve(self, U: sp.csr_matrix, b: np.ndarray, spd_only: bool = False) -> np.ndarray:
         """Solve K x = b with K given by its upper triangle U (CSR, sorted, full diagonal).
 
-        spd_only: raise NotPositiveDefinite instead of falling back to the indefinite factorisation.
-        (With reuse, conjugate gradients that converge without meeting non-positive curvature return x
-        even if K is indefinite; x is then still a descent direction: b^T x = x^T K x = sum of
-        alpha_j^2 p_j^T K p_j > 0 over the K-conjugate search directions.)"""
+        spd_only: raise NotPositiveDefinite instead of falling back to the indefinite factorisation."""
         b = np.asarray(b, dtype=np.float64).ravel()
         mtypes = (2,) if spd_only else (2, -2)
         key = _pattern_key(U)
-        if self.precision == "mixed" and self.reuse_iterations:
-            f = self._factors.get("spd32")
-            if f is not None and f.a is not None and f.key == key:
-                x = self._preconditioned_cg(f, U, b)
-                if isinstance(x, np.ndarray):
-                    self.reused += 1
-                    self.last_mode = "cg"
-                    return x
-                if isinstance(x, str):  # 'indefinite': the Cholesky factorisation would fail
-                    self.reuse_indefinite += 1
-                    if spd_only:
-                        raise NotPositiveDefinite("the matrix is not positive definite (conjugate gradients)")
-                    mtypes = (-2,)
-                else:
-                    self.reuse_failed += 1
-        if self.precision == "mixed" and 2 in mtypes:
+        if self.precision == "mixed":
             f = self._factor("spd32", U, 2, True, key)
             self.factorisations += 1
             if f.factor(U):
@@ -283,31 +227,66 @@ class PardisoSymmetric:
             raise NotPositiveDefinite("PARDISO: the matrix is not positive definite")
         raise np.linalg.LinAlgError("PARDISO failed in SPD and symmetric-indefinite mode")
 
-    def solve_indefinite(self, U: sp.csr_matrix, b: np.ndarray, *, max_refinements: int = 4) -> np.ndarray:
-        """Solve K x = b for a symmetric indefinite K (a saddle-point matrix) given by its upper triangle U:
-        Bunch-Kaufman factorisation in double precision (mtype -2, the analysis kept while the pattern is
-        unchanged), refined while the relative residual |b - K x|_2 / |b|_2 at least halves and is above
-        1e-13. LinAlgError if the factorisation fails or the solution is not finite."""
-        b = np.asarray(b, dtype=np.float64).ravel()
-        f = self._factor("-2", U, -2, False, _pattern_key(U))
-        self.factorisations += 1
-        if not f.factor(U):
-            raise np.linalg.LinAlgError("PARDISO: symmetric indefinite factorisation failed")
-        diag = U.diagonal()
-        x = f.solve(b)
-        err = np.inf
-        for _ in range(max_refinements):
-            r = b - _symmetric_matvec(U, diag, x)
-            e = np.linalg.norm(r) / max(np.linalg.norm(b), 1e-300)
-            if not e < 0.5 * err or e < 1e-13:
-                break
-            err = e
-            self.refinements += 1
-            x = x + f.solve(r)
-        if not np.all(np.isfinite(x)):
-            raise np.linalg.LinAlgError("PARDISO: non-finite solution")
-        self.last_mode = -2
-        return x
+    def solve_constrained(self, A: sp.csr_matrix, G: sp.csr_matrix, rho: np.ndarray, r: np.ndarray, s: np.ndarray,
+                          *, rtol: float = 1e-12, accept_rtol: float = 1e-8, max_corrections: int = 40):
+        """Solve the saddle-point system ``K x - G^T lam = r``, ``G x = s`` for (x (n,), lam (m,)).
+
+        A: the upper triangle (CSR, sorted, full diagonal) of the augmented matrix ``K + G^T diag(rho) G``;
+        G (m, n) the constraints' rows (m may be 0); rho (m,) > 0 their augmentation (in the units that make
+        G^T diag(rho) G a stiffness). From (x, lam) = 0 each correction solves
+        ``A dx = e_r + G^T (rho e_s)``, ``dlam = -rho (G dx - e_s)`` on the residuals ``e_r = r - K x + G^T lam``,
+        ``e_s = s - G x`` (K x = A x - G^T rho G x), so the iteration converges to the saddle point's solution
+        whatever the factor's precision, as long as it converges. The residual's size is
+        ``sqrt(|e_r|^2 + |d e_s|^2)`` with d the median of A's diagonal (a constraint residual as the force
+        that would close it). A is factorised by Cholesky in single precision; if that fails (A not positive
+        definite) or the corrections stop halving the residual, by Cholesky in double precision, then by
+        Bunch-Kaufman (symmetric indefinite). Returns once the residual is below rtol times that of the right
+        side; a residual that no factor brings below rtol is accepted below accept_rtol; LinAlgError otherwise."""
+        r = np.asarray(r, dtype=np.float64).ravel()
+        s = np.asarray(s, dtype=np.float64).ravel()
+        rho = np.asarray(rho, dtype=np.float64).ravel()
+        G = sp.csr_matrix(G)
+        diag = A.diagonal()
+        d = float(np.median(diag)) if len(diag) else 1.0
+        b_norm = float(np.sqrt(r @ r + d * d * (s @ s)))
+        x, lam = np.zeros(A.shape[0]), np.zeros(G.shape[0])
+        if b_norm == 0.0:
+            return x, lam
+        key = _pattern_key(A)
+        best, indefinite = np.inf, False
+        for name, mtype, single in (("spd32", 2, True), ("spd64", 2, False), ("-2", -2, False)):
+            if name == "spd64" and indefinite:
+                continue  # single precision found A indefinite: a double Cholesky fails the same way
+            f = self._factor(name, A, mtype, single, key)
+            self.factorisations += 1
+            if not f.factor(A):
+                indefinite = True
+                continue
+            if name != "spd32":
+                self.double_fallbacks += 1
+            prev = np.inf
+            for k in range(max_corrections):
+                Gx = G @ x
+                e_s = s - Gx
+                e_r = r - (_symmetric_matvec(A, diag, x) - G.T @ (rho * Gx)) + G.T @ lam
+                err = float(np.sqrt(e_r @ e_r + d * d * (e_s @ e_s))) / b_norm
+                best = min(best, err)
+                if err <= rtol:
+                    self.last_mode = mtype
+                    return x, lam
+                if not np.isfinite(err) or err > 0.5 * prev:
+                    break
+                prev = err
+                if k:
+                    self.refinements += 1
+                dx = f.solve(e_r + G.T @ (rho * e_s))
+                x = x + dx
+                lam = lam - rho * (G @ dx - e_s)
+            if np.isfinite(err) and err <= accept_rtol:
+                self.last_mode = mtype
+                return x, lam
+            x, lam = np.zeros(A.shape[0]), np.zeros(G.shape[0])
+        raise np.linalg.LinAlgError(f"PARDISO: the constrained system is not solved (best relative residual {best:.1e})")
 
     def close(self):
         """Free every factor."""

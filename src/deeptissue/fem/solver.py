@@ -18,7 +18,9 @@ primal-dual active-set method (Hintermueller, Ito and Kunisch 2002; Hueber and W
 at each iteration the active set is A = {j : lam_j - c_j gw_j > 0}; an active node's linearised weighted gap
 is closed, ``gw_j + G_j du = 0``, an inactive node's force is zero. Displacement, multipliers and active set
 come from one symmetric saddle-point system ``[[K - sum_q A p N N H, G_A^T], [G_A, 0]]`` over the free dofs
-and the candidate nodes, factorised by PARDISO in symmetric indefinite mode; they converge together,
+and the active entries, solved through its augmented matrix ``K~ + G_A^T rho G_A`` of the size of the tangent
+(a single-precision Cholesky factor and a few augmented-Lagrangian corrections in double precision,
+:meth:`deeptissue.fem.linsolve.PardisoSymmetric.solve_constrained`); they converge together,
 superlinearly near the solution, with no penalty and no multiplier update loop. A non-monotone backtracking
 line search on the merit 0.5 (|R|^2 + |C|^2) globalises each step; where the obstacles' curvature term makes
 the consistent matrix useless (a pinch), the direction without it is tried.
@@ -73,6 +75,10 @@ _NONMONOTONE_MEMORY = 5  # the Armijo test compares with the largest of this man
 _EASY_ITERATIONS, _EASY_CHANGES_REL = 5, 0.25  # an increment this easy lets the next grow by _GROW
 _HARD_ITERATIONS = 10  # one that needs more shrinks the next by _SHRINK
 _GROW, _SHRINK, _CUT = 2.0, 0.7, 0.35
+# the augmentation of the Newton system's constraints, in units of the stiffness they meet: each augmented-
+# Lagrangian correction of the linear solve gains about log10 of it in digits (a single-precision Cholesky of
+# the augmented matrix still succeeds at 1e4 and fails at 1e6 on a limb)
+_AUGMENTATION = 1e3
 _REPORT_QUADRATURE_ORDER = 4  # facet quadrature on which the penetration between nodes is reported
 
 
@@ -555,7 +561,7 @@ class _Problem:
         self.atol_intermediate = _ATOL_INTERMEDIATE_MU_REL * force_unit_N
         self.fmap = np.full(asm.n_dofs, -1, np.int64)  # dof -> row of the free dofs (-1: prescribed)
         self.fmap[asm.free] = np.arange(asm.n_free)
-        self.solver = PardisoSymmetric("double")
+        self.solver = PardisoSymmetric()
         self.timers = dict(assembly=0.0, solve=0.0, contact=0.0)
 
     def weighted(self, u, lam, curvature=True):
@@ -619,11 +625,14 @@ def _solve_increment(p: _Problem, u, lam, target_d, rtol, atol):
         # non-monotone Armijo test (Grippo, Lampariello and Lucidi 1986) against the largest of the last few
         # merits: a change of the active set may raise the merit for one step on the way to the solution
         phi_ref = max(merits[-_NONMONOTONE_MEMORY:])
-        # the consistent direction first; where the merit rises within the shortest step, the direction
-        # without the obstacles' curvature (which can make the tangent indefinite in a pinch)
+        # the consistent direction first; where the merit rises within the shortest step or the linear solve
+        # fails, the direction without the obstacles' curvature (which can make the tangent indefinite in a pinch)
+        step = None
         for curvature in (1.0, 0.0):
             du, lam_new = _direction(p, data, Ke_bc, f, du_d, act, gw, G, geo, curvature=curvature)
             if du is None:
+                if curvature and geo:
+                    continue
                 return False, "linear solver failed", it, residuals, changes
             if (curvature and not has_d and ncp_ok and not np.any(new_act != (lam > 0)) and len(residuals) > 2
                     and res > 0.1 * residuals[-3] and res <= s.newton.rtol_intermediate * scale
@@ -659,15 +668,16 @@ def _direction(p: _Problem, data, Ke_bc, f, du_d, act, gw, G, geo, curvature=1.0
     """One semi-smooth Newton direction for active set ``act``: (du (n_dofs,), new multipliers (E,)), or
     (None, None) if the linear solve failed.
 
-    Solves the symmetric saddle-point system of the free dofs and the candidate entries with a weighted gap
-    ``[[K~, (S G_A)^T], [S G_A, 0]] [du; -lam_A / S] = [-(f + K_fd du_d); -S gw_A]`` (K~ = K - curvature
-    sum_q A p N N H, S = c the entries' scale [N/mm] that gives both blocks the size of the stiffness); an
-    inactive entry's row is its multiplier set to zero (identity row times S), so the pattern is that of all
-    candidates and PARDISO's analysis is shared by every active set of an increment.
+    Solves the saddle-point system of the free dofs and the active entries, ``K~ du - G_A^T lam_A = -(f + K_fd
+    du_d)``, ``G_A du = -gw_A`` (K~ = K - curvature sum_q A p N N H), through its augmented matrix
+    ``K~ + G_A^T diag(rho) G_A`` (:meth:`PardisoSymmetric.solve_constrained`), rho_j = _AUGMENTATION times the
+    median diagonal stiffness over |G_j|^2. The inactive candidates enter that matrix's pattern with zero values,
+    so PARDISO's analysis is shared by every active set of an increment. An inactive entry's multiplier is zero.
     """
     asm, contact = p.asm, p.contact
     free, n_free, fmap = asm.free, asm.n_free, p.fmap
-    Ku = asm.csr(data).tocoo()
+    Kc = asm.csr(data)
+    Ku = Kc.tocoo()
     r_parts, c_parts, v_parts = [Ku.row], [Ku.col], [Ku.data]
     if curvature and geo:
         for dofs, blk in geo:
@@ -679,36 +689,35 @@ def _direction(p: _Problem, data, Ke_bc, f, du_d, act, gw, G, geo, curvature=1.0
             v_parts.append(curvature * blk[keep])
     rows, cols, vals = G
     cand = np.flatnonzero(contact.cand & np.isfinite(gw))
-    m = len(cand)
     rmap = np.full(len(contact.node), -1, np.int64)
-    rmap[cand] = np.arange(m)
-    S = contact.c[cand]
-    a_row = act[cand]
+    rmap[cand] = np.arange(len(cand))
     keep = (fmap[cols] >= 0) & (rmap[rows] >= 0)
-    rr = rmap[rows[keep]]
-    r_parts.append(fmap[cols[keep]])
-    c_parts.append(n_free + rr)
-    v_parts.append(vals[keep] * S[rr] * a_row[rr])
-    r_parts.append(n_free + np.arange(m))
-    c_parts.append(n_free + np.arange(m))
-    v_parts.append(np.where(a_row, 0.0, S))
-    N = n_free + m
-    U = sp.coo_matrix((np.concatenate(v_parts), (np.concatenate(r_parts), np.concatenate(c_parts))), shape=(N, N)).tocsr()
-    U.sort_indices()
+    Gc = sp.csr_matrix((vals[keep], (rmap[rows[keep]], fmap[cols[keep]])), shape=(len(cand), n_free))
+    a_row = act[cand]
+    g2 = np.asarray(Gc.multiply(Gc).sum(axis=1)).ravel()
+    rho = _AUGMENTATION * float(np.median(Kc.diagonal())) / np.where(g2 > 0, g2, 1.0)
+    for on in (a_row, ~a_row):
+        if np.any(on):
+            P = sp.triu(Gc.T @ sp.diags(np.where(on, rho, 0.0)) @ Gc).tocoo()
+            r_parts.append(P.row)
+            c_parts.append(P.col)
+            v_parts.append(P.data if on is a_row else np.zeros_like(P.data))
+    A = sp.coo_matrix((np.concatenate(v_parts), (np.concatenate(r_parts), np.concatenate(c_parts))),
+                      shape=(n_free, n_free)).tocsr()
+    A.sort_indices()
     bc = asm.bc_force(Ke_bc, du_d) if np.any(du_d) else np.zeros(asm.n_dofs)
-    b = np.concatenate([-(f + bc)[free], np.where(a_row, -S * gw[cand], 0.0)])
     ts = time.perf_counter()
     try:
-        x = p.solver.solve_indefinite(U, b)
+        x, lam_a = p.solver.solve_constrained(A, Gc[a_row], rho[a_row], -(f + bc)[free], -gw[cand][a_row])
     except np.linalg.LinAlgError:
         return None, None
     finally:
         p.timers["solve"] += time.perf_counter() - ts
     du = np.zeros(asm.n_dofs)
-    du[free] = x[:n_free]
+    du[free] = x
     du[asm.constrained] = du_d[asm.constrained]
     lam_new = np.zeros(len(contact.node))
-    lam_new[cand[a_row]] = -S[a_row] * x[n_free:][a_row]
+    lam_new[cand[a_row]] = lam_a
     return du, lam_new
 
 
