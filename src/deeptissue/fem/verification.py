@@ -173,7 +173,7 @@ def _touching_indenter() -> Indenter:
     return replace(ind, start_mm=tuple(np.asarray(ind.end_mm) - 0.02 * ind.unit_axis))
 
 
-def hard_cases(material, *, max_wall_s: float = 2400.0) -> pd.DataFrame:
+def hard_cases(material, *, max_wall_s: float = 900.0) -> pd.DataFrame:
     """Cases that must converge with the default settings (no hand tuning); each has a wall-time
     budget of ``max_wall_s`` so that one stuck case cannot hold up the target."""
     # coarse limb (1.6 mm) with 0.5 mm elements where the indenter acts (as the model stage refines the patch)
