@@ -27,8 +27,8 @@ rule adapt_variant:
         fem=config["fem"],
         study=STUDY,
     resources:
-        mem_mb=6000,
-        runtime=120,
+        mem_mb=4000,  # 1.7 GB at the budget's 20 000 tetrahedra (rat01, sphere)
+        runtime=120,  # AdaptSettings.max_wall_s (an hour) and one more pass
     conda:
         "../envs/deeptissue.yaml"
     script:
