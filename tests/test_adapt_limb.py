@@ -102,6 +102,7 @@ def test_the_adaptive_table_puts_the_fixed_mesh_beside_the_passes(tmp_path):
     t = write_adaptive_study([tmp_path / "passes.csv"], [tmp_path / "summary.json"], out_csv=tmp_path / "all.csv",
                              figure_png=tmp_path / "all.png")
     assert list(t["kind"]) == ["adaptive", "adaptive", "fixed"]
+    assert list(pd.read_csv(tmp_path / "all.csv", dtype={"index": str})["index"].fillna("")) == ["0", "1", ""]
     fixed = t[t["kind"] == "fixed"].iloc[0]
     assert fixed["voi_err_percent"] == pytest.approx(15.0)  # 1.5 of 10 mm³
     assert fixed["bins_err_pp"] == pytest.approx(4.0)  # the largest bin's

@@ -225,6 +225,7 @@ def write_adaptive_study(passes_csvs: Sequence, fixed_summaries: Sequence, *, ou
                          goal_met=bool(voi_pc <= goals.voi_goal_percent and bins_pp <= goals.bins_goal_pp),
                          **{f"bins_percent.{b}": x for b, x in s.bins_percent.items()}))
     table = pd.concat([passes, pd.DataFrame(rows)], ignore_index=True)
+    table["index"] = table["index"].astype("Int64")  # the pass; empty for the fixed mesh
     table = table[["animal", "variant", "kind", *[c for c in table.columns if c not in ("animal", "variant", "kind")]]]
     Path(out_csv).parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(out_csv) as tmp:
