@@ -29,6 +29,7 @@ include: "workflow/rules/material.smk"
 include: "workflow/rules/fem.smk"
 include: "workflow/rules/study.smk"
 include: "workflow/rules/convergence.smk"
+include: "workflow/rules/adapt.smk"
 include: "workflow/rules/docs.smk"
 
 

@@ -236,6 +236,7 @@ def build_model(
     settings: ModelSettings | dict | None = None,
     animal: str = "?",
     cast: Cast | None = None,
+    size_field=None,
 ) -> AnimalModel:
     """Limb mesh with bone/skin/proximal/distal facet sets and contact patches, plus cast and facts.
 
@@ -257,6 +258,9 @@ def build_model(
         For messages.
     cast : Cast or None
         The cast; built with :func:`build_cast` when None.
+    size_field : deeptissue.adapt.SizeField or None
+        A background size [mm] in place of the refinement around the variants' travel
+        (:func:`deeptissue.mesh.mesh_limb`; the adaptive loop's remeshing, :mod:`deeptissue.adapt_limb`).
 
     Returns
     -------
@@ -312,6 +316,7 @@ def build_model(
         min_curved_ratio=s.min_curved_ratio,
         order=s.element_order,
         animal=animal,
+        size_field=size_field,
     )
     with tempfile.TemporaryDirectory() as tmp:
         msh = Path(tmp) / "mesh.msh"

@@ -1,0 +1,275 @@
+"""Solution-driven refinement of one limb variant: :func:`deeptissue.adapt.adapt` on an animal's model.
+
+Each pass meshes the limb (:func:`deeptissue.model.build_model` with the variant's contact patch; the
+first pass at the model's element size everywhere, the next ones from the background size field of the
+previous pass), solves the bone rotation and the indentation on that mesh
+(:func:`deeptissue.fem.solver.solve_bone_rotation`, :func:`deeptissue.study.solve_variant`; the cast
+contacts the new mesh's skin facets, the indenter its patch) and estimates the discretisation error of
+the VOI, its bins and the force (:func:`limb_estimate`). :func:`run_adaptive_variant` is the rule
+``adapt_variant``; :func:`write_adaptive_study` gathers the runs of the target ``adaptive``.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+import pandas as pd
+
+from .adapt import AdaptResult, AdaptSettings, PassEstimate, SizeField, adapt
+from .contours import Contours
+from .errorest import voi_error_estimate
+from .fem.cast import Cast as SolverCast
+from .fem.indenters import Indenter
+from .fem.material import Ogden
+from .fem.solver import SolverSettings, solve_bone_rotation
+from .mesh import TetMesh
+from .model import Cast, ModelSettings, build_model
+from .pose import Pose
+from .strain import ElementStrain
+from .study import StudySettings, solve_variant, variant_indenter
+from .summary import SAMPLING_LEVELS, Summary
+
+__all__ = ["LimbSolve", "adaptive_limb", "contact_tets", "limb_estimate", "limb_mesher", "limb_solver",
+           "plot_adaptive_study", "run_adaptive_variant", "write_adaptive_study"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class LimbSolve:
+    """One pass's solve: what :func:`deeptissue.adapt.adapt` reads (``converged``, ``indenter_force_N`` [N],
+    ``displacement_mm`` (n_nodes, 3)) and the variant's summary and centroid strain on that mesh."""
+
+    converged: bool
+    indenter_force_N: float
+    displacement_mm: np.ndarray
+    summary: Summary
+    strain: ElementStrain
+
+
+def limb_mesher(contours: Contours, pose: Pose, variant: str, *, cast: Cast, settings: ModelSettings | dict | None = None,
+                animal: str = "?") -> Callable[[SizeField | None], TetMesh]:
+    """``build_mesh(size_field) -> TetMesh`` of :func:`deeptissue.adapt.adapt` for one variant: the
+    animal's limb (:func:`deeptissue.model.build_model`) with the facet sets ``bone``, ``skin`` (the
+    cast's contact set), ``proximal``, ``distal``, ``patch_<variant>`` and ``patch``. Without a size
+    field the mesh has the model's ``element_size_mm`` everywhere: the loop never coarsens, so it starts
+    from the coarsest mesh and refines only where the estimate asks."""
+    s = settings if isinstance(settings, ModelSettings) else ModelSettings.from_dict(settings)
+    uniform = replace(s, refine_size_mm=s.element_size_mm)
+
+    def build(size_field: SizeField | None) -> TetMesh:
+        return build_model(contours, pose, variants=[variant], settings=uniform if size_field is None else s,
+                           animal=animal, cast=cast, size_field=size_field).mesh
+
+    return build
+
+
+def limb_solver(*, animal: str, variant: str, pose: Pose, cast: SolverCast | None, material: Ogden,
+                settings: SolverSettings, study: StudySettings = StudySettings(), skin_contours_mm=None,
+                bar_length_mm: float = 10.0) -> Callable[[TetMesh], LimbSolve]:
+    """``solve(mesh) -> LimbSolve`` of :func:`deeptissue.adapt.adapt`: the bone-rotation steps on the
+    mesh (:func:`deeptissue.fem.solver.solve_bone_rotation`), then the variant from that state as the
+    rule ``solve`` does (:func:`deeptissue.study.solve_variant`, which solves the rotation itself if
+    those steps did not converge). Keywords as in :func:`deeptissue.study.solve_variant`."""
+
+    def solve(mesh: TetMesh) -> LimbSolve:
+        _, start = solve_bone_rotation(mesh, material=material, bone_motion=pose.bone_motion, cast=cast,
+                                       settings=settings)
+        summary, u, strain = solve_variant(animal=animal, variant=variant, mesh=mesh, pose=pose, cast=cast,
+                                           material=material, settings=settings, study=study,
+                                           skin_contours_mm=skin_contours_mm, bar_length_mm=bar_length_mm,
+                                           start=start)
+        force = summary.indenter_force_N
+        return LimbSolve(converged=summary.converged, indenter_force_N=np.nan if force is None else float(force),
+                         displacement_mm=u, summary=summary, strain=strain)
+
+    return solve
+
+
+def contact_tets(mesh: TetMesh, displacement_mm, indenter: Indenter, *, facet: str = "patch",
+                 tol_mm: float = 0.02) -> np.ndarray:
+    """The elements (n_tets,) bool with a node of the ``facet`` set that ends within ``tol_mm`` of the
+    indenter's surface at its final tip, or inside it: the contact zone that decides the indenter's
+    force (a sphere's or a bar's). ``tol_mm`` 0.02 mm: about the solver's largest penetration, so a
+    node the indenter holds counts and one a tenth of an element away does not."""
+    nodes = np.unique(mesh.facets[facet])
+    x = mesh.nodes_mm[nodes] + np.asarray(displacement_mm, float)[nodes]
+    g, _, _ = indenter.gap(x, np.asarray(indenter.end_mm, float))
+    touching = np.zeros(len(mesh.nodes_mm), bool)
+    touching[nodes[g <= tol_mm]] = True
+    return touching[mesh.tets].any(axis=1)
+
+
+def limb_estimate(mesh: TetMesh, solution: LimbSolve, indenter: Indenter,
+                  study: StudySettings = StudySettings()) -> PassEstimate:
+    """``estimate(mesh, solution)`` of :func:`deeptissue.adapt.adapt`: the VOI and bins of the pass's
+    summary, their recovered-strain error estimate as the summary computes it
+    (:func:`deeptissue.errorest.voi_error_estimate` at the study's sampling), its per-element
+    indicator, the force and the contact zone on the variant's patch (:func:`contact_tets`)."""
+    s = solution.summary
+    levels = SAMPLING_LEVELS if study.gamma_sampling == "points" else 0
+    e = voi_error_estimate(mesh, solution.displacement_mm, threshold=study.threshold, bin_edges=study.bin_edges,
+                           strain_measure=study.strain_measure, levels=levels)
+    facet = s.extra.get("contact_set") or "patch"
+    return PassEstimate(voi_mm3=float(s.voi_mm3), voi_err_mm3=e.voi_err_mm3, bins_err_pp=max(e.bins_err_pp.values()),
+                        force_N=solution.indenter_force_N, indicator_mm3=e.indicator_mm3,
+                        contact_tets=contact_tets(mesh, solution.displacement_mm, indenter, facet=facet),
+                        bins_percent=dict(s.bins_percent), voi_indicator_mm3=e.threshold_indicator_mm3)
+
+
+def adaptive_limb(*, animal: str, variant: str, contours: Contours, pose: Pose, cast: Cast, material: Ogden,
+                  solver_settings: SolverSettings, model_settings: ModelSettings | dict | None = None,
+                  study: StudySettings = StudySettings(), skin_contours_mm=None, bar_length_mm: float = 10.0,
+                  settings: AdaptSettings = AdaptSettings(), log_pass: Callable[[str], None] | None = None
+                  ) -> AdaptResult:
+    """One limb variant on adaptive meshes: :func:`deeptissue.adapt.adapt` with :func:`limb_mesher`,
+    :func:`limb_solver` and :func:`limb_estimate` until the estimates meet the goals of ``settings`` or
+    its budget is spent. ``cast`` is the model's cast (:func:`deeptissue.model.load_cast`), contacted by
+    every pass's skin facets. Returns the AdaptResult (``solution``: the last converged pass's
+    :class:`LimbSolve`)."""
+    indenter = variant_indenter(pose, variant, bar_length_mm=bar_length_mm)
+    return adapt(
+        limb_mesher(contours, pose, variant, cast=cast, settings=model_settings, animal=animal),
+        limb_solver(animal=animal, variant=variant, pose=pose, cast=SolverCast(cast.vertices_mm, cast.triangles),
+                    material=material, settings=solver_settings, study=study, skin_contours_mm=skin_contours_mm,
+                    bar_length_mm=bar_length_mm),
+        lambda mesh, sol: limb_estimate(mesh, sol, indenter, study),
+        settings, log=log_pass)
+
+
+def run_adaptive_variant(*, animal: str, variant: str, contours_path, pose_path, cast_path, during_contours_path,
+                         passes_csv, summary_path, model_cfg: dict | None, fem_cfg: dict, study_cfg: dict,
+                         settings: AdaptSettings = AdaptSettings()) -> AdaptResult:
+    """Rule ``adapt_variant``: read the pre contours, pose, cast and during contours, run
+    :func:`adaptive_limb` and write ``passes_csv`` (one row per pass, :meth:`deeptissue.adapt.AdaptResult.table`
+    with animal, variant and stop_reason) and ``summary_path`` (the last converged pass's summary, as
+    the rule ``solve`` writes it, with ``adapt_passes``, ``adapt_stop_reason``, ``adapt_goal_met`` and
+    ``adapt_wall_s`` [s]; the failed pass's summary if none converged).
+
+    ``model_cfg``, ``fem_cfg`` and ``study_cfg`` are the config sections ``model`` (with
+    ``bar_length_mm``, as the rule ``mesh`` gets it), ``fem`` and ``study``.
+    """
+    from .contours import load_contours
+    from .fem.solver import solver_settings_from_config
+    from .io import atomic_path
+    from .model import load_cast
+    from .pose import load_pose
+    from .summary import qc_warnings_of, write_summary
+
+    study = StudySettings.from_config(study_cfg)
+    pose = load_pose(pose_path)
+
+    def solver_log(line: str) -> None:
+        log.info("%s/%s adaptive %s", animal, variant, line)
+
+    result = adaptive_limb(
+        animal=animal, variant=variant, contours=load_contours(contours_path), pose=pose, cast=load_cast(cast_path),
+        material=Ogden(**fem_cfg.get("material", {})), solver_settings=solver_settings_from_config(fem_cfg.get("solver")),
+        model_settings=model_cfg, study=study,
+        skin_contours_mm=load_contours(during_contours_path).skin if during_contours_path else None,
+        bar_length_mm=float(fem_cfg.get("bar_length_mm", 10.0)), settings=settings, log_pass=solver_log)
+    table = result.table().assign(animal=animal, variant=variant, stop_reason=result.stop_reason)
+    table = table[["animal", "variant", *[c for c in table.columns if c not in ("animal", "variant")]]]
+    Path(passes_csv).parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(passes_csv) as tmp:
+        table.to_csv(tmp, index=False)
+    summary = result.solution.summary if result.solution is not None else _failed_first_pass(animal, variant, result, study)
+    summary = replace(summary, extra={**summary.extra, "adapt_passes": len(result.passes),
+                                      "adapt_stop_reason": result.stop_reason, "adapt_goal_met": result.goal_met,
+                                      "adapt_wall_s": float(result.passes[-1].wall_s) if result.passes else None})
+    try:
+        summary = replace(summary, qc_warnings=qc_warnings_of(pose_path))
+    except (OSError, ValueError) as exc:
+        log.warning("%s: QC warnings not read (%s)", pose_path, exc)
+    write_summary(summary_path, summary)
+    return result
+
+
+def _failed_first_pass(animal: str, variant: str, result: AdaptResult, study: StudySettings) -> Summary:
+    """The summary of a run whose first solve did not converge."""
+    from .summary import failed_summary
+
+    p = result.passes[-1] if result.passes else None
+    return failed_summary(animal=animal, variant=variant, reason=f"adaptive pass 0: {result.stop_reason}",
+                          strain_measure=study.strain_measure, threshold=study.threshold,
+                          gamma_sampling=study.gamma_sampling, n_elements=None if p is None else p.n_tets)
+
+
+def write_adaptive_study(passes_csvs: Sequence, fixed_summaries: Sequence, *, out_csv, figure_png) -> pd.DataFrame:
+    """The target ``adaptive``: every run's passes (``passes_csvs``, :func:`run_adaptive_variant`) and,
+    per animal and variant, the fixed mesh's solve (``fixed_summaries``, the rule ``solve``'s summary.json)
+    in one table (out_csv) with a column ``kind`` ('adaptive' or 'fixed'), and :func:`plot_adaptive_study`
+    (figure_png). A fixed row has the summary's DOFs, ``solve_s`` and ``wall_s`` its ``solver_wall_s``
+    (the whole solve, bone rotation included), its VOI and estimated errors; ``goal_met`` by the adaptive
+    loop's goals (:class:`deeptissue.adapt.AdaptSettings`)."""
+    from .io import atomic_path
+    from .summary import read_summary
+
+    goals = AdaptSettings()
+    passes = pd.concat([pd.read_csv(p) for p in passes_csvs], ignore_index=True).assign(kind="adaptive")
+    rows = []
+    for path in fixed_summaries:
+        s = read_summary(path)
+        if not s.converged:
+            continue
+        voi_pc = 100.0 * s.voi_err_mm3 / s.voi_mm3 if s.voi_mm3 else np.nan
+        bins_pp = max(s.bins_err_pp.values())
+        wall = s.extra.get("solver_wall_s", s.wall_s)
+        rows.append(dict(animal=s.animal, variant=s.variant, kind="fixed", n_dofs=s.n_dofs, n_tets=s.n_elements,
+                         converged=True, solve_s=wall, wall_s=wall, voi_mm3=s.voi_mm3, voi_err_percent=voi_pc,
+                         bins_err_pp=bins_pp, force_N=s.indenter_force_N,
+                         goal_met=bool(voi_pc <= goals.voi_goal_percent and bins_pp <= goals.bins_goal_pp),
+                         **{f"bins_percent.{b}": x for b, x in s.bins_percent.items()}))
+    table = pd.concat([passes, pd.DataFrame(rows)], ignore_index=True)
+    table["index"] = table["index"].astype("Int64")  # the pass; empty for the fixed mesh
+    table = table[["animal", "variant", "kind", *[c for c in table.columns if c not in ("animal", "variant", "kind")]]]
+    Path(out_csv).parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out_csv) as tmp:
+        table.to_csv(tmp, index=False)
+    plot_adaptive_study(table, figure_png)
+    return table
+
+
+def plot_adaptive_study(table: pd.DataFrame, path) -> None:
+    """Estimated VOI error [%] and largest bin error [pp] against wall time [s] (:func:`write_adaptive_study`'s
+    table): each run's passes as a line (open markers: not yet within the goal), the fixed mesh's solve as
+    a square, the goals (:class:`deeptissue.adapt.AdaptSettings`) as dotted lines."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .io import atomic_path
+
+    goals = AdaptSettings()
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.2))
+    runs = table[["animal", "variant"]].drop_duplicates().itertuples(index=False)
+    for j, (animal, variant) in enumerate(runs):
+        colour = f"C{j}"
+        run = table[(table["animal"] == animal) & (table["variant"] == variant)]
+        a = run[run["kind"] == "adaptive"].sort_values("wall_s")
+        f = run[run["kind"] == "fixed"]
+        for ax, col in zip(axes, ("voi_err_percent", "bins_err_pp")):
+            ax.plot(a["wall_s"], a[col], "-", color=colour, label=f"{animal} {variant}")
+            met = a["goal_met"].astype(bool).to_numpy()
+            ax.plot(a["wall_s"][met], a[col][met], "o", color=colour)
+            ax.plot(a["wall_s"][~met], a[col][~met], "o", color=colour, mfc="none")
+            ax.plot(f["wall_s"], f[col], "s", color=colour, mfc="none", ms=9)
+    for ax, goal, label in zip(axes, (goals.voi_goal_percent, goals.bins_goal_pp),
+                               ("estimated VOI error [%]", "estimated largest bin error [pp]")):
+        ax.axhline(goal, ls=":", color="k", lw=1)
+        ax.set_xscale("log")
+        ax.set_ylim(bottom=0)
+        ax.set_xlabel("wall time [s] (adaptive: all passes so far)")
+        ax.set_ylabel(label)
+    axes[0].legend(fontsize=8, title="circles: adaptive passes; squares: fixed mesh", title_fontsize=8)
+    fig.suptitle("Limb variants: adaptive meshes against the study's fixed mesh")
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120, format="png")
+    plt.close(fig)

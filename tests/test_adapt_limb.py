@@ -1,0 +1,147 @@
+"""Adaptive meshes of one limb variant: the mesher with cast and patch, the contact zone, the rule's files."""
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+from model_synth import leg_contours, leg_pose
+from study_meshes import box_tet10, boundary_tri6
+
+from deeptissue.adapt import AdaptSettings, SizeField, element_sizes, node_sizes
+from deeptissue.adapt_limb import contact_tets, limb_mesher, run_adaptive_variant, write_adaptive_study
+from deeptissue.contours import save_contours
+from deeptissue.fem.indenters import Indenter
+from deeptissue.mesh import TetMesh
+from deeptissue.model import build_cast, build_model, save_cast
+from deeptissue.pose import save_pose
+from deeptissue.summary import Summary, read_summary, write_summary
+
+# a short phantom limb (12 slices, 11 x 8.6 mm across), the study's sizes but the quality gate's, which is
+# the model stage's business
+MODEL = dict(element_size_mm=1.6, refine_size_mm=0.8, min_scaled_jacobian=0.01)
+
+
+@pytest.fixture(scope="module")
+def limb():
+    c = leg_contours(n_slices=12, z0_mm=-5.5)
+    p = leg_pose(c, depth_mm=1.5)
+    return c, p, build_cast(c, p, variants=["sphere"], settings=MODEL)
+
+
+def _area_mm2(mesh: TetMesh, name: str) -> float:
+    q = mesh.nodes_mm[mesh.facets[name][:, :3]]
+    return float(0.5 * np.linalg.norm(np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]), axis=1).sum())
+
+
+def _centroids(mesh: TetMesh) -> np.ndarray:
+    return mesh.nodes_mm[mesh.tets[:, :4]].mean(axis=1)
+
+
+def test_the_limb_mesher_puts_the_patch_and_the_cast_set_on_every_new_mesh(limb):
+    c, p, cast = limb
+    default = build_model(c, p, variants=["sphere"], settings=MODEL, cast=cast).mesh
+    build = limb_mesher(c, p, "sphere", cast=cast, settings=MODEL)
+    first = build(None)
+    h = element_sizes(first)
+    near = np.linalg.norm(_centroids(first) - p.tip_end_mm, axis=1) < 2.5
+    refined = build(SizeField.from_mesh(first, node_sizes(first, np.where(near, 0.4, h), current_mm=h)))
+    # the first pass: the model's element size everywhere (fewer elements than the default mesh, refined about the travel)
+    assert first.n_tets < default.n_tets
+    assert np.median(h) == pytest.approx(1.6, rel=0.2)
+    for mesh in (first, refined):
+        assert {"bone", "skin", "proximal", "distal", "patch", "patch_sphere"} <= set(mesh.facets)
+        # the patch: the same 6 mm disc of skin about the final tip as on the default mesh
+        assert _area_mm2(mesh, "patch_sphere") == pytest.approx(_area_mm2(default, "patch_sphere"), rel=0.1)
+        assert _area_mm2(mesh, "patch_sphere") == pytest.approx(np.pi * 3.0**2, rel=0.25)
+        patch_nodes = mesh.nodes_mm[np.unique(mesh.facets["patch_sphere"])]
+        assert np.linalg.norm(patch_nodes - p.tip_end_mm, axis=1).max() < 3.0 + 1.6 + 1.5
+        # the cast's contact set is the whole skin
+        assert _area_mm2(mesh, "skin") == pytest.approx(_area_mm2(default, "skin"), rel=0.02)
+    h_r = element_sizes(refined)
+    assert h_r[np.linalg.norm(_centroids(refined) - p.tip_end_mm, axis=1) < 1.5].mean() < 0.7
+    assert refined.n_tets > first.n_tets
+
+
+def test_contact_tets_are_the_elements_the_indenter_holds():
+    mesh = box_tet10(np.linspace(-3, 3, 7), np.linspace(-3, 0, 4), np.linspace(-3, 3, 7))
+    mesh = TetMesh(mesh.nodes_mm, mesh.tets, facets={"patch": boundary_tri6(mesh, lambda x: x[:, 1] > -1e-9)})
+    u = np.zeros_like(mesh.nodes_mm)
+    # the nodes of the face y = 0 within the footprint of a 1.5 mm sphere 0.5 mm deep, pushed onto its surface
+    r = np.linalg.norm(mesh.nodes_mm[:, [0, 2]], axis=1)
+    dent = np.isclose(mesh.nodes_mm[:, 1], 0.0) & (r <= 1.12)
+    u[dent, 1] = 1.0 - np.sqrt(1.5**2 - r[dent] ** 2)
+    sphere = Indenter(kind="sphere", axis=(0, -1, 0), start_mm=(0, 1, 0), end_mm=(0, -0.5, 0))
+    held = contact_tets(mesh, u, sphere)
+    assert np.array_equal(held, dent[mesh.tets].any(axis=1))
+    assert 0 < held.sum() < mesh.n_tets
+    # a 10 mm bar along z touching the face at x = 2.5 mm holds a strip of elements there
+    bar = Indenter(kind="bar", axis=(0, -1, 0), start_mm=(2.5, 1, 0), end_mm=(2.5, 0, 0), bar_length_mm=10.0)
+    strip = contact_tets(mesh, np.zeros_like(u), bar)
+    x = _centroids(mesh)
+    assert strip.any() and np.all(np.abs(x[strip, 0] - 2.5) < 1.0) and np.all(x[strip, 1] > -1.0)
+    assert set(np.round(x[strip, 2])) >= {-2.0, 0.0, 2.0}  # all along the bar
+
+
+def _fixed_summary(path, **kw):
+    bins = {"0.3-0.4": 60.0, "0.4-0.5": 40.0}
+    write_summary(path, Summary(animal="rat01", variant="sphere", converged=True, voi_mm3=10.0, bins_percent=bins,
+                                voi_err_mm3=1.5, bins_err_pp={"0.3-0.4": 4.0, "0.4-0.5": 2.0}, n_dofs=45000,
+                                n_elements=9000, indenter_force_N=0.07, wall_s=120.0, extra={"solver_wall_s": 150.0},
+                                **kw))
+
+
+def test_the_adaptive_table_puts_the_fixed_mesh_beside_the_passes(tmp_path):
+    passes = pd.DataFrame(dict(animal="rat01", variant="sphere", index=[0, 1], n_dofs=[18000, 60000],
+                               n_tets=[3000, 12000], converged=True, solve_s=[40.0, 200.0], wall_s=[45.0, 260.0],
+                               voi_mm3=[9.0, 10.2], voi_err_percent=[20.0, 1.5], bins_err_pp=[6.0, 0.8],
+                               force_N=[0.06, 0.071], force_err_percent=[np.nan, 1.0], goal_met=[False, True],
+                               stop_reason="goal"))
+    passes.to_csv(tmp_path / "passes.csv", index=False)
+    _fixed_summary(tmp_path / "summary.json")
+    t = write_adaptive_study([tmp_path / "passes.csv"], [tmp_path / "summary.json"], out_csv=tmp_path / "all.csv",
+                             figure_png=tmp_path / "all.png")
+    assert list(t["kind"]) == ["adaptive", "adaptive", "fixed"]
+    assert list(pd.read_csv(tmp_path / "all.csv", dtype={"index": str})["index"].fillna("")) == ["0", "1", ""]
+    fixed = t[t["kind"] == "fixed"].iloc[0]
+    assert fixed["voi_err_percent"] == pytest.approx(15.0)  # 1.5 of 10 mm³
+    assert fixed["bins_err_pp"] == pytest.approx(4.0)  # the largest bin's
+    assert fixed["wall_s"] == pytest.approx(150.0)  # the whole solve, bone rotation included
+    assert not fixed["goal_met"]
+    assert pd.read_csv(tmp_path / "all.csv").shape == t.shape
+    assert (tmp_path / "all.png").stat().st_size > 10_000
+
+
+@pytest.mark.slow
+def test_two_adaptive_passes_on_a_phantom_limb_refine_under_the_indenter(limb, tmp_path):
+    c, p, cast = limb
+    save_contours(tmp_path / "pre.npz", c)
+    save_pose(tmp_path / "pose.json", p)
+    save_cast(tmp_path / "cast.npz", cast)
+    study = {"threshold": 0.3}
+    result = run_adaptive_variant(
+        animal="leg", variant="sphere", contours_path=tmp_path / "pre.npz", pose_path=tmp_path / "pose.json",
+        cast_path=tmp_path / "cast.npz", during_contours_path=None, passes_csv=tmp_path / "a/passes.csv",
+        summary_path=tmp_path / "a/summary.json", model_cfg=MODEL, fem_cfg={}, study_cfg=study,
+        settings=AdaptSettings(max_passes=2, max_tets=4000))
+    t = pd.read_csv(tmp_path / "a/passes.csv")
+    assert len(t) == 2 and t["converged"].all(), t.to_string()
+    assert set(t["animal"]) == {"leg"} and set(t["variant"]) == {"sphere"}
+    assert t.loc[1, "n_dofs"] > t.loc[0, "n_dofs"]
+    assert t.loc[1, "n_tets"] <= 1.3 * 4000  # the budget, within gmsh's scatter about the estimated count
+    assert t.loc[1, "h_min_mm"] < 0.8 * t.loc[0, "h_min_mm"]
+    # the refinement is where the VOI is decided: under the indenter
+    mesh = result.mesh
+    h, d = element_sizes(mesh), np.linalg.norm(_centroids(mesh) - p.tip_end_mm, axis=1)
+    assert h[d < 2.0].mean() < 0.75 * h[d > 5.0].mean()
+    # the summary is the last pass's, in the fixed mesh's format, with the loop's facts
+    s = read_summary(tmp_path / "a/summary.json")
+    assert s.converged and s.n_dofs == t.loc[1, "n_dofs"] and s.n_elements == mesh.n_tets
+    assert s.voi_mm3 == pytest.approx(t.loc[1, "voi_mm3"]) and s.voi_mm3 > 0
+    assert 100 * s.voi_err_mm3 / s.voi_mm3 == pytest.approx(t.loc[1, "voi_err_percent"])
+    assert max(s.bins_err_pp.values()) == pytest.approx(t.loc[1, "bins_err_pp"])
+    assert s.indenter_force_N == pytest.approx(t.loc[1, "force_N"]) and s.indenter_force_N > 0
+    assert s.extra["contact_set"] == "patch_sphere"
+    d = json.loads((tmp_path / "a/summary.json").read_text())
+    assert d["adapt_passes"] == 2 and d["adapt_stop_reason"] in ("passes", "goal")
+    assert d["adapt_wall_s"] == pytest.approx(t.loc[1, "wall_s"])

@@ -1,0 +1,22 @@
+"""Glue of rule adapt_variant: one animal x variant on adaptive meshes -> passes.csv and summary.json."""
+
+from deeptissue.adapt_limb import run_adaptive_variant
+from deeptissue.fem.linsolve import pin_reproducible
+from deeptissue.io import script_log
+
+with script_log(snakemake.log[0], "adapt_variant"):  # noqa: F821
+    if snakemake.params.fem.get("reproducible"):  # noqa: F821
+        pin_reproducible()  # before the first MKL call of this process
+    run_adaptive_variant(
+        animal=snakemake.wildcards.animal,  # noqa: F821
+        variant=snakemake.wildcards.variant,  # noqa: F821
+        contours_path=snakemake.input.contours,  # noqa: F821
+        pose_path=snakemake.input.pose,  # noqa: F821
+        cast_path=snakemake.input.cast,  # noqa: F821
+        during_contours_path=snakemake.input.during_contours,  # noqa: F821
+        passes_csv=snakemake.output.passes,  # noqa: F821
+        summary_path=snakemake.output.summary,  # noqa: F821
+        model_cfg=snakemake.params.model,  # noqa: F821
+        fem_cfg=snakemake.params.fem,  # noqa: F821
+        study_cfg=snakemake.params.study,  # noqa: F821
+    )
