@@ -9,6 +9,7 @@ import pytest
 from deeptissue.adapt import (AdaptSettings, PassEstimate, SizeField, adapt, element_sizes,
                               estimated_tets, fit_budget, node_sizes, target_sizes)
 from deeptissue.fem.cylinder import CylinderMesh, cylinder_mesh
+from deeptissue.mesh import TetMesh
 
 COARSE = CylinderMesh(element_size_mm=2.0, refine_size_mm=2.0)
 
@@ -116,15 +117,15 @@ def test_the_remesher_makes_small_elements_where_asked(coarse_cylinder, method, 
     assert cylinder_mesh(COARSE, order=1).n_tets == m0.n_tets
 
 
-def _fake(mesh, errors_percent, *, forces=None, converged=None):
-    """A loop on a fixed mesh whose pass k reports errors_percent[k] for the VOI (1 mm³), the bins and
-    the force forces[k]; the indicator is non-zero in the first element."""
+def _fake(mesh, errors_percent, *, forces=None, converged=None, meshes=None):
+    """A loop on a fixed mesh (or on meshes[k]) whose pass k reports errors_percent[k] for the VOI (1 mm³),
+    the bins and the force forces[k]; the indicator is non-zero in the first element."""
     calls = {"fields": [], "k": -1}
 
     def build(field):
         calls["fields"].append(field)
         calls["k"] += 1
-        return mesh
+        return mesh if meshes is None else meshes[calls["k"]]
 
     def solve(m):
         k = calls["k"]
@@ -213,6 +214,87 @@ def test_the_force_estimate_needs_a_shrunk_contact_zone(coarse_cylinder):
 
     r = adapt(build, solve, with_contact, AdaptSettings(max_passes=3))
     assert r.stop_reason == "passes" and np.isnan(r.table()["force_err_percent"]).all()
+    assert list(r.table()["force_status"]) == ["first pass", "not refined", "not refined"]
+    assert np.isnan(r.table().loc[0, "contact_shrink"]) and np.allclose(r.table()["contact_shrink"][1:], 1.0)
+
+
+def _with_contact(estimate, contact):
+    """The estimator ``estimate`` with the contact zone ``contact(mesh)`` (n_tets,) bool."""
+    def est(mesh, sol):
+        e = estimate(mesh, sol)
+        return PassEstimate(e.voi_mm3, e.voi_err_mm3, e.bins_err_pp, e.force_N, e.indicator_mm3, contact(mesh))
+
+    return est
+
+
+def test_a_force_within_its_goal_holds_while_the_voi_is_refined(coarse_cylinder):
+    m = coarse_cylinder
+    fine = TetMesh(0.5 * m.nodes_mm, m.tets, m.facets)  # every element half the size: the contact zone shrinks to 0.5
+    far_apart = int(np.argmax(np.linalg.norm(_centroids(m) - _centroids(m)[0], axis=1)))
+
+    def zone(mesh):
+        c = np.zeros(mesh.n_tets, bool)
+        c[far_apart] = True  # away from the VOI's indicator (element 0)
+        return c
+
+    def run(forces, meshes=(m, fine, fine, fine, fine)):
+        build, solve, est, calls = _fake(m, [10.0, 5.0, 3.0, 1.5, 1.5], forces=forces, meshes=meshes)
+        r = adapt(build, solve, _with_contact(est, zone), AdaptSettings(max_passes=5))
+        return r, calls["fields"]
+
+    def unchanged(mesh):  # the node sizes of a field that keeps every element's size
+        h = element_sizes(mesh)
+        return node_sizes(mesh, h, current_mm=h)[np.unique(mesh.tets)]
+
+    # pass 1: the contact zone halved and the force changed by 0.99 %: within its goal; the VOI meets its
+    # goal at pass 3, on meshes whose contact zone the loop no longer refines
+    r, fields = run([1.0, 1.01, 1.012, 1.013, 1.013])
+    t = r.table()
+    assert r.stop_reason == "goal" and len(r.passes) == 4 and r.goal_met, t.to_string()
+    assert list(t["force_status"]) == ["first pass", "estimated", "held", "held"]
+    assert list(t["goal_met"]) == [False, False, False, True]
+    assert np.isnan(t.loc[0, "force_err_percent"])
+    assert np.allclose(t["force_err_percent"][1:], 100 * 0.01 / 1.01)  # the verdict's, larger than the drift since
+    assert np.allclose(t["contact_shrink"][1:], [0.5, 1.0, 1.0])
+    index = np.searchsorted(np.unique(m.tets), m.tets[far_apart, :4])
+    assert np.all(fields[1].size_mm[index] < unchanged(m)[index])  # the force unknown: its contact zone refined
+    assert np.allclose(fields[2].size_mm[index], unchanged(fine)[index])  # the force held: its contact zone not
+    # a force that moves by more than its goal since the verdict revokes it, and the contact zone is refined again
+    r, fields = run([1.0, 1.01, 1.05, 1.05, 1.05])
+    t = r.table()
+    assert t.loc[2, "force_status"] == "held" and t.loc[2, "force_err_percent"] == pytest.approx(100 * 0.04 / 1.05)
+    assert list(t["force_status"][3:]) == ["not refined", "not refined"] and r.stop_reason == "passes"
+    assert np.all(fields[3].size_mm[index] < unchanged(fine)[index])
+    # a contact zone coarser than the verdict's (twice its size) ends it
+    r, _ = run([1.0, 1.01, 1.012, 1.013, 1.013], meshes=(m, fine, m, m, m))
+    assert list(r.table()["force_status"]) == ["first pass", "estimated", "coarsened", "not refined", "not refined"]
+    assert not r.goal_met
+
+
+def test_a_contact_zone_the_budget_cannot_refine_is_left_alone_and_said_so(coarse_cylinder):
+    m = coarse_cylinder
+    lowest, order = int(np.argmin(_centroids(m)[:, 2])), np.arange(m.n_tets)
+    order[[0, lowest]] = [lowest, 0]
+    mesh = TetMesh(m.nodes_mm, m.tets[order], m.facets)  # _fake's indicator (element 0) at the bottom
+    top = _centroids(mesh)[:, 2] > 6.0  # the contact zone: a quarter of the cylinder
+    h = element_sizes(mesh)
+    budget = 1.05 * estimated_tets(_volumes(mesh), h)  # room for the VOI's element, not for a quarter of the cylinder
+    build, solve, est, calls = _fake(mesh, [10.0] * 3, forces=[1.0, 1.1, 1.2])
+    r = adapt(build, solve, _with_contact(est, lambda mm: top), AdaptSettings(max_passes=3, max_tets=int(budget)))
+    t = r.table()
+    assert list(t["force_status"]) == ["first pass", "budget", "budget"] and np.isnan(t["force_err_percent"]).all()
+    corners = np.unique(mesh.tets)
+    unchanged = node_sizes(mesh, h, current_mm=h)[corners]
+    f = calls["fields"][1]
+    on_top = np.isin(corners, mesh.tets[top, :4])
+    assert on_top.sum() > 10 and np.allclose(f.size_mm[on_top], unchanged[on_top])  # no useless refinement on top
+    bottom = np.searchsorted(corners, mesh.tets[0, :4])
+    assert np.all(f.size_mm[bottom] < unchanged[bottom])  # the budget went to the VOI
+    # a contact zone already at h_min cannot shrink either
+    hc = float(h[top].max())
+    build, solve, est, _ = _fake(mesh, [10.0] * 2, forces=[1.0, 1.1])
+    r = adapt(build, solve, _with_contact(est, lambda mm: top), AdaptSettings(max_passes=2, h_min_mm=hc, h_max_mm=hc))
+    assert list(r.table()["force_status"]) == ["first pass", "h_min"]
 
 
 def test_contact_tets_are_the_elements_under_the_sphere(coarse_cylinder):

@@ -48,10 +48,18 @@ class AdaptSettings:
     size's growth away from a small element [mm/mm] (gmsh honours a background size only where it
     varies gently). The force's estimate is the change from the previous pass, valid where the
     contact elements' mean size shrank to at most ``force_valid_shrink`` of the previous pass's (a
-    barely changed contact zone changes the force by nothing, whatever its error). ``max_tets`` caps
-    the next mesh's estimated size (:func:`estimated_tets`; 20 000 quadratic tetrahedra are about
-    90 000 DOFs, a few minutes per solve on one core): the refined sizes are scaled up together
-    until it fits.
+    barely changed contact zone changes the force by nothing, whatever its error; a change of its
+    mean size within that factor either way is the mesher's scatter). Once such an estimate is within
+    ``force_goal_percent``, the verdict holds for the later passes while their contact zone is not
+    coarsened past that scatter: a finer contact zone has no larger force error, so passes that only
+    refine the VOI or the bins stop on their goals; the held estimate is the larger of the verdict's
+    and the force's change since that pass. While the force's estimate misses its goal or is unknown,
+    the contact zone is refined to at most ``force_valid_shrink`` of its size, unless ``h_min_mm`` or
+    the element budget keep it from shrinking that far: such a refinement cannot give an estimate, so
+    the budget goes to the VOI and bins, and the pass records why (:class:`AdaptPass`).
+    ``max_tets`` caps the next mesh's estimated size (:func:`estimated_tets`; 20 000 quadratic
+    tetrahedra are about 90 000 DOFs, a few minutes per solve on one core): the refined sizes are
+    scaled up together until it fits.
     """
 
     voi_goal_percent: float = 2.0
@@ -240,7 +248,16 @@ class PassEstimate:
 
 @dataclass(frozen=True)
 class AdaptPass:
-    """One pass of :func:`adapt`: the mesh, the times [s] and the estimates."""
+    """One pass of :func:`adapt`: the mesh, the times [s] and the estimates.
+
+    ``contact_shrink``: the contact zone's mean element size over the previous pass's (NaN on the first
+    pass or without a contact zone). ``force_status`` says what ``force_err_percent`` is:
+    ``'estimated'`` (the change from the previous pass), ``'held'`` (an earlier pass's estimate within
+    the goal, :class:`AdaptSettings`), or why it is unknown: ``'first pass'``, ``'budget'`` or
+    ``'h_min'`` (the element budget or the smallest size kept the contact zone from being refined
+    enough), ``'not refined'`` (the contact zone did not shrink to ``force_valid_shrink``),
+    ``'coarsened'`` (it grew past a held verdict's), ``'no goal'`` or ``'no solve'``.
+    """
 
     index: int
     n_dofs: int
@@ -254,7 +271,9 @@ class AdaptPass:
     voi_err_percent: float
     bins_err_pp: float
     force_N: float
-    force_err_percent: float  # NaN: no estimate (first pass, or the contact zone barely changed)
+    force_err_percent: float  # NaN: no estimate (force_status says why)
+    contact_shrink: float
+    force_status: str
     h_min_mm: float  # smallest element of the mesh (gmsh size, :func:`element_sizes`)
     goal_met: bool
     bins_percent: dict = field(default_factory=dict)  # bin label -> % of the VOI
@@ -282,15 +301,27 @@ class AdaptResult:
         return bool(self.passes) and self.passes[-1].goal_met
 
 
-def _force_error_percent(force_N, previous, contact_h, settings) -> float:
-    """The change of the force from the previous pass [%]; NaN on the first pass, and where the contact
-    zone (if the estimator gives one) did not shrink to ``force_valid_shrink`` of its previous size."""
-    if previous is None or settings.force_goal_percent is None:
-        return np.nan
+def _force_estimate(force_N, contact_h, previous, held, plan, settings) -> tuple[float, str, float]:
+    """The force's estimate [%], its status (:class:`AdaptPass`) and the contact zone's shrink.
+
+    ``previous`` is the previous pass's (force [N], contact zone mean size [mm]) or None, ``held`` the
+    verdict in force (estimate [%], force [N], contact zone mean size [mm]) or None, ``plan`` why the
+    last remeshing did not refine the contact zone (``'budget'``, ``'h_min'`` or ``''``)."""
+    st = settings
+    if previous is None:
+        return np.nan, "no goal" if st.force_goal_percent is None else "first pass", np.nan
     f0, h0 = previous
-    if np.isfinite(contact_h) and np.isfinite(h0) and contact_h > settings.force_valid_shrink * h0:
-        return np.nan
-    return 100.0 * abs(force_N - f0) / max(abs(force_N), 1e-300)
+    shrink = contact_h / h0 if np.isfinite(contact_h) and np.isfinite(h0) else np.nan
+    if st.force_goal_percent is None:
+        return np.nan, "no goal", shrink
+    if not shrink > st.force_valid_shrink:  # shrunk enough, or no contact zone to check
+        return 100.0 * abs(force_N - f0) / max(abs(force_N), 1e-300), "estimated", shrink
+    if held is not None:
+        err, f_held, h_held = held
+        if not contact_h > h_held / st.force_valid_shrink:
+            return max(err, 100.0 * abs(force_N - f_held) / max(abs(force_N), 1e-300)), "held", shrink
+        return np.nan, "coarsened", shrink
+    return np.nan, plan or "not refined", shrink
 
 
 def adapt(build_mesh: Callable[[SizeField | None], TetMesh], solve: Callable[[TetMesh], object],
@@ -318,14 +349,15 @@ def adapt(build_mesh: Callable[[SizeField | None], TetMesh], solve: Callable[[Te
     AdaptResult
         A pass meets the goal when the estimated VOI error is at most ``voi_goal_percent`` of the VOI,
         the largest bin's at most ``bins_goal_pp`` and (unless ``force_goal_percent`` is None) the
-        force's estimate (the change from the previous pass, :class:`AdaptSettings`) at most
-        ``force_goal_percent``. The loop stops there, after ``max_passes`` passes, or once
-        ``max_wall_s`` has passed, or when a solve does not converge (the result then holds the last
-        converged pass's mesh and solution).
+        force's estimate (the change from the previous pass, or an earlier pass's held verdict,
+        :class:`AdaptSettings`) at most ``force_goal_percent``. The loop stops there, after
+        ``max_passes`` passes, or once ``max_wall_s`` has passed, or when a solve does not converge
+        (the result then holds the last converged pass's mesh and solution).
     """
     st = settings
     t_start = time.perf_counter()
     passes, field_, previous_force, last = [], initial, None, None
+    held, plan = None, ""  # the force's verdict in force; why the last remeshing left the contact zone alone
     reason = "passes"
     for k in range(st.max_passes):
         t0 = time.perf_counter()
@@ -336,25 +368,30 @@ def adapt(build_mesh: Callable[[SizeField | None], TetMesh], solve: Callable[[Te
         if not sol.converged:
             reason = "not converged"
             passes.append(AdaptPass(k, 3 * len(mesh.nodes_mm), int(mesh.n_tets), False, t1 - t0, t2 - t1, 0.0,
-                                    t2 - t_start, np.nan, np.nan, np.nan, np.nan, np.nan,
+                                    t2 - t_start, np.nan, np.nan, np.nan, np.nan, np.nan, np.nan, "no solve",
                                     float(element_sizes(mesh).min()), False))
             break
         est = estimate(mesh, sol)
         t3 = time.perf_counter()
         h = element_sizes(mesh)
         contact_h = float(h[est.contact_tets].mean()) if est.contact_tets is not None and est.contact_tets.any() else np.nan
-        force_err = _force_error_percent(est.force_N, previous_force, contact_h, st)
+        force_err, force_status, shrink = _force_estimate(est.force_N, contact_h, previous_force, held, plan, st)
+        if force_status == "estimated":
+            held = (force_err, est.force_N, contact_h) if force_err <= st.force_goal_percent else None
+        elif force_status != "held" or not force_err <= st.force_goal_percent:
+            held = None
         voi_pc = 100.0 * est.voi_err_mm3 / est.voi_mm3 if est.voi_mm3 > 0 else np.inf
         force_ok = st.force_goal_percent is None or force_err <= st.force_goal_percent  # NaN: not known, not met
         met = bool(voi_pc <= st.voi_goal_percent and est.bins_err_pp <= st.bins_goal_pp and force_ok)
         p = AdaptPass(k, 3 * len(mesh.nodes_mm), int(mesh.n_tets), True, t1 - t0, t2 - t1, t3 - t2, t3 - t_start,
-                      est.voi_mm3, voi_pc, est.bins_err_pp, est.force_N, force_err, float(h.min()), met,
-                      dict(est.bins_percent))
+                      est.voi_mm3, voi_pc, est.bins_err_pp, est.force_N, force_err, shrink, force_status,
+                      float(h.min()), met, dict(est.bins_percent))
         passes.append(p)
         last = (mesh, sol, est)
         if log is not None:
             log(f"pass {k}: {p.n_dofs} DOFs, {p.solve_s:.1f} s solve, VOI {p.voi_mm3:.3f} mm3 +- {voi_pc:.2f} %, "
-                f"bins +- {p.bins_err_pp:.2f} pp, force {p.force_N:.5f} N +- {force_err:.2f} %, goal met: {met}")
+                f"bins +- {p.bins_err_pp:.2f} pp, force {p.force_N:.5f} N +- {force_err:.2f} % ({force_status}), "
+                f"goal met: {met}")
         if met:
             reason = "goal"
             break
@@ -363,20 +400,24 @@ def adapt(build_mesh: Callable[[SizeField | None], TetMesh], solve: Callable[[Te
         if time.perf_counter() - t_start >= st.max_wall_s:
             reason = "wall"
             break
-        new_h = _next_sizes(h, _volumes(mesh), est, voi_pc, force_err, st)
+        new_h, plan = _next_sizes(h, _volumes(mesh), est, voi_pc, force_err, st)
         previous_force = (est.force_N, contact_h)
         field_ = SizeField.from_mesh(mesh, node_sizes(mesh, new_h, grading=st.grading, current_mm=h))
     mesh, sol, est = last if last is not None else (None, None, None)
     return AdaptResult(tuple(passes), mesh, sol, est, reason)
 
 
-def _next_sizes(h, volume_mm3, est: PassEstimate, voi_pc: float, force_err: float, st: AdaptSettings) -> np.ndarray:
-    """The next pass's element sizes: for the VOI and for the bins, each missing its goal, the
-    elements of its indicator by :func:`target_sizes`, aiming its total at ``safety`` over its ratio
-    of estimate to goal (one indicator and the worse ratio where the estimator does not split them);
-    the contact zone shrunk by (safety goal / estimate)^(1/2) while the force misses its goal (by
-    max_shrink^(1/2) while its estimate is not known); then the refined sizes scaled up together
-    until the estimated element count fits ``max_tets``."""
+def _next_sizes(h, volume_mm3, est: PassEstimate, voi_pc: float, force_err: float,
+                st: AdaptSettings) -> tuple[np.ndarray, str]:
+    """The next pass's element sizes, and why the contact zone is not refined (``'budget'``, ``'h_min'``
+    or ``''``): for the VOI and for the bins, each missing its goal, the elements of its indicator by
+    :func:`target_sizes`, aiming its total at ``safety`` over its ratio of estimate to goal (one
+    indicator and the worse ratio where the estimator does not split them); the contact zone shrunk by
+    (safety goal / estimate)^(1/2) while the force misses its goal (by max_shrink^(1/2) while its
+    estimate is not known), at most to ``force_valid_shrink``; then the refined sizes scaled up
+    together until the estimated element count fits ``max_tets``. A contact zone whose mean size would
+    not shrink to ``force_valid_shrink`` is left to the VOI and bins (its change would not estimate
+    the force)."""
     r_voi, r_bins = voi_pc / st.voi_goal_percent, est.bins_err_pp / st.bins_goal_pp
     eta = np.asarray(est.indicator_mm3, float)
     if est.voi_indicator_mm3 is None:
@@ -389,12 +430,20 @@ def _next_sizes(h, volume_mm3, est: PassEstimate, voi_pc: float, force_err: floa
         total = float(part.sum())
         if total > 0 and ratio > st.safety:
             new_h = np.minimum(new_h, target_sizes(h, part, st.safety * total / ratio, st))
-    if st.force_goal_percent is not None and est.contact_tets is not None and not force_err <= st.force_goal_percent:
-        f = np.sqrt(st.max_shrink) if not np.isfinite(force_err) else np.clip(
-            (st.safety * st.force_goal_percent / force_err) ** 0.5, st.max_shrink, 1.0)
-        c = est.contact_tets
-        new_h[c] = np.minimum(new_h[c], np.clip(h[c] * f, st.h_min_mm, st.h_max_mm))
-    return fit_budget(h, new_h, volume_mm3, st.max_tets)
+    c = est.contact_tets
+    if st.force_goal_percent is None or c is None or not c.any() or force_err <= st.force_goal_percent:
+        return fit_budget(h, new_h, volume_mm3, st.max_tets), ""
+    f = np.sqrt(st.max_shrink) if not np.isfinite(force_err) else np.clip(
+        (st.safety * st.force_goal_percent / force_err) ** 0.5, st.max_shrink, 1.0)
+    refined = new_h.copy()
+    refined[c] = np.minimum(new_h[c], np.clip(h[c] * min(f, st.force_valid_shrink), st.h_min_mm, st.h_max_mm))
+    enough = st.force_valid_shrink * h[c].mean()
+    if refined[c].mean() > enough:
+        return fit_budget(h, new_h, volume_mm3, st.max_tets), "h_min"
+    fitted = fit_budget(h, refined, volume_mm3, st.max_tets)
+    if fitted[c].mean() > enough:
+        return fit_budget(h, new_h, volume_mm3, st.max_tets), "budget"
+    return fitted, ""
 
 
 def fit_budget(h_mm, new_h_mm, volume_mm3, max_tets: float) -> np.ndarray:
