@@ -696,12 +696,12 @@ def _direction(p: _Problem, data, Ke_bc, f, du_d, act, gw, G, geo, curvature=1.0
     a_row = act[cand]
     g2 = np.asarray(Gc.multiply(Gc).sum(axis=1)).ravel()
     rho = _AUGMENTATION * float(np.median(Kc.diagonal())) / np.where(g2 > 0, g2, 1.0)
-    for on in (a_row, ~a_row):
+    for on, values in ((a_row, True), (~a_row, False)):  # the inactive rows: their pattern only
         if np.any(on):
             P = sp.triu(Gc.T @ sp.diags(np.where(on, rho, 0.0)) @ Gc).tocoo()
             r_parts.append(P.row)
             c_parts.append(P.col)
-            v_parts.append(P.data if on is a_row else np.zeros_like(P.data))
+            v_parts.append(P.data if values else np.zeros_like(P.data))
     A = sp.coo_matrix((np.concatenate(v_parts), (np.concatenate(r_parts), np.concatenate(c_parts))),
                       shape=(n_free, n_free)).tocsr()
     A.sort_indices()
