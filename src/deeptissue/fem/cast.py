@@ -1,10 +1,17 @@
 """Rigid cast: a triangulated surface (normals toward the leg) the skin may not cross outward.
 
-``Cast.gap(x)`` returns the signed distance of points to the surface, positive on the side the
-triangle normals point to (the leg), its gradient (the contact normal; continuous across triangle
-edges) and the gradient of that normal (nonzero near edges and vertices).
-Points whose nearest surface point lies on a free boundary edge (the open ends, the indenter
-hole) and which are beyond it are given no contact (g = +inf).
+The contact gap of a point x is a smooth implicit surface through the cast's vertices, not the distance
+to its facets: the distance's gradient jumps by the angle between two facets where a point crosses their
+common edge, so the contact force of a skin point sliding over an edge would jump and Newton's method
+alternate between the two faces without converging. ``Cast.gap`` returns the moving-least-squares
+average of the vertices' tangent-plane distances,
+``g(x) = sum_v w_v(x) (x - v) . n_v / sum_v w_v(x)``, with n_v the vertex normals (area-weighted
+triangle normals, toward the leg) and ``w_v = (1 - |x - v|^2 / r^2)^4`` (zero beyond r, 1.2 times the
+longest cast edge), and its exact gradient and Hessian (C^2 in x): a linearisation consistent with the gap.
+Near the surface g is the signed distance to within the facets' sagitta (edge^2 / (2 R) for a cast of
+radius R). Where no vertex is within r (far from the cast, never a contact candidate) the distance to the
+facets is returned. Points whose nearest surface point lies on a free boundary edge (the open ends, the
+indenter hole) and which are beyond it are given no contact (g = +inf).
 """
 
 from __future__ import annotations
@@ -22,8 +29,7 @@ __all__ = ["Cast", "closest_point_on_triangles"]
 class Cast:
     """A rigid triangulated cast. vertices_mm (V, 3), triangles (T, 3) oriented toward the leg."""
 
-    def __init__(self, vertices_mm: np.ndarray, triangles: np.ndarray, *, k_nearest: int = 8, curvature: bool = True):
-        self.curvature = curvature
+    def __init__(self, vertices_mm: np.ndarray, triangles: np.ndarray, *, k_nearest: int = 8):
         self.v = np.asarray(vertices_mm, float)
         self.t = np.asarray(triangles, np.int64)
         if self.v.ndim != 2 or self.v.shape[1] != 3 or self.t.ndim != 2 or self.t.shape[1] != 3 or len(self.t) == 0:
@@ -36,6 +42,13 @@ class Cast:
         if np.any(ln <= 0):
             raise ValueError(f"cast: {np.count_nonzero(ln <= 0)} degenerate triangles")
         self.normal = nrm / ln[:, None]
+        vn = np.zeros_like(self.v)
+        for i in range(3):
+            np.add.at(vn, self.t[:, i], nrm)  # area-weighted
+        self.vertex_normal = vn / np.linalg.norm(vn, axis=1, keepdims=True)
+        edges = np.concatenate([self.v[self.t[:, i]] - self.v[self.t[:, (i + 1) % 3]] for i in range(3)])
+        self.radius_mm = 1.2 * float(np.linalg.norm(edges, axis=1).max())  # support of the vertex weights
+        self.vtree = cKDTree(self.v)
         self.centroid = (a + b + c) / 3.0
         self.tree = cKDTree(self.centroid)
         self.k = min(k_nearest, len(self.t))
@@ -59,7 +72,7 @@ class Cast:
             raise ValueError(f"{path}: not a cast file ({exc})") from exc
 
     def gap(self, x: np.ndarray):
-        """Signed distance of points to the cast, its gradient and the gradient of that normal.
+        """Contact gap of points to the cast (near the surface its signed distance) and its gradient.
 
         Parameters
         ----------
@@ -69,12 +82,12 @@ class Cast:
         Returns
         -------
         g : (n,) ndarray
-            Signed distance [mm], positive on the leg's side; +inf where no contact is possible
-            (beyond a free edge or vertex: the open ends and the hole).
+            Gap [mm], positive on the leg's side; +inf where no contact is possible (beyond a free edge
+            or vertex: the open ends and the hole).
         normal : (n, 3) ndarray
-            Unit gradient of g (the contact normal).
-        H : (n, 3, 3) ndarray or None
-            Gradient of the normal [1/mm] (zero on faces), None when built with ``curvature=False``.
+            Gradient of g (the contact normal; unit length to within the facets' angles).
+        H : (n, 3, 3) ndarray
+            Hessian of g [1/mm] (the gradient of the contact normal).
         """
         x = np.asarray(x, float).reshape(-1, 3)
         n = len(x)
@@ -92,28 +105,45 @@ class Cast:
         q = q[sel]
         ntri = self.normal[tri]
         r = x - q
-        d = np.linalg.norm(r, axis=1)
         side = np.where(np.einsum("ij,ij->i", r, ntri) >= 0, 1.0, -1.0)
-        # signed distance and its gradient: continuous across triangle edges (C1 off the surface)
-        tiny = d <= 1e-10
-        nrm = np.where(tiny[:, None] | (reg[:, None] == 0), ntri, side[:, None] * r / np.where(tiny, 1.0, d)[:, None])
+        d = np.linalg.norm(r, axis=1)
         g = np.where(reg == 0, np.einsum("ij,ij->i", r, ntri), side * d)
-        # gradient of the normal: zero on faces, (I - n n - e e) / d at edges, (I - n n) / d at vertices
-        H = np.zeros((n, 3, 3))
-        curved = (reg > 0) & ~tiny
-        if np.any(curved):
-            nn = nrm[curved]
-            P = np.eye(3) - nn[:, :, None] * nn[:, None, :]
-            rc = reg[curved]
-            tv = self.v[self.t[tri[curved]]]  # (m, 3, 3)
-            i0 = np.where(rc == 1, 0, np.where(rc == 2, 1, 2))
-            i1 = np.where(rc == 1, 1, np.where(rc == 2, 2, 0))
-            m_idx = np.arange(len(rc))
-            e = tv[m_idx, i1] - tv[m_idx, i0]
-            e /= np.linalg.norm(e, axis=1)[:, None]
-            edge = (rc <= 3)[:, None, None]
-            P = P - edge * e[:, :, None] * e[:, None, :]
-            H[curved] = side[curved][:, None, None] * P / d[curved][:, None, None]
+        nrm = np.where((reg == 0)[:, None] | (d[:, None] <= 1e-12), ntri, side[:, None] * r / np.maximum(d, 1e-300)[:, None])
+        # the moving-least-squares gap and its exact gradient where vertices are within the support
+        rr = self.radius_mm
+        k = min(16, len(self.v))
+        while True:
+            dist, idx = self.vtree.query(x, k=k, distance_upper_bound=rr)
+            dist, idx = dist.reshape(n, -1), idx.reshape(n, -1)
+            if k >= len(self.v) or not np.any(np.isfinite(dist[:, -1])):
+                break
+            k = min(2 * k, len(self.v))
+        ok = np.isfinite(dist)
+        vi = np.where(ok, idx, 0)
+        dv = x[:, None, :] - self.v[vi]  # (n, k, 3)
+        nv = self.vertex_normal[vi]
+        s_ = np.where(ok, dist ** 2 / rr ** 2, 1.0)
+        w = np.where(ok, (1.0 - s_) ** 4, 0.0)
+        dw = np.where(ok, -8.0 * (1.0 - s_) ** 3 / rr ** 2, 0.0)[:, :, None] * dv  # grad w_v
+        W = w.sum(axis=1)
+        smooth = W > 1e-6
+        Ws = np.where(smooth, W, 1.0)
+        fv = np.einsum("nki,nki->nk", dv, nv)
+        gm = (w * fv).sum(axis=1) / Ws
+        A = np.einsum("nk,nki->ni", w, nv) + np.einsum("nki,nk->ni", dw, fv - gm[:, None])
+        grad = A / Ws[:, None]
+        g = np.where(smooth, gm, g)
+        nrm = np.where(smooth[:, None], grad, nrm)
+        # its Hessian (zero where the facets' distance is used: flat faces)
+        c2 = np.where(ok, 48.0 * (1.0 - s_) ** 2 / rr ** 4, 0.0)
+        c1 = np.where(ok, -8.0 * (1.0 - s_) ** 3 / rr ** 2, 0.0)
+        e_ = fv - gm[:, None]
+        dA = (np.einsum("nki,nkj->nij", nv, dw)
+              + np.einsum("nk,nki,nkj->nij", c2 * e_, dv, dv) + (c1 * e_).sum(axis=1)[:, None, None] * np.eye(3)
+              + np.einsum("nki,nkj->nij", dw, nv - grad[:, None, :]))
+        dW = dw.sum(axis=1)
+        H = (dA - A[:, :, None] * dW[:, None, :] / Ws[:, None, None]) / Ws[:, None, None]
+        H = np.where(smooth[:, None, None], H, 0.0)
         # beyond a free edge / vertex: no contact
         on_free = np.zeros(n, bool)
         e = (reg >= 1) & (reg <= 3)
@@ -121,4 +151,4 @@ class Cast:
         vtx = reg >= 4
         on_free[vtx] = self.free_vertex[tri[vtx], reg[vtx] - 4]
         g = np.where(on_free, np.inf, g)
-        return g, nrm, (H if self.curvature else None)
+        return g, nrm, H

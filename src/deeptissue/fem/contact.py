@@ -1,9 +1,9 @@
 """Frictionless contact of skin facets with rigid obstacles: weighted gaps, and the penetration between nodes.
 
 Every obstacle is rigid (the analytical indenter, the rigid cast) and given by a gap function
-``gap(x) -> (g, n, H)``: signed distance g [mm] (negative = penetration), outward unit normal n = grad g and
-its gradient H = grad n [1/mm] (None if flat). The skin side is a set of 6-node triangles (TetMesh facets,
-gmsh Triangle6 order), or 3-node triangles of a first-order mesh.
+``gap(x) -> (g, n, H)``: signed distance g [mm] (negative = penetration; for the cast a smooth surface near
+its facets), outward normal n = grad g and its gradient H = grad n [1/mm] (None if flat). The skin side is a
+set of 6-node triangles (TetMesh facets, gmsh Triangle6 order), or 3-node triangles of a first-order mesh.
 
 Contact is imposed node by node on weighted gaps (:class:`WeightedContact`): for a node j of a contact facet
 set, ``gw_j = sum_q A_q psi_j(q) g(x_q) / m_j`` with ``m_j = sum_q A_q psi_j(q)``, where q runs over the

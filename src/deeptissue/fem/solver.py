@@ -28,11 +28,7 @@ the consistent matrix useless (a pinch), the direction without it is tried.
 An increment is converged when |R| <= rtol max(|f_int|, |G^T lam|) + atol and every candidate node satisfies
 the complementarity to the gap tolerance: |min(lam_j, c_j gw_j)| <= c_j gap_tol_rel h_j (h_j the size of
 the node's facets), i.e. no weighted gap is closed beyond gap_tol_rel h_j and no node pulls on the obstacle
-by more than the force that would close that gap. It is also converged, with an unchanged active set, the
-residual within rtol_intermediate and no longer falling tenfold in two iterations, when the Newton
-correction moves no node by more than gap_tol_rel h_min (the correction is applied): the state is then fixed
-to the gap tolerance, and the residual left is that of a point on an edge of the piecewise-flat cast, whose
-normal jumps there (Newton alternates between the two faces). Increments grow after few Newton iterations
+by more than the force that would close that gap. Increments grow after few Newton iterations
 and few active-set changes, shrink after many, and are cut after a failure (an inverted element, a
 diverging residual, a line search without descent, too many iterations).
 Units: mm, N, MPa, mJ, s.
@@ -66,8 +62,7 @@ __all__ = ["BoneState", "ContactSettings", "EndState", "FacetSets", "IncrementRe
 # Fixed parts of the method (not settings: no scene has needed another value)
 _ATOL_MU_REL = 1e-10  # absolute residual floor in units of mu V^(2/3) [N]
 # the same before the end of the load (with rtol_intermediate): before the indenter touches, the forces are tiny
-# (the tissue follows the bone, held only by the cast), and skin nodes on the edges of the piecewise-flat cast
-# make the residual alternate below this; those states only start the next increment
+# (the tissue follows the bone, held only by the cast); those states only start the next increment
 _ATOL_INTERMEDIATE_MU_REL = 1e-4
 _ARMIJO = 1e-4  # sufficient decrease of the merit, as a fraction of its predicted decrease
 _MAX_BACKTRACKS = 12  # step halvings before a direction is given up
@@ -556,7 +551,6 @@ class _Problem:
                  force_unit_N: float):
         self.s, self.asm, self.contact, self.constrained = s, asm, contact, constrained
         self.gap_tol = s.contact.gap_tol_rel * contact.h  # [mm]
-        self.h_min = float(contact.h.min()) if len(contact.h) else 1.0
         self.atol = _ATOL_MU_REL * force_unit_N
         self.atol_intermediate = _ATOL_INTERMEDIATE_MU_REL * force_unit_N
         self.fmap = np.full(asm.n_dofs, -1, np.int64)  # dof -> row of the free dofs (-1: prescribed)
@@ -634,14 +628,6 @@ def _solve_increment(p: _Problem, u, lam, target_d, rtol, atol):
                 if curvature and geo:
                     continue
                 return False, "linear solver failed", it, residuals, changes
-            if (curvature and not has_d and ncp_ok and not np.any(new_act != (lam > 0)) and len(residuals) > 2
-                    and res > 0.1 * residuals[-3] and res <= s.newton.rtol_intermediate * scale
-                    and float(np.abs(du).max()) <= s.contact.gap_tol_rel * p.h_min):
-                # the residual stalls while the corrections no longer move the state beyond the gap tolerance:
-                # what is left is the kink of a piecewise-flat obstacle (the cast's facets) a point sits on
-                u += du
-                lam[:] = lam_new
-                return True, "", it + 1, residuals, changes
             dlam = lam_new - lam
             step = 1.0
             for _ in range(_MAX_BACKTRACKS):
