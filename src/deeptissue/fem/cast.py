@@ -72,7 +72,7 @@ class Cast:
             raise ValueError(f"{path}: not a cast file ({exc})") from exc
 
     def gap(self, x: np.ndarray):
-        """Contact gap of points to the cast (near the surface its signed distance) and its gradient.
+        """Contact gap of points to the cast (near the surface its signed distance), its gradient and Hessian.
 
         Parameters
         ----------
@@ -111,32 +111,32 @@ class Cast:
         nrm = np.where((reg == 0)[:, None] | (d[:, None] <= 1e-12), ntri, side[:, None] * r / np.maximum(d, 1e-300)[:, None])
         # the moving-least-squares gap and its exact gradient where vertices are within the support
         rr = self.radius_mm
-        k = min(16, len(self.v))
+        kv = min(16, len(self.v))  # vertices queried per point: doubled until the support holds fewer
         while True:
-            dist, idx = self.vtree.query(x, k=k, distance_upper_bound=rr)
+            dist, idx = self.vtree.query(x, k=kv, distance_upper_bound=rr)
             dist, idx = dist.reshape(n, -1), idx.reshape(n, -1)
-            if k >= len(self.v) or not np.any(np.isfinite(dist[:, -1])):
+            if kv >= len(self.v) or not np.any(np.isfinite(dist[:, -1])):
                 break
-            k = min(2 * k, len(self.v))
+            kv = min(2 * kv, len(self.v))
         ok = np.isfinite(dist)
         vi = np.where(ok, idx, 0)
         dv = x[:, None, :] - self.v[vi]  # (n, k, 3)
         nv = self.vertex_normal[vi]
         s_ = np.where(ok, dist ** 2 / rr ** 2, 1.0)
         w = np.where(ok, (1.0 - s_) ** 4, 0.0)
-        dw = np.where(ok, -8.0 * (1.0 - s_) ** 3 / rr ** 2, 0.0)[:, :, None] * dv  # grad w_v
+        c1 = np.where(ok, -8.0 * (1.0 - s_) ** 3 / rr ** 2, 0.0)
+        c2 = np.where(ok, 48.0 * (1.0 - s_) ** 2 / rr ** 4, 0.0)
+        dw = c1[:, :, None] * dv  # grad w_v = c1 dv, its Hessian c2 dv dv^T + c1 I
         W = w.sum(axis=1)
         smooth = W > 1e-6
         Ws = np.where(smooth, W, 1.0)
         fv = np.einsum("nki,nki->nk", dv, nv)
         gm = (w * fv).sum(axis=1) / Ws
-        A = np.einsum("nk,nki->ni", w, nv) + np.einsum("nki,nk->ni", dw, fv - gm[:, None])
+        A = np.einsum("nk,nki->ni", w, nv) + np.einsum("nki,nk->ni", dw, fv - gm[:, None])  # W grad g
         grad = A / Ws[:, None]
         g = np.where(smooth, gm, g)
         nrm = np.where(smooth[:, None], grad, nrm)
         # its Hessian (zero where the facets' distance is used: flat faces)
-        c2 = np.where(ok, 48.0 * (1.0 - s_) ** 2 / rr ** 4, 0.0)
-        c1 = np.where(ok, -8.0 * (1.0 - s_) ** 3 / rr ** 2, 0.0)
         e_ = fv - gm[:, None]
         dA = (np.einsum("nki,nkj->nij", nv, dw)
               + np.einsum("nk,nki,nkj->nij", c2 * e_, dv, dv) + (c1 * e_).sum(axis=1)[:, None, None] * np.eye(3)
