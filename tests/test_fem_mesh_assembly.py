@@ -145,3 +145,17 @@ def test_refinement_along_a_segment_reaches_both_of_its_ends():
     assert _skin_facet_size_near(pt, a) > 1.2  # a point refines only around itself
     with pytest.raises(ValueError, match="segment"):
         cored_cylinder_mesh(h_mm=2.0, refine_point_mm=(a, b, a), refine_h_mm=0.5, refine_radius_mm=1.0)
+
+
+def test_refinement_along_a_segment_with_negative_components():
+    # an indenter's travel from the skin toward the core (-x) and a point at negative coordinates
+    a, b = (5.0, 0.0, 10.0), (1.2, 0.0, 10.0)
+    m = cored_cylinder_mesh(length_mm=20.0, radius_mm=5.0, core_radius_mm=1.0, h_mm=2.0, refine_point_mm=(a, b),
+                            refine_h_mm=0.5, refine_radius_mm=1.0)
+    X, T = m.nodes_mm, m.tets[:, :4]
+    c = X[T].mean(axis=1)
+    edge = np.linalg.norm(X[T[:, 0]] - X[T[:, 1]], axis=1)
+    near_core = np.linalg.norm(c - np.array([1.5, 0.0, 10.0]), axis=1) < 0.5
+    assert near_core.any() and np.median(edge[near_core]) < 0.8
+    neg = cored_cylinder_mesh(h_mm=2.0, refine_point_mm=(-5.0, -0.5, 10.0), refine_h_mm=0.5, refine_radius_mm=1.0)
+    assert _skin_facet_size_near(neg, (-5.0, 0.0, 10.0)) < 0.8

@@ -38,11 +38,13 @@ def _size_field(gmsh, h_mm, refine_point_mm, refine_h_mm, refine_radius_mm, refi
     pts = np.asarray(refine_point_mm, float).reshape(-1, 3)
     if len(pts) > 2:
         raise ValueError(f"refine_point_mm: a point or a segment (two points), got {len(pts)} points")
-    a, b = pts[0], pts[-1]
-    d = b - a
+    # every number in parentheses: gmsh's expression parser rejects "x--1" and "*-4"
+    a, b = ([f"({float(v)!r})" for v in p] for p in (pts[0], pts[-1]))
+    d = pts[-1] - pts[0]
     L2 = float(d @ d)
+    d = [f"({float(v)!r})" for v in d]
     if L2 > 0:
-        t = f"Min(1, Max(0, ((x-{a[0]})*{d[0]}+(y-{a[1]})*{d[1]}+(z-{a[2]})*{d[2]})/{L2}))"
+        t = f"Min(1, Max(0, ((x-{a[0]})*{d[0]}+(y-{a[1]})*{d[1]}+(z-{a[2]})*{d[2]})/{L2!r}))"
         r = f"Sqrt((x-{a[0]}-{t}*{d[0]})^2+(y-{a[1]}-{t}*{d[1]})^2+(z-{a[2]}-{t}*{d[2]})^2)"
     else:
         r = f"Sqrt((x-{a[0]})^2+(y-{a[1]})^2+(z-{a[2]})^2)"
