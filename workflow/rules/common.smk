@@ -59,6 +59,11 @@ def base_state_of(animal, variant):
 # the variants others are turned from
 TURN_BASES = {turn_base_of(v) for v in config["study"]["variants"]} - {None}
 
+# every rule upstream of a solve (convert, phantom, segment, pose, cast, mesh, bone_state) runs first, so each
+# animal's model is ready before the solves fill the cores and the longest-first order of the solves holds
+# across animals (solve_job_priority stays below it)
+MODEL_PRIORITY = 100
+
 
 def solve_job_priority(wildcards):
     """Longest solves first (bars, then deeper phantoms): deeptissue.variants.solve_priority; a variant that

@@ -25,7 +25,7 @@ rule convert:
         animal="|".join(sorted({a for a, _ in CONVERTED})) or "NO_ANIMAL",
     log:
         "results/{animal}/logs/convert_{state}.log",
-    priority: 100  # upstream of every solve: each animal's model is ready before the solves fill the cores
+    priority: MODEL_PRIORITY
     conda:
         "../envs/deeptissue.yaml"
     script:

@@ -17,7 +17,7 @@ rule phantom:
         start_angle_deg=config["segmentation"]["start_angle_deg"],
     log:
         "results/{animal}/logs/phantom.log",
-    priority: 100  # upstream of every solve: each animal's model is ready before the solves fill the cores
+    priority: MODEL_PRIORITY
     conda:
         "../envs/deeptissue.yaml"
     script:
@@ -46,7 +46,7 @@ rule segment:
         pose_options=config["pose"],
     log:
         "results/{animal}/logs/segment_{state}.log",
-    priority: 100  # upstream of every solve: each animal's model is ready before the solves fill the cores
+    priority: MODEL_PRIORITY
     conda:
         "../envs/deeptissue.yaml"
     script:

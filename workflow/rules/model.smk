@@ -24,7 +24,7 @@ rule cast:
     params:
         settings=dict(config["model"], bar_length_mm=float(config.get("fem", {}).get("bar_length_mm", 10.0))),
         variants=config["study"]["variants"],
-    priority: 100  # upstream of every solve: each animal's model is ready before the solves fill the cores
+    priority: MODEL_PRIORITY
     conda:
         "../envs/deeptissue.yaml"
     script:
@@ -57,7 +57,7 @@ rule mesh:
     params:
         settings=dict(config["model"], bar_length_mm=float(config.get("fem", {}).get("bar_length_mm", 10.0))),
         variants=lambda wc: MESH_GROUPS[wc.group],
-    priority: 100  # upstream of every solve: each animal's model is ready before the solves fill the cores
+    priority: MODEL_PRIORITY
     conda:
         "../envs/deeptissue.yaml"
     script:

@@ -40,7 +40,7 @@ rule pose:
     params:
         options=config["pose"],
         override=lambda wildcards: animal_cfg(wildcards.animal).get("pose_override", {}),
-    priority: 100  # upstream of every solve: each animal's model is ready before the solves fill the cores
+    priority: MODEL_PRIORITY
     conda:
         "../envs/deeptissue.yaml"
     script:

@@ -103,7 +103,7 @@ rule bone_state:
         "results/{animal}/benchmarks/bone_state_{group}.tsv"
     params:
         fem=config["fem"],
-    priority: 100  # every solve of the mesh waits for it
+    priority: MODEL_PRIORITY
     resources:
         mem_mb=4000,
         runtime=30,
