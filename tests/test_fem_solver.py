@@ -289,3 +289,18 @@ def test_turned_variant_solved_from_the_base_end_state_reaches_the_same_end_stat
     (tmp_path / "junk.npz").write_bytes(b"not a state")
     with pytest.raises(ValueError, match="junk.npz: not an end-state file"):
         load_end_state(tmp_path / "junk.npz")
+
+
+def test_tissue_passing_through_the_indenter_is_not_reported_converged(limb):
+    # a bar (R 1.5 mm) moved 1.7 mm into the skin in one increment (first touch not limited): its core line
+    # ends past the skin nodes, the nearest-surface gap pushes them out behind the bar, and Newton converges to
+    # the bar under the skin, pulling on it
+    ind = Indenter("bar", axis=(-1, 0, 0), start_mm=(3.5, 0.0, 3.0), end_mm=(1.3, 0.0, 3.0), bar_length_mm=5.0)
+    one_jump = SolverSettings(increments=IncrementSettings(first_touch_mm=5.0, initial_increment=1.0))
+    r = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=BoneMotion(), settings=one_jump)
+    assert r.increments == 1 and r.load_reached == pytest.approx(4.0)
+    assert not r.converged and r.reason.startswith("the tissue passed through the indenter"), r.reason
+    assert r.indenter_force_N < 0
+    # the first-touch limit keeps the skin in front of the bar
+    ok = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=BoneMotion())
+    assert ok.converged and ok.indenter_force_N > 0
