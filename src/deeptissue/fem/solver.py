@@ -64,10 +64,10 @@ _ATOL_MU_REL = 1e-10  # absolute residual floor in units of mu V^(2/3) [N]
 # the same before the end of the load (with rtol_intermediate): before the indenter touches, the forces are tiny
 # (the tissue follows the bone, held only by the cast); those states only start the next increment
 _ATOL_INTERMEDIATE_MU_REL = 1e-4
-# the gap tolerance before the end of the load, in units of the end's (gap_tol_rel): 10 closes the gaps of those
-# states to 1 % of a facet at the default; 100 let the demo's rat01 bar accept a first touch 0.06 mm into the skin
-# with no contact force and pass through it in the next increment
-_GAP_TOL_INTERMEDIATE = 10.0
+# the gap tolerance before the end of the load over the facet size (the end's gap_tol_rel where that is looser):
+# those states only start the next increment; 10 % let the demo's rat01 bar accept a first touch 0.06 mm into the
+# skin with no contact force and pass through it in the next increment
+_GAP_TOL_INTERMEDIATE_REL = 1e-2
 _ARMIJO = 1e-4  # sufficient decrease of the merit, as a fraction of its predicted decrease
 _MAX_BACKTRACKS = 12  # step halvings before a direction is given up
 _NONMONOTONE_MEMORY = 5  # the Armijo test compares with the largest of this many last merits
@@ -555,6 +555,7 @@ class _Problem:
                  force_unit_N: float):
         self.s, self.asm, self.contact, self.constrained = s, asm, contact, constrained
         self.gap_tol = s.contact.gap_tol_rel * contact.h  # [mm]
+        self.gap_tol_intermediate = max(s.contact.gap_tol_rel, _GAP_TOL_INTERMEDIATE_REL) * contact.h
         self.atol = _ATOL_MU_REL * force_unit_N
         self.atol_intermediate = _ATOL_INTERMEDIATE_MU_REL * force_unit_N
         self.fmap = np.full(asm.n_dofs, -1, np.int64)  # dof -> row of the free dofs (-1: prescribed)
@@ -885,7 +886,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings: Solve
             # start the next one)
             end = t1 >= 4.0 - 1e-12
             rtol, atol, gap_tol = ((s.newton.rtol, p.atol, p.gap_tol) if end else
-                                   (s.newton.rtol_intermediate, p.atol_intermediate, _GAP_TOL_INTERMEDIATE * p.gap_tol))
+                                   (s.newton.rtol_intermediate, p.atol_intermediate, p.gap_tol_intermediate))
             iters, residuals, changes = 0, [], 0
             while True:
                 ok, why, it, res, ch = _solve_increment(p, u_try, lam_try, target[constrained], rtol, atol, gap_tol)
