@@ -70,8 +70,9 @@ _ATOL_INTERMEDIATE_MU_REL = 1e-4
 _GAP_TOL_INTERMEDIATE_REL = 1e-2
 # a converged increment whose facets dip deeper than this into an obstacle between their nodes (over the facet size)
 # has let the indenter pass between the skin's nodes (a coarse mesh: the weighted gaps close at the nodes only); it
-# is cut back. Converged states of the demo, the paper study and the hard cases dip 2-5 % of a facet
-_MAX_PENETRATION_REL = 0.25
+# is cut back. Converged states of the demo, the paper study and the hard cases dip 2-5 % of a facet, flat (P1)
+# facets of 2 mm on the 1.5 mm sphere 25 %
+_MAX_PENETRATION_REL = 0.5
 # an indenter whose end overlaps the rigidly moved skin by more than this must push on it [mm]
 _THROUGH_OVERLAP_MM = 0.1
 _ARMIJO = 1e-4  # sufficient decrease of the merit, as a fraction of its predicted decrease
