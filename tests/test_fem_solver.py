@@ -310,9 +310,7 @@ def test_indenter_passing_between_the_skin_nodes_is_cut_back_not_accepted(limb, 
     # the weighted gaps close at the nodes only: where a facet dips too far into the indenter between its nodes
     # (on a mesh coarse for the indenter, the sphere slips through the skin), the increment is cut, never
     # accepted. With the limit at zero every increment in contact is refused and the solve names the reason.
-    import deeptissue.fem.solver as solver
-
-    monkeypatch.setattr(solver, "_MAX_PENETRATION_REL", 0.0)
+    monkeypatch.setattr("deeptissue.fem.solver._MAX_PENETRATION_REL", 0.0)
     ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(3.5, 0.0, 3.0), end_mm=(2.5, 0.0, 3.0))
     r = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=BoneMotion(),
                           settings=SolverSettings(increments=IncrementSettings(min_increment=0.01)))

@@ -479,6 +479,14 @@ def _bone_clearance_mm(sched, Xb: np.ndarray) -> float | None:
     return float(np.min(sched.indenter(4.0).gap(sched.bone(Xb, 4.0), sched.tip(4.0))[0]))
 
 
+def _skin_overlap_mm(sched, X: np.ndarray, u: np.ndarray, t: float) -> float:
+    """How far [mm] the indenter at the end of its travel overlaps the skin nodes X (n, 3), displaced by u
+    (n, 3) at load t and moved on rigidly with the bone; an end state with that overlap and no indenter force has
+    let the tissue through the indenter."""
+    x_end = sched.predict(X, X + u, t, 4.0)
+    return -float(np.min(sched.indenter(4.0).gap(x_end, sched.tip(4.0))[0]))
+
+
 # ------------------------------------------------------------------------------------------- entry points
 
 def solve_indentation(mesh: TetMesh, *, material, indenter: Indenter | None, bone_motion: BoneMotion,
@@ -852,11 +860,8 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings: Solve
             start_backoff_mm = _clear_start(sched, contact, k_ind, u, inc.start_clearance_mm)
             travel = float(np.linalg.norm(np.subtract(sched.ind.end_mm, sched.ind.start_mm)))
         if k == 3 and indenter is not None:
-            # how far the indenter's end overlaps the skin moved rigidly with the bone: an end state that overlaps
-            # it with no indenter force has let the tissue through the indenter
-            nodes = contact.node[contact.obstacle == k_ind]
-            x_end = sched.predict(X[nodes], X[nodes] + u.reshape(-1, 3)[nodes], t, 4.0)
-            end_overlap_mm = -float(np.min(sched.indenter(4.0).gap(x_end, sched.tip(4.0))[0]))
+            skin = contact.node[contact.obstacle == k_ind]
+            end_overlap_mm = _skin_overlap_mm(sched, X[skin], u.reshape(-1, 3)[skin], t)
         dt = inc.max_increment if k < 3 else inc.initial_increment
         prev = None  # (t, u, lam) before the last converged increment, for the secant predictor
         while t < k + 1 - 1e-12:
@@ -942,10 +947,11 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings: Solve
     set_time(t)
     gw_end = contact.weighted(u, contact.cand)[0]
     ft, fcast = _forces(contact, u, lam, k_ind, k_cast)
-    if done and end_overlap_mm > _THROUGH_OVERLAP_MM and not float(ft @ axis) > 0:
+    force_N = float(ft @ axis)
+    if done and end_overlap_mm > _THROUGH_OVERLAP_MM and not force_N > 0:
         done = False
         reason_fail = (f"the tissue passed through the indenter: its end overlaps the rigidly moved skin by "
-                       f"{end_overlap_mm:.2f} mm, yet it pushes with {float(ft @ axis):.3g} N")
+                       f"{end_overlap_mm:.2f} mm, yet it pushes with {force_N:.3g} N")
         log.warning(reason_fail)
     pen_mm, pen_rel = _penetration(surfaces, contact, u)
     node_pen = float(np.max(np.where(np.isfinite(gw_end), -gw_end / contact.h, -np.inf), initial=0.0))
@@ -960,7 +966,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings: Solve
              "converged" if done else f"not converged ({reason_fail})", wall, len(history), n_iter, total_changes)
     return SolveResult(
         converged=done, reason=reason_fail, displacement_mm=u.reshape(-1, 3).copy(), deformation_gradient=Fe,
-        history=tuple(history), indenter_force_N=float(ft @ axis), force_on_tissue_N=ft, cast_force_N=fcast,
+        history=tuple(history), indenter_force_N=force_N, force_on_tissue_N=ft, cast_force_N=fcast,
         max_penetration_mm=pen_mm, max_penetration_rel=pen_rel, strain_energy_mJ=float(asm.energy(u)),
         n_dofs=asm.n_dofs, n_free_dofs=asm.n_free, increments=sum(1 for h in history if h.converged),
         newton_iterations=n_iter, load_reached=t, wall_s=wall, assembly_s=timers["assembly"],
