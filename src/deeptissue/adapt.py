@@ -324,7 +324,7 @@ def _force_estimate(force_N, contact_h, previous, held, plan, settings) -> tuple
     return np.nan, plan or "not refined", shrink
 
 
-def adapt(build_mesh: Callable[[SizeField | None], TetMesh], solve: Callable[[TetMesh], object],
+def adapt(build_mesh: Callable[[SizeField | None], TetMesh], solve: Callable[[TetMesh, tuple | None], object],
           estimate: Callable[[TetMesh, object], PassEstimate], settings: AdaptSettings = AdaptSettings(), *,
           initial: SizeField | None = None, log: Callable[[str], None] | None = None) -> AdaptResult:
     """Solve, estimate and remesh until the estimates meet the goals or the budget is spent.
@@ -335,8 +335,10 @@ def adapt(build_mesh: Callable[[SizeField | None], TetMesh], solve: Callable[[Te
         ``build_mesh(size_field) -> TetMesh``; ``None`` asks for the mesher's own default sizes
         (the first pass, unless ``initial`` is given).
     solve : callable
-        ``solve(mesh)`` -> an object with ``converged``, ``indenter_force_N`` and ``displacement_mm``
-        (:class:`deeptissue.fem.solver.SolveResult`).
+        ``solve(mesh, previous)`` -> an object with ``converged``, ``indenter_force_N`` and ``displacement_mm``
+        (:class:`deeptissue.fem.solver.SolveResult`); ``previous`` is (mesh, solution) of the last pass, None
+        on the first: its solution carried to the new mesh starts the solve there
+        (:func:`deeptissue.fem.transfer.mapped_end_state`).
     estimate : callable
         ``estimate(mesh, solution) -> PassEstimate``.
     settings : AdaptSettings
@@ -363,7 +365,7 @@ def adapt(build_mesh: Callable[[SizeField | None], TetMesh], solve: Callable[[Te
         t0 = time.perf_counter()
         mesh = build_mesh(field_)
         t1 = time.perf_counter()
-        sol = solve(mesh)
+        sol = solve(mesh, None if last is None else last[:2])
         t2 = time.perf_counter()
         if not sol.converged:
             reason = "not converged"

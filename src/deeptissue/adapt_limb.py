@@ -26,6 +26,7 @@ from .fem.cast import Cast as SolverCast
 from .fem.indenters import Indenter
 from .fem.material import Ogden
 from .fem.solver import SolverSettings, solve_bone_rotation
+from .fem.transfer import mapped_end_state
 from .mesh import TetMesh
 from .model import Cast, ModelSettings, build_model
 from .pose import Pose
@@ -70,19 +71,28 @@ def limb_mesher(contours: Contours, pose: Pose, variant: str, *, cast: Cast, set
 
 def limb_solver(*, animal: str, variant: str, pose: Pose, cast: SolverCast | None, material: Ogden,
                 settings: SolverSettings, study: StudySettings = StudySettings(), skin_contours_mm=None,
-                bar_length_mm: float = 10.0) -> Callable[[TetMesh], LimbSolve]:
-    """``solve(mesh) -> LimbSolve`` of :func:`deeptissue.adapt.adapt`: the bone-rotation steps on the
-    mesh (:func:`deeptissue.fem.solver.solve_bone_rotation`), then the variant from that state as the
-    rule ``solve`` does (:func:`deeptissue.study.solve_variant`, which solves the rotation itself if
-    those steps did not converge). Keywords as in :func:`deeptissue.study.solve_variant`."""
+                bar_length_mm: float = 10.0) -> Callable[[TetMesh, tuple | None], LimbSolve]:
+    """``solve(mesh, previous) -> LimbSolve`` of :func:`deeptissue.adapt.adapt`. The first pass solves the
+    bone-rotation steps on the mesh (:func:`deeptissue.fem.solver.solve_bone_rotation`), then the variant
+    from that state as the rule ``solve`` does (:func:`deeptissue.study.solve_variant`, which solves the
+    rotation itself if those steps did not converge). A later pass starts from the previous pass's solution
+    carried to its mesh (:func:`deeptissue.fem.transfer.mapped_end_state`, ``turned_from`` "previous pass")
+    and solves the whole path only if that does not converge. Keywords as in
+    :func:`deeptissue.study.solve_variant`."""
+    indenter = variant_indenter(pose, variant, bar_length_mm=bar_length_mm)
 
-    def solve(mesh: TetMesh) -> LimbSolve:
-        _, start = solve_bone_rotation(mesh, material=material, bone_motion=pose.bone_motion, cast=cast,
-                                       settings=settings)
+    def solve(mesh: TetMesh, previous: tuple | None) -> LimbSolve:
+        start = base = None
+        if previous is None:
+            _, start = solve_bone_rotation(mesh, material=material, bone_motion=pose.bone_motion, cast=cast,
+                                           settings=settings)
+        else:
+            base = mapped_end_state(previous[0], previous[1].displacement_mm, mesh, indenter=indenter,
+                                    bone_motion=pose.bone_motion, settings=settings)
         summary, u, strain = solve_variant(animal=animal, variant=variant, mesh=mesh, pose=pose, cast=cast,
                                            material=material, settings=settings, study=study,
                                            skin_contours_mm=skin_contours_mm, bar_length_mm=bar_length_mm,
-                                           start=start)
+                                           start=start, base=base, base_variant="previous pass")
         force = summary.indenter_force_N
         return LimbSolve(converged=summary.converged, indenter_force_N=np.nan if force is None else float(force),
                          displacement_mm=u, summary=summary, strain=strain)

@@ -21,8 +21,7 @@ from .fem.cast import Cast
 from .fem.indenters import Indenter
 from .fem.material import Ogden, ogden_energy
 from .fem.solver import (BoneState, EndState, FacetSets, SolverSettings, end_state, load_bone_state, load_end_state,
-                         save_bone_state, save_end_state, solve_bone_rotation, solve_indentation, solve_turned,
-                         solver_settings_from_config, summed_costs)
+                         save_bone_state, save_end_state, solve_bone_rotation, solve_from, solver_settings_from_config)
 from .io import save_npz
 from .mesh import TetMesh, load_tetmesh
 from .pose import Pose, load_pose
@@ -148,22 +147,9 @@ def solve_variant(
     indenter = variant_indenter(pose, variant, bar_length_mm=bar_length_mm)
     set_name = f"patch_{variant}" if f"patch_{variant}" in mesh.facets else "patch"
     sets = FacetSets(indenter=set_name)
-    result, turned = None, None
-    if base is not None:
-        result = solve_turned(mesh, material=material, base=base, indenter=indenter, cast=cast, settings=settings,
-                              sets=sets)
-        if result.converged:
-            turned = base_variant
-        else:
-            log.warning("%s/%s: turning the indenter from the end state of %s did not converge (%s): solving from the "
-                        "start", animal, variant, base_variant, result.reason)
-    if turned is None:
-        first = result
-        result = solve_indentation(mesh, material=material, indenter=indenter, bone_motion=pose.bone_motion,
-                                   cast=cast, settings=settings, sets=sets, start=start)
-        if first is not None:  # the failed turn's cost is part of this variant's
-            result = replace(result, **summed_costs(result, first), wall_s=result.wall_s + first.wall_s,
-                             extra={**result.extra, "turn_failed": first.reason})
+    result = solve_from(mesh, material=material, indenter=indenter, bone_motion=pose.bone_motion, base=base,
+                        start=start, cast=cast, settings=settings, sets=sets)
+    turned = base_variant if result.extra.get("turned") else None
     info = dict(
         indenter_force_N=result.indenter_force_N, n_dofs=result.n_dofs, increments=result.increments,
         newton_iterations=result.newton_iterations, wall_s=time.perf_counter() - t0,

@@ -21,7 +21,8 @@ import pandas as pd
 from ..mesh import TetMesh
 from ..rigid import BoneMotion
 from .indenters import Indenter
-from .solver import SolverSettings, solve_indentation
+from .solver import SolverSettings, solve_from, solve_indentation
+from .transfer import mapped_end_state
 
 __all__ = ["ADAPTIVE_START", "CURVE_DEPTHS_MM", "CylinderMesh", "ESTIMATES", "REFERENCE_MESH", "VOI_DEPTHS_MM",
            "adaptive_comparison", "adaptive_cylinder", "contact_tets", "cylinder_estimate", "cylinder_mesh",
@@ -275,8 +276,13 @@ def adaptive_cylinder(material, depth_mm: float, settings=None, *, start: Cylind
 
     ind = _indenter(depth_mm, height_mm)
     st = SolverSettings() if solver_settings is None else solver_settings
-    return adapt(lambda field: cylinder_mesh(start, height_mm=height_mm, size_field=field),
-                 lambda m: solve_indentation(m, material=material, indenter=ind, bone_motion=BoneMotion(), settings=st),
+
+    def solve(m, previous):  # from the previous pass's solution carried to this mesh
+        base = None if previous is None else mapped_end_state(previous[0], previous[1].displacement_mm, m, indenter=ind,
+                                                              bone_motion=BoneMotion(), settings=st)
+        return solve_from(m, material=material, indenter=ind, bone_motion=BoneMotion(), base=base, settings=st)
+
+    return adapt(lambda field: cylinder_mesh(start, height_mm=height_mm, size_field=field), solve,
                  lambda m, r: cylinder_estimate(m, r, ind, threshold=threshold, bin_edges=bin_edges),
                  AdaptSettings() if settings is None else settings, log=log)
 
