@@ -10,7 +10,7 @@ from deeptissue.fem.material import Ogden
 from deeptissue.fem.shapes import block_mesh, cored_cylinder_mesh
 from deeptissue.fem.solver import SolverSettings, solve_from, solve_indentation
 from deeptissue.fem.transfer import interpolate_nodal, mapped_end_state
-from deeptissue.rigid import BoneMotion
+from deeptissue.rigid import BoneMotion, apply_rigid
 
 LAW = as_material_law(Ogden())
 
@@ -51,6 +51,10 @@ def test_a_solve_started_from_a_coarser_mesh_reaches_the_fine_mesh_end_state_in_
     base = mapped_end_state(coarse, first.displacement_mm, fine, indenter=ind, bone_motion=motion,
                             settings=SolverSettings())
     assert base.displacement_mm.shape == (3 * len(fine.nodes_mm),) and base.contact == {}
+    b = np.unique(fine.facets["bone"])  # the bone's nodes where the solver prescribes them
+    moved = apply_rigid(fine.nodes_mm[b], rotation_deg=motion.rotation_deg, centre_mm=motion.centre_mm,
+                        translation_mm=motion.translation_mm)
+    np.testing.assert_allclose(base.displacement_mm.reshape(-1, 3)[b], moved - fine.nodes_mm[b], atol=1e-12)
     r = solve_from(fine, material=LAW, indenter=ind, bone_motion=motion, base=base)
     assert r.converged and r.extra["turned"], r.reason
     assert all(h.step == 4 for h in r.history)  # the end load only, not the path
@@ -63,3 +67,13 @@ def test_a_solve_started_from_a_coarser_mesh_reaches_the_fine_mesh_end_state_in_
     again = solve_from(fine, material=LAW, indenter=ind, bone_motion=motion, base=folded)
     assert again.converged and not again.extra.get("turned") and "inverted element" in again.extra["turn_failed"]
     assert again.indenter_force_N == pytest.approx(direct.indenter_force_N, rel=1e-9)
+
+
+def test_a_carried_state_that_still_folds_tets_is_not_used():
+    src = cored_cylinder_mesh(length_mm=4.0, radius_mm=3.0, core_radius_mm=0.8, h_mm=1.2)
+    dst = cored_cylinder_mesh(length_mm=4.0, radius_mm=3.0, core_radius_mm=0.8, h_mm=0.8)
+    u = np.zeros_like(src.nodes_mm)
+    inner = np.argmin(np.linalg.norm(src.nodes_mm - [1.9, 0.0, 2.0], axis=1))  # a node inside the tissue
+    u[inner] = [-3.0, 0.0, 0.0]  # pushed through the core: its elements turn inside out
+    ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(4.0, 0.0, 2.0), end_mm=(2.8, 0.0, 2.0))
+    assert mapped_end_state(src, u, dst, indenter=ind, bone_motion=BoneMotion(), settings=SolverSettings()) is None

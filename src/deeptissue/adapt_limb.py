@@ -77,7 +77,7 @@ def limb_solver(*, animal: str, variant: str, pose: Pose, cast: SolverCast | Non
     from that state as the rule ``solve`` does (:func:`deeptissue.study.solve_variant`, which solves the
     rotation itself if those steps did not converge). A later pass starts from the previous pass's solution
     carried to its mesh (:func:`deeptissue.fem.transfer.mapped_end_state`, ``turned_from`` "previous pass")
-    and solves the whole path only if that does not converge. Keywords as in
+    and solves the whole path only if that state folds tets or does not converge. Keywords as in
     :func:`deeptissue.study.solve_variant`."""
     indenter = variant_indenter(pose, variant, bar_length_mm=bar_length_mm)
 

@@ -16,17 +16,21 @@ of the whole path. Units: mm.
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 from scipy.spatial import cKDTree
 
 from ..mesh import TetMesh
-from ..rigid import BoneMotion
+from ..rigid import BoneMotion, apply_rigid
 from ..strain import tet10_shape_functions
 from .indenters import Indenter
 from .skmesh import GMSH_TET_EDGES, reference_jacobians
 from .solver import EndState, SolverSettings
 
 __all__ = ["interpolate_nodal", "locate_in_tets", "mapped_end_state"]
+
+log = logging.getLogger(__name__)
 
 _NEAREST = 12  # element centroids tried per point
 
@@ -59,31 +63,42 @@ def interpolate_nodal(mesh: TetMesh, values, points_mm) -> np.ndarray:
     return np.einsum("na,na...->n...", N, V[mesh.tets[elem]])
 
 
-def _unfolded(mesh: TetMesh, u: np.ndarray, *, order: int, max_rounds: int = 5) -> np.ndarray:
-    """``u`` (n_nodes, 3) with the mid-edge nodes of every quadratic tet it inverts (a Jacobian <= 0 at a corner
-    or a quadrature point of ``order``) moved to the midpoints of their deformed edges: a straight-sided tet
-    is inverted only if its corners are. Where strain varies fast, the interpolated mid-edge nodes of small
-    curved tets can fold them."""
+def _unfolded(mesh: TetMesh, u: np.ndarray, *, order: int, max_rounds: int = 3) -> tuple[np.ndarray, int]:
+    """(``u`` (n_nodes, 3) with the mid-edge nodes of every quadratic tet it inverts (a Jacobian <= 0 at a
+    corner or a quadrature point of ``order``) moved to the midpoints of their deformed edges, the number of
+    tets still inverted). A straight-sided tet is inverted only if its corners are: where strain varies
+    fast, interpolated mid-edge nodes fold small curved tets; a source state inverted at element corners
+    (the solver checks its quadrature points) folds corners too."""
     if mesh.order == 1:
-        return u
+        bad = np.any(reference_jacobians(TetMesh(nodes_mm=mesh.nodes_mm + u, tets=mesh.tets), order=order) <= 0, axis=1)
+        return u, int(bad.sum())
     u = u.copy()
-    for _ in range(max_rounds):
+    for _ in range(max_rounds + 1):
         x = mesh.nodes_mm + u
         bad = np.any(reference_jacobians(TetMesh(nodes_mm=x, tets=mesh.tets), order=order) <= 0, axis=1)
         if not np.any(bad):
             break
         t = mesh.tets[bad]
-        for k, (a, b) in enumerate(GMSH_TET_EDGES):
-            u[t[:, 4 + k]] = 0.5 * (x[t[:, a]] + x[t[:, b]]) - mesh.nodes_mm[t[:, 4 + k]]
-    return u
+        for j, (a, b) in enumerate(GMSH_TET_EDGES):
+            u[t[:, 4 + j]] = 0.5 * (x[t[:, a]] + x[t[:, b]]) - mesh.nodes_mm[t[:, 4 + j]]
+    return u, int(bad.sum())
 
 
 def mapped_end_state(src: TetMesh, displacement_mm, dst: TetMesh, *, indenter: Indenter, bone_motion: BoneMotion,
-                     settings: SolverSettings) -> EndState:
+                     settings: SolverSettings, bone_set: str = "bone") -> EndState | None:
     """The end state ``displacement_mm`` (n_nodes, 3) of mesh ``src`` carried to the nodes of mesh ``dst`` (the
-    same body meshed again), with no contact forces (the first Newton iteration finds the contact set) and
-    the tets it would invert unfolded (:func:`_unfolded`): the start of :func:`deeptissue.fem.solver.solve_turned` with ``indenter`` on ``dst``."""
+    same body meshed again), the nodes of facet set ``bone_set`` moved by ``bone_motion``, the tets it would
+    invert unfolded (:func:`_unfolded`), and no contact forces (the first Newton iteration finds the
+    contact set); None (with a warning) if some tets stay inverted. The start of :func:`deeptissue.fem.solver.solve_turned` with ``indenter`` on ``dst``."""
     u = interpolate_nodal(src, np.asarray(displacement_mm, float).reshape(-1, 3), dst.nodes_mm)
-    u = _unfolded(dst, u, order=settings.quadrature_order)
+    if bone_set in dst.facets:  # the bone's nodes follow its rigid motion exactly, as the solver prescribes
+        b = np.unique(dst.facets[bone_set])
+        X = dst.nodes_mm[b]
+        u[b] = apply_rigid(X, rotation_deg=bone_motion.rotation_deg, centre_mm=bone_motion.centre_mm,
+                           translation_mm=bone_motion.translation_mm) - X
+    u, folded = _unfolded(dst, u, order=settings.quadrature_order)
+    if folded:
+        log.warning("the state carried to the new mesh inverts %d tets: not used", folded)
+        return None
     return EndState(displacement_mm=u.ravel(), contact={}, indenter=indenter, bone_motion=bone_motion,
                     settings=settings)
