@@ -87,9 +87,10 @@ def _unfolded(mesh: TetMesh, u: np.ndarray, *, order: int, max_rounds: int = 3) 
 def mapped_end_state(src: TetMesh, displacement_mm, dst: TetMesh, *, indenter: Indenter, bone_motion: BoneMotion,
                      settings: SolverSettings, bone_set: str = "bone") -> EndState | None:
     """The end state ``displacement_mm`` (n_nodes, 3) of mesh ``src`` carried to the nodes of mesh ``dst`` (the
-    same body meshed again), the nodes of facet set ``bone_set`` moved by ``bone_motion``, the tets it would
-    invert unfolded (:func:`_unfolded`), and no contact forces (the first Newton iteration finds the
-    contact set); None (with a warning) if some tets stay inverted. The start of :func:`deeptissue.fem.solver.solve_turned` with ``indenter`` on ``dst``."""
+    same body meshed again): the start of :func:`deeptissue.fem.solver.solve_turned` with ``indenter`` on
+    ``dst``. The nodes of facet set ``bone_set`` are moved by ``bone_motion``, the tets the state would
+    invert are unfolded (:func:`_unfolded`), and it has no contact forces (the first Newton iteration finds
+    the contact set). None (with a warning) if some tets stay inverted."""
     u = interpolate_nodal(src, np.asarray(displacement_mm, float).reshape(-1, 3), dst.nodes_mm)
     if bone_set in dst.facets:  # the bone's nodes follow its rigid motion exactly, as the solver prescribes
         b = np.unique(dst.facets[bone_set])
