@@ -73,10 +73,10 @@ def _unfolded(mesh: TetMesh, u: np.ndarray, *, order: int, max_rounds: int = 3) 
         bad = np.any(reference_jacobians(TetMesh(nodes_mm=mesh.nodes_mm + u, tets=mesh.tets), order=order) <= 0, axis=1)
         return u, int(bad.sum())
     u = u.copy()
-    for _ in range(max_rounds + 1):
+    for k in range(max_rounds + 1):
         x = mesh.nodes_mm + u
         bad = np.any(reference_jacobians(TetMesh(nodes_mm=x, tets=mesh.tets), order=order) <= 0, axis=1)
-        if not np.any(bad):
+        if not np.any(bad) or k == max_rounds:  # the count returned is that of the u returned
             break
         t = mesh.tets[bad]
         for j, (a, b) in enumerate(GMSH_TET_EDGES):
