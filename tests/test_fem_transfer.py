@@ -77,3 +77,36 @@ def test_a_carried_state_that_still_folds_tets_is_not_used():
     u[inner] = [-3.0, 0.0, 0.0]  # pushed through the core: its elements turn inside out
     ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(4.0, 0.0, 2.0), end_mm=(2.8, 0.0, 2.0))
     assert mapped_end_state(src, u, dst, indenter=ind, bone_motion=BoneMotion(), settings=SolverSettings()) is None
+
+
+def test_a_state_that_folds_a_tet_at_its_corners_is_untangled_by_a_small_local_move():
+    from deeptissue.fem.skmesh import GMSH_TET_EDGES
+    from deeptissue.fem.transfer import _inverted
+
+    mesh = cored_cylinder_mesh(length_mm=4.0, radius_mm=3.0, core_radius_mm=0.8, h_mm=1.0)
+    X, corners = mesh.nodes_mm, mesh.tets[:, :4]
+    bone = np.unique(mesh.facets["bone"])
+    # an inner corner of a tet with three corners on the bone (pinched against it, as in the limb's deepest scenes)
+    on_bone = np.isin(corners, bone)
+    e = np.flatnonzero(on_bone.sum(axis=1) == 3)[0]
+    free = corners[e][~on_bone[e]][0]
+    face = X[corners[e][on_bone[e]]]
+    n = np.cross(face[1] - face[0], face[2] - face[0])
+    n /= np.linalg.norm(n)
+    dist = float((X[free] - face[0]) @ n)
+    u = np.zeros_like(X)
+    u[free] = -1.02 * dist * n  # 2 % of its height through the bone's face
+    for a, b in GMSH_TET_EDGES:  # the edges from it stay straight: only its corners fold the tets
+        on_edge = (mesh.tets[:, a] == free) | (mesh.tets[:, b] == free)
+        u[mesh.tets[on_edge, 4 + GMSH_TET_EDGES.index((a, b))]] = 0.5 * u[free]
+    assert _inverted(mesh, u, 2)[e]
+    ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(4.0, 0.0, 2.0), end_mm=(2.8, 0.0, 2.0))
+    state = mapped_end_state(mesh, u, mesh, indenter=ind, bone_motion=BoneMotion(), settings=SolverSettings())
+    assert state is not None
+    v = state.displacement_mm.reshape(-1, 3)
+    assert not np.any(_inverted(mesh, v, 2))
+    np.testing.assert_allclose(v[bone], 0.0, atol=1e-12)  # the bone held
+    moved = np.linalg.norm(v - u, axis=1)
+    assert moved.max() < 0.25 * 1.0 and moved[free] > 0.05 * abs(dist)  # back across the face, not far
+    far = np.linalg.norm(X - X[free], axis=1) > 3.0  # untouched away from the fold
+    np.testing.assert_allclose(v[far], u[far], atol=1e-12)

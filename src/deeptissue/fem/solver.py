@@ -548,7 +548,12 @@ def solve_turned(mesh: TetMesh, *, material, base: EndState, indenter: Indenter,
         raise ValueError(f"solve_turned: the end state has {base.displacement_mm.size} displacement dofs, the mesh "
                          f"{3 * len(mesh.nodes_mm)}: not this mesh's state")
     inc = settings.increments
-    turn = replace(settings, increments=replace(inc, initial_increment=min(inc.turn_initial_increment, inc.max_increment)))
+    if np.allclose(a.unit_axis, b.unit_axis, rtol=0.0, atol=1e-12):
+        # no turn (a state carried from another mesh): every fraction of it is the same problem, tried once
+        inc = replace(inc, initial_increment=1.0, max_increment=1.0, min_increment=1.0, turn_initial_increment=1.0)
+    else:
+        inc = replace(inc, initial_increment=min(inc.turn_initial_increment, inc.max_increment))
+    turn = replace(settings, increments=inc)
     r = _solve(mesh, material=material, indenter=indenter, schedule=_TurnSchedule(base.bone_motion, a, b),
                bc_sets=(sets.bone,), cast=cast, settings=turn, sets=sets, start=base)
     return replace(r, extra={**r.extra, "turned": True})

@@ -19,38 +19,24 @@ from __future__ import annotations
 import logging
 
 import numpy as np
-from scipy.spatial import cKDTree
+from scipy import sparse
+from scipy.optimize import least_squares
 
-from ..mesh import TetMesh
+from ..mesh import TetMesh, locate_in_tets
 from ..rigid import BoneMotion, apply_rigid
-from ..strain import tet10_shape_functions
+from ..strain import tet10_shape_functions, tet10_shape_gradients
 from .indenters import Indenter
 from .skmesh import GMSH_TET_EDGES, reference_jacobians
 from .solver import EndState, SolverSettings
 
-__all__ = ["interpolate_nodal", "locate_in_tets", "mapped_end_state"]
+__all__ = ["interpolate_nodal", "mapped_end_state"]
 
 log = logging.getLogger(__name__)
 
-_NEAREST = 12  # element centroids tried per point
-
-
-def locate_in_tets(mesh: TetMesh, points_mm) -> tuple[np.ndarray, np.ndarray]:
-    """(element (n,) int, its barycentric coordinates (n, 4)) of each point (n, 3) [mm] among the straight
-    tetrahedra through the mesh's corners: among the ``_NEAREST`` elements with the nearest centroids, the one
-    whose smallest barycentric coordinate is largest (>= 0: the point is inside it)."""
-    P = np.asarray(points_mm, float).reshape(-1, 3)
-    corners = mesh.nodes_mm[mesh.tets[:, :4]]  # (m, 4, 3)
-    T = np.transpose(corners[:, 1:] - corners[:, :1], (0, 2, 1))  # columns: the edges from corner 0
-    Tinv = np.linalg.inv(T)
-    k = min(_NEAREST, mesh.n_tets)
-    _, idx = cKDTree(corners.mean(axis=1)).query(P, k=k)
-    idx = idx.reshape(len(P), k)
-    xi = np.einsum("nkij,nkj->nki", Tinv[idx], P[:, None, :] - corners[idx, 0])  # (n, k, 3)
-    lam = np.concatenate([1.0 - xi.sum(axis=2, keepdims=True), xi], axis=2)  # (n, k, 4)
-    best = np.argmax(lam.min(axis=2), axis=1)
-    rows = np.arange(len(P))
-    return idx[rows, best], lam[rows, best]
+_UNTANGLE_FLOOR = 0.05  # an untangled tet keeps at least this fraction of its reference Jacobian
+_UNTANGLE_STAY = 1e-3  # weight of the distance moved (over the patch's mean edge) against the shortfall
+_P1_GRADIENTS = np.array([[-1.0, -1.0, -1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+_UNTANGLE_MAX_MOVE_REL = 0.25  # a repair that moves a corner farther (of the patch's mean edge) is not a repair
 
 
 def interpolate_nodal(mesh: TetMesh, values, points_mm) -> np.ndarray:
@@ -63,41 +49,137 @@ def interpolate_nodal(mesh: TetMesh, values, points_mm) -> np.ndarray:
     return np.einsum("na,na...->n...", N, V[mesh.tets[elem]])
 
 
-def _unfolded(mesh: TetMesh, u: np.ndarray, *, order: int, max_rounds: int = 3) -> tuple[np.ndarray, int]:
+def _inverted(mesh: TetMesh, u: np.ndarray, order: int) -> np.ndarray:
+    """The tets (bool (n_tets,)) that displacement ``u`` inverts: a Jacobian <= 0 at a corner or a quadrature point."""
+    return np.any(reference_jacobians(TetMesh(nodes_mm=mesh.nodes_mm + u, tets=mesh.tets), order=order) <= 0, axis=1)
+
+
+def _unfolded(mesh: TetMesh, u: np.ndarray, fixed: np.ndarray, *, order: int, max_rounds: int = 3
+              ) -> tuple[np.ndarray, int]:
     """(``u`` (n_nodes, 3) with the mid-edge nodes of every quadratic tet it inverts (a Jacobian <= 0 at a
-    corner or a quadrature point of ``order``) moved to the midpoints of their deformed edges, the number of
-    tets still inverted). A straight-sided tet is inverted only if its corners are: where strain varies
-    fast, interpolated mid-edge nodes fold small curved tets; a source state inverted at element corners
-    (the solver checks its quadrature points) folds corners too."""
+    corner or a quadrature point of ``order``) moved to the midpoints of their deformed edges, except the
+    ``fixed`` ones (bool (n_nodes,), the bone's, which the solver prescribes), the number of tets still
+    inverted). Where strain varies fast, interpolated mid-edge nodes fold small curved tets; a source state
+    inverted at element corners (the solver checks its quadrature points) folds corners, and a curved face
+    on the bone may fold a tet pressed against it (:func:`_untangled`)."""
     if mesh.order == 1:
-        bad = np.any(reference_jacobians(TetMesh(nodes_mm=mesh.nodes_mm + u, tets=mesh.tets), order=order) <= 0, axis=1)
-        return u, int(bad.sum())
+        return u, int(_inverted(mesh, u, order).sum())
     u = u.copy()
     for k in range(max_rounds + 1):
         x = mesh.nodes_mm + u
-        bad = np.any(reference_jacobians(TetMesh(nodes_mm=x, tets=mesh.tets), order=order) <= 0, axis=1)
+        bad = _inverted(mesh, u, order)
         if not np.any(bad) or k == max_rounds:  # the count returned is that of the u returned
             break
         t = mesh.tets[bad]
         for j, (a, b) in enumerate(GMSH_TET_EDGES):
-            u[t[:, 4 + j]] = 0.5 * (x[t[:, a]] + x[t[:, b]]) - mesh.nodes_mm[t[:, 4 + j]]
+            m = t[:, 4 + j]
+            u[m] = np.where(fixed[m, None], u[m], 0.5 * (x[t[:, a]] + x[t[:, b]]) - mesh.nodes_mm[m])
     return u, int(bad.sum())
+
+
+def _jacobian_points(order: int) -> np.ndarray:
+    """Reference points (n, 3) where a tet must keep a positive Jacobian: the quadrature points of ``order`` and
+    the corners (as :func:`deeptissue.fem.skmesh.reference_jacobians`)."""
+    from skfem.quadrature import get_quadrature
+    from skfem.refdom import RefTet
+
+    return np.concatenate([get_quadrature(RefTet, order)[0].T, np.eye(3), np.zeros((1, 3))])
+
+
+def _untangled(mesh: TetMesh, u: np.ndarray, inverted: np.ndarray, fixed: np.ndarray, order: int
+               ) -> np.ndarray | None:
+    """``u`` (n_nodes, 3) with the nodes of the ``inverted`` tets (bool (n_tets,)) and of the tets that share a
+    corner with them moved as little as gives every tet they belong to a Jacobian of at least
+    ``_UNTANGLE_FLOOR`` of its reference one at its corners and the quadrature points of ``order`` (least
+    squares on the shortfall and the distance moved, sparse Gauss-Newton trust region). ``fixed`` (bool (n_nodes,)): nodes that keep their displacement (the
+    bone's, which the solver prescribes). A source state inverted at element corners, pinched at the bone,
+    folds the new mesh's tets there; a few hundredths of a mm set them right. None if that takes moving a
+    node by more than ``_UNTANGLE_MAX_MOVE_REL`` of the patch's mean edge: not a local repair."""
+    X, corners = mesh.nodes_mm, mesh.tets[:, :4]
+    ring = np.zeros(len(X), bool)
+    ring[corners[inverted].ravel()] = True
+    free = np.zeros(len(X), bool)
+    free[mesh.tets[np.any(ring[corners], axis=1)].ravel()] = True
+    free &= ~fixed
+    ids = np.flatnonzero(free)
+    T = mesh.tets[np.any(free[mesh.tets], axis=1)]
+    pts = _jacobian_points(order)
+    dN = tet10_shape_gradients(pts) if mesh.order == 2 else np.broadcast_to(_P1_GRADIENTS, (len(pts), 4, 3))
+    x = X + u
+
+    def jac(y):  # Jacobians (m, q) and their gradients (m, q, nodes, 3)
+        c = np.einsum("man,qak->mqkn", y[T], dN)  # columns d x / d xi_k
+        g = np.stack([np.cross(c[:, :, 1], c[:, :, 2]), np.cross(c[:, :, 2], c[:, :, 0]),
+                      np.cross(c[:, :, 0], c[:, :, 1])], axis=2)  # dJ / d column k
+        return np.einsum("mqn,mqn->mq", c[:, :, 0], g[:, :, 0]), np.einsum("mqkn,qak->mqan", g, dN)
+
+    J0 = jac(X)[0]
+    sign, J0 = np.sign(J0), np.abs(J0)
+    edge_mm = float(np.mean(np.linalg.norm(X[T][:, [1, 2, 3, 2, 3, 3]] - X[T][:, [0, 0, 0, 1, 1, 2]], axis=2)))
+    slot = np.full(len(X), -1)
+    slot[ids] = np.arange(len(ids))
+    loc = slot[T]
+    on = loc >= 0
+    x0 = x[ids]
+
+    # residuals: the shortfall of every Jacobian below the floor (over its reference one), and the distance
+    # moved (over the mean edge) weighted by sqrt(_UNTANGLE_STAY); a sparse Gauss-Newton trust region
+    m, q = J0.shape
+    rows = np.broadcast_to(np.arange(m * q).reshape(m, q, 1, 1), (m, q, T.shape[1], 3))
+    cols = np.broadcast_to(3 * loc[:, None, :, None] + np.arange(3), rows.shape)
+    keep = np.broadcast_to(on[:, None, :, None], rows.shape)
+    n_z = 3 * len(ids)
+    stay = np.sqrt(_UNTANGLE_STAY) / edge_mm
+
+    def residuals(z):
+        y = x.copy()
+        y[ids] = z.reshape(-1, 3)
+        return np.concatenate([np.maximum(_UNTANGLE_FLOOR * J0 - sign * jac(y)[0], 0.0).ravel() / J0.ravel(),
+                               stay * (z - x0.ravel())])
+
+    def jacobian(z):
+        y = x.copy()
+        y[ids] = z.reshape(-1, 3)
+        J, dJ = jac(y)
+        below = (_UNTANGLE_FLOOR * J0 - sign * J > 0.0)
+        vals = (-(sign * below) / J0)[:, :, None, None] * dJ
+        top = sparse.csr_matrix((vals[keep], (rows[keep], cols[keep])), shape=(m * q, n_z))
+        return sparse.vstack([top, stay * sparse.identity(n_z, format="csr")], format="csr")
+
+    z = least_squares(residuals, x0.ravel(), jac=jacobian, method="trf", tr_solver="lsmr", max_nfev=50,
+                      x_scale=edge_mm).x
+    worst_mm = float(np.linalg.norm(z.reshape(-1, 3) - x0, axis=1).max(initial=0.0))
+    if worst_mm > _UNTANGLE_MAX_MOVE_REL * edge_mm:
+        log.info("untangling %d inverted tets would move a node %.3g mm (mean edge %.3g mm): not done",
+                 int(inverted.sum()), worst_mm, edge_mm)
+        return None
+    out = u.copy()
+    out[ids] = z.reshape(-1, 3) - X[ids]
+    log.info("untangled %d inverted tets by moving %d nodes up to %.3g mm", int(inverted.sum()), len(ids), worst_mm)
+    return out
 
 
 def mapped_end_state(src: TetMesh, displacement_mm, dst: TetMesh, *, indenter: Indenter, bone_motion: BoneMotion,
                      settings: SolverSettings, bone_set: str = "bone") -> EndState | None:
     """The end state ``displacement_mm`` (n_nodes, 3) of mesh ``src`` carried to the nodes of mesh ``dst`` (the
     same body meshed again): the start of :func:`deeptissue.fem.solver.solve_turned` with ``indenter`` on
-    ``dst``. The nodes of facet set ``bone_set`` are moved by ``bone_motion``, the tets the state would
-    invert are unfolded (:func:`_unfolded`), and it has no contact forces (the first Newton iteration finds
-    the contact set). None (with a warning) if some tets stay inverted."""
+    ``dst``. The nodes of facet set ``bone_set`` are moved by ``bone_motion``; the curved tets the state would
+    invert are straightened (:func:`_unfolded`) and the rest untangled (:func:`_untangled`), the bone held. It has no contact forces (the first Newton iteration finds the contact set). None (with a warning)
+    if some tets stay inverted."""
     u = interpolate_nodal(src, np.asarray(displacement_mm, float).reshape(-1, 3), dst.nodes_mm)
+    fixed = np.zeros(len(dst.nodes_mm), bool)
     if bone_set in dst.facets:  # the bone's nodes follow its rigid motion exactly, as the solver prescribes
         b = np.unique(dst.facets[bone_set])
         X = dst.nodes_mm[b]
         u[b] = apply_rigid(X, rotation_deg=bone_motion.rotation_deg, centre_mm=bone_motion.centre_mm,
                            translation_mm=bone_motion.translation_mm) - X
-    u, folded = _unfolded(dst, u, order=settings.quadrature_order)
+        fixed[b] = True
+    order = settings.quadrature_order
+    u, folded = _unfolded(dst, u, fixed, order=order)
+    if folded:
+        repaired = _untangled(dst, u, _inverted(dst, u, order), fixed, order)
+        if repaired is not None:
+            u, folded = _unfolded(dst, repaired, fixed, order=order)
     if folded:
         log.warning("the state carried to the new mesh inverts %d tets: not used", folded)
         return None
