@@ -69,6 +69,51 @@ class TetMesh:
         return np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0]) / 6.0
 
 
+def locate_in_tets(mesh: TetMesh, points_mm, *, nearest: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """(element (n,) int, its barycentric coordinates (n, 4)) of each point (n, 3) [mm] among the straight
+    tetrahedra through the mesh's corners: the element whose smallest barycentric coordinate is largest
+    (>= 0: the point is inside it; < 0: the point is outside every element, and this is the one it is least
+    outside of). Candidates: the elements with the ``nearest`` nearest centroids, and for a point inside none
+    of them, every element whose centroid is within the largest centroid-corner distance."""
+    from scipy.spatial import cKDTree
+
+    P = np.asarray(points_mm, float).reshape(-1, 3)
+    corners = mesh.nodes_mm[mesh.tets[:, :4]]  # (m, 4, 3)
+    cen = corners.mean(axis=1)
+    Tinv = np.linalg.inv(np.transpose(corners[:, 1:] - corners[:, :1], (0, 2, 1)))  # columns: edges from corner 0
+
+    def barycentric(rows, elems):
+        xi = np.einsum("nij,nj->ni", Tinv[elems], P[rows] - corners[elems, 0])
+        return np.column_stack([1.0 - xi.sum(axis=1), xi])
+
+    tree = cKDTree(cen)
+    k = min(nearest, mesh.n_tets)
+    _, idx = tree.query(P, k=k)
+    idx = idx.reshape(len(P), k)
+    lam = barycentric(np.repeat(np.arange(len(P)), k), idx.ravel()).reshape(len(P), k, 4)
+    best = np.argmax(lam.min(axis=2), axis=1)
+    rows = np.arange(len(P))
+    elem, out = idx[rows, best], lam[rows, best]
+    todo = np.flatnonzero(out.min(axis=1) < 0.0)
+    if len(todo):
+        reach = float(np.max(np.linalg.norm(corners - cen[:, None], axis=2)))
+        cand = tree.query_ball_point(P[todo], reach)
+        counts = np.fromiter((len(c) for c in cand), int, len(todo))
+        has = counts > 0
+        flat = np.fromiter((i for c in cand for i in c), np.int64, counts.sum())
+        lam_c = barycentric(np.repeat(todo, counts), flat)
+        score = lam_c.min(axis=1)
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])[has]
+        top = np.maximum.reduceat(score, starts)
+        # the first candidate of each point reaching its top score
+        pick = np.flatnonzero(score == np.repeat(top, counts[has]))
+        first = pick[np.searchsorted(pick, starts)]
+        better = top > out[todo[has]].min(axis=1)
+        at = todo[has][better]
+        elem[at], out[at] = flat[first[better]], lam_c[first[better]]
+    return elem, out
+
+
 def extract_tetmesh(gmsh_module=None, *, order: int = 2) -> TetMesh:
     """Read the current gmsh model into a :class:`TetMesh` of ``order`` 2 (meshed with ``setOrder(2)``:
     10-node tets, 6-node facets) or 1 (first-order mesh: 4-node tets, 3-node facets).
@@ -363,18 +408,6 @@ def _curve_mid_nodes(g, entities_dim_tag, corner_params: dict, max_shift_ratio: 
     return moved, n_straight
 
 
-def _tet10_shape_gradients(u: float, v: float, w: float) -> np.ndarray:
-    """Gradients (10, 3) of the gmsh-ordered 10-node tet shape functions at reference point (u, v, w)."""
-    lam = np.array([1 - u - v - w, u, v, w])
-    dl = np.array([[-1, -1, -1], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
-    g = np.zeros((10, 3))
-    for i in range(4):
-        g[i] = (4 * lam[i] - 1) * dl[i]
-    for k, (a, b) in enumerate([(0, 1), (1, 2), (0, 2), (0, 3), (2, 3), (1, 3)]):
-        g[4 + k] = 4 * (lam[a] * dl[b] + lam[b] * dl[a])
-    return g
-
-
 def _tet_dihedral_deg(p: np.ndarray) -> np.ndarray:
     """Dihedral angles (n, 6) [deg] of straight tetrahedra with corners p (n, 4, 3)."""
     faces = [(1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1)]  # face opposite corner i, outward for positive tets
@@ -411,12 +444,11 @@ def tet10_min_det_jacobian(mesh: TetMesh) -> np.ndarray:
         [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0.5, 0, 0], [0.5, 0.5, 0], [0, 0.5, 0], [0, 0, 0.5], [0, 0.5, 0.5], [0.5, 0, 0.5],
          [0.25, 0.25, 0.25], [1 / 3, 1 / 3, 0], [1 / 3, 0, 1 / 3], [0, 1 / 3, 1 / 3], [1 / 3, 1 / 3, 1 / 3]]
     )
+    from .strain import tet10_shape_gradients  # strain imports this module
+
     x = mesh.nodes_mm[mesh.tets]  # (n, 10, 3)
-    dets = []
-    for u, v, w in ref:
-        J = np.einsum("nic,ij->ncj", x, _tet10_shape_gradients(u, v, w))
-        dets.append(np.linalg.det(J))
-    return np.min(np.stack(dets, axis=1), axis=1) / 6.0
+    J = np.einsum("nic,pij->npcj", x, tet10_shape_gradients(ref))
+    return np.min(np.linalg.det(J), axis=1) / 6.0
 
 
 def mesh_limb(
@@ -792,9 +824,7 @@ def tet10_volume_mm3(mesh: TetMesh) -> float:
     # degree-3 exact rule on the reference tet (Keast, 5 points, one negative weight)
     pts = np.array([[0.25, 0.25, 0.25], [1 / 6, 1 / 6, 1 / 6], [0.5, 1 / 6, 1 / 6], [1 / 6, 0.5, 1 / 6], [1 / 6, 1 / 6, 0.5]])
     w = np.array([-4 / 5, 9 / 20, 9 / 20, 9 / 20, 9 / 20]) / 6.0
+    from .strain import tet10_shape_gradients  # strain imports this module
+
     x = mesh.nodes_mm[mesh.tets]
-    total = 0.0
-    for (u, v, s), wk in zip(pts, w):
-        g = _tet10_shape_gradients(u, v, s)
-        total += wk * np.linalg.det(np.einsum("nic,ij->ncj", x, g)).sum()
-    return float(total)
+    return float(np.einsum("np,p->", np.linalg.det(np.einsum("nic,pij->npcj", x, tet10_shape_gradients(pts))), w))

@@ -19,10 +19,9 @@ from typing import Mapping, Sequence
 
 import numpy as np
 import pandas as pd
-from scipy.spatial import cKDTree
 
 from .io import atomic_path
-from .mesh import TetMesh
+from .mesh import TetMesh, locate_in_tets
 from .strain import DEFAULT_BIN_EDGES, bin_labels
 from .summary import Summary
 
@@ -302,41 +301,11 @@ def section_frame(axis, *, leg_axis=(0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.nda
 
 
 def locate_points(mesh: TetMesh, points_mm, *, tol: float = 1e-9) -> np.ndarray:
-    """Index of the tetrahedron (straight, through its corner nodes) containing each point, -1 outside.
-
-    ``points_mm`` (..., 3) -> (...) int. Candidates: the 8 nearest element centroids; for points
-    not found there, every element whose centroid is within the largest centroid–corner distance.
-    """
+    """Index of the tetrahedron (straight, through its corner nodes) containing each point, -1 outside
+    (:func:`deeptissue.mesh.locate_in_tets`). ``points_mm`` (..., 3) -> (...) int."""
     P = np.asarray(points_mm, float)
-    shape = P.shape[:-1]
-    P = P.reshape(-1, 3)
-    corners = mesh.nodes_mm[mesh.tets[:, :4]]  # (m, 4, 3)
-    cen = corners.mean(axis=1)
-    T = np.transpose(corners[:, 1:] - corners[:, :1], (0, 2, 1))  # columns: edges from corner 0
-    Tinv = np.linalg.inv(T)
-    R = float(np.max(np.linalg.norm(corners - cen[:, None], axis=2)))
-    tree = cKDTree(cen)
-
-    def inside(rows, elems):
-        lam = np.einsum("nij,nj->ni", Tinv[elems], P[rows] - corners[elems, 0])
-        return np.all(lam >= -tol, axis=1) & (lam.sum(axis=1) <= 1 + tol)
-
-    out = np.full(len(P), -1, dtype=np.int64)
-    k = min(8, mesh.n_tets)
-    dist, idx = tree.query(P, k=k)
-    idx, dist = idx.reshape(len(P), k), dist.reshape(len(P), k)
-    for j in range(k - 1, -1, -1):  # nearest last so it wins
-        ok = inside(np.arange(len(P)), idx[:, j])
-        out[ok] = idx[ok, j]
-    todo = np.flatnonzero((out < 0) & (dist[:, 0] <= R))
-    if len(todo):
-        cand = tree.query_ball_point(P[todo], R)
-        counts = np.fromiter((len(c) for c in cand), int, len(todo))
-        flat = np.fromiter((i for c in cand for i in c), np.int64, counts.sum())
-        rows = np.repeat(todo, counts)
-        ok = inside(rows, flat)
-        out[rows[ok]] = flat[ok]
-    return out.reshape(shape)
+    elem, lam = locate_in_tets(mesh, P)
+    return np.where(lam.min(axis=1) >= -tol, elem, -1).reshape(P.shape[:-1])
 
 
 @dataclass(frozen=True)
