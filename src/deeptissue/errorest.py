@@ -30,8 +30,8 @@ from typing import Sequence
 import numpy as np
 
 from .mesh import TetMesh
-from .strain import (DEFAULT_BIN_EDGES, GMSH_TET10_EDGES, _DL, bin_labels, gamma_at_points, tet10_shape_functions,
-                     tet10_shape_gradients, tet_subdivision, voi_statistics)
+from .strain import (DEFAULT_BIN_EDGES, GMSH_TET10_EDGES, bin_labels, gamma_at_points, tet10_shape_functions,
+                     tet_shape_gradients, tet_subdivision, voi_statistics)
 
 __all__ = ["GAUSS_XI", "NODE_XI", "VoiErrorEstimate", "element_indicator", "gamma_at_nodes", "patch_recovered_gamma",
            "recovered_gamma", "sampling_difference", "voi_error_estimate"]
@@ -58,7 +58,7 @@ def _gamma_at(mesh: TetMesh, displacement_mm, xi, strain_measure: str, chunk: in
         raise ValueError(f"displacement: expected shape {mesh.nodes_mm.shape}, got {u.shape}")
     q = len(xi)
     pts = np.vstack([xi, [[0.25, 0.25, 0.25]]])
-    dN = tet10_shape_gradients(pts) if mesh.order == 2 else np.broadcast_to(_DL, (len(pts), 4, 3))
+    dN = tet_shape_gradients(pts, mesh.order)
     out = np.empty((mesh.n_tets, q))
     for lo in range(0, mesh.n_tets, chunk):
         tets = mesh.tets[lo:lo + chunk]

@@ -36,7 +36,7 @@ from .mesh import TetMesh
 __all__ = ["DEFAULT_BIN_EDGES", "GMSH_TET10_EDGES", "STRAIN_MEASURES", "ElementStrain", "StrainError", "VoiStatistics",
            "bin_labels", "deformation_gradient_at_centroids", "element_strain", "element_volumes_mm3", "gamma_at_points",
            "green_lagrange", "max_shear", "principal_log_stretches", "principal_values", "tet10_shape_functions",
-           "tet10_shape_gradients", "tet_quadrature", "tet_subdivision", "voi_statistics"]
+           "tet10_shape_gradients", "tet_quadrature", "tet_shape_gradients", "tet_subdivision", "voi_statistics"]
 
 log = logging.getLogger(__name__)
 
@@ -76,6 +76,13 @@ def tet10_shape_gradients(xi) -> np.ndarray:
     for k, (a, b) in enumerate(GMSH_TET10_EDGES):
         out[:, 4 + k] = 4.0 * (L[:, b, None] * _DL[a] + L[:, a, None] * _DL[b])
     return out
+
+
+def tet_shape_gradients(xi, order: int) -> np.ndarray:
+    """Gradients of the shape functions of a tet of ``order`` (2: 10 nodes, 1: 4 corners; gmsh order) w.r.t.
+    (ξ, η, ζ) at ``xi`` (n, 3) -> (n, 10 or 4, 3)."""
+    xi = np.atleast_2d(np.asarray(xi, float))
+    return tet10_shape_gradients(xi) if order == 2 else np.broadcast_to(_DL, (len(xi), 4, 3))
 
 
 def tet_quadrature(n: int = 3) -> tuple[np.ndarray, np.ndarray]:
@@ -291,7 +298,7 @@ def gamma_at_points(mesh: TetMesh, displacement_mm, *, levels: int = 2, strain_m
         raise ValueError(f"strain_measure {bad_measures[0]!r}: expected one of {STRAIN_MEASURES}")
     u = _check_mesh_and_u(mesh, displacement_mm)
     pts, w = tet_subdivision(levels)
-    dN = tet10_shape_gradients(pts) if mesh.order == 2 else np.broadcast_to(_DL, (len(pts), 4, 3))
+    dN = tet_shape_gradients(pts, mesh.order)
     gam = {m: np.empty((mesh.n_tets, len(pts))) for m in strain_measures}
     vol = np.empty((mesh.n_tets, len(pts)))
     n_centroid = 0

@@ -17,7 +17,8 @@ from skfem import MeshTet1, MeshTet2
 
 from ..mesh import TetMesh
 
-__all__ = ["GMSH_TET_EDGES", "GMSH_TO_SKFEM_TET10", "SkMesh", "reference_jacobians", "straighten_invalid", "to_skfem"]
+__all__ = ["GMSH_TET_EDGES", "GMSH_TO_SKFEM_TET10", "SkMesh", "jacobian_points", "reference_jacobians",
+           "straighten_invalid", "to_skfem"]
 
 # gmsh Tetrahedron10 local edges (mid-node 4 + k is on edge k)
 GMSH_TET_EDGES = ((0, 1), (1, 2), (0, 2), (0, 3), (2, 3), (1, 3))
@@ -125,16 +126,21 @@ def _facet_sets(tm: TetMesh, mesh, vert: np.ndarray, nv: int) -> dict:
     return facets
 
 
-def reference_jacobians(tm: TetMesh, *, order: int = 4, skmesh: SkMesh | None = None, corners: bool = True) -> np.ndarray:
-    """det(dX/dxi) (n_tets, n_points) of the (curved) P2 geometry (straight P1 geometry for order 1) at the points of a quadrature
-    rule of ``order`` (and at the 4 corners if ``corners``): must be > 0 where the solver integrates."""
+def jacobian_points(order: int, *, corners: bool = True) -> np.ndarray:
+    """Reference points (n, 3) where a tet must keep a positive Jacobian: the points of the quadrature rule of
+    ``order`` (the solver's) and, if ``corners``, the 4 corners."""
     from skfem.quadrature import get_quadrature
     from skfem.refdom import RefTet
 
+    xi = get_quadrature(RefTet, order)[0].T
+    return np.concatenate([xi, np.eye(3), np.zeros((1, 3))]) if corners else xi
+
+
+def reference_jacobians(tm: TetMesh, *, order: int = 4, skmesh: SkMesh | None = None, corners: bool = True) -> np.ndarray:
+    """det(dX/dxi) (n_tets, n_points) of the (curved) P2 geometry (straight P1 geometry for order 1) at the points of a quadrature
+    rule of ``order`` (and at the 4 corners if ``corners``): must be > 0 where the solver integrates."""
     sk = skmesh if skmesh is not None else to_skfem(tm)
-    xi, _ = get_quadrature(RefTet, order)
-    pts = np.concatenate([xi, np.eye(3), np.zeros((3, 1))], axis=1) if corners else xi
-    return sk.mesh._mapping().detDF(pts)
+    return sk.mesh._mapping().detDF(jacobian_points(order, corners=corners).T)
 
 
 def straighten_invalid(tm: TetMesh, *, order: int = 2, max_rounds: int = 5) -> tuple[TetMesh, int]:

@@ -24,9 +24,9 @@ from scipy.optimize import least_squares
 
 from ..mesh import TetMesh, locate_in_tets
 from ..rigid import BoneMotion, apply_rigid
-from ..strain import tet10_shape_functions, tet10_shape_gradients
+from ..strain import tet10_shape_functions, tet_shape_gradients
 from .indenters import Indenter
-from .skmesh import GMSH_TET_EDGES, reference_jacobians
+from .skmesh import GMSH_TET_EDGES, jacobian_points, reference_jacobians
 from .solver import EndState, SolverSettings
 
 __all__ = ["interpolate_nodal", "mapped_end_state"]
@@ -35,8 +35,7 @@ log = logging.getLogger(__name__)
 
 _UNTANGLE_FLOOR = 0.05  # an untangled tet keeps at least this fraction of its reference Jacobian
 _UNTANGLE_STAY = 1e-3  # weight of the distance moved (over the patch's mean edge) against the shortfall
-_P1_GRADIENTS = np.array([[-1.0, -1.0, -1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
-_UNTANGLE_MAX_MOVE_REL = 0.25  # a repair that moves a corner farther (of the patch's mean edge) is not a repair
+_UNTANGLE_MAX_MOVE_REL = 0.25  # a repair that moves a node farther (of the patch's mean edge) is not a repair
 
 
 def interpolate_nodal(mesh: TetMesh, values, points_mm) -> np.ndarray:
@@ -77,24 +76,16 @@ def _unfolded(mesh: TetMesh, u: np.ndarray, fixed: np.ndarray, *, order: int, ma
     return u, int(bad.sum())
 
 
-def _jacobian_points(order: int) -> np.ndarray:
-    """Reference points (n, 3) where a tet must keep a positive Jacobian: the quadrature points of ``order`` and
-    the corners (as :func:`deeptissue.fem.skmesh.reference_jacobians`)."""
-    from skfem.quadrature import get_quadrature
-    from skfem.refdom import RefTet
-
-    return np.concatenate([get_quadrature(RefTet, order)[0].T, np.eye(3), np.zeros((1, 3))])
-
-
 def _untangled(mesh: TetMesh, u: np.ndarray, inverted: np.ndarray, fixed: np.ndarray, order: int
                ) -> np.ndarray | None:
     """``u`` (n_nodes, 3) with the nodes of the ``inverted`` tets (bool (n_tets,)) and of the tets that share a
     corner with them moved as little as gives every tet they belong to a Jacobian of at least
     ``_UNTANGLE_FLOOR`` of its reference one at its corners and the quadrature points of ``order`` (least
-    squares on the shortfall and the distance moved, sparse Gauss-Newton trust region). ``fixed`` (bool (n_nodes,)): nodes that keep their displacement (the
-    bone's, which the solver prescribes). A source state inverted at element corners, pinched at the bone,
-    folds the new mesh's tets there; a few hundredths of a mm set them right. None if that takes moving a
-    node by more than ``_UNTANGLE_MAX_MOVE_REL`` of the patch's mean edge: not a local repair."""
+    squares on the shortfall and the distance moved, sparse Gauss-Newton trust region). ``fixed`` (bool
+    (n_nodes,)): nodes that keep their displacement (the bone's, which the solver prescribes). A source state
+    inverted at element corners, pinched at the bone, folds the new mesh's tets there; a few hundredths of a
+    mm set them right. None if that takes moving a node by more than ``_UNTANGLE_MAX_MOVE_REL`` of the
+    patch's mean edge: not a local repair."""
     X, corners = mesh.nodes_mm, mesh.tets[:, :4]
     ring = np.zeros(len(X), bool)
     ring[corners[inverted].ravel()] = True
@@ -103,17 +94,19 @@ def _untangled(mesh: TetMesh, u: np.ndarray, inverted: np.ndarray, fixed: np.nda
     free &= ~fixed
     ids = np.flatnonzero(free)
     T = mesh.tets[np.any(free[mesh.tets], axis=1)]
-    pts = _jacobian_points(order)
-    dN = tet10_shape_gradients(pts) if mesh.order == 2 else np.broadcast_to(_P1_GRADIENTS, (len(pts), 4, 3))
+    dN = tet_shape_gradients(jacobian_points(order), mesh.order)
     x = X + u
 
-    def jac(y):  # Jacobians (m, q) and their gradients (m, q, nodes, 3)
+    def jac(y, grad=True):  # Jacobians (m, q) and, if grad, their gradients (m, q, nodes, 3)
         c = np.einsum("man,qak->mqkn", y[T], dN)  # columns d x / d xi_k
-        g = np.stack([np.cross(c[:, :, 1], c[:, :, 2]), np.cross(c[:, :, 2], c[:, :, 0]),
-                      np.cross(c[:, :, 0], c[:, :, 1])], axis=2)  # dJ / d column k
-        return np.einsum("mqn,mqn->mq", c[:, :, 0], g[:, :, 0]), np.einsum("mqkn,qak->mqan", g, dN)
+        g0 = np.cross(c[:, :, 1], c[:, :, 2])  # dJ / d column 0
+        J = np.einsum("mqn,mqn->mq", c[:, :, 0], g0)
+        if not grad:
+            return J
+        g = np.stack([g0, np.cross(c[:, :, 2], c[:, :, 0]), np.cross(c[:, :, 0], c[:, :, 1])], axis=2)
+        return J, np.einsum("mqkn,qak->mqan", g, dN)
 
-    J0 = jac(X)[0]
+    J0 = jac(X, grad=False)
     sign, J0 = np.sign(J0), np.abs(J0)
     edge_mm = float(np.mean(np.linalg.norm(X[T][:, [1, 2, 3, 2, 3, 3]] - X[T][:, [0, 0, 0, 1, 1, 2]], axis=2)))
     slot = np.full(len(X), -1)
@@ -134,7 +127,7 @@ def _untangled(mesh: TetMesh, u: np.ndarray, inverted: np.ndarray, fixed: np.nda
     def residuals(z):
         y = x.copy()
         y[ids] = z.reshape(-1, 3)
-        return np.concatenate([np.maximum(_UNTANGLE_FLOOR * J0 - sign * jac(y)[0], 0.0).ravel() / J0.ravel(),
+        return np.concatenate([np.maximum(_UNTANGLE_FLOOR * J0 - sign * jac(y, grad=False), 0.0).ravel() / J0.ravel(),
                                stay * (z - x0.ravel())])
 
     def jacobian(z):
@@ -164,8 +157,9 @@ def mapped_end_state(src: TetMesh, displacement_mm, dst: TetMesh, *, indenter: I
     """The end state ``displacement_mm`` (n_nodes, 3) of mesh ``src`` carried to the nodes of mesh ``dst`` (the
     same body meshed again): the start of :func:`deeptissue.fem.solver.solve_turned` with ``indenter`` on
     ``dst``. The nodes of facet set ``bone_set`` are moved by ``bone_motion``; the curved tets the state would
-    invert are straightened (:func:`_unfolded`) and the rest untangled (:func:`_untangled`), the bone held. It has no contact forces (the first Newton iteration finds the contact set). None (with a warning)
-    if some tets stay inverted."""
+    invert are straightened (:func:`_unfolded`) and the rest untangled (:func:`_untangled`), the bone held.
+    It has no contact forces (the first Newton iteration finds the contact set). None (with a warning) if
+    some tets stay inverted."""
     u = interpolate_nodal(src, np.asarray(displacement_mm, float).reshape(-1, 3), dst.nodes_mm)
     fixed = np.zeros(len(dst.nodes_mm), bool)
     if bone_set in dst.facets:  # the bone's nodes follow its rigid motion exactly, as the solver prescribes
