@@ -1,5 +1,6 @@
 """Solution-driven refinement: the size rule, the background size field, the loop, the cylinder scene."""
 
+import time
 from types import SimpleNamespace
 
 import numpy as np
@@ -204,6 +205,16 @@ def test_the_loop_stops_on_its_budget_and_on_a_failed_solve(coarse_cylinder):
     r = adapt(build, solve, est)
     assert r.stop_reason == "not converged" and len(r.passes) == 2
     assert r.mesh is m and r.estimate.voi_err_mm3 == pytest.approx(0.1)  # the last converged pass
+    # a solve that ends unconverged after the budget was spent (the solver's max_wall_s) stops on the budget
+    build, solve, est, _ = _fake(m, [10.0] * 5, converged=[True, False, True])
+
+    def slow(mesh, previous):
+        if previous is not None:
+            time.sleep(1.0)
+        return solve(mesh, previous)
+
+    r = adapt(build, slow, est, AdaptSettings(max_wall_s=0.8))
+    assert r.stop_reason == "wall" and len(r.passes) == 2 and not r.passes[-1].converged
 
 
 def test_the_force_estimate_needs_a_shrunk_contact_zone(coarse_cylinder):

@@ -145,4 +145,4 @@ def test_the_readme_command_runs_through_snakemake(calf, tmp_path):
     r = subprocess.run([*snakemake, "-n", "convergence", "--cores", "2", "--configfile", "config/calf.yaml"],
                        cwd=repo, env=env, capture_output=True, text=True, timeout=300)
     assert r.returncode != 0
-    assert "config key convergence.animal: null, and no configured animal has a during scan ['calf']" in r.stdout + r.stderr
+    assert "config key convergence.animals: null, and no configured animal has a during scan ['calf']" in r.stdout + r.stderr

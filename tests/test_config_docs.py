@@ -10,7 +10,7 @@ from deeptissue.config import (
     REGENERATE_COMMAND,
     ConfigError,
     check_config,
-    convergence_animal,
+    convergence_animals,
     figure_animal,
     load_schema,
     main,
@@ -100,7 +100,7 @@ def _demo():
         (lambda c: c["study"].update(threshold=0.25), r"config key study\.bin_edges: must start at study\.threshold \(0\.25\), got 0\.3"),
         (lambda c: c["study"].update(bin_edges=[0.3, 0.5, 0.4]), r"config key study\.bin_edges: not strictly increasing: \[0\.3, 0\.5, 0\.4\]"),
         (lambda c: c["study"].update(figure_animal="rat09"), r"config key study\.figure_animal: 'rat09' is not a configured animal"),
-        (lambda c: c["convergence"].update(animal="rat09"), r"config key convergence\.animal: 'rat09' is not a configured animal \["),
+        (lambda c: c["convergence"].update(animals=["rat01", "rat09"]), r"config key convergence\.animals: \['rat09'\] are not configured animals \["),
         (
             lambda c: (c["animals"].update(calf={"pre": "config/config.yaml", "crop_mm": [[0, 1], [0, 1], [0, 1]],
                                                  "leg_point_mm": [0.5, 2.0, 0.5]})),
@@ -120,27 +120,28 @@ def test_cross_key_checks_name_the_key(mutate, match):
         validate_config(cfg, SCHEMA, base_dir=ROOT)
 
 
-def test_figure_and_convergence_animal_defaults():
+def test_figure_and_convergence_animals_defaults():
     cfg = _demo()
-    assert figure_animal(cfg) == "rat01" and convergence_animal(cfg) == "rat01"
-    cfg["study"]["figure_animal"] = cfg["convergence"]["animal"] = "rat03"
-    assert figure_animal(cfg) == "rat03" and convergence_animal(cfg) == "rat03"
+    assert figure_animal(cfg) == "rat01" and convergence_animals(cfg) == ["rat03", "rat02"]
+    cfg["study"]["figure_animal"] = "rat03"
+    cfg["convergence"]["animals"] = None
+    assert figure_animal(cfg) == "rat03" and convergence_animals(cfg) == ["rat01"]
     # an animal without a during scan is skipped; with none, only the convergence target needs one
     cfg = validate_config({"animals": {"calf": {"pre": "config/config.yaml"}}}, SCHEMA, base_dir=ROOT)
-    assert figure_animal(cfg) is None and convergence_animal(cfg) is None
+    assert figure_animal(cfg) is None and convergence_animals(cfg) == []
     cfg["study"]["figure_animal"] = "calf"
     with pytest.raises(ConfigError, match=r"config key study\.figure_animal: 'calf' has no during scan"):
         check_config(cfg)
     cfg["study"]["figure_animal"] = None
-    with pytest.raises(ConfigError, match=r"config key convergence\.animal: null, and no configured animal has a during scan"):
-        convergence_animal(cfg, required=True)
+    with pytest.raises(ConfigError, match=r"config key convergence\.animals: null, and no configured animal has a during scan"):
+        convergence_animals(cfg, required=True)
     # a study of pre-only animals is valid with the animal named too: only the convergence target refuses it
-    cfg["convergence"]["animal"] = "calf"
+    cfg["convergence"]["animals"] = ["calf"]
     check_config(cfg)
-    assert convergence_animal(cfg) is None
-    with pytest.raises(ConfigError, match=r"config key convergence\.animal: 'calf' has no during scan; the convergence "
-                                          r"target solves an indentation and needs an animal with one"):
-        convergence_animal(cfg, required=True)
-    cfg["convergence"]["animal"] = None
+    assert convergence_animals(cfg) == []
+    with pytest.raises(ConfigError, match=r"config key convergence\.animals: \['calf'\] have no during scan; the "
+                                          r"convergence target solves an indentation and needs animals with one"):
+        convergence_animals(cfg, required=True)
+    cfg["convergence"]["animals"] = None
     cfg["animals"] = {"calf": {"pre": "a.nii.gz"}, "rat": {"phantom": {}}}
-    assert convergence_animal(cfg) == "rat"
+    assert convergence_animals(cfg) == ["rat"]

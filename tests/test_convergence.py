@@ -186,7 +186,7 @@ def test_summary_names_cheapest_setting_meeting_goal_and_judges_default():
     text = summary_markdown(df, default_name="p2_n8000", notes=["element order 1 left out"])
     assert "Cheapest setting meeting the goal: `p2_n27000`" in text
     assert "`p2_n8000` does NOT meet the goal" in text and "sits on the" in text
-    assert "reference for `bar`: `p2_n64000`" in text
+    assert "reference for rat01 `bar`: `p2_n64000`" in text
     assert "Note: element order 1 left out" in text
     assert "is the reference itself" in summary_markdown(df, default_name="p2_n64000")
     # memory above the start grows exactly linearly in n_dofs in these rows
@@ -201,8 +201,8 @@ def test_aggregate_writes_csv_figure_and_summary_with_benchmarks(tmp_path):
         p = tmp_path / "rows" / f"{r['setting']}.json"
         write_json(p, r)
         paths.append(p)
-        b = tmp_path / "bench" / f"sphere_{r['setting']}.tsv"
-        b.parent.mkdir(exist_ok=True)
+        b = tmp_path / "bench" / "rat01" / f"sphere_{r['setting']}.tsv"
+        b.parent.mkdir(parents=True, exist_ok=True)
         b.write_text("s\th:m:s\tmax_rss\tmax_vms\tmax_uss\tmax_pss\tio_in\tio_out\tmean_load\tcpu_time\n"
                      f"{r['wall_s'] + 2}\t0:00:01\t{r['peak_rss_mb'] + 5}\t1\t1\t1\t0\t0\t90\t{r['wall_s']}\n")
         benches.append(b)
@@ -282,7 +282,7 @@ def test_slurm_profile_dry_run_plans_the_study_and_the_ladder():
     cfg = validate_config(yaml.safe_load((ROOT / "config/config.yaml").read_text()),
                           ROOT / "workflow/schemas/config.schema.yaml", base_dir=ROOT)
     n_solve = len(cfg["animals"]) * len(cfg["study"]["variants"])
-    n_ladder = len(cfg["convergence"]["variants"]) * len(
+    n_ladder = len(cfg["convergence"]["animals"]) * len(cfg["convergence"]["variants"]) * len(
         default_ladder(cfg["convergence"], model_cfg=cfg["model"], solver_cfg=cfg["fem"]["solver"]).settings)
     exe = Path(sys.executable).with_name("snakemake")
     env = dict(os.environ, PYTHONPATH=str(ROOT / "src"))
@@ -298,6 +298,77 @@ def test_slurm_profile_dry_run_plans_the_study_and_the_ladder():
     assert ["convergence_run", str(n_ladder)] in stats, out[-2000:]
     assert "runtime=120, cpus_per_task=2" in out  # solve
     assert "mem_mb=8000" in out and "runtime=240" in out  # convergence_run
+    # the adaptive runs of the ladder's animals and variants, and the cylinder scene
+    assert ["adapt_variant", str(n_ladder // len(default_ladder(cfg["convergence"]).settings))] in stats, out[-2000:]
+    assert ["verify_cylinder_adaptive", "1"] in stats, out[-2000:]
+
+
+def _passes(bins_last, *, voi_last, force_last, n_last, converged_last=True):
+    """passes.csv of an adaptive run of rat01's sphere: a coarse pass, then one with the given answer."""
+    bins0 = {"0.3-0.4": 70.0, "0.4-0.5": 25.0, ">0.5": 5.0}
+    rows = []
+    for k, (n, voi, force, bins, ok) in enumerate([(2000, 14.0, 0.11, bins0, True),
+                                                     (n_last, voi_last, force_last, bins_last, converged_last)]):
+        rows.append(dict(animal="rat01", variant="sphere", index=k, n_dofs=n, n_tets=n // 5, converged=ok,
+                         mesh_s=1.0, solve_s=5.0 * (k + 1), estimate_s=0.5, wall_s=7.0 * (k + 1) ** 2,
+                         voi_mm3=voi if ok else np.nan, voi_err_percent=1.0 if ok else np.nan, bins_err_pp=0.2 if ok else np.nan,
+                         force_N=force if ok else np.nan, force_err_percent=np.nan if k == 0 else 3.0,
+                         goal_met=k == 1 and ok, stop_reason="goal",
+                         **{f"bins_percent.{b}": (v if ok else np.nan) for b, v in bins.items()}))
+    return pd.DataFrame(rows)
+
+
+def test_adaptive_runs_are_measured_against_the_ladders_reference_and_never_are_it(tmp_path):
+    from deeptissue.convergence import adaptive_pass_errors, adaptive_rows, reference_rows
+
+    ref = ladder_rows()[-1]  # p2_n64000
+    bins = {k: v + 0.5 for k, v in ref["bins_percent"].items()}
+    passes = _passes(bins, voi_last=1.01 * ref["voi_mm3"], force_last=1.03 * ref["indenter_force_N"], n_last=90000)
+    rows = ladder_rows() + adaptive_rows(passes)
+    assert reference_rows(rows)[("rat01", "sphere")]["setting"] == "p2_n64000"  # more DOFs, still not the reference
+    df = convergence_table(rows).set_index("setting")
+    a = df.loc["adaptive"]
+    assert a["voi_rel_error"] == pytest.approx(0.01) and a["force_rel_error"] == pytest.approx(0.03)
+    assert a["bin_max_error_pp"] == pytest.approx(0.5) and a["wall_s"] == 28.0 and a["n_dofs"] == 90000
+    assert not a["meets_goal"] and not a["is_reference"]
+    # every pass's true error, for the figure
+    errs = adaptive_pass_errors(passes, reference_rows(rows))
+    assert errs.loc[1, "voi_rel_error"] == pytest.approx(0.01) and errs.loc[0, "voi_rel_error"] > 0.1
+    text = summary_markdown(convergence_table(rows), default_name="p2_n27000")
+    # VOI 1 % against an estimate of 1 %, bins 0.5 pp against 0.2 pp, force 3 % against 3 %
+    assert "| rat01 | sphere | 2, goal | 90000 (64000) | 28 | 1.00 / 1.00 | 0.50 / 0.20 | 3.00 / 3.00 | yes, no, yes |" in text
+    # a run whose last pass failed answers with its last converged pass; one with none converged is a failed row
+    failed = _passes(bins, voi_last=1.0, force_last=1.0, n_last=90000, converged_last=False)
+    row = adaptive_rows(failed)[0]
+    assert row["converged"] and row["n_dofs"] == 2000 and row["wall_s"] == 28.0
+    none = failed.assign(converged=False)
+    assert not adaptive_rows(none)[0]["converged"]
+    # the aggregate: the adaptive run in the table, and the cylinder scene in the summary
+    from deeptissue.io import write_json
+
+    paths = []
+    for r in ladder_rows():
+        write_json(tmp_path / "rows" / f"{r['setting']}.json", r)
+        paths.append(tmp_path / "rows" / f"{r['setting']}.json")
+    passes.to_csv(tmp_path / "passes.csv", index=False)
+    cyl = pd.DataFrame([
+        dict(kind="fixed", mesh="1.6 / 0.8 mm", depth_mm=2.0, n_dofs=29577, wall_s=18.0, est_voi_percent=12.0,
+             est_bins_pp=4.2, true_voi_percent=2.1, true_bins_pp=1.06, true_force_percent=0.73),
+        dict(kind="adaptive", mesh="adaptive", depth_mm=2.0, n_dofs=10809, wall_s=2.9, est_voi_percent=38.0,
+             est_bins_pp=16.9, true_voi_percent=22.4, true_bins_pp=8.2, true_force_percent=5.8, pass_index=0),
+        dict(kind="adaptive", mesh="adaptive", depth_mm=2.0, n_dofs=77433, wall_s=37.7, est_voi_percent=1.0,
+             est_bins_pp=0.18, true_voi_percent=-0.09, true_bins_pp=0.15, true_force_percent=0.07, pass_index=3,
+             est_force_percent=0.1)])
+    cyl.to_csv(tmp_path / "cylinder.csv", index=False)
+    out = tmp_path / "out"
+    df = aggregate_convergence(row_paths=paths, adaptive_paths=[tmp_path / "passes.csv"],
+                               cylinder_path=tmp_path / "cylinder.csv", csv_path=out / "convergence.csv",
+                               png_path=out / "error_vs_time.png", md_path=out / "summary.md", default_name="p2_n27000")
+    assert "adaptive" in set(df["setting"])
+    md = (out / "summary.md").read_text()
+    assert "| 2 | 1.6 / 0.8 mm | 29577 | 18.0 | 2.10 / 12.00 | 1.06 / 4.20 | 0.73 / – | no |" in md
+    assert "| 2 | adaptive, 4 passes | 77433 | 37.7 | 0.09 / 1.00 | 0.15 / 0.18 | 0.07 / 0.10 | yes |" in md
+    assert (out / "error_vs_time.png").read_bytes()[:4] == b"\x89PNG"
 
 
 def test_effectivity_of_the_runs_own_error_estimate():

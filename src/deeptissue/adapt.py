@@ -355,8 +355,9 @@ def adapt(build_mesh: Callable[[SizeField | None], TetMesh], solve: Callable[[Te
         the largest bin's at most ``bins_goal_pp`` and (unless ``force_goal_percent`` is None) the
         force's estimate (the change from the previous pass, or an earlier pass's held verdict,
         :class:`AdaptSettings`) at most ``force_goal_percent``. The loop stops there, after
-        ``max_passes`` passes, or once ``max_wall_s`` has passed, or when a solve does not converge
-        (the result then holds the last converged pass's mesh and solution).
+        ``max_passes`` passes, or once ``max_wall_s`` has passed (``stop_reason`` 'wall', also for a solve
+        that ended unconverged after it), or when a solve does not converge (the result then holds the
+        last converged pass's mesh and solution).
     """
     st = settings
     t_start = time.perf_counter()
@@ -369,8 +370,8 @@ def adapt(build_mesh: Callable[[SizeField | None], TetMesh], solve: Callable[[Te
         t1 = time.perf_counter()
         sol = solve(mesh, None if last is None else last[:2])
         t2 = time.perf_counter()
-        if not sol.converged:
-            reason = "not converged"
+        if not sol.converged:  # a solve stopped by the loop's budget (the solver's max_wall_s) spent it
+            reason = "wall" if t2 - t_start >= st.max_wall_s else "not converged"
             passes.append(AdaptPass(k, 3 * len(mesh.nodes_mm), int(mesh.n_tets), False, t1 - t0, t2 - t1, 0.0,
                                     t2 - t_start, np.nan, np.nan, np.nan, np.nan, np.nan, np.nan, "no solve",
                                     float(element_sizes(mesh).min()), False))

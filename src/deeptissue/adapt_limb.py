@@ -12,6 +12,7 @@ the VOI, its bins and the force (:func:`limb_estimate`). :func:`run_adaptive_var
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Sequence
@@ -71,26 +72,32 @@ def limb_mesher(contours: Contours, pose: Pose, variant: str, *, cast: Cast, set
 
 def limb_solver(*, animal: str, variant: str, pose: Pose, cast: SolverCast | None, material: Ogden,
                 settings: SolverSettings, study: StudySettings = StudySettings(), skin_contours_mm=None,
-                bar_length_mm: float = 10.0) -> Callable[[TetMesh, tuple | None], LimbSolve]:
+                bar_length_mm: float = 10.0, deadline_s: float | None = None) -> Callable[[TetMesh, tuple | None], LimbSolve]:
     """``solve(mesh, previous) -> LimbSolve`` of :func:`deeptissue.adapt.adapt`. The first pass solves the
     bone-rotation steps on the mesh (:func:`deeptissue.fem.solver.solve_bone_rotation`), then the variant
     from that state as the rule ``solve`` does (:func:`deeptissue.study.solve_variant`, which solves the
     rotation itself if those steps did not converge). A later pass starts from the previous pass's solution
     carried to its mesh (:func:`deeptissue.fem.transfer.mapped_end_state`, ``turned_from`` "previous pass")
-    and solves the whole path only if that state folds tets or does not converge. Keywords as in
-    :func:`deeptissue.study.solve_variant`."""
+    and solves the whole path only if that state folds tets or does not converge. ``deadline_s``
+    (``time.perf_counter()`` seconds) ends every solve there, as the solver's ``max_wall_s`` (the smaller
+    of the two): a pass that cannot finish within the loop's budget is stopped instead of running on.
+    Other keywords as in :func:`deeptissue.study.solve_variant`."""
     indenter = variant_indenter(pose, variant, bar_length_mm=bar_length_mm)
 
     def solve(mesh: TetMesh, previous: tuple | None) -> LimbSolve:
+        settings_ = settings
+        if deadline_s is not None:
+            left = max(deadline_s - time.perf_counter(), 1.0)
+            settings_ = replace(settings, max_wall_s=min(settings.max_wall_s or np.inf, left))
         start = base = None
         if previous is None:
             _, start = solve_bone_rotation(mesh, material=material, bone_motion=pose.bone_motion, cast=cast,
-                                           settings=settings)
+                                           settings=settings_)
         else:
             base = mapped_end_state(previous[0], previous[1].displacement_mm, mesh, indenter=indenter,
-                                    bone_motion=pose.bone_motion, settings=settings)
+                                    bone_motion=pose.bone_motion, settings=settings_)
         summary, u, strain = solve_variant(animal=animal, variant=variant, mesh=mesh, pose=pose, cast=cast,
-                                           material=material, settings=settings, study=study,
+                                           material=material, settings=settings_, study=study,
                                            skin_contours_mm=skin_contours_mm, bar_length_mm=bar_length_mm,
                                            start=start, base=base, base_variant="previous pass")
         force = summary.indenter_force_N
@@ -142,11 +149,12 @@ def adaptive_limb(*, animal: str, variant: str, contours: Contours, pose: Pose, 
     every pass's skin facets. Returns the AdaptResult (``solution``: the last converged pass's
     :class:`LimbSolve`)."""
     indenter = variant_indenter(pose, variant, bar_length_mm=bar_length_mm)
+    deadline_s = time.perf_counter() + settings.max_wall_s
     return adapt(
         limb_mesher(contours, pose, variant, cast=cast, settings=model_settings, animal=animal),
         limb_solver(animal=animal, variant=variant, pose=pose, cast=SolverCast(cast.vertices_mm, cast.triangles),
                     material=material, settings=solver_settings, study=study, skin_contours_mm=skin_contours_mm,
-                    bar_length_mm=bar_length_mm),
+                    bar_length_mm=bar_length_mm, deadline_s=deadline_s),
         lambda mesh, sol: limb_estimate(mesh, sol, indenter, study),
         settings, log=log_pass)
 

@@ -28,7 +28,7 @@ __all__ = [
     "ConfigError",
     "check_config",
     "check_config_files",
-    "convergence_animal",
+    "convergence_animals",
     "figure_animal",
     "has_during_scan",
     "load_config_file",
@@ -339,44 +339,44 @@ def figure_animal(config: dict[str, Any]) -> str | None:
     return next((a for a, c in config["animals"].items() if has_during_scan(c)), None)
 
 
-def convergence_animal(config: dict[str, Any], *, required: bool = False) -> str | None:
-    """The animal of the speed-against-error ladder.
+def convergence_animals(config: dict[str, Any], *, required: bool = False) -> list[str]:
+    """The animals of the speed-against-error ladder.
 
     Parameters
     ----------
     config : dict
         A validated configuration.
     required : bool, optional
-        Raise instead of returning None (for the inputs of the ``convergence`` target).
+        Raise instead of leaving animals out (for the inputs of the ``convergence`` target).
 
     Returns
     -------
-    str or None
-        ``convergence.animal`` if it has a during scan, or with ``convergence.animal`` null the first configured
-        animal with one; None if there is none (a study of pre-only animals: only the convergence target needs one).
+    list of str
+        The animals of ``convergence.animals`` that have a during scan, or with ``convergence.animals`` null the
+        first configured animal with one; empty if there is none (a study of pre-only animals: only the
+        convergence target needs one).
 
     Raises
     ------
     ConfigError
-        If ``required`` and no animal qualifies.
+        If ``required`` and a named animal has no during scan, or none qualifies.
     """
-    named = config["convergence"]["animal"]
+    named = config["convergence"]["animals"]
     animals = config["animals"]
     if named is not None:
-        if has_during_scan(animals[named]):
-            return named
-        if required:
+        without = [a for a in named if not has_during_scan(animals[a])]
+        if without and required:
             raise ConfigError(
-                f"config key convergence.animal: {named!r} has no during scan; the convergence target solves an "
-                f"indentation and needs an animal with one {list(animals)}"
+                f"config key convergence.animals: {without} have no during scan; the convergence target solves an "
+                f"indentation and needs animals with one {list(animals)}"
             )
-        return None
+        return [a for a in named if a not in without]
     found = next((a for a, cfg in animals.items() if has_during_scan(cfg)), None)
     if found is None and required:
         raise ConfigError(
-            f"config key convergence.animal: null, and no configured animal has a during scan {list(animals)}"
+            f"config key convergence.animals: null, and no configured animal has a during scan {list(animals)}"
         )
-    return found
+    return [] if found is None else [found]
 
 
 def _check_bin_edges(config: dict[str, Any]) -> None:
@@ -399,13 +399,14 @@ def _check_figure_animal(config: dict[str, Any]) -> None:
         raise ConfigError(f"config key study.figure_animal: {name!r} has no during scan: it has no FE results to draw")
 
 
-def _check_convergence_animal(config: dict[str, Any]) -> None:
-    """A named ``convergence.animal`` must be configured; one without a during scan is refused only by the
-    ``convergence`` target (:func:`convergence_animal` with ``required``), so a study of pre-only animals runs."""
-    name = config["convergence"]["animal"]
+def _check_convergence_animals(config: dict[str, Any]) -> None:
+    """Named ``convergence.animals`` must be configured; one without a during scan is refused only by the
+    ``convergence`` target (:func:`convergence_animals` with ``required``), so a study of pre-only animals runs."""
+    named = config["convergence"]["animals"] or []
     animals = list(config["animals"])
-    if name is not None and name not in animals:
-        raise ConfigError(f"config key convergence.animal: {name!r} is not a configured animal {animals}")
+    unknown = [a for a in named if a not in animals]
+    if unknown:
+        raise ConfigError(f"config key convergence.animals: {unknown} are not configured animals {animals}")
 
 
 def _check_leg_points(config: dict[str, Any]) -> None:
@@ -449,7 +450,7 @@ def check_config(config: dict[str, Any]) -> None:
     No animal is named like a folder of the study's own outputs (:data:`RESERVED_ANIMAL_NAMES`); every
     phantom's indenter can be imaged (:func:`deeptissue.phantom.check_indenter`);
     ``study.bin_edges`` starts at ``study.threshold`` and increases strictly; ``study.figure_animal``
-    is a configured animal; ``convergence.animal`` is a configured animal (the ``convergence`` target
+    is a configured animal; ``convergence.animals`` are configured animals (the ``convergence`` target
     asks for a during scan); an animal's ``leg_point_mm`` lies inside its ``crop_mm``.
 
     Parameters
@@ -466,7 +467,7 @@ def check_config(config: dict[str, Any]) -> None:
     _check_phantoms(config)
     _check_bin_edges(config)
     _check_figure_animal(config)
-    _check_convergence_animal(config)
+    _check_convergence_animals(config)
     _check_leg_points(config)
 
 

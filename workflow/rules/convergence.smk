@@ -1,14 +1,18 @@
-# Speed against error: one animal x a few variants solved at a ladder of discretisations, errors against
-# the finest converged run, Pareto front and scaling. Target `convergence`, not in `all`.
+# Speed against error: animals x variants solved at a ladder of discretisations and on adaptive meshes
+# (rule adapt_variant), and the cylinder scene of `verify` on fixed and adaptive meshes; errors against the
+# finest converged run, Pareto front and scaling. Target `convergence`, not in `all`.
 import re
 
-from deeptissue.config import convergence_animal
+from deeptissue.config import convergence_animals
 from deeptissue.convergence import default_ladder
+from deeptissue.variants import parse_variant
 
 CONV = config["convergence"]
-# None when no animal has a during scan: the other targets stay available, `convergence` stops with a ConfigError
-CONV_ANIMAL = convergence_animal(config)
+# empty when no animal has a during scan: the other targets stay available, `convergence` stops with a ConfigError
+CONV_ANIMALS = convergence_animals(config)
 CONV_VARIANTS = list(CONV["variants"])
+# the adaptive loop solves unturned variants of the study (rule adapt_variant)
+CONV_ADAPTIVE_VARIANTS = [v for v in CONV_VARIANTS if v in VARIANTS and parse_variant(v).turn_axis is None]
 CONV_LADDER = default_ladder(CONV, model_cfg=config["model"], solver_cfg=config["fem"]["solver"])
 CONV_SETTINGS = CONV_LADDER.names
 
@@ -49,32 +53,38 @@ rule convergence_run:
 
 
 rule convergence_aggregate:
-    """Every row and benchmark -> convergence.csv, the error-vs-time figure and summary.md."""
+    """Every row, benchmark and adaptive run -> convergence.csv, the error-vs-time figure and summary.md."""
     input:
         rows=lambda wc: expand(
             "results/convergence/{animal}/{conv_variant}/{setting}.json",
-            animal=[convergence_animal(config, required=True)],
+            animal=convergence_animals(config, required=True),
             conv_variant=CONV_VARIANTS,
             setting=CONV_SETTINGS,
         ),
         benchmarks=lambda wc: expand(
             "results/convergence/benchmarks/{animal}/{conv_variant}_{setting}.tsv",
-            animal=[convergence_animal(config, required=True)],
+            animal=convergence_animals(config, required=True),
             conv_variant=CONV_VARIANTS,
             setting=CONV_SETTINGS,
         ),
+        adaptive=lambda wc: expand(
+            "results/{animal}/adaptive/{variant}/passes.csv",
+            animal=convergence_animals(config, required=True),
+            variant=CONV_ADAPTIVE_VARIANTS,
+        ),
+        cylinder=rules.verify_cylinder_adaptive.output.table,
     output:
         csv=report(
             "results/convergence/convergence.csv",
             caption="../report/convergence_csv.rst",
             category="Speed against error",
-            subcategory=CONV_ANIMAL,
+            subcategory="Ladder",
         ),
         png=report(
             "results/convergence/error_vs_time.png",
             caption="../report/convergence.rst",
             category="Speed against error",
-            subcategory=CONV_ANIMAL,
+            subcategory="Ladder",
         ),
         md="results/convergence/summary.md",
     params:

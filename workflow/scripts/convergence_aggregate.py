@@ -1,4 +1,5 @@
-"""Glue of rule convergence_aggregate: rows + benchmarks -> convergence.csv, error_vs_time.png, summary.md."""
+"""Glue of rule convergence_aggregate: rows, benchmarks, adaptive runs and the cylinder scene -> convergence.csv,
+error_vs_time.png, summary.md."""
 
 from deeptissue.convergence import aggregate_convergence
 from deeptissue.io import script_log
@@ -7,6 +8,8 @@ with script_log(snakemake.log[0], "convergence_aggregate"):
     aggregate_convergence(
         row_paths=list(snakemake.input.rows),
         benchmark_paths=list(snakemake.input.benchmarks),
+        adaptive_paths=list(snakemake.input.adaptive),
+        cylinder_path=snakemake.input.cylinder,
         csv_path=snakemake.output.csv,
         png_path=snakemake.output.png,
         md_path=snakemake.output.md,

@@ -1,4 +1,4 @@
-"""Speed against error: one animal and variant solved at a ladder of discretisations.
+"""Speed against error: animals and variants solved at a ladder of discretisations and on adaptive meshes.
 
 The settings and the accuracy goal are in :mod:`.ladder`; one timed run (mesh, solve,
 post-processing and a linear-elastic reference) in :mod:`.runs`; the errors against the finest
@@ -10,9 +10,12 @@ points (pp).
 """
 
 from .analysis import (
+    ADAPTIVE_FAMILY,
     ESTIMATES,
     Richardson,
     ScalingFit,
+    adaptive_pass_errors,
+    adaptive_rows,
     convergence_table,
     goal_error,
     pareto_mask,
@@ -34,7 +37,7 @@ __all__ = [
     # runs
     "ROW_COLUMNS", "linear_reference_solve", "run_convergence_job", "run_discretisation",
     # analysis
-    "ESTIMATES", "Richardson", "ScalingFit", "convergence_table", "goal_error", "pareto_mask", "reference_rows",
+    "ADAPTIVE_FAMILY", "ESTIMATES", "Richardson", "ScalingFit", "adaptive_pass_errors", "adaptive_rows", "convergence_table", "goal_error", "pareto_mask", "reference_rows",
     "richardson_by_family", "richardson_extrapolation", "scaling_fit", "scaling_fits", "setting_table", "size_measure",
     # report
     "aggregate_convergence", "plot_error_vs_time", "read_benchmark", "summary_markdown", "write_summary_md",

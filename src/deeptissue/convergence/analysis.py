@@ -82,28 +82,39 @@ def _ok(r: dict) -> bool:
     return bool(r.get("converged")) and r.get("voi_mm3") is not None
 
 
+ADAPTIVE_FAMILY = "adaptive"  # the family of runs on adaptive meshes: compared with the reference, never one
+
+
+def _run(r: dict) -> tuple:
+    """The (animal, variant) a row belongs to."""
+    return (r.get("animal"), r["variant"])
+
+
 def reference_rows(rows) -> dict:
-    """{variant: the finest converged row}: most DOFs, then tightest rtol and gap tolerance."""
+    """{(animal, variant): the finest converged row of the ladder}: most DOFs, then tightest rtol and gap
+    tolerance. Runs on adaptive meshes (family :data:`ADAPTIVE_FAMILY`) are measured against it, not
+    candidates: their sizes are not one step of the ladder."""
     ref = {}
     for r in rows:
-        if not _ok(r):
+        if not _ok(r) or r.get("family") == ADAPTIVE_FAMILY:
             continue
         key = (r.get("n_dofs") or 0, -float(r.get("rtol") or 1.0), -float(r.get("gap_tol_rel") or 1.0))
-        cur = ref.get(r["variant"])
+        cur = ref.get(_run(r))
         if cur is None or key > cur[0]:
-            ref[r["variant"]] = (key, r)
+            ref[_run(r)] = (key, r)
     return {v: k_r[1] for v, k_r in ref.items()}
 
 
 def richardson_by_family(rows, *, measure: str = "dofs") -> list[dict]:
-    """Richardson extrapolation of VOI and force for every variant x family with >= 3 converged sizes
-    at one tolerance. One dict per (variant, family, quantity): order_p, extrapolated, sizes, settings."""
+    """Richardson extrapolation of VOI and force for every animal x variant x family with >= 3 converged
+    sizes at one tolerance. One dict per (animal, variant, family, quantity): order_p, extrapolated,
+    sizes, settings."""
     out = []
     groups: dict = {}
     for r in rows:
-        if _ok(r):
-            groups.setdefault((r["variant"], r["family"], r.get("tolerance")), []).append(r)
-    for (variant, family, tol), rs in sorted(groups.items(), key=lambda kv: tuple(str(x) for x in kv[0])):
+        if _ok(r) and r.get("family") != ADAPTIVE_FAMILY:
+            groups.setdefault((r.get("animal"), r["variant"], r["family"], r.get("tolerance")), []).append(r)
+    for (animal, variant, family, tol), rs in sorted(groups.items(), key=lambda kv: tuple(str(x) for x in kv[0])):
         if len({r["mesh_key"] for r in rs}) < 3:
             continue
         for q in ("voi_mm3", "voi_sampled_mm3", "voi_centroid_mm3", "indenter_force_N"):
@@ -113,7 +124,7 @@ def richardson_by_family(rows, *, measure: str = "dofs") -> list[dict]:
             f = [float(r[q]) if r.get(q) is not None else np.nan for r in rs]
             res = richardson_extrapolation(h, f)
             finest = sorted(rs, key=lambda r: -size_measure(r, measure=measure))[-3:]
-            out.append(dict(variant=variant, family=family, tolerance=tol, quantity=q,
+            out.append(dict(animal=animal, variant=variant, family=family, tolerance=tol, quantity=q,
                             order_p=None if res is None else res.order_p,
                             extrapolated=None if res is None else res.extrapolated,
                             sizes=None if res is None else list(res.sizes),
@@ -157,12 +168,13 @@ def goal_error(voi_rel: float, bin_pp: float, force_rel: float, goal: AccuracyGo
 
 
 def convergence_table(rows, *, goal: AccuracyGoal = AccuracyGoal(), measure: str = "dofs"):
-    """One row per run with its errors against the finest converged run of its variant.
+    """One row per run with its errors against the finest converged run of its animal and variant.
 
     Parameters
     ----------
     rows : iterable of dict
-        Rows of :func:`deeptissue.convergence.runs.run_discretisation` (keys ``ROW_COLUMNS``).
+        Rows of :func:`deeptissue.convergence.runs.run_discretisation` (keys ``ROW_COLUMNS``) and of
+        :func:`adaptive_rows` (family :data:`ADAPTIVE_FAMILY`).
     goal : AccuracyGoal
         The limits that ``goal_error`` divides by.
     measure : {"dofs", "element_size"}
@@ -171,13 +183,13 @@ def convergence_table(rows, *, goal: AccuracyGoal = AccuracyGoal(), measure: str
     Returns
     -------
     DataFrame
-        The rows, plus ``reference_setting`` (the finest converged run of the variant, see
+        The rows, plus ``reference_setting`` (the finest converged run of the animal and variant, see
         :func:`reference_rows`), ``is_reference``, ``voi_rel_error`` (|VOI − VOI_ref| / VOI_ref),
         ``bin_max_error_pp`` (largest |bin % − bin %_ref|, percentage points), ``force_rel_error``,
         ``goal_error`` (largest error over its goal), ``meets_goal``, ``voi_rel_error_richardson`` and
         ``force_rel_error_richardson`` (against the Richardson extrapolation of the reference's family,
         or of the family with the most sizes, where it exists), ``meets_goal_richardson``, ``pareto``
-        (not dominated in (wall_s, goal_error) among the converged runs of the variant), one
+        (not dominated in (wall_s, goal_error) among the converged runs of the animal and variant), one
         ``bin_<label>`` column per VOI bin [%], and the same errors for each γ sampling of
         :data:`ESTIMATES`. Rows that did not converge keep NaN errors.
     """
@@ -187,21 +199,21 @@ def convergence_table(rows, *, goal: AccuracyGoal = AccuracyGoal(), measure: str
     refs = reference_rows(rows)
     rich = richardson_by_family(rows, measure=measure)
     rich_ref: dict = {}
-    for variant, ref in refs.items():
-        cands = [x for x in rich if x["variant"] == variant and x["extrapolated"] is not None]
+    for run, ref in refs.items():
+        cands = [x for x in rich if (x["animal"], x["variant"]) == run and x["extrapolated"] is not None]
         for q in ("voi_mm3", "voi_sampled_mm3", "voi_centroid_mm3", "indenter_force_N"):
             qc = [x for x in cands if x["quantity"] == q]
             same = [x for x in qc if x["family"] == ref["family"] and x["tolerance"] == ref.get("tolerance")]
             pick = same[0] if same else (max(qc, key=lambda x: x["n_sizes"]) if qc else None)
             if pick is not None:
-                rich_ref[(variant, q)] = pick
+                rich_ref[(*run, q)] = pick
     labels = []
     for r in rows:
         for k in (r.get("bins_percent") or {}):
             if k not in labels:
                 labels.append(k)
     for r in rows:
-        ref = refs.get(r["variant"])
+        ref = refs.get(_run(r))
         ok = _ok(r) and ref is not None
         r["reference_setting"] = ref["setting"] if ref is not None else None
         r["is_reference"] = ref is not None and r["setting"] == ref["setting"]
@@ -210,7 +222,7 @@ def convergence_table(rows, *, goal: AccuracyGoal = AccuracyGoal(), measure: str
         r["force_rel_error"] = _rel(r["indenter_force_N"], ref["indenter_force_N"]) if ok else float("nan")
         r["goal_error"] = goal_error(r["voi_rel_error"], r["bin_max_error_pp"], r["force_rel_error"], goal) if ok else float("nan")
         r["meets_goal"] = bool(ok and r["goal_error"] <= 1.0)
-        rv, rf = rich_ref.get((r["variant"], "voi_mm3")), rich_ref.get((r["variant"], "indenter_force_N"))
+        rv, rf = rich_ref.get((*_run(r), "voi_mm3")), rich_ref.get((*_run(r), "indenter_force_N"))
         r["voi_rel_error_richardson"] = _rel(r["voi_mm3"], rv["extrapolated"]) if (ok and rv) else float("nan")
         r["force_rel_error_richardson"] = _rel(r["indenter_force_N"], rf["extrapolated"]) if (ok and rf) else float("nan")
         if ok and rv and rf:
@@ -237,14 +249,14 @@ def convergence_table(rows, *, goal: AccuracyGoal = AccuracyGoal(), measure: str
             r[f"goal_error_{est}"] = (goal_error(r[f"voi_{est}_rel_error"], r[f"bin_{est}_max_error_pp"],
                                                  r["force_rel_error"], goal) if ok_e else float("nan"))
             r[f"meets_goal_{est}"] = bool(ok_e and r[f"goal_error_{est}"] <= 1.0)
-            rs = rich_ref.get((r["variant"], voi))
+            rs = rich_ref.get((*_run(r), voi))
             r[f"voi_{est}_rel_error_richardson"] = _rel(r.get(voi), rs["extrapolated"]) if (ok_e and rs) else float("nan")
             for k in labels:
                 r[f"bin_{est}_{k}"] = (r.get(bins) or {}).get(k)
     df = pd.DataFrame(rows)
     df = df.drop(columns=[c for c in ("bins_percent", "bins_err_pp", *(f"bins_{e}_percent" for e in ESTIMATES)) if c in df])
     df["pareto"] = False
-    for variant, idx in df.groupby("variant").groups.items():
+    for _, idx in df.groupby(["animal", "variant"], dropna=False).groups.items():
         sub = df.loc[idx]
         conv = sub["converged"].astype(bool).to_numpy()
         m = pareto_mask(np.where(conv, sub["wall_s"].astype(float), np.nan), sub["goal_error"].astype(float))
@@ -253,12 +265,12 @@ def convergence_table(rows, *, goal: AccuracyGoal = AccuracyGoal(), measure: str
 
 
 def setting_table(df, *, goal: AccuracyGoal = AccuracyGoal()):
-    """Per setting over all variants: converged everywhere, largest goal_error, summed wall time and
+    """Per setting over all animals and variants: converged everywhere, largest goal_error, summed wall time and
     solve time, largest cost_ratio and peak memory, meets_goal (in every variant) and the Pareto
     flag on (total wall, largest goal_error). A pandas DataFrame sorted by total wall time."""
     import pandas as pd
 
-    n_var = df["variant"].nunique()
+    n_var = len(df[["animal", "variant"]].drop_duplicates())
     out = []
     for name, g in df.groupby("setting", sort=False):
         conv = bool(g["converged"].astype(bool).all()) and len(g) == n_var
@@ -322,3 +334,59 @@ def scaling_fits(df) -> list:
         scaling_fit(n, sel["peak_rss_mb"].astype(float), quantity="peak_rss_mb"),
     ]
     return [f for f in fits if f is not None]
+
+
+def _bins_of(row) -> dict:
+    """{bin label: %} from the ``bins_percent.<label>`` columns of a passes.csv row."""
+    return {k[len("bins_percent."):]: float(v) for k, v in row.items()
+            if k.startswith("bins_percent.") and v is not None and np.isfinite(float(v))}
+
+
+def adaptive_rows(passes) -> list[dict]:
+    """One row per adaptive run (rule ``adapt_variant``'s passes.csv, concatenated) in the ladder's form.
+
+    The run's answer is its last converged pass (its DOFs, VOI, bins and force; ``voi_err_mm3`` and
+    ``bins_err_pp`` its own estimates); its cost is the whole loop (``wall_s``: every pass's meshing, solve
+    and estimate; ``solve_s`` the passes' solves). Family :data:`ADAPTIVE_FAMILY`, setting 'adaptive'; also
+    ``adapt_passes``, ``adapt_stop_reason``, ``adapt_goal_met`` and the estimates ``est_voi_percent``,
+    ``est_bins_pp`` and ``est_force_percent`` (NaN where no previous pass gives the force's). A run with
+    no converged pass is a row with ``converged`` false and its stop reason.
+    """
+    rows = []
+    for (animal, variant), g in passes.groupby(["animal", "variant"], sort=False):
+        g = g.sort_values("index")
+        done = g[g["converged"].astype(bool)]
+        stop = str(g["stop_reason"].iloc[-1]) if "stop_reason" in g else ""
+        row = dict(animal=animal, variant=variant, setting="adaptive", family=ADAPTIVE_FAMILY, element_order=2,
+                   tolerance="default", mesh_key=f"adaptive_{animal}_{variant}", is_default=False,
+                   converged=len(done) > 0, reason=f"adaptive loop stopped: {stop}",
+                   wall_s=float(g["wall_s"].astype(float).max()), solve_s=float(g["solve_s"].astype(float).sum()),
+                   adapt_passes=len(g), adapt_stop_reason=stop, adapt_goal_met=bool(len(done) and done["goal_met"].iloc[-1]))
+        if len(done):
+            last = done.iloc[-1].to_dict()
+            voi = float(last["voi_mm3"])
+            row.update(n_dofs=int(last["n_dofs"]), n_elements=int(last["n_tets"]), voi_mm3=voi,
+                       bins_percent=_bins_of(last), indenter_force_N=float(last["force_N"]),
+                       voi_err_mm3=voi * float(last["voi_err_percent"]) / 100.0,
+                       bins_err_pp={"largest": float(last["bins_err_pp"])},
+                       est_voi_percent=float(last["voi_err_percent"]), est_bins_pp=float(last["bins_err_pp"]),
+                       est_force_percent=float(last["force_err_percent"]))
+        rows.append(row)
+    return rows
+
+
+def adaptive_pass_errors(passes, refs: dict):
+    """Every adaptive pass's true error against the ladder's reference of its animal and variant
+    (``refs``: :func:`reference_rows`): ``voi_rel_error``, ``bin_max_error_pp`` and ``force_rel_error``
+    beside the pass's own estimates (passes.csv); NaN where the pass did not converge or no reference."""
+    out = passes.copy()
+    cols = {"voi_rel_error": [], "bin_max_error_pp": [], "force_rel_error": []}
+    for r in passes.to_dict("records"):
+        ref = refs.get((r["animal"], r["variant"]))
+        ok = ref is not None and bool(r["converged"])
+        cols["voi_rel_error"].append(_rel(r["voi_mm3"], ref["voi_mm3"]) if ok else float("nan"))
+        cols["bin_max_error_pp"].append(_bin_error(_bins_of(r), ref.get("bins_percent")) if ok else float("nan"))
+        cols["force_rel_error"].append(_rel(r["force_N"], ref["indenter_force_N"]) if ok else float("nan"))
+    for k, v in cols.items():
+        out[k] = v
+    return out

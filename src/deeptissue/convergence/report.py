@@ -12,7 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .analysis import ESTIMATES, convergence_table, richardson_by_family, scaling_fits, setting_table
+from .analysis import (ADAPTIVE_FAMILY, ESTIMATES, adaptive_pass_errors, adaptive_rows, convergence_table,
+                       reference_rows, richardson_by_family, scaling_fits, setting_table)
 from .ladder import AccuracyGoal
 
 log = logging.getLogger(__name__)
@@ -29,22 +30,24 @@ def _fmt(x, spec=".3g", pct=False) -> str:
 
 
 def summary_markdown(df, *, default_name: str | None, goal: AccuracyGoal = AccuracyGoal(), notes=(),
-                     max_cost_ratio: float = 15.0, measure: str = "dofs") -> str:
-    """The text of ``summary.md``: cheapest setting meeting the goal in every variant, the Pareto
-    front, the Richardson orders, the fitted scaling exponents, and the verdict on the default."""
+                     max_cost_ratio: float = 15.0, measure: str = "dofs", cylinder=None) -> str:
+    """The text of ``summary.md``: cheapest setting meeting the goal in every animal and variant, the
+    Pareto front, the verdict on the default, the adaptive runs against the reference (true error
+    beside the estimate) and the cylinder scene (``cylinder``, rule ``verify_cylinder_adaptive``'s
+    table), the Richardson orders and the fitted scaling exponents."""
     st = setting_table(df, goal=goal)
     rows = df.to_dict("records")
     lines = ["# Speed against error", ""]
-    lines.append(f"Animal {', '.join(sorted(df['animal'].astype(str).unique()))}; variants "
+    lines.append(f"Animals {', '.join(dict.fromkeys(df['animal'].astype(str)))}; variants "
                  f"{', '.join(sorted(df['variant'].astype(str).unique()))}; {st.shape[0]} settings, {len(df)} runs "
                  f"({int(df['converged'].astype(bool).sum())} converged).")
     lines.append(f"Goal: VOI within {100 * goal.voi_rel_error:g} %, every bin within {goal.bin_error_pp:g} pp, "
                  f"force within {100 * goal.force_rel_error:g} % of the reference (the finest converged run of each "
-                 "variant), in every variant.")
+                 "animal and variant), in every animal and variant.")
     lines.append("")
     refs = df[df["is_reference"].astype(bool)]
     for _, r in refs.iterrows():
-        lines.append(f"- reference for `{r['variant']}`: `{r['setting']}` ({int(r['n_dofs'])} DOFs, VOI "
+        lines.append(f"- reference for {r['animal']} `{r['variant']}`: `{r['setting']}` ({int(r['n_dofs'])} DOFs, VOI "
                      f"{_fmt(r['voi_mm3'], '.4g')} mm³, force {_fmt(r['indenter_force_N'], '.4g')} N)")
     lines.append("")
     cand = st[st["meets_goal"] & ~st["is_reference"]]
@@ -53,7 +56,7 @@ def summary_markdown(df, *, default_name: str | None, goal: AccuracyGoal = Accur
         lines.append(f"**Cheapest setting meeting the goal: `{c['setting']}`** ({c['family']}; {_fmt(c['wall_s'], '.1f')} s "
                      f"for all variants, largest error {_fmt(c['goal_error'], '.2f')} × goal, largest cost ratio {_fmt(c['cost_ratio'], '.1f')}).")
     else:
-        lines.append("**No setting other than the reference meets the goal in every variant.**")
+        lines.append("**No setting other than the reference meets the goal in every animal and variant.**")
     lines.append("")
     sampling = ", ".join(sorted(df["gamma_sampling"].dropna().astype(str).unique())) if "gamma_sampling" in df else ""
     if sampling:
@@ -94,14 +97,17 @@ def summary_markdown(df, *, default_name: str | None, goal: AccuracyGoal = Accur
     else:
         lines.append(f"`{default_name}` was not run.")
     lines.append("")
+    lines += _effectivity_lines(df)
+    lines += _adaptive_lines(df, goal)
+    lines += _cylinder_lines(cylinder, goal)
     rich = richardson_by_family(rows, measure=measure)
     if rich:
         lines.append(f"Richardson extrapolation (three finest sizes of a family, h = {'n_dofs^(-1/3)' if measure == 'dofs' else 'element size'}):")
         lines.append("")
-        lines.append("| variant | family | quantity | order p | extrapolated | settings |")
-        lines.append("| --- | --- | --- | --- | --- | --- |")
+        lines.append("| animal | variant | family | quantity | order p | extrapolated | settings |")
+        lines.append("| --- | --- | --- | --- | --- | --- | --- |")
         for x in rich:
-            lines.append(f"| {x['variant']} | {x['family']} | {x['quantity']} | {_fmt(x['order_p'], '.2f')} | "
+            lines.append(f"| {x['animal']} | {x['variant']} | {x['family']} | {x['quantity']} | {_fmt(x['order_p'], '.2f')} | "
                          f"{_fmt(x['extrapolated'], '.4g')} | {', '.join(x['settings'])} |")
         lines.append("")
     fits = scaling_fits(df)
@@ -116,28 +122,118 @@ def summary_markdown(df, *, default_name: str | None, goal: AccuracyGoal = Accur
         lines.append("Runs that did not converge:")
         lines.append("")
         for _, r in failed.iterrows():
-            lines.append(f"- `{r['setting']}` / {r['variant']}: {r['reason']}")
+            lines.append(f"- `{r['setting']}` / {r['animal']} {r['variant']}: {r['reason']}")
         lines.append("")
     for n in notes:
         lines.append(f"Note: {n}")
     return "\n".join(lines).rstrip() + "\n"
 
 
+def _within(true, estimate) -> str:
+    """'yes' where the true error is within twice its estimate, 'no' where not, '–' where either is unknown."""
+    t, e = float(true), float(estimate)
+    if not (np.isfinite(t) and np.isfinite(e)):
+        return "–"
+    return "yes" if t <= 2.0 * e else "no"
+
+
+def _effectivity_lines(df) -> list:
+    """summary.md's line on the runs' own error estimates against their errors from the reference: the
+    effectivity (estimate / true error) range and how often the true error is within twice the estimate."""
+    if "voi_effectivity" not in df:
+        return []
+    lines = []
+    for col, what in (("voi_effectivity", "VOI"), ("bin_effectivity", "largest bin")):
+        e = df[col].astype(float)
+        e = e[np.isfinite(e)]
+        if len(e):
+            lines.append(f"- {what}: effectivity (own estimate / true error) {e.min():.2g}–{e.max():.2g} over {len(e)} runs; "
+                         f"the true error is within twice the estimate in {int((e >= 0.5).sum())} of them")
+    return (["Each run's own error estimate (`voi_err_mm3`, `bins_err_pp`) against its error from the reference:", "",
+             *lines, ""] if lines else [])
+
+
+def _adaptive_lines(df, goal: AccuracyGoal) -> list:
+    """summary.md's table of the adaptive runs: cost, the true error against the ladder's reference and the
+    run's own estimate, and whether the true error is within twice the estimate."""
+    runs = df[df["family"] == ADAPTIVE_FAMILY] if "family" in df else df.iloc[0:0]
+    if not len(runs):
+        return []
+    st = setting_table(df[df["family"] != ADAPTIVE_FAMILY], goal=goal)
+    fixed = st[st["meets_goal"] & ~st["is_reference"]]
+    lines = ["Adaptive meshes (rule `adapt_variant`, refined until their own estimate meets the goal) against the "
+             "reference; true error / own estimate, and whether the true error is within twice the estimate "
+             "(VOI, bins, force):", "",
+             "| animal | variant | passes, stop | DOFs (reference) | wall [s] | VOI [%] | largest bin [pp] | force [%] | "
+             "within 2 × estimate |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for _, r in runs.iterrows():
+        ref = df[(df["animal"] == r["animal"]) & (df["variant"] == r["variant"]) & df["is_reference"].astype(bool)]
+        ref_dofs = f"{int(ref['n_dofs'].iloc[0])}" if len(ref) else "–"
+        dofs = f"{int(r['n_dofs'])}" if np.isfinite(float(r.get("n_dofs") or np.nan)) else "–"
+        lines.append(
+            f"| {r['animal']} | {r['variant']} | {int(r['adapt_passes'])}, {r['adapt_stop_reason']} | {dofs} ({ref_dofs}) | "
+            f"{_fmt(r['wall_s'], '.0f')} | {_fmt(100 * float(r['voi_rel_error']), '.2f')} / {_fmt(r['est_voi_percent'], '.2f')} | "
+            f"{_fmt(r['bin_max_error_pp'], '.2f')} / {_fmt(r['est_bins_pp'], '.2f')} | "
+            f"{_fmt(100 * float(r['force_rel_error']), '.2f')} / {_fmt(r['est_force_percent'], '.2f')} | "
+            f"{_within(100 * float(r['voi_rel_error']), r['est_voi_percent'])}, {_within(r['bin_max_error_pp'], r['est_bins_pp'])}, "
+            f"{_within(100 * float(r['force_rel_error']), r['est_force_percent'])} |")
+    lines.append("")
+    total = float(runs["wall_s"].astype(float).sum())
+    met = int(runs["adapt_goal_met"].astype(bool).sum())
+    lines.append(f"The adaptive runs take {total:.0f} s together and meet the goal by their own estimate in {met} of "
+                 f"{len(runs)} runs; " + (f"the cheapest fixed setting that meets it in every run, `{fixed.iloc[0]['setting']}`, "
+                                          f"takes {fixed.iloc[0]['wall_s']:.0f} s" if len(fixed)
+                                          else "no fixed setting cheaper than the reference meets it in every run") +
+                 ". Where an adaptive mesh has more DOFs than the reference, its true error is partly the reference's own.")
+    lines.append("")
+    return lines
+
+
+def _cylinder_lines(cylinder, goal: AccuracyGoal) -> list:
+    """summary.md's table of the cylinder scene: the fixed mesh and each adaptive run's last pass against the
+    finest fixed mesh, true error / own estimate."""
+    if cylinder is None or not len(cylinder):
+        return []
+    lines = ["Cylinder scene of `verify` (rule `verify_cylinder_adaptive`; reference: its finest fixed mesh), true error / "
+             "own estimate:", "",
+             "| depth [mm] | mesh | DOFs | wall [s] | VOI [%] | largest bin [pp] | force [%] | meets goal (true) |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for d in sorted(cylinder["depth_mm"].unique()):
+        at = cylinder[cylinder["depth_mm"] == d]
+        picks = [r for _, r in at[at["kind"] == "fixed"].iterrows()]
+        a = at[at["kind"] == "adaptive"].sort_values("wall_s")
+        if len(a):
+            picks.append(a.iloc[-1])
+        for r in picks:
+            tv, tb, tf = abs(float(r["true_voi_percent"])), float(r["true_bins_pp"]), float(r["true_force_percent"])
+            met = (tv <= 100 * goal.voi_rel_error and tb <= goal.bin_error_pp and tf <= 100 * goal.force_rel_error)
+            name = r["mesh"] if r["kind"] == "fixed" else f"adaptive, {int(r['pass_index']) + 1} passes"
+            lines.append(f"| {d:g} | {name} | {int(r['n_dofs'])} | {_fmt(r['wall_s'], '.1f')} | {_fmt(tv, '.2f')} / "
+                         f"{_fmt(r['est_voi_percent'], '.2f')} | {_fmt(tb, '.2f')} / {_fmt(r['est_bins_pp'], '.2f')} | "
+                         f"{_fmt(tf, '.2f')} / {_fmt(r.get('est_force_percent'), '.2f')} | {'yes' if met else 'no'} |")
+    lines.append("")
+    return lines
+
+
 def write_summary_md(path, df, *, default_name: str | None, goal: AccuracyGoal = AccuracyGoal(), notes=(),
-                     max_cost_ratio: float = 15.0, measure: str = "dofs") -> str:
+                     max_cost_ratio: float = 15.0, measure: str = "dofs", cylinder=None) -> str:
     """Write :func:`summary_markdown` to ``path`` (atomically); returns the text."""
     from ..io import atomic_path
 
     text = summary_markdown(df, default_name=default_name, goal=goal, notes=notes, max_cost_ratio=max_cost_ratio,
-                            measure=measure)
+                            measure=measure, cylinder=cylinder)
     with atomic_path(path) as tmp:
         Path(tmp).write_text(text)
     return text
 
 
-def plot_error_vs_time(path, df, *, goal: AccuracyGoal = AccuracyGoal()) -> None:
-    """Log–log error against wall time, one line per family (and variant), three panels: VOI, largest
-    bin error, force. The goal is a dashed line; references (error 0) are not drawn."""
+def plot_error_vs_time(path, df, *, goal: AccuracyGoal = AccuracyGoal(), passes=None, cylinder=None) -> None:
+    """Log–log error against wall time, three panels per row (VOI, largest bin error, force), one row per
+    animal and one for the cylinder scene. A limb row has one line per ladder family and variant and,
+    with ``passes`` (:func:`adaptive_pass_errors`), each adaptive run's passes (black, the wall time of
+    the loop so far); the cylinder row (``cylinder``: the table of rule ``verify_cylinder_adaptive``) has
+    the fixed mesh per depth (squares) and the adaptive passes per depth. The goal is a dotted line;
+    references (error 0) are not drawn; a star marks the configured default."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -145,45 +241,73 @@ def plot_error_vs_time(path, df, *, goal: AccuracyGoal = AccuracyGoal()) -> None
     from matplotlib.ticker import NullFormatter
 
     from ..io import atomic_path
+    from .analysis import ADAPTIVE_FAMILY
 
     panels = [("voi_rel_error", "VOI error [%]", 100.0, 100 * goal.voi_rel_error),
               ("bin_max_error_pp", "largest bin error [pp]", 1.0, goal.bin_error_pp),
               ("force_rel_error", "force error [%]", 100.0, 100 * goal.force_rel_error)]
-    fig, axes = plt.subplots(1, 3, figsize=(14, 4.6))
-    ok = df[df["converged"].astype(bool)]
-    families = list(dict.fromkeys(df["family"]))
+    animals = list(dict.fromkeys(df["animal"]))
+    n_rows = len(animals) + (cylinder is not None and len(cylinder) > 0)
+    fig, axes = plt.subplots(n_rows, 3, figsize=(14, 3.9 * n_rows + 0.9), squeeze=False)
+    ok = df[df["converged"].astype(bool) & (df["family"] != ADAPTIVE_FAMILY)]
+    families = list(dict.fromkeys(ok["family"]))
     variants = list(dict.fromkeys(df["variant"]))
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     markers = ["o", "s", "^", "D", "v", "P"]
-    for ax, (col, label, scale, g) in zip(axes, panels):
-        for i, fam in enumerate(families):
-            mk = set(ok.loc[ok["family"] == fam, "mesh_key"])
-            for j, var in enumerate(variants):
-                sel = ok[(ok["variant"] == var) & ((ok["family"] == fam) | (ok["mesh_key"].isin(mk) & fam.endswith("tolerance")))]
-                sel = sel.sort_values("wall_s")
-                y = sel[col].astype(float) * scale
-                m = (y > 0) & np.isfinite(y)
-                if not m.any():
-                    continue
-                ax.plot(sel["wall_s"][m], y[m], marker=markers[j % len(markers)], color=colours[i % len(colours)],
-                        ls="-" if j == 0 else "--", label=f"{fam}, {var}")
-                default = sel[m & sel["is_default"].astype(bool)]
-                if len(default):
-                    ax.plot(default["wall_s"], default[col].astype(float) * scale, marker="*", ms=16, mfc="none",
-                            mec="k", ls="none")
+    handles = {}
+
+    def line(ax, x, y, label, **kw):
+        y = np.asarray(y, float)
+        m = (y > 0) & np.isfinite(y)
+        if m.any():
+            (h,) = ax.plot(np.asarray(x, float)[m], y[m], **kw)
+            handles.setdefault(label, h)
+
+    for row, animal in enumerate(animals):
+        mine = ok[ok["animal"] == animal]
+        for ax, (col, label, scale, g) in zip(axes[row], panels):
+            for i, fam in enumerate(families):
+                mk = set(mine.loc[mine["family"] == fam, "mesh_key"])
+                for j, var in enumerate(variants):
+                    sel = mine[(mine["variant"] == var) & ((mine["family"] == fam) | (mine["mesh_key"].isin(mk) & fam.endswith("tolerance")))]
+                    sel = sel.sort_values("wall_s")
+                    line(ax, sel["wall_s"], sel[col].astype(float) * scale, f"{fam}, {var}",
+                         marker=markers[j % len(markers)], color=colours[i % len(colours)], ls="-" if j == 0 else "--")
+                    default = sel[sel["is_default"].astype(bool)]
+                    line(ax, default["wall_s"], default[col].astype(float) * scale, "configured default",
+                         marker="*", ms=16, mfc="none", mec="k", ls="none")
+            if passes is not None and len(passes):
+                for j, var in enumerate(variants):
+                    a = passes[(passes["animal"] == animal) & (passes["variant"] == var)].sort_values("wall_s")
+                    line(ax, a["wall_s"], a[col].astype(float) * scale, f"adaptive, {var}",
+                         marker=markers[j % len(markers)], color="k", ls="-" if j == 0 else "--", mfc="none")
+            ax.set_title(f"{animal}: {label}", fontsize=9)
+    if n_rows > len(animals):
+        cyl = cylinder
+        true = {"voi_rel_error": "true_voi_percent", "bin_max_error_pp": "true_bins_pp", "force_rel_error": "true_force_percent"}
+        for ax, (col, label, _, g) in zip(axes[-1], panels):
+            for j, d in enumerate(sorted(cyl["depth_mm"].unique())):
+                at = cyl[cyl["depth_mm"] == d].sort_values("wall_s")
+                f, a = at[at["kind"] == "fixed"], at[at["kind"] == "adaptive"]
+                line(ax, f["wall_s"], f[true[col]].astype(float).abs(), f"cylinder {d:g} mm, fixed mesh",
+                     marker="s", ms=8, mfc="none", color=colours[(j + 3) % len(colours)], ls="none")
+                line(ax, a["wall_s"], a[true[col]].astype(float).abs(), f"cylinder {d:g} mm, adaptive",
+                     marker="o", color=colours[(j + 3) % len(colours)], ls="-")
+            ax.set_title(f"cylinder scene: {label}", fontsize=9)
+    for ax, (_, label, _, g) in zip(axes.ravel(), panels * n_rows):
         ax.axhline(g, color="k", ls=":", lw=1)
         ax.set_xscale("log")
         ax.set_yscale("log")
         for axis in (ax.xaxis, ax.yaxis):
             axis.set_minor_formatter(NullFormatter())
-        ax.set_xlabel("wall time (mesh + solve + post) [s]")
+        ax.set_xlabel("wall time [s] (adaptive: all passes so far)")
         ax.set_ylabel(label)
         ax.grid(True, which="both", alpha=0.3)
-    h, lab = axes[0].get_legend_handles_labels()
-    if h:
-        fig.legend(h, lab, loc="lower center", ncol=min(4, len(h)), fontsize=8, frameon=False)
+    if handles:
+        fig.legend(list(handles.values()), list(handles), loc="lower center", ncol=4, fontsize=8, frameon=False)
     fig.suptitle("Error against the finest converged run vs wall time (dotted: goal; star: configured default)", fontsize=10)
-    fig.tight_layout(rect=(0, 0.12 if h else 0, 1, 0.95))
+    legend_rows = (len(handles) + 3) // 4
+    fig.tight_layout(rect=(0, min(0.35, 0.025 * legend_rows * 4 / n_rows), 1, 0.97))
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)
@@ -206,8 +330,9 @@ def read_benchmark(path) -> dict:
     return out
 
 
-def aggregate_convergence(*, row_paths, benchmark_paths=(), csv_path, png_path, md_path, default_name: str | None,
-                          goal: dict | None = None, notes=(), max_cost_ratio: float = 15.0, measure: str = "dofs"):
+def aggregate_convergence(*, row_paths, benchmark_paths=(), adaptive_paths=(), cylinder_path=None, csv_path, png_path,
+                          md_path, default_name: str | None, goal: dict | None = None, notes=(),
+                          max_cost_ratio: float = 15.0, measure: str = "dofs"):
     """Rule ``convergence_aggregate``: the rows and Snakemake's benchmarks -> the table, figure and summary.
 
     Parameters
@@ -215,8 +340,14 @@ def aggregate_convergence(*, row_paths, benchmark_paths=(), csv_path, png_path, 
     row_paths : list of path
         JSON rows of rule ``convergence_run``.
     benchmark_paths : list of path
-        Snakemake ``benchmark:`` TSVs named ``<variant>_<setting>.tsv``; their time, memory and CPU
-        time join the row of that variant and setting (an unreadable one is logged and left out).
+        Snakemake ``benchmark:`` TSVs ``<animal>/<variant>_<setting>.tsv``; their time, memory and CPU
+        time join the row of that animal, variant and setting (an unreadable one is logged and left out).
+    adaptive_paths : list of path
+        passes.csv of rule ``adapt_variant`` for animals and variants of the ladder: one row each
+        (:func:`adaptive_rows`) and their passes on the figure.
+    cylinder_path : path, optional
+        The cylinder scene on fixed and adaptive meshes (rule ``verify_cylinder_adaptive``'s table): a
+        row of the figure and a table of summary.md.
     csv_path, png_path, md_path : path
         Where convergence.csv (:func:`convergence_table`), error_vs_time.png
         (:func:`plot_error_vs_time`) and summary.md (:func:`summary_markdown`) go.
@@ -236,24 +367,31 @@ def aggregate_convergence(*, row_paths, benchmark_paths=(), csv_path, png_path, 
     DataFrame
         The table written to ``csv_path``.
     """
+    import pandas as pd
+
     from ..io import atomic_path, read_json
 
     g = AccuracyGoal(**(goal or {}))
     bench = {}
     for p in benchmark_paths:
         try:
-            bench[Path(p).stem] = read_benchmark(p)
+            bench[f"{Path(p).parent.name}/{Path(p).stem}"] = read_benchmark(p)
         except Exception as exc:  # a missing or empty benchmark is not a reason to lose the table
             log.warning("benchmark %s unreadable: %s", p, exc)
     rows = []
     for p in row_paths:
         r = read_json(p)
-        r.update(bench.get(f"{r['variant']}_{r['setting']}", {}))
+        r.update(bench.get(f"{r['animal']}/{r['variant']}_{r['setting']}", {}))
         rows.append(r)
+    passes = pd.concat([pd.read_csv(p) for p in adaptive_paths], ignore_index=True) if adaptive_paths else None
+    if passes is not None:
+        rows += adaptive_rows(passes)
+        passes = adaptive_pass_errors(passes, reference_rows(rows))
+    cylinder = pd.read_csv(cylinder_path) if cylinder_path else None
     df = convergence_table(rows, goal=g, measure=measure)
     with atomic_path(csv_path) as tmp:
         df.to_csv(tmp, index=False)
-    plot_error_vs_time(png_path, df, goal=g)
+    plot_error_vs_time(png_path, df, goal=g, passes=passes, cylinder=cylinder)
     write_summary_md(md_path, df, default_name=default_name, goal=g, notes=notes, max_cost_ratio=max_cost_ratio,
-                     measure=measure)
+                     measure=measure, cylinder=cylinder)
     return df
