@@ -9,13 +9,13 @@ from model_synth import leg_contours, leg_pose
 from study_meshes import box_tet10, boundary_tri6
 
 from deeptissue.adapt import AdaptSettings, SizeField, element_sizes, node_sizes
-from deeptissue.adapt_limb import contact_tets, limb_mesher, run_adaptive_variant, write_adaptive_study
+from deeptissue.adapt_limb import contact_tets, limb_mesher, run_adaptive_variant
 from deeptissue.contours import save_contours
 from deeptissue.fem.indenters import Indenter
 from deeptissue.mesh import TetMesh
 from deeptissue.model import build_cast, build_model, save_cast
 from deeptissue.pose import save_pose
-from deeptissue.summary import Summary, read_summary, write_summary
+from deeptissue.summary import read_summary
 
 # a short phantom limb (12 slices, 11 x 8.6 mm across), the study's sizes but the quality gate's, which is
 # the model stage's business
@@ -81,35 +81,6 @@ def test_contact_tets_are_the_elements_the_indenter_holds():
     x = _centroids(mesh)
     assert strip.any() and np.all(np.abs(x[strip, 0] - 2.5) < 1.0) and np.all(x[strip, 1] > -1.0)
     assert set(np.round(x[strip, 2])) >= {-2.0, 0.0, 2.0}  # all along the bar
-
-
-def _fixed_summary(path, **kw):
-    bins = {"0.3-0.4": 60.0, "0.4-0.5": 40.0}
-    write_summary(path, Summary(animal="rat01", variant="sphere", converged=True, voi_mm3=10.0, bins_percent=bins,
-                                voi_err_mm3=1.5, bins_err_pp={"0.3-0.4": 4.0, "0.4-0.5": 2.0}, n_dofs=45000,
-                                n_elements=9000, indenter_force_N=0.07, wall_s=120.0, extra={"solver_wall_s": 150.0},
-                                **kw))
-
-
-def test_the_adaptive_table_puts_the_fixed_mesh_beside_the_passes(tmp_path):
-    passes = pd.DataFrame(dict(animal="rat01", variant="sphere", index=[0, 1], n_dofs=[18000, 60000],
-                               n_tets=[3000, 12000], converged=True, solve_s=[40.0, 200.0], wall_s=[45.0, 260.0],
-                               voi_mm3=[9.0, 10.2], voi_err_percent=[20.0, 1.5], bins_err_pp=[6.0, 0.8],
-                               force_N=[0.06, 0.071], force_err_percent=[np.nan, 1.0], goal_met=[False, True],
-                               stop_reason="goal"))
-    passes.to_csv(tmp_path / "passes.csv", index=False)
-    _fixed_summary(tmp_path / "summary.json")
-    t = write_adaptive_study([tmp_path / "passes.csv"], [tmp_path / "summary.json"], out_csv=tmp_path / "all.csv",
-                             figure_png=tmp_path / "all.png")
-    assert list(t["kind"]) == ["adaptive", "adaptive", "fixed"]
-    assert list(pd.read_csv(tmp_path / "all.csv", dtype={"index": str})["index"].fillna("")) == ["0", "1", ""]
-    fixed = t[t["kind"] == "fixed"].iloc[0]
-    assert fixed["voi_err_percent"] == pytest.approx(15.0)  # 1.5 of 10 mm³
-    assert fixed["bins_err_pp"] == pytest.approx(4.0)  # the largest bin's
-    assert fixed["wall_s"] == pytest.approx(150.0)  # the whole solve, bone rotation included
-    assert not fixed["goal_met"]
-    assert pd.read_csv(tmp_path / "all.csv").shape == t.shape
-    assert (tmp_path / "all.png").stat().st_size > 10_000
 
 
 @pytest.mark.slow

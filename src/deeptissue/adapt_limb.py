@@ -6,7 +6,7 @@ previous pass), solves the bone rotation and the indentation on that mesh
 (:func:`deeptissue.fem.solver.solve_bone_rotation`, :func:`deeptissue.study.solve_variant`; the cast
 contacts the new mesh's skin facets, the indenter its patch) and estimates the discretisation error of
 the VOI, its bins and the force (:func:`limb_estimate`). :func:`run_adaptive_variant` is the rule
-``adapt_variant``; :func:`write_adaptive_study` gathers the runs of the target ``adaptive``.
+``adapt_variant``.
 """
 
 from __future__ import annotations
@@ -15,10 +15,9 @@ import logging
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable
 
 import numpy as np
-import pandas as pd
 
 from .adapt import AdaptResult, AdaptSettings, PassEstimate, SizeField, adapt
 from .contours import Contours
@@ -36,7 +35,7 @@ from .study import StudySettings, solve_variant, variant_indenter
 from .summary import SAMPLING_LEVELS, Summary
 
 __all__ = ["LimbSolve", "adaptive_limb", "contact_tets", "limb_estimate", "limb_mesher", "limb_solver",
-           "plot_adaptive_study", "run_adaptive_variant", "write_adaptive_study"]
+           "run_adaptive_variant"]
 
 log = logging.getLogger(__name__)
 
@@ -215,79 +214,3 @@ def _failed_first_pass(animal: str, variant: str, result: AdaptResult, study: St
     return failed_summary(animal=animal, variant=variant, reason=f"adaptive pass 0: {result.stop_reason}",
                           strain_measure=study.strain_measure, threshold=study.threshold,
                           gamma_sampling=study.gamma_sampling, n_elements=None if p is None else p.n_tets)
-
-
-def write_adaptive_study(passes_csvs: Sequence, fixed_summaries: Sequence, *, out_csv, figure_png) -> pd.DataFrame:
-    """The target ``adaptive``: every run's passes (``passes_csvs``, :func:`run_adaptive_variant`) and,
-    per animal and variant, the fixed mesh's solve (``fixed_summaries``, the rule ``solve``'s summary.json)
-    in one table (out_csv) with a column ``kind`` ('adaptive' or 'fixed'), and :func:`plot_adaptive_study`
-    (figure_png). A fixed row has the summary's DOFs, ``solve_s`` and ``wall_s`` its ``solver_wall_s``
-    (the whole solve, bone rotation included), its VOI and estimated errors; ``goal_met`` by the adaptive
-    loop's goals (:class:`deeptissue.adapt.AdaptSettings`)."""
-    from .io import atomic_path
-    from .summary import read_summary
-
-    goals = AdaptSettings()
-    passes = pd.concat([pd.read_csv(p) for p in passes_csvs], ignore_index=True).assign(kind="adaptive")
-    rows = []
-    for path in fixed_summaries:
-        s = read_summary(path)
-        if not s.converged:
-            continue
-        voi_pc = 100.0 * s.voi_err_mm3 / s.voi_mm3 if s.voi_mm3 else np.nan
-        bins_pp = max(s.bins_err_pp.values())
-        wall = s.extra.get("solver_wall_s", s.wall_s)
-        rows.append(dict(animal=s.animal, variant=s.variant, kind="fixed", n_dofs=s.n_dofs, n_tets=s.n_elements,
-                         converged=True, solve_s=wall, wall_s=wall, voi_mm3=s.voi_mm3, voi_err_percent=voi_pc,
-                         bins_err_pp=bins_pp, force_N=s.indenter_force_N,
-                         goal_met=bool(voi_pc <= goals.voi_goal_percent and bins_pp <= goals.bins_goal_pp),
-                         **{f"bins_percent.{b}": x for b, x in s.bins_percent.items()}))
-    table = pd.concat([passes, pd.DataFrame(rows)], ignore_index=True)
-    table["index"] = table["index"].astype("Int64")  # the pass; empty for the fixed mesh
-    table = table[["animal", "variant", "kind", *[c for c in table.columns if c not in ("animal", "variant", "kind")]]]
-    Path(out_csv).parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(out_csv) as tmp:
-        table.to_csv(tmp, index=False)
-    plot_adaptive_study(table, figure_png)
-    return table
-
-
-def plot_adaptive_study(table: pd.DataFrame, path) -> None:
-    """Estimated VOI error [%] and largest bin error [pp] against wall time [s] (:func:`write_adaptive_study`'s
-    table): each run's passes as a line (open markers: not yet within the goal), the fixed mesh's solve as
-    a square, the goals (:class:`deeptissue.adapt.AdaptSettings`) as dotted lines."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from .io import atomic_path
-
-    goals = AdaptSettings()
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4.2))
-    runs = table[["animal", "variant"]].drop_duplicates().itertuples(index=False)
-    for j, (animal, variant) in enumerate(runs):
-        colour = f"C{j}"
-        run = table[(table["animal"] == animal) & (table["variant"] == variant)]
-        a = run[run["kind"] == "adaptive"].sort_values("wall_s")
-        f = run[run["kind"] == "fixed"]
-        for ax, col in zip(axes, ("voi_err_percent", "bins_err_pp")):
-            ax.plot(a["wall_s"], a[col], "-", color=colour, label=f"{animal} {variant}")
-            met = a["goal_met"].astype(bool).to_numpy()
-            ax.plot(a["wall_s"][met], a[col][met], "o", color=colour)
-            ax.plot(a["wall_s"][~met], a[col][~met], "o", color=colour, mfc="none")
-            ax.plot(f["wall_s"], f[col], "s", color=colour, mfc="none", ms=9)
-    for ax, goal, label in zip(axes, (goals.voi_goal_percent, goals.bins_goal_pp),
-                               ("estimated VOI error [%]", "estimated largest bin error [pp]")):
-        ax.axhline(goal, ls=":", color="k", lw=1)
-        ax.set_xscale("log")
-        ax.set_ylim(bottom=0)
-        ax.set_xlabel("wall time [s] (adaptive: all passes so far)")
-        ax.set_ylabel(label)
-    axes[0].legend(fontsize=8, title="circles: adaptive passes; squares: fixed mesh", title_fontsize=8)
-    fig.suptitle("Limb variants: adaptive meshes against the study's fixed mesh")
-    fig.tight_layout()
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=120, format="png")
-    plt.close(fig)
