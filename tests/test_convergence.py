@@ -336,7 +336,7 @@ def test_adaptive_runs_are_measured_against_the_ladders_reference_and_never_are_
     assert errs.loc[1, "voi_rel_error"] == pytest.approx(0.01) and errs.loc[0, "voi_rel_error"] > 0.1
     text = summary_markdown(convergence_table(rows), default_name="p2_n27000")
     # VOI 1 % against an estimate of 1 %, bins 0.5 pp against 0.2 pp, force 3 % against 3 %
-    assert "| rat01 | sphere | 2, goal | 90000 (64000) | 28 | 1.00 / 1.00 | 0.50 / 0.20 | 3.00 / 3.00 | yes, no, yes |" in text
+    assert "| rat01 | sphere | 2, goal | 90000 (64000) | 28 | 1.00 / 1.00 | 0.50 / 0.20 | 3.00 / 3.00 | yes, no, yes | –, – |" in text
     # a run whose last pass failed answers with its last converged pass; one with none converged is a failed row
     failed = _passes(bins, voi_last=1.0, force_last=1.0, n_last=90000, converged_last=False)
     row = adaptive_rows(failed)[0]

@@ -45,7 +45,7 @@ REGENERATE_COMMAND = "python -m deeptissue.config docs/config.md"
 
 
 #: folders of results/ that hold the study's own outputs, not an animal's: no animal may be named so
-RESERVED_ANIMAL_NAMES = ("adaptive", "convergence", "logs", "summary", "verification")
+RESERVED_ANIMAL_NAMES = ("convergence", "logs", "summary", "verification")
 
 
 class ConfigError(ValueError):

@@ -165,10 +165,13 @@ def _adaptive_lines(df, goal: AccuracyGoal) -> list:
              "reference; true error / own estimate, and whether the true error is within twice the estimate "
              "(VOI, bins, force):", "",
              "| animal | variant | passes, stop | DOFs (reference) | wall [s] | VOI [%] | largest bin [pp] | force [%] | "
-             "within 2 × estimate |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+             "within 2 × estimate | reference's own estimate: VOI [%], bins [pp] |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for _, r in runs.iterrows():
         ref = df[(df["animal"] == r["animal"]) & (df["variant"] == r["variant"]) & df["is_reference"].astype(bool)]
         ref_dofs = f"{int(ref['n_dofs'].iloc[0])}" if len(ref) else "–"
+        ref_est = (f"{_fmt(100 * float(ref['voi_err_mm3'].iloc[0]) / float(ref['voi_mm3'].iloc[0]), '.2f')}, "
+                   f"{_fmt(ref['bin_err_max_pp'].iloc[0], '.2f')}" if len(ref) and "voi_err_mm3" in ref else "–")
         dofs = f"{int(r['n_dofs'])}" if np.isfinite(float(r.get("n_dofs") or np.nan)) else "–"
         lines.append(
             f"| {r['animal']} | {r['variant']} | {int(r['adapt_passes'])}, {r['adapt_stop_reason']} | {dofs} ({ref_dofs}) | "
@@ -176,7 +179,7 @@ def _adaptive_lines(df, goal: AccuracyGoal) -> list:
             f"{_fmt(r['bin_max_error_pp'], '.2f')} / {_fmt(r['est_bins_pp'], '.2f')} | "
             f"{_fmt(100 * float(r['force_rel_error']), '.2f')} / {_fmt(r['est_force_percent'], '.2f')} | "
             f"{_within(100 * float(r['voi_rel_error']), r['est_voi_percent'])}, {_within(r['bin_max_error_pp'], r['est_bins_pp'])}, "
-            f"{_within(100 * float(r['force_rel_error']), r['est_force_percent'])} |")
+            f"{_within(100 * float(r['force_rel_error']), r['est_force_percent'])} | {ref_est} |")
     lines.append("")
     total = float(runs["wall_s"].astype(float).sum())
     met = int(runs["adapt_goal_met"].astype(bool).sum())
@@ -184,7 +187,8 @@ def _adaptive_lines(df, goal: AccuracyGoal) -> list:
                  f"{len(runs)} runs; " + (f"the cheapest fixed setting that meets it in every run, `{fixed.iloc[0]['setting']}`, "
                                           f"takes {fixed.iloc[0]['wall_s']:.0f} s" if len(fixed)
                                           else "no fixed setting cheaper than the reference meets it in every run") +
-                 ". Where an adaptive mesh has more DOFs than the reference, its true error is partly the reference's own.")
+                 ". Where the reference's own estimate is not well below the adaptive run's, the difference measures the "
+                 "reference as much as the run.")
     lines.append("")
     return lines
 
