@@ -235,7 +235,7 @@ def plot_error_vs_time(path, df, *, goal: AccuracyGoal = AccuracyGoal(), passes=
     """Log–log error against wall time, three panels per row (VOI, largest bin error, force), one row per
     animal and one for the cylinder scene. A limb row has one line per ladder family and variant and,
     with ``passes`` (:func:`adaptive_pass_errors`), each adaptive run's passes (black, the wall time of
-    the loop so far); the cylinder row (``cylinder``: the table of rule ``verify_cylinder_adaptive``) has
+    the loop so far; dotted to a cross: passes after the last converged one, which did not converge); the cylinder row (``cylinder``: the table of rule ``verify_cylinder_adaptive``) has
     the fixed mesh per depth (squares) and the adaptive passes per depth. The goal is a dotted line;
     references (error 0) are not drawn; a star marks the configured default."""
     import matplotlib
@@ -285,6 +285,11 @@ def plot_error_vs_time(path, df, *, goal: AccuracyGoal = AccuracyGoal(), passes=
                     a = passes[(passes["animal"] == animal) & (passes["variant"] == var)].sort_values("wall_s")
                     line(ax, a["wall_s"], a[col].astype(float) * scale, f"adaptive, {var}",
                          marker=markers[j % len(markers)], color="k", ls="-" if j == 0 else "--", mfc="none")
+                    done = a[a["converged"].astype(bool)]
+                    if len(done) and a["wall_s"].max() > done["wall_s"].iloc[-1]:  # passes spent after the answer
+                        y = float(done[col].iloc[-1]) * scale
+                        line(ax, [done["wall_s"].iloc[-1], a["wall_s"].max()], [y, y], "adaptive: a pass that did not converge",
+                             color="k", ls=":", marker="x", markevery=[1])
             ax.set_title(f"{animal}: {label}", fontsize=9)
     if n_rows > len(animals):
         cyl = cylinder
