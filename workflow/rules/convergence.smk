@@ -5,14 +5,13 @@ import re
 
 from deeptissue.config import convergence_animals
 from deeptissue.convergence import default_ladder
-from deeptissue.variants import parse_variant
 
 CONV = config["convergence"]
 # empty when no animal has a during scan: the other targets stay available, `convergence` stops with a ConfigError
 CONV_ANIMALS = convergence_animals(config)
 CONV_VARIANTS = list(CONV["variants"])
-# the adaptive loop solves unturned variants of the study (rule adapt_variant)
-CONV_ADAPTIVE_VARIANTS = [v for v in CONV_VARIANTS if v in VARIANTS and parse_variant(v).turn_axis is None]
+# rule adapt_variant solves the variants of the study
+CONV_ADAPTIVE_VARIANTS = [v for v in CONV_VARIANTS if v in VARIANTS]
 CONV_LADDER = default_ladder(CONV, model_cfg=config["model"], solver_cfg=config["fem"]["solver"])
 CONV_SETTINGS = CONV_LADDER.names
 
