@@ -7,8 +7,6 @@ from deeptissue.config import convergence_animals
 from deeptissue.convergence import default_ladder
 
 CONV = config["convergence"]
-# empty when no animal has a during scan: the other targets stay available, `convergence` stops with a ConfigError
-CONV_ANIMALS = convergence_animals(config)
 CONV_VARIANTS = list(CONV["variants"])
 # rule adapt_variant solves the variants of the study
 CONV_ADAPTIVE_VARIANTS = [v for v in CONV_VARIANTS if v in VARIANTS]
@@ -54,6 +52,8 @@ rule convergence_run:
 rule convergence_aggregate:
     """Every row, benchmark and adaptive run -> convergence.csv, the error-vs-time figure and summary.md."""
     input:
+        # convergence_animals(required=True) inside the input functions: a study without a during scan keeps its
+        # other targets, and only `convergence` stops with a ConfigError
         rows=lambda wc: expand(
             "results/convergence/{animal}/{conv_variant}/{setting}.json",
             animal=convergence_animals(config, required=True),

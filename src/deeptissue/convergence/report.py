@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .analysis import (ADAPTIVE_FAMILY, ESTIMATES, adaptive_pass_errors, adaptive_rows, convergence_table,
+from .analysis import (ADAPTIVE_FAMILY, ESTIMATES, adaptive_pass_errors, adaptive_rows, convergence_table, goal_error,
                        reference_rows, richardson_by_family, scaling_fits, setting_table)
 from .ladder import AccuracyGoal
 
@@ -210,7 +210,7 @@ def _cylinder_lines(cylinder, goal: AccuracyGoal) -> list:
             picks.append(a.iloc[-1])
         for r in picks:
             tv, tb, tf = abs(float(r["true_voi_percent"])), float(r["true_bins_pp"]), float(r["true_force_percent"])
-            met = (tv <= 100 * goal.voi_rel_error and tb <= goal.bin_error_pp and tf <= 100 * goal.force_rel_error)
+            met = goal_error(tv / 100.0, tb, tf / 100.0, goal) <= 1.0
             name = r["mesh"] if r["kind"] == "fixed" else f"adaptive, {int(r['pass_index']) + 1} passes"
             lines.append(f"| {d:g} | {name} | {int(r['n_dofs'])} | {_fmt(r['wall_s'], '.1f')} | {_fmt(tv, '.2f')} / "
                          f"{_fmt(r['est_voi_percent'], '.2f')} | {_fmt(tb, '.2f')} / {_fmt(r['est_bins_pp'], '.2f')} | "
@@ -235,8 +235,9 @@ def plot_error_vs_time(path, df, *, goal: AccuracyGoal = AccuracyGoal(), passes=
     """Log–log error against wall time, three panels per row (VOI, largest bin error, force), one row per
     animal and one for the cylinder scene. A limb row has one line per ladder family and variant and,
     with ``passes`` (:func:`adaptive_pass_errors`), each adaptive run's passes (black, the wall time of
-    the loop so far; dotted to a cross: passes after the last converged one, which did not converge); the cylinder row (``cylinder``: the table of rule ``verify_cylinder_adaptive``) has
-    the fixed mesh per depth (squares) and the adaptive passes per depth. The goal is a dotted line;
+    the loop so far; dotted to a cross: passes after the last converged one, which did not converge); the
+    cylinder row (``cylinder``: the table of rule ``verify_cylinder_adaptive``) has the fixed mesh per
+    depth (squares) and the adaptive passes per depth. The goal is a dotted line;
     references (error 0) are not drawn; a star marks the configured default."""
     import matplotlib
 
@@ -245,7 +246,6 @@ def plot_error_vs_time(path, df, *, goal: AccuracyGoal = AccuracyGoal(), passes=
     from matplotlib.ticker import NullFormatter
 
     from ..io import atomic_path
-    from .analysis import ADAPTIVE_FAMILY
 
     panels = [("voi_rel_error", "VOI error [%]", 100.0, 100 * goal.voi_rel_error),
               ("bin_max_error_pp", "largest bin error [pp]", 1.0, goal.bin_error_pp),
