@@ -191,6 +191,11 @@ def test_summary_names_cheapest_setting_meeting_goal_and_judges_default():
     assert "is the reference itself" in summary_markdown(df, default_name="p2_n64000")
     # memory above the start grows exactly linearly in n_dofs in these rows
     assert "`rss_above_start_mb` ∝ n_dofs^1.00" in text
+    assert "Each sampling:\n\n- γ at 64 points per element (`voi_sampled_mm3`): cheapest setting" in text
+    # rows without the VOI of each sampling: no heading over an empty list
+    for r in rows:
+        r["voi_sampled_mm3"] = r["voi_centroid_mm3"] = None
+    assert "Each sampling" not in summary_markdown(convergence_table(rows), default_name="p2_n8000")
 
 
 def test_aggregate_writes_csv_figure_and_summary_with_benchmarks(tmp_path):

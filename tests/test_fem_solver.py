@@ -318,3 +318,39 @@ def test_indenter_passing_between_the_skin_nodes_is_cut_back_not_accepted(limb, 
     assert r.load_reached < 4.0
     cut = [h.reason for h in r.history if not h.converged]
     assert cut and all("passes between the skin's nodes" in c for c in cut)
+
+
+def test_one_tangent_per_newton_direction(limb, monkeypatch):
+    # the test of convergence after a step reads the force and gaps of the line search's last merit evaluation:
+    # a tangent is assembled for each Newton direction, and for the first test of an increment only (none for the
+    # test that ends an increment after a step)
+    from deeptissue.fem.assembly import Assembler
+
+    calls = []
+    tangent = Assembler.tangent
+    monkeypatch.setattr(Assembler, "tangent", lambda self, u: calls.append(1) or tangent(self, u))
+    ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(3.5, 0.0, 3.0), end_mm=(2.3, 0.0, 3.0))
+    r = solve_indentation(limb, material=LAW, indenter=ind, bone_motion=BoneMotion())
+    assert r.converged, r.reason
+    assert all(h.converged for h in r.history) and sum(h.iterations > 0 for h in r.history) > 1
+    assert len(calls) == r.newton_iterations + sum(h.iterations == 0 for h in r.history)
+
+
+def test_freed_memory_is_kept_for_the_next_allocation():
+    # glibc returns a freed large array to the kernel at once, and the next one is page-faulted in afresh; once
+    # kept, freeing 200 MB leaves the process's resident memory where it was
+    import sys
+
+    from deeptissue.fem.heap import keep_freed_memory
+
+    if not sys.platform.startswith("linux") or not keep_freed_memory():
+        pytest.skip("needs glibc's mallopt")
+
+    def resident_mb():
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * 4096 / 2**20
+
+    a = np.ones(25_000_000)  # 200 MB
+    before = resident_mb()
+    del a
+    assert resident_mb() > before - 50.0

@@ -49,6 +49,7 @@ from ..rigid import BoneMotion, euler_xyz_deg
 from .assembly import Assembler, as_material_law
 from .cast import Cast
 from .contact import ContactSurface, WeightedContact
+from .heap import keep_freed_memory
 from .indenters import Indenter
 from .linsolve import PardisoSymmetric
 
@@ -610,6 +611,7 @@ class _Problem:
         self.fmap[asm.free] = np.arange(asm.n_free)
         self.solver = PardisoSymmetric()
         self.timers = dict(assembly=0.0, solve=0.0, contact=0.0)
+        self.last = None  # (f, gw, fc) of the last finite merit evaluation
 
     def weighted(self, u, lam, curvature=True):
         tc = time.perf_counter()
@@ -618,15 +620,20 @@ class _Problem:
         return out
 
     def merit(self, u, lam):
-        """0.5 (|R_free|^2 + |C|^2) at (u, lam), R = f_int - G^T lam, C = min(lam, c gw); inf if inverted."""
+        """0.5 (|R_free|^2 + |C|^2) at (u, lam), R = f_int - G^T lam, C = min(lam, c gw); inf if inverted. The
+        internal force, weighted gaps and contact force of the last finite evaluation are kept in ``last``
+        (the line search's last evaluation is the point it accepts: the next iteration's test of convergence
+        reads them instead of assembling a tangent it may not need)."""
         ta = time.perf_counter()
         _, f = self.asm.force(u)
         self.timers["assembly"] += time.perf_counter() - ta
+        self.last = None
         if f is None:
             return np.inf
         gw, _, _, fc = self.weighted(u, lam, curvature=False)
         R = (f - fc)[self.asm.free]
         C = self.contact.ncp(lam, gw)
+        self.last = (f, gw, fc)
         return 0.5 * (float(R @ R) + float(C @ C))
 
 
@@ -637,13 +644,15 @@ def _solve_increment(p: _Problem, u, lam, target_d, rtol, atol, gap_tol):
     s, asm, contact = p.s, p.asm, p.contact
     residuals, changes, merits = [], 0, []
     act = lam > 0
+    p.last = None
     for it in range(s.newton.max_iterations + 1):
-        ta = time.perf_counter()
-        W, f, data, Ke_bc = asm.tangent(u)
-        p.timers["assembly"] += time.perf_counter() - ta
-        if not np.isfinite(W):
-            return False, "inverted element", it, residuals, changes
-        gw, G, geo, fc = p.weighted(u, lam)
+        if p.last is None:  # the increment's first iteration: a tangent is needed
+            W, f, data, Ke_bc = _tangent(p, u)
+            if not np.isfinite(W):
+                return False, "inverted element", it, residuals, changes
+            gw, G, geo, fc = p.weighted(u, lam)
+        else:  # after a step: the line search's last merit evaluation is this point's force and gaps
+            (f, gw, fc), data = p.last, None
         du_d = np.zeros(asm.n_dofs)
         du_d[p.constrained] = target_d - u[p.constrained]
         has_d = bool(np.any(np.abs(du_d) > 1e-12 * (1.0 + np.abs(target_d).max(initial=0.0))))
@@ -664,6 +673,9 @@ def _solve_increment(p: _Problem, u, lam, target_d, rtol, atol, gap_tol):
             return False, "too many iterations", it, residuals, changes
         if len(residuals) > 3 and res > 1e3 * min(residuals[1:]):
             return False, "diverging", it, residuals, changes
+        if data is None:
+            _, f, data, Ke_bc = _tangent(p, u)
+            gw, G, geo, fc = p.weighted(u, lam)
         new_act = contact.cand & np.isfinite(gw) & (lam - contact.c * np.where(np.isfinite(gw), gw, 0.0) > 0)
         if it > 0:
             changes += int(np.count_nonzero(new_act != act))
@@ -702,6 +714,14 @@ def _solve_increment(p: _Problem, u, lam, target_d, rtol, atol, gap_tol):
         u += step * du
         lam += step * dlam
     return False, "too many iterations", s.newton.max_iterations, residuals, changes
+
+
+def _tangent(p: _Problem, u):
+    """The assembler's (energy, internal force, tangent data, Dirichlet blocks) at u, timed."""
+    ta = time.perf_counter()
+    out = p.asm.tangent(u)
+    p.timers["assembly"] += time.perf_counter() - ta
+    return out
 
 
 def _direction(p: _Problem, data, Ke_bc, f, du_d, act, gw, G, geo, curvature=1.0):
@@ -822,6 +842,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings: Solve
            start: BoneState | EndState | None = None, rotation_only: bool = False) -> SolveResult:
     """The increment loop: load steps, increments sized by the last one's Newton count and active-set changes."""
     t_wall = time.perf_counter()
+    keep_freed_memory()
     s, inc = settings, settings.increments
     for name, need in [*((b, True) for b in bc_sets), (sets.indenter, indenter is not None), (sets.cast, cast is not None)]:
         if need and (name not in mesh.facets or len(mesh.facets[name]) == 0):
