@@ -6,9 +6,9 @@ indefinite saddle-point matrix: it factorises the augmented matrix ``A = K + G^T
 (positive definite wherever K is on the constraints' kernel, so Cholesky in single precision) and iterates the
 augmented-Lagrangian correction on the saddle-point residual, in double precision. With rho a thousand times
 the stiffness a constraint meets, a correction gains about three digits: four to six triangular solves reach a
-relative residual of 1e-12. On a rat's limb (41.3 k free dofs, 340-600 active constraints, one core) that is
-0.8 s for the single-precision Cholesky and 0.15 s of corrections, against 1.7 s for a Bunch-Kaufman
-factorisation of the saddle-point matrix in double precision.
+relative residual of 1e-12. On a rat's limb (41.5 k free dofs, one core) that is 0.35-0.46 s for the
+single-precision Cholesky and 0.08 s of corrections; the tangent alone takes 0.57 s to factorise by Cholesky
+in double precision and 0.84 s by Bunch-Kaufman (docs/solver.md).
 
 :meth:`PardisoSymmetric.solve` solves a positive definite matrix (the linear-elastic reference of the
 convergence study) in SPD mode (mtype 2), with the symbolic analysis (fill-in reducing ordering) done once per
