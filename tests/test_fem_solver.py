@@ -220,7 +220,9 @@ def test_variant_started_from_the_shared_bone_state_takes_the_same_path(limb, tm
     assert whole.converged, whole.reason
     rot, state = solve_bone_rotation(limb, material=LAW, bone_motion=motion, cast=cast)
     assert rot.converged and rot.load_reached == 3.0 and state.newton_iterations > 0
-    assert np.linalg.norm(rot.cast_force_N) > 0 and np.all(state.contact["cast"][1] > 0)  # the cast holds the skin
+    # the cast holds the skin (the state keeps every nonzero multiplier: also the small negative ones a state before
+    # the end of the load may hold within its gap tolerance, so that a solve started from it takes the same path)
+    assert np.linalg.norm(rot.cast_force_N) > 0 and np.any(state.contact["cast"][1] > 0)
     save_bone_state(tmp_path / "bone_state.npz", state)
     back = load_bone_state(tmp_path / "bone_state.npz")
     assert back.settings == state.settings and back.history == state.history

@@ -268,7 +268,7 @@ class BoneState:
     of every variant of one mesh, bone motion and cast (the indenter, 1 mm clear, touches nothing before
     its step), so that the variants need not each solve it again (:func:`solve_bone_rotation`).
 
-    displacement_mm (n_dofs,); contact: obstacle name ('cast') -> (nodes, lam_N) of the entries in contact;
+    displacement_mm (n_dofs,); contact: obstacle name ('cast') -> (nodes, lam_N) of the entries with a nonzero multiplier;
     strain_energy_mJ of the state; history, newton_iterations and the times [s] of the steps that made it
     (a variant started from it reports them as its own, so its figures stay those of a whole solve);
     settings: the SolverSettings it was solved with (a start is only used by a solve with the same ones).
@@ -291,8 +291,8 @@ class EndState:
     """The converged end state (t = 4) of one variant: the start of a variant that differs from it only by
     a turn of the indenter about the same final tip (:func:`solve_turned`).
 
-    displacement_mm (n_dofs,); contact: obstacle name ('indenter', 'cast') -> (nodes, lam_N) of the entries in
-    contact; indenter: the Indenter it was solved with; bone_motion: its BoneMotion; settings: its SolverSettings.
+    displacement_mm (n_dofs,); contact: obstacle name ('indenter', 'cast') -> (nodes, lam_N) of the entries with
+    a nonzero multiplier; indenter: the Indenter it was solved with; bone_motion: its BoneMotion; settings: its SolverSettings.
     """
 
     displacement_mm: np.ndarray
@@ -1027,7 +1027,10 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings: Solve
     Fe = np.einsum("eqij,eq->eij", F, asm.w) / asm.w.sum(axis=1)[:, None, None]
     on = lam > 0
     active = {name: int(np.count_nonzero(on & (contact.obstacle == j))) for j, name in enumerate(contact.names)}
-    state = {name: (contact.node[on & (contact.obstacle == j)].copy(), lam[on & (contact.obstacle == j)].copy())
+    # every nonzero multiplier: a state before the end of the load may hold small negative ones (within its gap
+    # tolerance), and a solve started from it must take the same path as one that went on from it
+    held = lam != 0
+    state = {name: (contact.node[held & (contact.obstacle == j)].copy(), lam[held & (contact.obstacle == j)].copy())
              for j, name in enumerate(contact.names)}
     wall = time.perf_counter() - t_wall + (start.wall_s if isinstance(start, BoneState) else 0.0)
     log.info("solve %s in %.1f s: %d increments, %d Newton iterations, %d active-set changes",
