@@ -124,7 +124,7 @@ def test_weighted_gap_rows_and_curvature_are_derivatives_of_the_gaps_and_forces(
     wc = WeightedContact(limb.nodes_mm, [("indenter", facets)], np.unique(limb.facets["bone"]), young_mpa=0.01)
     ind = Indenter("sphere", axis=(-1, 0, 0), radius_mm=1.5)
     tip = np.array([2.7, 0.0, 3.0])
-    wc.gapfns[0] = lambda x: ind.gap(x, tip)
+    wc.gapfns[0] = lambda x, hessian=True: ind.gap(x, tip, hessian=hessian)
     rng = np.random.default_rng(5)
     u = 0.01 * rng.standard_normal(3 * len(limb.nodes_mm))
     which = np.ones(len(wc.node), bool)

@@ -110,3 +110,24 @@ def test_cast_gap_is_smooth_across_facet_edges_with_its_exact_derivatives():
     hess = np.stack([(cast.gap(x + e * d)[1] - cast.gap(x - e * d)[1]) / (2 * e) for d in np.eye(3)], axis=2)
     np.testing.assert_allclose(H, hess, atol=1e-4)
     np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=0.05)
+
+
+def test_cast_gap_weighs_every_vertex_of_its_support_and_skips_the_hessian_on_request():
+    # 0.05 mm rows under 0.8 mm edges around: the support (1.2 x the longest edge) holds 60-100 vertices, more
+    # than the 16 queried first
+    cast = _tube_cast(n=24, m=201)
+    rng = np.random.default_rng(7)
+    th = rng.uniform(0, 2 * np.pi, 50)
+    rad = rng.uniform(2.9, 3.1, 50)
+    x = np.stack([rad * np.cos(th), rad * np.sin(th), rng.uniform(2, 8, 50)], axis=1)
+    g, n, H = cast.gap(x)
+    d = x[:, None, :] - cast.v[None]
+    s = np.sum(d ** 2, axis=2) / cast.radius_mm ** 2
+    w = np.where(s < 1, (1 - s) ** 4, 0.0)
+    assert np.all(np.count_nonzero(w, axis=1) > 16)
+    g_all = np.sum(w * np.einsum("nvi,vi->nv", d, cast.vertex_normal), axis=1) / w.sum(axis=1)
+    np.testing.assert_allclose(g, g_all, rtol=1e-12, atol=1e-12)
+    g2, n2, H2 = cast.gap(x, hessian=False)
+    assert H2 is None and H.shape == (50, 3, 3)
+    np.testing.assert_array_equal(g2, g)
+    np.testing.assert_array_equal(n2, n)

@@ -110,7 +110,7 @@ def test_linear_contact_facets_measure_area_and_penetration(limb1):
     np.testing.assert_allclose(surf.dA0.sum(axis=1), area, rtol=1e-12)
     # a sphere 0.3 mm into the skin: the deepest quadrature point is at most that deep
     ind = Indenter("sphere", axis=(-1, 0, 0), radius_mm=1.5)
-    g = surf.gaps(np.zeros(limb1.nodes_mm.size), lambda x: ind.gap(x, np.array([2.7, 0.0, 3.0])))
+    g = surf.gaps(np.zeros(limb1.nodes_mm.size), lambda x, hessian=True: ind.gap(x, np.array([2.7, 0.0, 3.0]), hessian=hessian))
     assert 0.0 < -g.min() <= 0.3 + 1e-12
 
 

@@ -71,13 +71,16 @@ class Cast:
         except (KeyError, OSError) as exc:
             raise ValueError(f"{path}: not a cast file ({exc})") from exc
 
-    def gap(self, x: np.ndarray):
+    def gap(self, x: np.ndarray, hessian: bool = True):
         """Contact gap of points to the cast (near the surface its signed distance), its gradient and Hessian.
 
         Parameters
         ----------
         x : (n, 3) array_like
             Points [mm].
+        hessian : bool
+            Also return the Hessian (about a third of the cost; the weighted gaps need it only for the
+            curvature of a Newton direction).
 
         Returns
         -------
@@ -86,8 +89,8 @@ class Cast:
             or vertex: the open ends and the hole).
         normal : (n, 3) ndarray
             Gradient of g (the contact normal; unit length to within the facets' angles).
-        H : (n, 3, 3) ndarray
-            Hessian of g [1/mm] (the gradient of the contact normal).
+        H : (n, 3, 3) ndarray or None
+            Hessian of g [1/mm] (the gradient of the contact normal); None without ``hessian``.
         """
         x = np.asarray(x, float).reshape(-1, 3)
         n = len(x)
@@ -111,13 +114,20 @@ class Cast:
         nrm = np.where((reg == 0)[:, None] | (d[:, None] <= 1e-12), ntri, side[:, None] * r / np.maximum(d, 1e-300)[:, None])
         # the moving-least-squares gap and its exact gradient where vertices are within the support
         rr = self.radius_mm
-        kv = min(16, len(self.v))  # vertices queried per point: doubled until the support holds fewer
-        while True:
-            dist, idx = self.vtree.query(x, k=kv, distance_upper_bound=rr)
-            dist, idx = dist.reshape(n, -1), idx.reshape(n, -1)
-            if kv >= len(self.v) or not np.any(np.isfinite(dist[:, -1])):
-                break
+        # the vertices within the support: 16 per point, more (doubled) only for the points whose 16th is inside
+        kv = min(16, len(self.v))
+        dist, idx = self.vtree.query(x, k=kv, distance_upper_bound=rr)
+        dist, idx = dist.reshape(n, -1), idx.reshape(n, -1)
+        more = np.flatnonzero(np.isfinite(dist[:, -1]))
+        while len(more) and kv < len(self.v):
             kv = min(2 * kv, len(self.v))
+            d_m, i_m = self.vtree.query(x[more], k=kv, distance_upper_bound=rr)
+            dist = np.pad(dist, ((0, 0), (0, kv - dist.shape[1])), constant_values=np.inf)
+            idx = np.pad(idx, ((0, 0), (0, kv - idx.shape[1])), constant_values=len(self.v))
+            dist[more], idx[more] = d_m.reshape(len(more), -1), i_m.reshape(len(more), -1)
+            more = more[np.isfinite(dist[more, -1])]
+        width = max(int(np.isfinite(dist).sum(axis=1).max(initial=1)), 1)  # nearest first: the rest are outside
+        dist, idx = dist[:, :width], idx[:, :width]
         ok = np.isfinite(dist)
         vi = np.where(ok, idx, 0)
         dv = x[:, None, :] - self.v[vi]  # (n, k, 3)
@@ -125,25 +135,27 @@ class Cast:
         s_ = np.where(ok, dist ** 2 / rr ** 2, 1.0)
         w = np.where(ok, (1.0 - s_) ** 4, 0.0)
         c1 = np.where(ok, -8.0 * (1.0 - s_) ** 3 / rr ** 2, 0.0)
-        c2 = np.where(ok, 48.0 * (1.0 - s_) ** 2 / rr ** 4, 0.0)
         dw = c1[:, :, None] * dv  # grad w_v = c1 dv, its Hessian c2 dv dv^T + c1 I
         W = w.sum(axis=1)
         smooth = W > 1e-6
         Ws = np.where(smooth, W, 1.0)
         fv = np.einsum("nki,nki->nk", dv, nv)
         gm = (w * fv).sum(axis=1) / Ws
-        A = np.einsum("nk,nki->ni", w, nv) + np.einsum("nki,nk->ni", dw, fv - gm[:, None])  # W grad g
+        e_ = fv - gm[:, None]
+        A = np.matmul(w[:, None, :], nv)[:, 0] + np.matmul(e_[:, None, :], dw)[:, 0]  # W grad g
         grad = A / Ws[:, None]
         g = np.where(smooth, gm, g)
         nrm = np.where(smooth[:, None], grad, nrm)
-        # its Hessian (zero where the facets' distance is used: flat faces)
-        e_ = fv - gm[:, None]
-        dA = (np.einsum("nki,nkj->nij", nv, dw)
-              + np.einsum("nk,nki,nkj->nij", c2 * e_, dv, dv) + (c1 * e_).sum(axis=1)[:, None, None] * np.eye(3)
-              + np.einsum("nki,nkj->nij", dw, nv - grad[:, None, :]))
-        dW = dw.sum(axis=1)
-        H = (dA - A[:, :, None] * dW[:, None, :] / Ws[:, None, None]) / Ws[:, None, None]
-        H = np.where(smooth[:, None, None], H, 0.0)
+        H = None
+        if hessian:  # zero where the facets' distance is used (flat faces)
+            c2 = np.where(ok, 48.0 * (1.0 - s_) ** 2 / rr ** 4, 0.0)
+            dvT = dv.transpose(0, 2, 1)
+            dA = (np.matmul(nv.transpose(0, 2, 1), dw) + np.matmul(dvT * (c2 * e_)[:, None, :], dv)
+                  + (c1 * e_).sum(axis=1)[:, None, None] * np.eye(3)
+                  + np.matmul(dw.transpose(0, 2, 1), nv - grad[:, None, :]))
+            dW = dw.sum(axis=1)
+            H = (dA - A[:, :, None] * dW[:, None, :] / Ws[:, None, None]) / Ws[:, None, None]
+            H = np.where(smooth[:, None, None], H, 0.0)
         # beyond a free edge / vertex: no contact
         on_free = np.zeros(n, bool)
         e = (reg >= 1) & (reg <= 3)

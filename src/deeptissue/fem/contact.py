@@ -1,8 +1,9 @@
 """Frictionless contact of skin facets with rigid obstacles: weighted gaps, and the penetration between nodes.
 
 Every obstacle is rigid (the analytical indenter, the rigid cast) and given by a gap function
-``gap(x) -> (g, n, H)``: signed distance g [mm] (negative = penetration; for the cast a smooth surface near
-its facets), outward normal n = grad g and its gradient H = grad n [1/mm] (None if flat). The skin side is a
+``gap(x, hessian) -> (g, n, H)``: signed distance g [mm] (negative = penetration; for the cast a smooth surface near
+its facets), outward normal n = grad g and its gradient H = grad n [1/mm] (None if flat, or not asked for:
+``gap(x, hessian=False)``). The skin side is a
 set of 6-node triangles (TetMesh facets, gmsh Triangle6 order), or 3-node triangles of a first-order mesh.
 
 Contact is imposed node by node on weighted gaps (:class:`WeightedContact`): for a node j of a contact facet
@@ -86,7 +87,7 @@ class WeightedContact:
     ``sets`` is a list of (obstacle name, facets (K, 6) or (K, 3) TetMesh node ids), ``excluded`` the nodes
     that get no entry (the bone's: prescribed), young_mpa scales a gap into a force (c = E h [N/mm]).
     Attributes: node, obstacle (index into names), h (the smallest facet size around the node [mm]), c,
-    lam (multipliers [N]), cand (the candidate entries), gapfns (per obstacle: x -> (g, n, H)).
+    lam (multipliers [N]), cand (the candidate entries), gapfns (per obstacle: (x, hessian) -> (g, n, H)).
     """
 
     def __init__(self, X, sets, excluded, young_mpa):
@@ -120,20 +121,16 @@ class WeightedContact:
         self.cand = np.ones(len(self.node), bool)
         self.gapfns = [None] * len(sets)
 
-    def evaluate(self, u, which=None):
-        """g (E,) [mm] (inf outside ``which``, default the candidates), n (E, 3), H (E, 3, 3) at u."""
+    def node_gaps(self, u, which=None):
+        """Gaps g (E,) [mm] of the entries' nodes at u (inf outside ``which``, default the candidates)."""
         which = self.cand if which is None else which
-        E = len(self.node)
-        g, n, H = np.full(E, np.inf), np.zeros((E, 3)), np.zeros((E, 3, 3))
+        g = np.full(len(self.node), np.inf)
         x = self.X[self.node] + u.reshape(-1, 3)[self.node]
         for k, fn in enumerate(self.gapfns):
             sel = np.flatnonzero(which & (self.obstacle == k))
             if len(sel):
-                gk, nk, Hk = fn(x[sel])
-                g[sel], n[sel] = gk, nk
-                if Hk is not None:
-                    H[sel] = Hk
-        return g, n, H
+                g[sel] = fn(x[sel], hessian=False)[0]
+        return g
 
     def ncp(self, lam, g):
         """min(lam, c g) per entry [N] (0 at a solution; 0 outside the candidates)."""
@@ -160,7 +157,7 @@ class WeightedContact:
             fac, A, en, N, psi = st["facets"][fsel], st["A"][fsel], st["entry"][fsel], st["N"], st["psi"]
             x = st["X"][fsel] + np.einsum("qa,fai->fqi", N, u3[fac])
             F, Q = A.shape
-            g, n, H = self.gapfns[k](x.reshape(-1, 3))
+            g, n, H = self.gapfns[k](x.reshape(-1, 3), hessian=lam is not None and curvature)
             g, n = g.reshape(F, Q), n.reshape(F, Q, 3)
             fin = np.isfinite(g)
             Aq = np.where(fin, A, 0.0)
@@ -239,5 +236,5 @@ class ContactSurface:
     def gaps(self, u: np.ndarray, gapfn, idx: np.ndarray | None = None) -> np.ndarray:
         """Gaps (K', Q) [mm] of facets idx."""
         x = self.positions(u, idx)
-        g = gapfn(x.reshape(-1, 3))[0]
+        g = gapfn(x.reshape(-1, 3), hessian=False)[0]
         return g.reshape(x.shape[:2])

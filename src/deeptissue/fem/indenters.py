@@ -74,16 +74,16 @@ class Indenter:
         a, b = np.asarray(self.start_mm, float), np.asarray(self.end_mm, float)
         return a + s * (b - a)
 
-    def gap(self, x: np.ndarray, tip_mm: np.ndarray):
+    def gap(self, x: np.ndarray, tip_mm: np.ndarray, hessian: bool = True):
         """Signed distance from points x (n, 3) to the indenter surface with its tip at ``tip_mm``.
 
         Returns g (n,) [mm] (negative inside), n (n, 3) outward unit normal (= grad g) and
-        H (n, 3, 3) [1/mm] = grad n (the Hessian of g).
+        H (n, 3, 3) [1/mm] = grad n (the Hessian of g; None without ``hessian``).
         """
-        return indenter_gap(self, x, tip_mm)
+        return indenter_gap(self, x, tip_mm, hessian=hessian)
 
 
-def indenter_gap(ind: Indenter, x: np.ndarray, tip_mm: np.ndarray):
+def indenter_gap(ind: Indenter, x: np.ndarray, tip_mm: np.ndarray, hessian: bool = True):
     """Signed distance, outward normal and normal gradient of ``ind`` with its tip at ``tip_mm``.
 
     Parameters
@@ -93,6 +93,8 @@ def indenter_gap(ind: Indenter, x: np.ndarray, tip_mm: np.ndarray):
         Points [mm].
     tip_mm : (3,) array_like
         Tip position [mm].
+    hessian : bool
+        Also return H.
 
     Returns
     -------
@@ -100,8 +102,8 @@ def indenter_gap(ind: Indenter, x: np.ndarray, tip_mm: np.ndarray):
         Signed distance to the surface [mm], negative inside.
     n : (n, 3) ndarray
         Outward unit normal (gradient of g).
-    H : (n, 3, 3) ndarray
-        Gradient of n (Hessian of g) [1/mm].
+    H : (n, 3, 3) ndarray or None
+        Gradient of n (Hessian of g) [1/mm]; None without ``hessian``.
     """
     x = np.asarray(x, float).reshape(-1, 3)
     a = ind.unit_axis
@@ -124,6 +126,8 @@ def indenter_gap(ind: Indenter, x: np.ndarray, tip_mm: np.ndarray):
     safe = np.maximum(dist, 1e-12 * R)
     n = r / safe[:, None]
     g = dist - R
+    if not hessian:
+        return g, n, None
     eye = np.eye(3)
     P = eye - n[:, :, None] * n[:, None, :]
     tt = np.outer(t, t)

@@ -28,6 +28,7 @@ assembly's sums in a fixed order (numpy, scipy, OpenBLAS), identical Newton path
 from __future__ import annotations
 
 import ctypes
+import functools
 import logging
 
 import numpy as np
@@ -49,11 +50,18 @@ _P = ctypes.POINTER
 _I32 = ctypes.c_int32
 
 
-def _mkl_pardiso():
-    """MKL's ``pardiso`` entry point, from the mkl_rt that pypardiso locates."""
+@functools.cache
+def _mkl_rt():
+    """The mkl_rt library pypardiso locates (once per process: it searches the file system, 0.2-0.5 s)."""
     import pypardiso
 
-    f = pypardiso.PyPardisoSolver().libmkl.pardiso
+    return pypardiso.PyPardisoSolver().libmkl
+
+
+@functools.cache
+def _mkl_pardiso():
+    """MKL's ``pardiso`` entry point."""
+    f = _mkl_rt().pardiso
     f.argtypes = [_P(ctypes.c_int64), _P(_I32), _P(_I32), _P(_I32), _P(_I32), _P(_I32), ctypes.c_void_p,
                   _P(_I32), _P(_I32), _P(_I32), _P(_I32), _P(_I32), _P(_I32), ctypes.c_void_p, ctypes.c_void_p,
                   _P(_I32)]
@@ -70,9 +78,7 @@ def pin_reproducible() -> None:
     identical from run to run with the same thread count, on any x86-64 CPU. COMPATIBLE rather than AUTO
     because a cluster's nodes may differ in instruction set. MKL allows this only before its first
     computation in the process: RuntimeError after that."""
-    import pypardiso
-
-    lib = pypardiso.PyPardisoSolver().libmkl
+    lib = _mkl_rt()
     lib.MKL_CBWR_Set.argtypes = lib.MKL_Set_Dynamic.argtypes = [ctypes.c_int]
     status = lib.MKL_CBWR_Set(_MKL_CBWR_COMPATIBLE)
     if status != 0:

@@ -216,7 +216,7 @@ class IncrementRecord:
     residuals: tuple  # residual norms [N] of the Newton iterations
     tip_mm: tuple
     indenter_force_N: float
-    max_penetration_mm: float
+    max_penetration_mm: float  # between the nodes, on the facets of the contact candidates
     assembly_s: float
     linear_solve_s: float
     contact_s: float
@@ -831,15 +831,23 @@ def _forces(contact, u, lam, k_ind, k_cast):
     return out[0], out[1]
 
 
-def _penetration(surfaces, contact, u):
-    """Largest penetration [mm] and over facet size at the facets' quadrature points (between the nodes)."""
+def _penetration(surfaces, contact, u, which=None):
+    """Largest penetration [mm] and over facet size at the facets' quadrature points (between the nodes): on
+    every facet, or (``which``, entries) on the facets with a node of those entries."""
     pen_mm, pen_rel = 0.0, 0.0
     for k, name in enumerate(contact.names):
         surf, fn = surfaces[name], contact.gapfns[k]
-        gq = surf.gaps(u, fn)
+        idx = None
+        if which is not None:
+            on = np.zeros(len(contact.X), bool)
+            on[contact.node[which & (contact.obstacle == k)]] = True
+            idx = np.flatnonzero(on[surf.facets6].any(axis=1))
+            if not len(idx):
+                continue
+        gq = surf.gaps(u, fn, idx)
         pm = np.max(-np.where(np.isfinite(gq), gq, np.inf), axis=1)
         pen_mm = max(pen_mm, float(pm.max()))
-        pen_rel = max(pen_rel, float(np.max(pm / surf.h_mm)))
+        pen_rel = max(pen_rel, float(np.max(pm / (surf.h_mm if idx is None else surf.h_mm[idx]))))
     return max(pen_mm, 0.0), max(pen_rel, 0.0)
 
 
@@ -881,7 +889,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings: Solve
     def set_time(t):
         if k_ind is not None:
             tip, ind = sched.tip(t), sched.indenter(t)
-            contact.gapfns[k_ind] = lambda x: ind.gap(x, tip)
+            contact.gapfns[k_ind] = lambda x, hessian=True: ind.gap(x, tip, hessian=hessian)
 
     u = np.zeros(asm.n_dofs)
     lam = np.zeros(len(contact.node))
@@ -936,7 +944,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings: Solve
                 # first touch (no indenter force yet): do not jump deep into contact
                 set_time(t)
                 sel = contact.obstacle == k_ind
-                gmin = max(float(np.min(contact.evaluate(u, sel)[0][sel])), 0.0)
+                gmin = max(float(np.min(contact.node_gaps(u, sel)[sel])), 0.0)
                 if travel * dt > gmin + inc.first_touch_mm:
                     dt = max((gmin + inc.first_touch_mm) / travel, inc.min_increment)
             t1 = t + dt
@@ -951,7 +959,7 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings: Solve
             target = np.zeros(asm.n_dofs)
             target.reshape(-1, 3)[bone_nodes] = sched.bone(Xb, t1) - Xb
             set_time(t1)
-            g0 = contact.evaluate(u_try, np.ones(len(contact.node), bool))[0]
+            g0 = contact.node_gaps(u_try, np.ones(len(contact.node), bool))
             contact.cand = g0 < cand_dist
             lam_try[~contact.cand] = 0.0
             if carried and t <= 3.0:
@@ -972,14 +980,15 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings: Solve
                 if not ok:
                     break
                 # nodes outside the candidates that now penetrate: add them and go on
-                g_all = contact.evaluate(u_try, ~contact.cand)[0]
+                g_all = contact.node_gaps(u_try, ~contact.cand)
                 missed = np.isfinite(g_all) & (g_all < -gap_tol)
                 if not np.any(missed):
                     break
                 contact.cand |= g_all < cand_dist
             n_iter += iters
             total_changes += changes
-            pen = _penetration(surfaces, contact, u_try) if ok else (np.nan, np.nan)
+            # between the nodes, on the facets of the candidates (the others are too far from an obstacle)
+            pen = _penetration(surfaces, contact, u_try, contact.cand) if ok else (np.nan, np.nan)
             if ok and pen[1] > _MAX_PENETRATION_REL:
                 ok, why = False, f"the indenter passes between the skin's nodes ({pen[1]:.0%} of a facet deep)"
             force = _forces(contact, u_try, lam_try, k_ind, k_cast) if ok else (np.zeros(3), np.zeros(3))
