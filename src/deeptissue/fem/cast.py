@@ -79,7 +79,7 @@ class Cast:
         x : (n, 3) array_like
             Points [mm].
         hessian : bool
-            Also return the Hessian (about a third of the cost; the weighted gaps need it only for the
+            Also return the Hessian (about a seventh of the cost; the weighted gaps need it only for the
             curvature of a Newton direction).
 
         Returns
