@@ -132,6 +132,11 @@ class WeightedContact:
                 g[sel] = fn(x[sel], hessian=False)[0]
         return g
 
+    def facets_with(self, k, which):
+        """Indices of obstacle k's facets (in the order of its facet set) with a node of the entries ``which``."""
+        on = np.append(which & (self.obstacle == k), False)  # index -1 (no entry) -> False
+        return np.flatnonzero(on[self.sets[k]["entry"]].any(axis=1))
+
     def ncp(self, lam, g):
         """min(lam, c g) per entry [N] (0 at a solution; 0 outside the candidates)."""
         return np.where(np.isfinite(g), np.minimum(lam, self.c * np.where(np.isfinite(g), g, 0.0)), 0.0)
@@ -150,8 +155,7 @@ class WeightedContact:
         u3 = u.reshape(-1, 3)
         parts = []
         for k, st in enumerate(self.sets):
-            on = np.append(which & (self.obstacle == k), False)  # index -1 (no entry) -> False
-            fsel = np.flatnonzero(on[st["entry"]].any(axis=1))
+            fsel = self.facets_with(k, which)
             if not len(fsel):
                 continue
             fac, A, en, N, psi = st["facets"][fsel], st["A"][fsel], st["entry"][fsel], st["N"], st["psi"]

@@ -837,13 +837,9 @@ def _penetration(surfaces, contact, u, which=None):
     pen_mm, pen_rel = 0.0, 0.0
     for k, name in enumerate(contact.names):
         surf, fn = surfaces[name], contact.gapfns[k]
-        idx = None
-        if which is not None:
-            on = np.zeros(len(contact.X), bool)
-            on[contact.node[which & (contact.obstacle == k)]] = True
-            idx = np.flatnonzero(on[surf.facets6].any(axis=1))
-            if not len(idx):
-                continue
+        idx = None if which is None else contact.facets_with(k, which)  # the surface has the contact set's facets
+        if idx is not None and not len(idx):
+            continue
         gq = surf.gaps(u, fn, idx)
         pm = np.max(-np.where(np.isfinite(gq), gq, np.inf), axis=1)
         pen_mm = max(pen_mm, float(pm.max()))
