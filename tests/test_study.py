@@ -151,3 +151,33 @@ def test_variant_indenter_turns_about_the_final_tip(model_files):
     assert np.degrees(np.arccos(np.dot(ind.unit_axis, pose.indenter_axis))) == pytest.approx(15.0)
     assert np.linalg.norm(np.subtract(ind.end_mm, ind.start_mm)) == pytest.approx(pose.travel_mm)
     assert variant_indenter(pose, "bar").kind == "bar"
+
+
+def test_an_unconverged_solve_keeps_its_reason_when_its_last_state_has_no_strain(model_files, tmp_path, monkeypatch):
+    """A last state inverted at an element's centroid (one the solver admitted between its quadrature points) has no strain:
+    the summary keeps the solver's reason, load and iterations, and result.vtu shows the undeformed mesh."""
+    import deeptissue.study as study
+    from deeptissue.fem.solver import SolveResult
+
+    d, mesh = model_files
+    u = np.zeros_like(mesh.nodes_mm)
+    X = mesh.nodes_mm[mesh.tets[0]]
+    n = np.cross(X[2] - X[1], X[3] - X[1])
+    n /= np.linalg.norm(n)
+    u[mesh.tets[0]] = -2.0 * ((X - X[1]) @ n)[:, None] * n  # the element mirrored through its face 1-2-3
+    z3 = np.zeros(3)
+    folded = SolveResult(converged=False, reason="wall-time budget of 600 s spent at t = 3.9854", displacement_mm=u,
+                         deformation_gradient=np.tile(np.eye(3), (mesh.n_tets, 1, 1)), history=(), indenter_force_N=0.37,
+                         force_on_tissue_N=z3, cast_force_N=z3, max_penetration_mm=0.3, max_penetration_rel=0.4,
+                         strain_energy_mJ=1.0, n_dofs=u.size, n_free_dofs=u.size, increments=29, newton_iterations=382,
+                         load_reached=3.9854, wall_s=600.0, assembly_s=0.0, linear_solve_s=0.0, contact_s=0.0)
+    monkeypatch.setattr(study, "solve_from", lambda *a, **k: folded)
+    s = run_solve(animal="cyl", variant="sphere", mesh_path=d / "mesh.npz", cast_path=None, pose_path=d / "pose.json",
+                  during_contours_path=None, summary_path=tmp_path / "s.json", vtu_path=tmp_path / "r.vtu",
+                  fem_cfg={}, study_cfg={"threshold": 0.05, "bin_edges": [0.05, 0.1, 0.2]})
+    back = read_summary(tmp_path / "s.json")
+    assert not back.converged and back.reason.startswith("wall-time budget of 600 s spent at t = 3.9854; ")
+    assert "inverted" in back.reason and "undeformed" in back.reason
+    assert back.newton_iterations == 382 and back.extra["load_reached"] == pytest.approx(3.9854) and s.increments == 29
+    _, u_vtu, cells = read_result_vtu(tmp_path / "r.vtu")
+    assert np.all(u_vtu == 0) and np.all(cells["converged"] == 0)

@@ -25,7 +25,7 @@ from .fem.solver import (BoneState, EndState, FacetSets, SolverSettings, end_sta
 from .io import save_npz
 from .mesh import TetMesh, load_tetmesh
 from .pose import Pose, load_pose
-from .strain import DEFAULT_BIN_EDGES, element_strain
+from .strain import DEFAULT_BIN_EDGES, StrainError, element_strain
 from .summary import Summary, failed_summary, qc_warnings_of, summarize_solution, write_result_vtu, write_summary
 from .variants import parse_variant, variant_travel
 
@@ -139,7 +139,8 @@ def solve_variant(
         :func:`deeptissue.summary.summarize_solution` or :func:`deeptissue.summary.failed_summary`,
         with the solver's costs and contact diagnostics.
     displacement_mm : (n_nodes, 3) ndarray
-        Nodal displacement [mm] (the last converged state if not converged).
+        Nodal displacement [mm]: the last converged state if not converged (zero if that state has no strain:
+        an element inverted at its centroid, between the solver's quadrature points).
     strain : ElementStrain
         Centroid strain of that displacement.
     """
@@ -163,12 +164,20 @@ def solve_variant(
     )
     if not result.converged:
         log.warning("%s/%s did not converge: %s", animal, variant, result.reason)
-        strain = element_strain(mesh, result.displacement_mm)
-        summary = failed_summary(animal=animal, variant=variant, reason=result.reason,
+        u, reason = result.displacement_mm, result.reason
+        try:
+            strain = element_strain(mesh, u)
+        except StrainError as exc:
+            # the solver admits a state by its quadrature points; one folded between them has no strain to
+            # show, and the solver's reason, load and costs must not be lost to it
+            u = np.zeros_like(mesh.nodes_mm)
+            strain = element_strain(mesh, u)
+            reason = f"{reason}; its last state has no strain ({exc}): result.vtu shows the undeformed mesh"
+        summary = failed_summary(animal=animal, variant=variant, reason=reason,
                                  strain_measure=study.strain_measure, threshold=study.threshold,
                                  gamma_sampling=study.gamma_sampling,
                                  n_elements=int(mesh.n_tets), **info)
-        return summary, result.displacement_mm, strain
+        return summary, u, strain
     if end_state_path is not None:
         save_end_state(end_state_path, end_state(result, mesh, indenter=indenter, bone_motion=pose.bone_motion,
                                                  settings=settings))
