@@ -73,8 +73,9 @@ _GAP_TOL_INTERMEDIATE_REL = 5e-2
 # a converged increment whose facets dip deeper than this into an obstacle between their nodes (over the facet size)
 # has let the indenter pass between the skin's nodes (a coarse mesh: the weighted gaps close at the nodes only); it
 # is cut back. Converged states of the demo, the paper study and the hard cases dip 2-5 % of a facet, flat (P1)
-# facets of 2 mm on the 1.5 mm sphere 25 %
-_MAX_PENETRATION_REL = 0.5
+# facets of 2 mm on the 1.5 mm sphere 25 %; in the pinch of config/bone_at_indenter.yaml's gap005 an increment
+# that dipped 44 % had the force fall from 0.45 to 0.37 N as the indenter advanced (the sphere through the skin)
+_MAX_PENETRATION_REL = 0.3
 # an indenter whose end overlaps the rigidly moved skin by more than this must push on it [mm]
 _THROUGH_OVERLAP_MM = 0.1
 _ARMIJO = 1e-4  # sufficient decrease of the merit, as a fraction of its predicted decrease
