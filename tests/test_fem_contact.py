@@ -149,3 +149,36 @@ def test_weighted_gap_rows_and_curvature_are_derivatives_of_the_gaps_and_forces(
         np.add.at(Kdu, dofs.ravel(), np.einsum("kab,kb->ka", blk, du[dofs]).ravel())
     # the contact force's derivative is -curvature (the blocks carry the sign of the Newton matrix K - ...)
     np.testing.assert_allclose((fp - fm) / 2, -Kdu, atol=1e-4 * np.abs(Kdu).max())
+
+
+def test_the_augmented_lagrangian_slope_is_its_derivative():
+    # the line search's second merit (solver._Problem.lagrangian) and the slope its Armijo test uses: entries on both
+    # branches of psi (lam - rho g > 0 and not), a step in u and in the multipliers
+    from deeptissue.fem.assembly import Assembler, as_material_law
+    from deeptissue.fem.solver import SolverSettings, _Problem
+
+    limb = cored_cylinder_mesh(length_mm=6.0, radius_mm=3.0, core_radius_mm=0.8, h_mm=1.2)
+    bone = np.unique(limb.facets["bone"])
+    law = as_material_law(LAW)
+    constrained = np.zeros(limb.nodes_mm.size, bool)
+    constrained[(3 * bone[:, None] + np.arange(3)).ravel()] = True
+    asm = Assembler(limb, law, constrained=constrained)
+    wc = WeightedContact(limb.nodes_mm, [("indenter", limb.facets["skin"])], bone, young_mpa=law.young_mpa)
+    ind = Indenter("sphere", axis=(-1, 0, 0), radius_mm=1.5)
+    tip = np.array([2.7, 0.0, 3.0])
+    wc.gapfns[0] = lambda x, hessian=True: ind.gap(x, tip, hessian=hessian)
+    p = _Problem(SolverSettings(), asm, wc, constrained, 1.0)
+    rng = np.random.default_rng(7)
+    u = np.where(constrained, 0.0, 0.01 * rng.standard_normal(limb.nodes_mm.size))
+    gw, G, _, _ = p.weighted(u, np.zeros(len(wc.node)))
+    near = np.isfinite(gw) & (gw < 0.5)
+    lam = np.where(near, 1e-4 * rng.random(len(wc.node)), 0.0)
+    _, f = asm.force(u)
+    on = near & (lam - 10.0 * wc.c * gw > 0)
+    assert np.count_nonzero(on) >= 3 and np.count_nonzero(near & ~on) >= 3
+    du = np.where(constrained, 0.0, 1e-3 * rng.standard_normal(u.size))
+    dlam = np.where(near, 1e-5 * rng.standard_normal(len(wc.node)), 0.0)
+    eps = 1e-4
+    for a, b in ((du, 0 * dlam), (0 * du, np.where(on, dlam, 0.0)), (0 * du, np.where(on, 0.0, dlam)), (du, dlam)):
+        fd = (p.lagrangian(u + eps * a, lam + eps * b) - p.lagrangian(u - eps * a, lam - eps * b)) / (2 * eps)
+        assert p.lagrangian_slope(f, gw, G, lam, a, b) == pytest.approx(fd, rel=1e-5)

@@ -81,6 +81,13 @@ _THROUGH_OVERLAP_MM = 0.1
 _ARMIJO = 1e-4  # sufficient decrease of the merit, as a fraction of its predicted decrease
 _MAX_BACKTRACKS = 12  # step halvings before a direction is given up
 _NONMONOTONE_MEMORY = 5  # the Armijo test compares with the largest of this many last merits
+# a step the residual's merit shortens below this is searched again on the augmented Lagrangian (_Problem.lagrangian):
+# in tissue crushed against the bone the residual rises along a Newton direction on which the energy falls (the
+# 45 deg bar of the hard cases kept 1/256-1/2048 of each step for 25 iterations at a fixed active set)
+_SHORT_STEP = 0.125
+# the augmented Lagrangian's penalty on a weighted gap, in units of the entry's c = E h: the Newton direction of an
+# SPD tangent descends on it (its slope is checked), and it stays below the crushed elements' stiffness
+_LAGRANGIAN_PENALTY = 10.0
 # an increment this easy lets the next grow by _GROW: at most this many Newton iterations, and at most this fraction
 # of the contact entries changing state, within its iterations or from its start to its end (loose intermediate
 # states converge in one or two iterations while the contact area grows fast: on the 30 deg bar of the hard cases
@@ -643,6 +650,48 @@ class _Problem:
         return 0.5 * (float(R @ R) + float(C @ C))
 
 
+    def lagrangian(self, u, lam):
+        """Rockafellar's augmented Lagrangian of the energy and the contact constraints at (u, lam) [mJ]:
+        ``W(u) + sum_j psi(gw_j, lam_j)``, psi = -lam g + rho g^2 / 2 where lam - rho g > 0, else -lam^2 / (2 rho),
+        rho = _LAGRANGIAN_PENALTY c; inf if an element inverts."""
+        ta = time.perf_counter()
+        W = self.asm.energy(u)
+        self.timers["assembly"] += time.perf_counter() - ta
+        if not np.isfinite(W):
+            return np.inf
+        gw = self.weighted(u, lam, curvature=False)[0]
+        return W + float(np.sum(self._psi(gw, lam)[0]))
+
+    def _psi(self, gw, lam):
+        """psi (E,) of :meth:`lagrangian` and its derivatives by g and by lam (0 outside the candidates)."""
+        fin = np.isfinite(gw)
+        g = np.where(fin, gw, 0.0)
+        rho = _LAGRANGIAN_PENALTY * self.contact.c
+        on = fin & (lam - rho * g > 0)
+        psi = np.where(on, -lam * g + 0.5 * rho * g * g, np.where(fin, -lam * lam / (2.0 * rho), 0.0))
+        return psi, np.where(on, rho * g - lam, 0.0), np.where(on, -g, np.where(fin, -lam / rho, 0.0))
+
+    def lagrangian_slope(self, f, gw, G, lam, du, dlam):
+        """Derivative of :meth:`lagrangian` along (du, dlam) at the point of internal force f, weighted gaps gw
+        and their derivative G (COO)."""
+        rows, cols, vals = G
+        dg = np.bincount(rows, weights=vals * du[cols], minlength=len(gw))
+        _, d_g, d_lam = self._psi(gw, lam)
+        return float(f @ du) + float(d_g @ dg + d_lam @ dlam)
+
+
+def _line_search(merit, u, lam, du, dlam, ref, slope, whole=False):
+    """The longest step 1, 1/2, ... (at most _MAX_BACKTRACKS halvings) with merit(step) <= ref + _ARMIJO step
+    slope, or None; ``whole``: the first step whose merit is finite."""
+    step = 1.0
+    for _ in range(_MAX_BACKTRACKS):
+        phi = merit(u + step * du, lam + step * dlam)
+        if np.isfinite(phi) and (whole or phi <= ref + _ARMIJO * step * slope):
+            return step
+        step *= 0.5
+    return None
+
+
 def _solve_increment(p: _Problem, u, lam, target_d, rtol, atol, gap_tol):
     """Solve one increment in place on (u, lam) by semi-smooth Newton with a line search, to the equilibrium
     tolerances ``rtol``, ``atol`` [N] and the complementarity tolerance ``gap_tol`` [mm].
@@ -701,16 +750,15 @@ def _solve_increment(p: _Problem, u, lam, target_d, rtol, atol, gap_tol):
                     continue
                 return False, "linear solver failed", it, residuals, changes
             dlam = lam_new - lam
-            step = 1.0
-            for _ in range(_MAX_BACKTRACKS):
-                phi = p.merit(u + step * du, lam + step * dlam)
-                if has_d and np.isfinite(phi):
-                    break  # a step that moves the bone is taken whole wherever no element inverts
-                if phi <= phi_ref - 2.0 * _ARMIJO * step * phi0:
-                    break
-                step *= 0.5
-            else:
-                step = None
+            # a step that moves the bone is taken whole wherever no element inverts
+            step = _line_search(p.merit, u, lam, du, dlam, phi_ref, -2.0 * phi0, whole=has_d)
+            if not has_d and (step is None or step < _SHORT_STEP):
+                slope = p.lagrangian_slope(f, gw, G, lam, du, dlam)
+                if slope < 0:
+                    short = _line_search(p.lagrangian, u, lam, du, dlam, p.lagrangian(u, lam), slope)
+                    if short is not None and (step is None or short > step):
+                        step = short
+                        p.merit(u + step * du, lam + step * dlam)  # ``last``: the next iteration's force and gaps
             if step is not None or not geo:
                 break
         if step is None:

@@ -173,7 +173,7 @@ def _touching_indenter() -> Indenter:
     return replace(ind, start_mm=tuple(np.asarray(ind.end_mm) - 0.02 * ind.unit_axis))
 
 
-def hard_cases(material, *, max_wall_s: float = 900.0) -> pd.DataFrame:
+def hard_cases(material, *, max_wall_s: float = 1800.0) -> pd.DataFrame:
     """Cases that must converge with the default settings (no hand tuning); each has a wall-time
     budget of ``max_wall_s`` so that one stuck case cannot hold up the target."""
     # coarse limb (1.6 mm) with 0.5 mm elements where the indenter acts (as the model stage refines the patch)
@@ -335,7 +335,7 @@ HERTZ_RADIUS_MM = 1.5
 # ``fail`` (a passing check stays ``pass``). Remove an entry once its check passes again.
 _PINCH = ("open hard case: the tissue pinched against the rigid core stalls in the last increments (active-set "
           "changes without descent; the force stops growing) on the project's machine")
-KNOWN_FAILURES = {f"hard case: {c}": _PINCH for c in ("sphere pinched 0.1 mm from the bone", "bar tilted 45 deg, 1.5 mm")}
+KNOWN_FAILURES = {"hard case: sphere pinched 0.1 mm from the bone": _PINCH}
 
 # cylinder scene, each mesh against the finest: the accuracy goal of the study's numbers (force within
 # 0.5 % from 0.5 to 3 mm; VOI within 2 % and every bin within 1 pp at 1.5, 2 and 3 mm), and the error
