@@ -649,7 +649,6 @@ class _Problem:
         self.last = (f, gw, fc)
         return 0.5 * (float(R @ R) + float(C @ C))
 
-
     def lagrangian(self, u, lam):
         """Rockafellar's augmented Lagrangian of the energy and the contact constraints at (u, lam) [mJ]:
         ``W(u) + sum_j psi(gw_j, lam_j)``, psi = -lam g + rho g^2 / 2 where lam - rho g > 0, else -lam^2 / (2 rho),
@@ -755,9 +754,9 @@ def _solve_increment(p: _Problem, u, lam, target_d, rtol, atol, gap_tol):
             if not has_d and (step is None or step < _SHORT_STEP):
                 slope = p.lagrangian_slope(f, gw, G, lam, du, dlam)
                 if slope < 0:
-                    short = _line_search(p.lagrangian, u, lam, du, dlam, p.lagrangian(u, lam), slope)
-                    if short is not None and (step is None or short > step):
-                        step = short
+                    al_step = _line_search(p.lagrangian, u, lam, du, dlam, p.lagrangian(u, lam), slope)
+                    if al_step is not None and (step is None or al_step > step):
+                        step = al_step
                         p.merit(u + step * du, lam + step * dlam)  # ``last``: the next iteration's force and gaps
             if step is not None or not geo:
                 break
