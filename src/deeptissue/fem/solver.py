@@ -658,7 +658,7 @@ class _Problem:
         self.timers["assembly"] += time.perf_counter() - ta
         if not np.isfinite(W):
             return np.inf
-        gw = self.weighted(u, lam, curvature=False)[0]
+        gw = self.weighted(u, None)[0]  # the gaps only: no contact force
         return W + float(np.sum(self._psi(gw, lam)[0]))
 
     def _psi(self, gw, lam):
