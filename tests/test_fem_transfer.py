@@ -80,7 +80,7 @@ def test_a_carried_state_that_still_folds_tets_is_not_used():
 
 
 def test_a_state_that_folds_a_tet_at_its_corners_is_untangled_by_a_small_local_move():
-    from deeptissue.fem.skmesh import GMSH_TET_EDGES
+    from deeptissue.mesh import GMSH_TET10_EDGES
     from deeptissue.fem.transfer import _inverted
 
     mesh = cored_cylinder_mesh(length_mm=4.0, radius_mm=3.0, core_radius_mm=0.8, h_mm=1.0)
@@ -96,9 +96,9 @@ def test_a_state_that_folds_a_tet_at_its_corners_is_untangled_by_a_small_local_m
     dist = float((X[free] - face[0]) @ n)
     u = np.zeros_like(X)
     u[free] = -1.02 * dist * n  # 2 % of its height through the bone's face
-    for a, b in GMSH_TET_EDGES:  # the edges from it stay straight: only its corners fold the tets
+    for a, b in GMSH_TET10_EDGES:  # the edges from it stay straight: only its corners fold the tets
         on_edge = (mesh.tets[:, a] == free) | (mesh.tets[:, b] == free)
-        u[mesh.tets[on_edge, 4 + GMSH_TET_EDGES.index((a, b))]] = 0.5 * u[free]
+        u[mesh.tets[on_edge, 4 + GMSH_TET10_EDGES.index((a, b))]] = 0.5 * u[free]
     assert _inverted(mesh, u, 2)[e]
     ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(4.0, 0.0, 2.0), end_mm=(2.8, 0.0, 2.0))
     state = mapped_end_state(mesh, u, mesh, indenter=ind, bone_motion=BoneMotion(), settings=SolverSettings())

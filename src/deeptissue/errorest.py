@@ -29,8 +29,8 @@ from typing import Sequence
 
 import numpy as np
 
-from .mesh import TetMesh
-from .strain import (DEFAULT_BIN_EDGES, GMSH_TET10_EDGES, bin_labels, gamma_at_points, tet10_shape_functions,
+from .mesh import GMSH_TET10_EDGES, TetMesh
+from .strain import (DEFAULT_BIN_EDGES, bin_labels, gamma_at_points, tet10_shape_functions,
                      tet_shape_gradients, tet_subdivision, voi_statistics)
 
 __all__ = ["GAUSS_XI", "NODE_XI", "VoiErrorEstimate", "element_indicator", "gamma_at_nodes", "patch_recovered_gamma",

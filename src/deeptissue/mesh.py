@@ -25,6 +25,8 @@ GMSH_TRI3 = 2  # gmsh element type of the 3-node triangle
 # nodes per tetrahedron / facet of each element order
 TET_NODES = {1: 4, 2: 10}
 FACET_NODES = {1: 3, 2: 6}
+# local corner pairs of a Tetrahedron10's mid-edge nodes: node 4 + k lies on edge k (gmsh's node order)
+GMSH_TET10_EDGES = ((0, 1), (1, 2), (0, 2), (0, 3), (2, 3), (1, 3))
 
 
 @dataclass(frozen=True)

@@ -31,17 +31,15 @@ from typing import Sequence
 
 import numpy as np
 
-from .mesh import TetMesh
+from .mesh import GMSH_TET10_EDGES, TetMesh
 
-__all__ = ["DEFAULT_BIN_EDGES", "GMSH_TET10_EDGES", "STRAIN_MEASURES", "ElementStrain", "StrainError", "VoiStatistics",
+__all__ = ["DEFAULT_BIN_EDGES", "STRAIN_MEASURES", "ElementStrain", "StrainError", "VoiStatistics",
            "bin_labels", "deformation_gradient_at_centroids", "element_strain", "element_volumes_mm3", "gamma_at_points",
            "green_lagrange", "max_shear", "principal_log_stretches", "principal_values", "tet10_shape_functions",
            "tet10_shape_gradients", "tet_quadrature", "tet_shape_gradients", "tet_subdivision", "voi_statistics"]
 
 log = logging.getLogger(__name__)
 
-# local node pairs of the mid-edge nodes 4..9 (gmsh Tetrahedron10 order)
-GMSH_TET10_EDGES = ((0, 1), (1, 2), (0, 2), (0, 3), (2, 3), (1, 3))
 STRAIN_MEASURES = ("green_lagrange", "log")
 DEFAULT_BIN_EDGES = (0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)  # γmax bins from the threshold 0.3 up, last '>1.0'
 

@@ -15,13 +15,11 @@ from dataclasses import dataclass
 import numpy as np
 from skfem import MeshTet1, MeshTet2
 
-from ..mesh import TetMesh
+from ..mesh import GMSH_TET10_EDGES, TetMesh
 
-__all__ = ["GMSH_TET_EDGES", "GMSH_TO_SKFEM_TET10", "SkMesh", "jacobian_points", "reference_jacobians",
+__all__ = ["GMSH_TO_SKFEM_TET10", "SkMesh", "jacobian_points", "reference_jacobians",
            "straighten_invalid", "to_skfem"]
 
-# gmsh Tetrahedron10 local edges (mid-node 4 + k is on edge k)
-GMSH_TET_EDGES = ((0, 1), (1, 2), (0, 2), (0, 3), (2, 3), (1, 3))
 # gmsh -> skfem local node permutation of a 10-node tet (swap 8 and 9)
 GMSH_TO_SKFEM_TET10 = np.array([0, 1, 2, 3, 4, 5, 6, 7, 9, 8])
 
@@ -77,7 +75,7 @@ def to_skfem(tm: TetMesh) -> SkMesh:
     m2 = MeshTet2.from_mesh(m1)
 
     # gmsh mid-node of every (vertex pair)
-    ev = np.array(GMSH_TET_EDGES)
+    ev = np.array(GMSH_TET10_EDGES)
     va, vb = vert[tm.tets[:, ev[:, 0]]].ravel(), vert[tm.tets[:, ev[:, 1]]].ravel()
     mids = tm.tets[:, 4:].ravel()
     keys = _pair_keys(va, vb, len(corners))
@@ -162,6 +160,6 @@ def straighten_invalid(tm: TetMesh, *, order: int = 2, max_rounds: int = 5) -> t
             return cur, int(fixed.sum())
         fixed |= bad
         t = tm.tets[bad]
-        for k, (a, b) in enumerate(GMSH_TET_EDGES):
+        for k, (a, b) in enumerate(GMSH_TET10_EDGES):
             nodes[t[:, 4 + k]] = 0.5 * (nodes[t[:, a]] + nodes[t[:, b]])
     raise ValueError(f"mesh: {int(bad.sum())} tetrahedra stay inverted after straightening their edges")

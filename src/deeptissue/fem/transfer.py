@@ -22,11 +22,11 @@ import numpy as np
 from scipy import sparse
 from scipy.optimize import least_squares
 
-from ..mesh import TetMesh, locate_in_tets
+from ..mesh import GMSH_TET10_EDGES, TetMesh, locate_in_tets
 from ..rigid import BoneMotion, apply_rigid
 from ..strain import tet10_shape_functions, tet_shape_gradients
 from .indenters import Indenter
-from .skmesh import GMSH_TET_EDGES, jacobian_points, reference_jacobians
+from .skmesh import jacobian_points, reference_jacobians
 from .solver import EndState, SolverSettings
 
 __all__ = ["interpolate_nodal", "mapped_end_state"]
@@ -70,7 +70,7 @@ def _unfolded(mesh: TetMesh, u: np.ndarray, fixed: np.ndarray, *, order: int, ma
         if not np.any(bad) or k == max_rounds:  # the count returned is that of the u returned
             break
         t = mesh.tets[bad]
-        for j, (a, b) in enumerate(GMSH_TET_EDGES):
+        for j, (a, b) in enumerate(GMSH_TET10_EDGES):
             m = t[:, 4 + j]
             u[m] = np.where(fixed[m, None], u[m], 0.5 * (x[t[:, a]] + x[t[:, b]]) - mesh.nodes_mm[m])
     return u, int(bad.sum())
