@@ -330,11 +330,19 @@ def test_adaptive_comparison_errors_against_the_reference(tmp_path):
     voi = pd.DataFrame(dict(mesh=["a", "ref"], depth_mm=[2.0, 2.0], n_dofs=[10, 100], voi_mm3=[10.5, 10.0],
                             voi_err_mm3=[1.0, 0.1], **{"bins_percent.x": [60.0, 58.0], "bins_percent.y": [40.0, 42.0],
                                                         "bins_err_pp.x": [3.0, 0.2], "bins_err_pp.y": [1.0, 0.2]}))
-    curve = pd.DataFrame(dict(mesh=["a", "ref"], depth_mm=[2.0, 2.0], force_N=[1.01, 1.0], wall_s=[5.0, 50.0]))
-    passes = pd.DataFrame(dict(depth_mm=[2.0], index=[1], n_dofs=[20], wall_s=[12.0], voi_mm3=[9.9], voi_err_percent=[1.5],
-                               bins_err_pp=[0.5], force_N=[0.998], force_err_percent=[0.3], goal_met=[True],
-                               **{"bins_percent.x": [58.5], "bins_percent.y": [41.5]}))
-    t = adaptive_comparison(passes, voi, curve).set_index("kind")
+    curve = pd.DataFrame(dict(mesh=["a", "ref", "a", "ref"], depth_mm=[2.0, 2.0, 0.5, 0.5], force_N=[1.01, 1.0, 0.2, 0.1],
+                              wall_s=[5.0, 50.0, 2.0, 20.0]))
+    passes = pd.DataFrame(dict(depth_mm=[2.0, 0.5], index=[1, 2], n_dofs=[20, 30], wall_s=[12.0, 9.0], voi_mm3=[9.9, 0.0],
+                               voi_err_percent=[1.5, 0.0], bins_err_pp=[0.5, 0.0], force_N=[0.998, 0.1003],
+                               force_err_percent=[0.3, 0.4], goal_met=[True, True],
+                               **{"bins_percent.x": [58.5, 0.0], "bins_percent.y": [41.5, 0.0]}))
+    t = adaptive_comparison(passes, voi, curve)
+    # a depth of the force-depth curve without a VOI row: the force's true error only
+    shallow = t[t["depth_mm"] == 0.5].iloc[0]
+    assert shallow["kind"] == "adaptive" and shallow["true_force_percent"] == pytest.approx(0.3)
+    assert np.isnan(shallow["true_voi_percent"]) and np.isnan(shallow["true_bins_pp"])
+    plot_adaptive(t, tmp_path / "with_shallow.png")
+    t = t[t["depth_mm"] == 2.0].set_index("kind")
     assert len(t) == 2  # the reference itself is no row
     assert t.loc["fixed", "true_voi_percent"] == pytest.approx(5.0)
     assert t.loc["fixed", "true_bins_pp"] == pytest.approx(2.0) and t.loc["fixed", "est_bins_pp"] == 3.0
@@ -396,3 +404,24 @@ def test_the_limb_mesher_follows_a_background_size():
     assert h[d < 1.0].mean() == pytest.approx(0.5, rel=0.25)
     assert h[d > 6.0].mean() == pytest.approx(h0[d0 > 6.0].mean(), rel=0.15)
     assert m.n_tets > m0.n_tets
+
+
+def test_a_scene_without_a_voi_meets_the_voi_goal_only_if_its_estimate_agrees(coarse_cylinder):
+    m = coarse_cylinder
+
+    def run(voi_err_mm3):
+        def estimate(mesh, sol):
+            eta = np.zeros(mesh.n_tets)
+            eta[0] = voi_err_mm3
+            return PassEstimate(voi_mm3=0.0, voi_err_mm3=voi_err_mm3, bins_err_pp=0.0, force_N=1.0, indicator_mm3=eta)
+
+        return adapt(lambda f: m, lambda mm, _: SimpleNamespace(converged=True, indenter_force_N=1.0,
+                                                              displacement_mm=np.zeros_like(mm.nodes_mm)),
+                     estimate, AdaptSettings(max_passes=2, force_goal_percent=None))
+
+    # strained below the threshold everywhere in both fields: nothing to refine for the VOI
+    r = run(0.0)
+    assert r.stop_reason == "goal" and len(r.passes) == 1 and r.passes[0].voi_err_percent == 0.0
+    # no VOI in the solution, but the recovered field crosses the threshold: a VOI the mesh may not resolve
+    r = run(0.01)
+    assert r.stop_reason == "passes" and np.isinf(r.passes[0].voi_err_percent)

@@ -109,7 +109,7 @@ def test_the_summary_is_written_from_the_csv_files(tmp_path):
 def _cylinder(force_error=0.001, voi_error=0.01, estimate_mm3=0.2):
     meshes = [("1.6 / 0.8 mm", 29577), ("1.2 / 0.4 mm", 70503)]
     curve = pd.DataFrame([dict(mesh=m, n_dofs=n, depth_mm=d, force_N=0.04 * d**1.5 * (1 + (force_error if n < 50000 else 0)),
-                               converged=True) for m, n in meshes for d in (0.5, 1.5, 3.0)])
+                               converged=True, wall_s=5.0) for m, n in meshes for d in (0.5, 1.5, 3.0)])
     bins = {"bins_percent.0.3-0.4": 60.0, "bins_percent.>1.0": 40.0, "bins_err_pp.0.3-0.4": 0.5, "bins_err_pp.>1.0": 0.5}
     voi = pd.DataFrame([dict(mesh=m, n_dofs=n, depth_mm=d, voi_mm3=10 * d * (1 + (voi_error if n < 50000 else 0)),
                              voi_err_mm3=estimate_mm3 * d, **bins) for m, n in meshes for d in (1.5, 3.0)])
@@ -149,3 +149,60 @@ def test_the_cylinder_rows_are_read_from_their_csv_files(tmp_path):
                                    benchmark_csv=paths["benchmark"], summary_csv=tmp_path / "summary.csv",
                                    cylinder_curve_csv=paths["cylinder_curve"], cylinder_voi_csv=paths["cylinder_voi"])
     assert s["check"].str.startswith("cylinder:").sum() == 11 and not failed_checks(s)
+
+
+def _adaptive(curve, voi, *, force_error=0.002, voi_error=-0.01, goal_met=True):
+    """rule verify_cylinder_adaptive's table for _cylinder's meshes: two passes at 1.5 mm, one at 0.5 and 3 mm."""
+    from deeptissue.fem.cylinder import adaptive_comparison
+
+    ref = "1.2 / 0.4 mm"
+    rows = []
+    for d, index in ((0.5, 0), (1.5, 0), (1.5, 1), (3.0, 0)):
+        f = curve[(curve["mesh"] == ref) & (curve["depth_mm"] == d)]["force_N"].iloc[0]
+        v = voi[(voi["mesh"] == ref) & (voi["depth_mm"] == d)]
+        last = index == 1 or d != 1.5
+        rows.append(dict(depth_mm=d, index=index, n_dofs=20000 * (index + 1), wall_s=10.0 * (index + 1),
+                         voi_mm3=float(v["voi_mm3"].iloc[0]) * (1 + voi_error) if len(v) else 0.0,
+                         voi_err_percent=1.0, bins_err_pp=0.5, force_N=f * (1 + (force_error if last else 0.05)),
+                         force_err_percent=1.0, goal_met=goal_met if last else False,
+                         **{"bins_percent.0.3-0.4": 60.3, "bins_percent.>1.0": 39.7}))
+    t = adaptive_comparison(pd.DataFrame(rows), voi, curve)
+    t["stop_reason"] = np.where(t["kind"] == "adaptive", "goal" if goal_met else "passes", None)
+    return t
+
+
+def test_adaptive_cylinder_rows_hold_each_last_pass_to_the_finest_fixed_mesh():
+    curve, voi = _cylinder()
+    s = verification_summary(**_tables(), cylinder_curve=curve, cylinder_voi=voi,
+                             cylinder_adaptive=_adaptive(curve, voi)).set_index("check")
+    rows = s[s.index.str.startswith("cylinder: adaptive")]
+    # goal and force at 3 depths; VOI and bins where the reference has them (1.5 and 3 mm)
+    assert len(rows) == 3 * 2 + 2 * 2 and (rows["status"] == "pass").all()
+    assert rows.loc["cylinder: adaptive mesh: force at 0.5 mm: |F / F_finest - 1|", "value"] == pytest.approx(0.002)
+    assert rows.loc["cylinder: adaptive mesh: VOI at 1.5 mm: |VOI / VOI_finest - 1|", "value"] == pytest.approx(0.01)
+    assert rows.loc["cylinder: adaptive mesh: bins at 3 mm: max |p - p_finest| [pp]", "value"] == pytest.approx(0.3)
+    assert "pass 1, 40000 DOFs" in rows.loc["cylinder: adaptive mesh: force at 1.5 mm: |F / F_finest - 1|", "note"]
+    assert "cylinder: adaptive mesh: VOI at 0.5 mm: |VOI / VOI_finest - 1|" not in rows.index
+    failed = failed_checks(verification_summary(**_tables(), cylinder_curve=curve, cylinder_voi=voi,
+                                                cylinder_adaptive=_adaptive(curve, voi, force_error=0.006,
+                                                                            voi_error=0.03, goal_met=False)))
+    assert {f"cylinder: adaptive mesh: force at {d:g} mm: |F / F_finest - 1|" for d in (0.5, 1.5, 3.0)} <= set(failed)
+    assert {f"cylinder: adaptive mesh at {d:g} mm: goal met by its own estimate" for d in (0.5, 1.5, 3.0)} <= set(failed)
+    assert "cylinder: adaptive mesh: VOI at 3 mm: |VOI / VOI_finest - 1|" in failed
+
+
+def test_the_adaptive_cylinder_rows_are_read_from_their_csv_file(tmp_path):
+    paths = {}
+    curve, voi = _cylinder()
+    tables = {**_tables(hard_30_converged=True), "cylinder_curve": curve, "cylinder_voi": voi,
+              "cylinder_adaptive": _adaptive(curve, voi, force_error=0.006)}
+    for name, df in tables.items():
+        paths[name] = tmp_path / f"{name}.csv"
+        df.to_csv(paths[name], index=False)
+    s = write_verification_summary(point_csv=paths["points"], hertz_csv=paths["hertz"], curve_csv=paths["curve"],
+                                   locking_csv=paths["locking"], checks_csv=paths["checks"], hard_csv=paths["hard"],
+                                   benchmark_csv=paths["benchmark"], summary_csv=tmp_path / "summary.csv",
+                                   cylinder_curve_csv=paths["cylinder_curve"], cylinder_voi_csv=paths["cylinder_voi"],
+                                   cylinder_adaptive_csv=paths["cylinder_adaptive"])
+    assert s["check"].str.startswith("cylinder: adaptive").sum() == 10
+    assert failed_checks(s) == [f"cylinder: adaptive mesh: force at {d:g} mm: |F / F_finest - 1|" for d in (0.5, 1.5, 3.0)]

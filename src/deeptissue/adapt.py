@@ -385,7 +385,7 @@ def adapt(build_mesh: Callable[[SizeField | None], TetMesh], solve: Callable[[Te
             held = (force_err, est.force_N, contact_h) if force_err <= st.force_goal_percent else None
         elif force_status != "held" or not force_err <= st.force_goal_percent:
             held = None
-        voi_pc = 100.0 * est.voi_err_mm3 / est.voi_mm3 if est.voi_mm3 > 0 else np.inf
+        voi_pc = _voi_error_percent(est.voi_mm3, est.voi_err_mm3)
         force_ok = st.force_goal_percent is None or force_err <= st.force_goal_percent  # NaN: not known, not met
         met = bool(voi_pc <= st.voi_goal_percent and est.bins_err_pp <= st.bins_goal_pp and force_ok)
         p = AdaptPass(k, 3 * len(mesh.nodes_mm), int(mesh.n_tets), True, t1 - t0, t2 - t1, t3 - t2, t3 - t_start,
@@ -412,6 +412,15 @@ def adapt(build_mesh: Callable[[SizeField | None], TetMesh], solve: Callable[[Te
     return AdaptResult(tuple(passes), mesh, sol, est, reason)
 
 
+def _voi_error_percent(voi_mm3: float, voi_err_mm3: float) -> float:
+    """The VOI's estimated error over the VOI [%]: 0 where both are zero (no element near the threshold
+    in either field: a scene strained below it everywhere has nothing to refine for the VOI), infinite
+    where only the VOI is (a VOI may exist that the mesh does not resolve)."""
+    if voi_mm3 > 0:
+        return 100.0 * voi_err_mm3 / voi_mm3
+    return 0.0 if voi_err_mm3 == 0 else np.inf
+
+
 def _next_sizes(h, volume_mm3, est: PassEstimate, voi_pc: float, force_err: float,
                 st: AdaptSettings) -> tuple[np.ndarray, str]:
     """The next pass's element sizes, and why the contact zone is not refined (``'budget'``, ``'h_min'``
@@ -434,6 +443,8 @@ def _next_sizes(h, volume_mm3, est: PassEstimate, voi_pc: float, force_err: floa
     for part, ratio in parts:
         total = float(part.sum())
         if total > 0 and ratio > st.safety:
+            # an unbounded ratio (no VOI, a non-zero estimate) shrinks the indicator's elements as far as one pass may
+            ratio = min(ratio, 1e12)
             new_h = np.minimum(new_h, target_sizes(h, part, st.safety * total / ratio, st))
     c = est.contact_tets
     if st.force_goal_percent is None or c is None or not c.any() or force_err <= st.force_goal_percent:

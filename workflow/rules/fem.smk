@@ -120,6 +120,7 @@ rule verify_summary:
         benchmark=rules.verify_fem_benchmark.output.benchmark,
         cylinder_curve=rules.verify_cylinder.output.curve,
         cylinder_voi=rules.verify_cylinder.output.voi,
+        cylinder_adaptive=rules.verify_cylinder_adaptive.output.table,
     output:
         summary="results/verification/summary.csv",
     log:
@@ -140,6 +141,7 @@ rule verify:
         rules.verify_fem_benchmark.output,
         rules.verify_locking.output,
         rules.verify_cylinder.output,
+        rules.verify_cylinder_adaptive.output,
         summary=rules.verify_summary.output.summary,
     log:
         "results/logs/verify.log",

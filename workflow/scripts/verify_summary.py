@@ -16,6 +16,7 @@ with script_log(snakemake.log[0], "verify_summary"):  # noqa: F821
         benchmark_csv=snakemake.input.benchmark,  # noqa: F821
         cylinder_curve_csv=snakemake.input.cylinder_curve,  # noqa: F821
         cylinder_voi_csv=snakemake.input.cylinder_voi,  # noqa: F821
+        cylinder_adaptive_csv=snakemake.input.cylinder_adaptive,  # noqa: F821
         summary_csv=snakemake.output.summary,  # noqa: F821
     )
     logging.info("verification summary\n%s", summary.to_string(index=False))

@@ -290,6 +290,8 @@ def adaptive_cylinder(material, depth_mm: float, settings=None, *, start: Cylind
 def adaptive_comparison(passes: pd.DataFrame, voi: pd.DataFrame, curve: pd.DataFrame) -> pd.DataFrame:
     """The adaptive passes against the fixed meshes of the verification (cylinder_voi.csv and
     cylinder_curve.csv, whose finest mesh is the reference), one row per pass and per fixed mesh and depth.
+    A pass at a depth of the force-depth curve without a VOI row (0.5, 1 and 2.5 mm) has the force's true
+    error only.
 
     ``passes``: :meth:`deeptissue.adapt.AdaptResult.table` rows with a depth_mm column. Columns: kind
     ('adaptive' or 'fixed'), mesh, depth_mm, pass_index (adaptive), n_dofs, wall_s (adaptive: every pass so far; fixed:
@@ -313,19 +315,22 @@ def adaptive_comparison(passes: pd.DataFrame, voi: pd.DataFrame, curve: pd.DataF
                          true_force_percent=100 * (c["force_N"] / ref_force.loc[d] - 1)))
     for _, p in passes.iterrows():
         d = p["depth_mm"]
-        true_bins = max((abs(p[b] - ref.loc[d, b]) for b in bins if b in p), default=np.nan)
+        has_voi = d in ref.index  # the reference's VOI and bins are known at the VOI depths only
+        true_bins = max((abs(p[b] - ref.loc[d, b]) for b in bins if b in p), default=np.nan) if has_voi else np.nan
         rows.append(dict(kind="adaptive", mesh="adaptive", depth_mm=d, pass_index=p["index"], n_dofs=p["n_dofs"],
                          wall_s=p["wall_s"], est_voi_percent=p["voi_err_percent"], est_bins_pp=p["bins_err_pp"],
                          est_force_percent=p["force_err_percent"],
-                         true_voi_percent=100 * (p["voi_mm3"] / ref.loc[d, "voi_mm3"] - 1), true_bins_pp=true_bins,
-                         true_force_percent=100 * (p["force_N"] / ref_force.loc[d] - 1), goal_met=p["goal_met"]))
+                         true_voi_percent=100 * (p["voi_mm3"] / ref.loc[d, "voi_mm3"] - 1) if has_voi else np.nan,
+                         true_bins_pp=true_bins, true_force_percent=100 * (p["force_N"] / ref_force.loc[d] - 1),
+                         goal_met=p["goal_met"]))
     return pd.DataFrame(rows)
 
 
 def plot_adaptive(table: pd.DataFrame, path) -> None:
-    """True VOI error [%] and largest bin error [pp] against wall time [s] (:func:`adaptive_comparison`'s
-    table): the adaptive passes of each depth as a line (open markers: estimate not yet within the
-    goal), the fixed meshes (but the reference) as squares, the goals as dotted lines."""
+    """True VOI error [%], largest bin error [pp] and force error [%] against wall time [s]
+    (:func:`adaptive_comparison`'s table): the adaptive passes of each depth as a line (open markers:
+    estimate not yet within the goal), the fixed meshes (but the reference) as squares, the goals of
+    the verification case as dotted lines. A depth without a VOI row appears in the force's panel only."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -333,24 +338,27 @@ def plot_adaptive(table: pd.DataFrame, path) -> None:
 
     from ..io import atomic_path
 
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4.2))
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
     for j, d in enumerate(sorted(table["depth_mm"].unique())):
         colour = f"C{j}"
         a = table[(table["kind"] == "adaptive") & (table["depth_mm"] == d)].sort_values("wall_s")
         f = table[(table["kind"] == "fixed") & (table["depth_mm"] == d)]
-        for ax, col in zip(axes, ("true_voi_percent", "true_bins_pp")):
+        for ax, col in zip(axes, ("true_voi_percent", "true_bins_pp", "true_force_percent")):
+            if not np.isfinite(a[col].to_numpy(float)).any():
+                continue
             ax.plot(a["wall_s"], a[col].abs(), "-", color=colour, label=f"{d:g} mm adaptive")
             met = a["goal_met"].astype(bool).to_numpy()
             ax.plot(a["wall_s"][met], a[col].abs()[met], "o", color=colour)
             ax.plot(a["wall_s"][~met], a[col].abs()[~met], "o", color=colour, mfc="none")
             ax.plot(f["wall_s"], f[col].abs(), "s", color=colour, mfc="none", ms=8)
-    for ax, goal, label in zip(axes, (2.0, 1.0), ("|VOI error| against the reference [%]", "largest bin error [pp]")):
+    for ax, goal, label in zip(axes, (2.0, 1.0, 0.5), ("|VOI error| against the reference [%]", "largest bin error [pp]",
+                                                       "|force error| against the reference [%]")):
         ax.axhline(goal, ls=":", color="k", lw=1)
         ax.set_xscale("log")
         ax.set_xlabel("wall time [s] (adaptive: all passes so far)")
         ax.set_ylabel(label)
     fixed = ", ".join(dict.fromkeys(table.loc[table["kind"] == "fixed", "mesh"]))
-    axes[0].legend(fontsize=8, title=f"squares: fixed {fixed}", title_fontsize=8)
+    axes[2].legend(fontsize=8, title=f"squares: fixed {fixed}", title_fontsize=8)
     fig.suptitle("Cylinder scene: adaptive meshes against fixed meshes")
     fig.tight_layout()
     Path(path).parent.mkdir(parents=True, exist_ok=True)
@@ -360,7 +368,7 @@ def plot_adaptive(table: pd.DataFrame, path) -> None:
 
 
 def write_adaptive_cylinder(material, *, voi_csv, curve_csv, out_csv, figure_png,
-                            depths_mm: Sequence[float] = VOI_DEPTHS_MM, settings=None) -> pd.DataFrame:
+                            depths_mm: Sequence[float] = CURVE_DEPTHS_MM, settings=None) -> pd.DataFrame:
     """:func:`adaptive_cylinder` at each of ``depths_mm`` against the fixed meshes of the verification
     (``voi_csv``, ``curve_csv``: cylinder_voi.csv and cylinder_curve.csv, whose finest mesh is the
     reference): the table of :func:`adaptive_comparison` with a stop_reason column (out_csv) and

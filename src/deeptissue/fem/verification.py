@@ -337,9 +337,9 @@ _PINCH = ("open hard case: the tissue pinched against the rigid core stalls in t
           "changes without descent; the force stops growing) on the project's machine")
 KNOWN_FAILURES = {"hard case: sphere pinched 0.1 mm from the bone": _PINCH}
 
-# cylinder scene, each mesh against the finest: the accuracy goal of the study's numbers (force within
-# 0.5 % from 0.5 to 3 mm; VOI within 2 % and every bin within 1 pp at 1.5, 2 and 3 mm), and the error
-# estimate's goal (the true VOI error within 2 x the estimate)
+# cylinder scene, each fixed mesh and each adaptive run against the finest fixed mesh: the accuracy goal
+# of the study's numbers (force within 0.5 % from 0.5 to 3 mm; VOI within 2 % and every bin within 1 pp
+# at 1.5, 2 and 3 mm), and the error estimate's goal (the true VOI error within 2 x the estimate)
 CYLINDER_FORCE_LIMIT = 0.005
 CYLINDER_VOI_LIMIT = 0.02
 CYLINDER_BINS_LIMIT_PP = 1.0
@@ -481,10 +481,39 @@ def _cylinder_checks(curve: pd.DataFrame, voi: pd.DataFrame) -> list[dict]:
     return rows
 
 
+def _cylinder_adaptive_checks(table: pd.DataFrame) -> list[dict]:
+    """cylinder_adaptive.csv (:func:`deeptissue.fem.cylinder.adaptive_comparison`): at every depth the
+    adaptive run's last pass meets the study's goal by its own estimate, and against the finest fixed
+    mesh its force is within CYLINDER_FORCE_LIMIT, its VOI within CYLINDER_VOI_LIMIT and its bins within
+    CYLINDER_BINS_LIMIT_PP (the VOI and bins at the depths the reference has them)."""
+    rows = []
+    runs = table[table["kind"] == "adaptive"]
+    for d, run in runs.groupby("depth_mm", sort=True):
+        last = run.loc[run["pass_index"].idxmax()]
+        where = f"pass {int(last['pass_index'])}, {int(last['n_dofs'])} DOFs, {last['wall_s']:.0f} s for all passes"
+        met = bool(last["goal_met"])
+        rows.append(_check(f"cylinder: adaptive mesh at {d:g} mm: goal met by its own estimate", float(met), 1.0, met,
+                           f"{where}; stopped on: {last.get('stop_reason', '')}"))
+        err = abs(last["true_force_percent"]) / 100
+        rows.append(_check(f"cylinder: adaptive mesh: force at {d:g} mm: |F / F_finest - 1|", err, CYLINDER_FORCE_LIMIT,
+                           err <= CYLINDER_FORCE_LIMIT, f"{where}; estimate {last['est_force_percent']:.2f} %"))
+        if np.isfinite(last["true_voi_percent"]):
+            rel = abs(last["true_voi_percent"]) / 100
+            rows.append(_check(f"cylinder: adaptive mesh: VOI at {d:g} mm: |VOI / VOI_finest - 1|", rel,
+                               CYLINDER_VOI_LIMIT, rel <= CYLINDER_VOI_LIMIT,
+                               f"{where}; estimate {last['est_voi_percent']:.2f} %"))
+            rows.append(_check(f"cylinder: adaptive mesh: bins at {d:g} mm: max |p - p_finest| [pp]",
+                               last["true_bins_pp"], CYLINDER_BINS_LIMIT_PP,
+                               last["true_bins_pp"] <= CYLINDER_BINS_LIMIT_PP,
+                               f"{where}; estimate {last['est_bins_pp']:.2f} pp"))
+    return rows
+
+
 def verification_summary(*, points: pd.DataFrame, hertz: pd.DataFrame, curve: pd.DataFrame,
                          locking: pd.DataFrame, checks: pd.DataFrame, hard: pd.DataFrame,
                          benchmark: pd.DataFrame, cylinder_curve: pd.DataFrame | None = None,
-                         cylinder_voi: pd.DataFrame | None = None, radius_mm: float = HERTZ_RADIUS_MM,
+                         cylinder_voi: pd.DataFrame | None = None, cylinder_adaptive: pd.DataFrame | None = None,
+                         radius_mm: float = HERTZ_RADIUS_MM,
                          known_failures: dict[str, str] | None = None) -> pd.DataFrame:
     """One row per check of the ``verify`` target, from the tables its rules write.
 
@@ -503,6 +532,9 @@ def verification_summary(*, points: pd.DataFrame, hertz: pd.DataFrame, curve: pd
     cylinder_curve, cylinder_voi : DataFrame, optional
         cylinder_curve.csv and cylinder_voi.csv (:func:`write_cylinder_verification`): each mesh
         against the finest (:func:`_cylinder_checks`); None: no cylinder rows.
+    cylinder_adaptive : DataFrame, optional
+        cylinder_adaptive.csv (:func:`deeptissue.fem.cylinder.write_adaptive_cylinder`): the adaptive
+        meshes against the finest fixed mesh (:func:`_cylinder_adaptive_checks`); None: no such rows.
     radius_mm : float
         Radius of the Hertz sphere [mm].
     known_failures : dict, optional
@@ -518,7 +550,8 @@ def verification_summary(*, points: pd.DataFrame, hertz: pd.DataFrame, curve: pd
     rows = (_material_checks(points) + _hertz_checks(hertz, radius_mm) + _hertz_curve_checks(curve, radius_mm)
             + _locking_checks(locking) + _fem_case_checks(checks) + _solve_checks(hard, "hard case")
             + _solve_checks(benchmark, "benchmark")
-            + ([] if cylinder_curve is None or cylinder_voi is None else _cylinder_checks(cylinder_curve, cylinder_voi)))
+            + ([] if cylinder_curve is None or cylinder_voi is None else _cylinder_checks(cylinder_curve, cylinder_voi))
+            + ([] if cylinder_adaptive is None else _cylinder_adaptive_checks(cylinder_adaptive)))
     for row in rows:
         if row.pop("ok"):
             row["status"] = "pass"
@@ -536,14 +569,16 @@ def failed_checks(summary: pd.DataFrame) -> list[str]:
 
 
 def write_verification_summary(*, point_csv, hertz_csv, curve_csv, locking_csv, checks_csv, hard_csv,
-                               benchmark_csv, summary_csv, cylinder_curve_csv=None, cylinder_voi_csv=None) -> pd.DataFrame:
+                               benchmark_csv, summary_csv, cylinder_curve_csv=None, cylinder_voi_csv=None,
+                               cylinder_adaptive_csv=None) -> pd.DataFrame:
     """Read the verification CSVs, write :func:`verification_summary` to summary_csv and return it
-    (the cylinder rows when both cylinder CSVs are given)."""
+    (the cylinder rows when both cylinder CSVs are given, the adaptive ones when cylinder_adaptive_csv is)."""
     cyl = cylinder_curve_csv is not None and cylinder_voi_csv is not None
     summary = verification_summary(
         points=pd.read_csv(point_csv), hertz=pd.read_csv(hertz_csv), curve=pd.read_csv(curve_csv),
         locking=pd.read_csv(locking_csv), checks=pd.read_csv(checks_csv), hard=pd.read_csv(hard_csv),
         benchmark=pd.read_csv(benchmark_csv), cylinder_curve=pd.read_csv(cylinder_curve_csv) if cyl else None,
-        cylinder_voi=pd.read_csv(cylinder_voi_csv) if cyl else None)
+        cylinder_voi=pd.read_csv(cylinder_voi_csv) if cyl else None,
+        cylinder_adaptive=None if cylinder_adaptive_csv is None else pd.read_csv(cylinder_adaptive_csv))
     _write_csv(summary, summary_csv)
     return summary
