@@ -15,7 +15,7 @@ from deeptissue.fem.indenters import Indenter
 from deeptissue.mesh import TetMesh
 from deeptissue.model import build_cast, build_model, save_cast
 from deeptissue.pose import save_pose
-from deeptissue.summary import read_summary
+from deeptissue.summary import read_result_vtu, read_summary
 
 # a short phantom limb (12 slices, 11 x 8.6 mm across), the study's sizes but the quality gate's, which is
 # the model stage's business
@@ -94,7 +94,7 @@ def test_two_adaptive_passes_on_a_phantom_limb_refine_under_the_indenter(limb, t
         animal="leg", variant="sphere", contours_path=tmp_path / "pre.npz", pose_path=tmp_path / "pose.json",
         cast_path=tmp_path / "cast.npz", during_contours_path=None, passes_csv=tmp_path / "a/passes.csv",
         summary_path=tmp_path / "a/summary.json", model_cfg=MODEL, fem_cfg={}, study_cfg=study,
-        settings=AdaptSettings(max_passes=2, max_tets=4000))
+        vtu_path=tmp_path / "a/result.vtu", settings=AdaptSettings(max_passes=2, max_tets=4000))
     t = pd.read_csv(tmp_path / "a/passes.csv")
     assert len(t) == 2 and t["converged"].all(), t.to_string()
     assert set(t["animal"]) == {"leg"} and set(t["variant"]) == {"sphere"}
@@ -116,3 +116,27 @@ def test_two_adaptive_passes_on_a_phantom_limb_refine_under_the_indenter(limb, t
     d = json.loads((tmp_path / "a/summary.json").read_text())
     assert d["adapt_passes"] == 2 and d["adapt_stop_reason"] in ("passes", "goal")
     assert d["adapt_wall_s"] == pytest.approx(t.loc[1, "wall_s"])
+    # the result for ParaView and the study's sections: the last pass's mesh, displacement and strain
+    vtu_mesh, u, cells = read_result_vtu(tmp_path / "a/result.vtu")
+    assert vtu_mesh.n_tets == mesh.n_tets and np.allclose(u, result.solution.displacement_mm)
+    assert np.allclose(cells["gamma_gl"], result.solution.strain.gamma_gl) and cells["converged"].all()
+
+
+def test_a_failed_adaptive_run_is_recorded_and_the_study_goes_on(limb, tmp_path):
+    c, p, cast = limb
+    save_contours(tmp_path / "pre.npz", c)
+    save_pose(tmp_path / "pose.json", p)
+    save_cast(tmp_path / "cast.npz", cast)
+    out = tmp_path / "a"
+    result = run_adaptive_variant(
+        animal="leg", variant="sphere", contours_path=tmp_path / "pre.npz", pose_path=tmp_path / "pose.json",
+        cast_path=tmp_path / "cast.npz", during_contours_path=None, passes_csv=out / "passes.csv",
+        summary_path=out / "summary.json", vtu_path=out / "result.vtu", model_cfg=MODEL,
+        fem_cfg={"material": {"mu_kpa": 3.65, "no_such_parameter": 1.0}}, study_cfg={"threshold": 0.3})
+    assert result is None
+    s = read_summary(out / "summary.json")
+    assert not s.converged and "no_such_parameter" in s.reason and s.reason.startswith("adaptive run: TypeError")
+    assert len(pd.read_csv(out / "passes.csv")) == 0
+    # the first pass's mesh, undeformed, flagged as not converged
+    mesh, u, cells = read_result_vtu(out / "result.vtu")
+    assert mesh.n_tets > 0 and not u.any() and not cells["converged"].any()

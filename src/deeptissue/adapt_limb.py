@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+import pandas as pd
 
 from .adapt import AdaptResult, AdaptSettings, PassEstimate, SizeField, adapt
 from .contours import Contours
@@ -160,44 +161,72 @@ def adaptive_limb(*, animal: str, variant: str, contours: Contours, pose: Pose, 
 
 def run_adaptive_variant(*, animal: str, variant: str, contours_path, pose_path, cast_path, during_contours_path,
                          passes_csv, summary_path, model_cfg: dict | None, fem_cfg: dict, study_cfg: dict,
-                         settings: AdaptSettings = AdaptSettings()) -> AdaptResult:
+                         vtu_path=None, settings: AdaptSettings = AdaptSettings()) -> AdaptResult | None:
     """Rule ``adapt_variant``: read the pre contours, pose, cast and during contours, run
     :func:`adaptive_limb` and write ``passes_csv`` (one row per pass, :meth:`deeptissue.adapt.AdaptResult.table`
-    with animal, variant and stop_reason) and ``summary_path`` (the last converged pass's summary, as
+    with animal, variant and stop_reason), ``summary_path`` (the last converged pass's summary, as
     the rule ``solve`` writes it, with ``adapt_passes``, ``adapt_stop_reason``, ``adapt_goal_met`` and
-    ``adapt_wall_s`` [s]; the failed pass's summary if none converged).
+    ``adapt_wall_s`` [s]; the failed pass's summary if none converged) and ``vtu_path`` (that pass's
+    ``result.vtu``, :func:`deeptissue.summary.write_result_vtu`). A run that raises, or whose first pass
+    does not converge, writes a summary with ``converged = False`` and the reason, a passes table without
+    passes and the first pass's mesh undeformed, so that the study goes on without this variant (as
+    rule ``solve`` does); returns None if it raised.
 
     ``model_cfg``, ``fem_cfg`` and ``study_cfg`` are the config sections ``model`` (with
     ``bar_length_mm``, as the rule ``mesh`` gets it), ``fem`` and ``study``.
     """
+    import traceback
+
     from .contours import load_contours
     from .fem.solver import solver_settings_from_config
     from .io import atomic_path
     from .model import load_cast
     from .pose import load_pose
-    from .summary import qc_warnings_of, write_summary
+    from .strain import element_strain
+    from .summary import failed_summary, qc_warnings_of, write_result_vtu, write_summary
 
     study = StudySettings.from_config(study_cfg)
     pose = load_pose(pose_path)
+    contours, cast = load_contours(contours_path), load_cast(cast_path)
 
     def solver_log(line: str) -> None:
         log.info("%s/%s adaptive %s", animal, variant, line)
 
-    result = adaptive_limb(
-        animal=animal, variant=variant, contours=load_contours(contours_path), pose=pose, cast=load_cast(cast_path),
-        material=Ogden(**fem_cfg.get("material", {})), solver_settings=solver_settings_from_config(fem_cfg.get("solver")),
-        model_settings=model_cfg, study=study,
-        skin_contours_mm=load_contours(during_contours_path).skin if during_contours_path else None,
-        bar_length_mm=float(fem_cfg.get("bar_length_mm", 10.0)), settings=settings, log_pass=solver_log)
-    table = result.table().assign(animal=animal, variant=variant, stop_reason=result.stop_reason)
+    try:
+        result = adaptive_limb(
+            animal=animal, variant=variant, contours=contours, pose=pose, cast=cast,
+            material=Ogden(**fem_cfg.get("material", {})),
+            solver_settings=solver_settings_from_config(fem_cfg.get("solver")), model_settings=model_cfg, study=study,
+            skin_contours_mm=load_contours(during_contours_path).skin if during_contours_path else None,
+            bar_length_mm=float(fem_cfg.get("bar_length_mm", 10.0)), settings=settings, log_pass=solver_log)
+    except Exception as exc:  # recorded, never lost: the study goes on without this variant
+        log.error("%s/%s adaptive run failed:\n%s", animal, variant, traceback.format_exc())
+        result, reason = None, f"{type(exc).__name__}: {exc}"
+    if result is not None:
+        table = result.table().assign(animal=animal, variant=variant, stop_reason=result.stop_reason)
+    else:
+        table = pd.DataFrame(dict(animal=[], variant=[], stop_reason=[]))
     table = table[["animal", "variant", *[c for c in table.columns if c not in ("animal", "variant")]]]
     Path(passes_csv).parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(passes_csv) as tmp:
         table.to_csv(tmp, index=False)
-    summary = result.solution.summary if result.solution is not None else _failed_first_pass(animal, variant, result, study)
-    summary = replace(summary, extra={**summary.extra, "adapt_passes": len(result.passes),
-                                      "adapt_stop_reason": result.stop_reason, "adapt_goal_met": result.goal_met,
-                                      "adapt_wall_s": float(result.passes[-1].wall_s) if result.passes else None})
+    if result is not None and result.solution is not None:
+        summary, mesh = result.solution.summary, result.mesh
+        u, strain = result.solution.displacement_mm, result.solution.strain
+    else:
+        summary = (_failed_first_pass(animal, variant, result, study) if result is not None else
+                   failed_summary(animal=animal, variant=variant, reason=f"adaptive run: {reason}",
+                                  strain_measure=study.strain_measure, threshold=study.threshold,
+                                  gamma_sampling=study.gamma_sampling, n_elements=None))
+        mesh = limb_mesher(contours, pose, variant, cast=cast, settings=model_cfg, animal=animal)(None) if vtu_path else None
+        u = None if mesh is None else np.zeros_like(mesh.nodes_mm)
+        strain = None if mesh is None else element_strain(mesh, u)
+    if result is not None:
+        summary = replace(summary, extra={**summary.extra, "adapt_passes": len(result.passes),
+                                          "adapt_stop_reason": result.stop_reason, "adapt_goal_met": result.goal_met,
+                                          "adapt_wall_s": float(result.passes[-1].wall_s) if result.passes else None})
+    if vtu_path is not None:
+        write_result_vtu(vtu_path, mesh, u, strain, cell_data={"converged": np.full(mesh.n_tets, int(summary.converged))})
     try:
         summary = replace(summary, qc_warnings=qc_warnings_of(pose_path))
     except (OSError, ValueError) as exc:

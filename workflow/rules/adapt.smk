@@ -1,7 +1,8 @@
 # Solution-driven refinement of single limb variants: mesh, solve, estimate the VOI, bins and force
 # error, remesh where the estimate says, until the goals are met or the budget is spent
-# (deeptissue.adapt_limb, deeptissue.adapt.AdaptSettings' goals and budget). The target `convergence` runs it
-# on its animals and variants and measures it against the ladder; any one: results/{animal}/adaptive/{variant}/.
+# (deeptissue.adapt_limb, deeptissue.adapt.AdaptSettings' goals and budget). The study's tables read it for
+# every variant with study.mesh: adaptive; the target `convergence` runs it on its animals and variants and
+# measures it against the ladder; any one: results/{animal}/adaptive/{variant}/.
 
 
 rule adapt_variant:
@@ -15,6 +16,7 @@ rule adapt_variant:
     output:
         passes="results/{animal}/adaptive/{variant}/passes.csv",
         summary="results/{animal}/adaptive/{variant}/summary.json",
+        vtu="results/{animal}/adaptive/{variant}/result.vtu",
     log:
         "results/{animal}/logs/adapt_{variant}.log",
     benchmark:
@@ -23,6 +25,7 @@ rule adapt_variant:
         model=dict(config["model"], bar_length_mm=float(config.get("fem", {}).get("bar_length_mm", 10.0))),
         fem=config["fem"],
         study=STUDY,
+    priority: solve_job_priority  # the longest first, as the study's solves
     resources:
         mem_mb=4000,  # 1.7 GB at the budget's 20 000 tetrahedra (rat01, sphere)
         runtime=120,  # AdaptSettings.max_wall_s (an hour) and one more pass

@@ -15,6 +15,14 @@ FIGURE_ANIMAL = figure_animal(config)
 SECTION_VARIANTS = [v for v in VARIANTS if v == "bar" or parse_variant(v).indenter == "sphere"]
 
 
+def variant_output(animal, variant, name):
+    """A variant's summary.json or result.vtu: rule solve's on the model's mesh, or rule adapt_variant's
+    on meshes refined from its own solution (study.mesh: adaptive)."""
+    folder = f"adaptive/{variant}" if STUDY["mesh"] == "adaptive" else variant
+    return f"results/{animal}/{folder}/{name}"
+
+
+
 STUDY_OUTPUTS = [
     f"{SUMMARY}/voi.csv",
     f"{SUMMARY}/bins.csv",
@@ -31,8 +39,8 @@ FINAL_OUTPUTS.extend(study_outputs())
 
 rule aggregate:
     input:
-        summaries=expand("results/{animal}/{variant}/summary.json", animal=STUDY_ANIMALS, variant=VARIANTS),
-        results=expand("results/{animal}/{variant}/result.vtu", animal=[FIGURE_ANIMAL], variant=SECTION_VARIANTS),
+        summaries=[variant_output(a, v, "summary.json") for a in STUDY_ANIMALS for v in VARIANTS],
+        results=[variant_output(FIGURE_ANIMAL, v, "result.vtu") for v in SECTION_VARIANTS],
         pose=f"results/{FIGURE_ANIMAL}/pose.json",
     output:
         voi_csv=report(

@@ -1,4 +1,4 @@
-"""Glue of rule adapt_variant: one animal x variant on adaptive meshes -> passes.csv and summary.json."""
+"""Glue of rule adapt_variant: one animal x variant on adaptive meshes -> passes.csv, summary.json, result.vtu."""
 
 from deeptissue.adapt_limb import run_adaptive_variant
 from deeptissue.fem.linsolve import pin_reproducible
@@ -16,6 +16,7 @@ with script_log(snakemake.log[0], "adapt_variant"):  # noqa: F821
         during_contours_path=snakemake.input.during_contours,  # noqa: F821
         passes_csv=snakemake.output.passes,  # noqa: F821
         summary_path=snakemake.output.summary,  # noqa: F821
+        vtu_path=snakemake.output.vtu,  # noqa: F821
         model_cfg=snakemake.params.model,  # noqa: F821
         fem_cfg=snakemake.params.fem,  # noqa: F821
         study_cfg=snakemake.params.study,  # noqa: F821
