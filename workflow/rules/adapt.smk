@@ -27,7 +27,7 @@ rule adapt_variant:
         study=STUDY,
     priority: solve_job_priority  # the longest first, as the study's solves
     resources:
-        mem_mb=4000,  # 1.7 GB at the budget's 20 000 tetrahedra (rat01, sphere)
+        mem_mb=8000,  # 6.9 GB for the demo's rat02 bar (175 248 DOFs at its last pass)
         runtime=120,  # AdaptSettings.max_wall_s (an hour) and one more pass
     conda:
         "../envs/deeptissue.yaml"
