@@ -72,6 +72,13 @@ def solve_job_priority(wildcards):
     return solve_priority(wildcards.variant, depth) + (50.0 if wildcards.variant in TURN_BASES else 0.0)
 
 
+def variant_output(animal, variant, name):
+    """A variant's summary.json or result.vtu: rule solve's on the model's mesh, or rule adapt_variant's
+    on meshes refined from its own solution (study.mesh: adaptive)."""
+    folder = f"adaptive/{variant}" if config["study"]["mesh"] == "adaptive" else variant
+    return f"results/{animal}/{folder}/{name}"
+
+
 def mesh_of(animal, variant):
     """The directory of the mesh a variant is solved on."""
     return f"results/{animal}/model/{mesh_group_of(variant, MESH_GROUPS)}"

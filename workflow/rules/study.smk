@@ -15,14 +15,6 @@ FIGURE_ANIMAL = figure_animal(config)
 SECTION_VARIANTS = [v for v in VARIANTS if v == "bar" or parse_variant(v).indenter == "sphere"]
 
 
-def variant_output(animal, variant, name):
-    """A variant's summary.json or result.vtu: rule solve's on the model's mesh, or rule adapt_variant's
-    on meshes refined from its own solution (study.mesh: adaptive)."""
-    folder = f"adaptive/{variant}" if STUDY["mesh"] == "adaptive" else variant
-    return f"results/{animal}/{folder}/{name}"
-
-
-
 STUDY_OUTPUTS = [
     f"{SUMMARY}/voi.csv",
     f"{SUMMARY}/bins.csv",
