@@ -167,9 +167,9 @@ def run_adaptive_variant(*, animal: str, variant: str, contours_path, pose_path,
     with animal, variant and stop_reason), ``summary_path`` (the last converged pass's summary, as
     the rule ``solve`` writes it, with ``adapt_passes``, ``adapt_stop_reason``, ``adapt_goal_met`` and
     ``adapt_wall_s`` [s]; the failed pass's summary if none converged) and ``vtu_path`` (that pass's
-    ``result.vtu``, :func:`deeptissue.summary.write_result_vtu`). A run that raises, or whose first pass
-    does not converge, writes a summary with ``converged = False`` and the reason, a passes table without
-    passes and the first pass's mesh undeformed, so that the study goes on without this variant (as
+    ``result.vtu``, :func:`deeptissue.summary.write_result_vtu`). A run that raises (its passes table then
+    has no rows), or whose first pass does not converge, writes a summary with ``converged = False`` and
+    the reason and the first pass's mesh undeformed, so that the study goes on without this variant (as
     rule ``solve`` does); returns None if it raised.
 
     ``model_cfg``, ``fem_cfg`` and ``study_cfg`` are the config sections ``model`` (with
