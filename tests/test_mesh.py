@@ -57,3 +57,19 @@ def test_boundary_group_and_round_trip(box_mesh, tmp_path):
 def test_bad_index_is_refused():
     with pytest.raises(ValueError, match="node index out of range"):
         TetMesh(nodes_mm=np.zeros((4, 3)), tets=np.arange(10)[None, :])
+
+
+def test_edge_midpoints_are_where_a_straight_tet10_has_its_mid_edge_nodes():
+    from study_meshes import box_tet10
+
+    from deeptissue.mesh import edge_midpoints
+
+    mesh = box_tet10(np.linspace(0, 2, 3), np.linspace(0, 1, 2), np.linspace(0, 1.5, 2))
+    mids, at = edge_midpoints(mesh.tets, mesh.nodes_mm)
+    assert mids.shape == (mesh.n_tets, 6) and at.shape == (mesh.n_tets, 6, 3)
+    assert np.array_equal(mids, mesh.tets[:, 4:])
+    assert np.allclose(at, mesh.nodes_mm[mids], atol=1e-12)
+    # moved corners: the midpoints follow them
+    x = mesh.nodes_mm + np.array([0.3, -0.1, 0.2]) * mesh.nodes_mm[:, :1] ** 2
+    _, moved = edge_midpoints(mesh.tets, x)
+    assert np.allclose(moved[:, 0], 0.5 * (x[mesh.tets[:, 0]] + x[mesh.tets[:, 1]]))

@@ -71,6 +71,14 @@ class TetMesh:
         return np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0]) / 6.0
 
 
+def edge_midpoints(tets, x) -> tuple[np.ndarray, np.ndarray]:
+    """The mid-edge nodes (n, 6) of quadratic tetrahedra ``tets`` (n, 10) and the midpoints (n, 6, 3) of
+    their edges' corners at the nodal positions ``x`` (n_nodes, 3): where a straight-sided element puts them."""
+    e = np.asarray(GMSH_TET10_EDGES)
+    tets = np.asarray(tets)
+    return tets[:, 4:], 0.5 * (x[tets[:, e[:, 0]]] + x[tets[:, e[:, 1]]])
+
+
 def locate_in_tets(mesh: TetMesh, points_mm, *, nearest: int = 8) -> tuple[np.ndarray, np.ndarray]:
     """(element (n,) int, its barycentric coordinates (n, 4)) of each point (n, 3) [mm] among the straight
     tetrahedra through the mesh's corners: the element whose smallest barycentric coordinate is largest

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..mesh import GMSH_TET10_EDGES, TetMesh, extract_tetmesh
+from ..mesh import TetMesh, edge_midpoints, extract_tetmesh
 
 __all__ = ["block_mesh", "cored_cylinder_mesh", "distort_interior"]
 
@@ -157,9 +157,8 @@ def distort_interior(mesh: TetMesh, *, amount=0.25, seed=0, keep_sets=None, curv
             raise ValueError("distort_interior: distortion inverted a tetrahedron; use a smaller amount")
         return out
     # mid-nodes: midpoint of the (moved) corners plus a bump for interior edges
-    for k, (a, b) in enumerate(GMSH_TET10_EDGES):
-        m = t[:, 4 + k]
-        p[m] = 0.5 * (p[t[:, a]] + p[t[:, b]])
+    m, mid = edge_midpoints(t, p)
+    p[m] = mid
     mids = np.unique(t[:, 4:])
     mids = mids[~boundary[mids]]
     bump = (0.02 if curved else 0.0) * np.median(edge_len) * rng.uniform(-1, 1, (len(mids), 3))

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from skfem import MeshTet1, MeshTet2
 
-from ..mesh import GMSH_TET10_EDGES, TetMesh
+from ..mesh import GMSH_TET10_EDGES, TetMesh, edge_midpoints
 
 __all__ = ["GMSH_TO_SKFEM_TET10", "SkMesh", "jacobian_points", "reference_jacobians",
            "straighten_invalid", "to_skfem"]
@@ -159,7 +159,6 @@ def straighten_invalid(tm: TetMesh, *, order: int = 2, max_rounds: int = 5) -> t
         if not np.any(bad):
             return cur, int(fixed.sum())
         fixed |= bad
-        t = tm.tets[bad]
-        for k, (a, b) in enumerate(GMSH_TET10_EDGES):
-            nodes[t[:, 4 + k]] = 0.5 * (nodes[t[:, a]] + nodes[t[:, b]])
+        m, mid = edge_midpoints(tm.tets[bad], nodes)
+        nodes[m] = mid
     raise ValueError(f"mesh: {int(bad.sum())} tetrahedra stay inverted after straightening their edges")

@@ -22,7 +22,7 @@ import numpy as np
 from scipy import sparse
 from scipy.optimize import least_squares
 
-from ..mesh import GMSH_TET10_EDGES, TetMesh, locate_in_tets
+from ..mesh import TetMesh, edge_midpoints, locate_in_tets
 from ..rigid import BoneMotion, apply_rigid
 from ..strain import tet10_shape_functions, tet_shape_gradients
 from .indenters import Indenter
@@ -69,10 +69,8 @@ def _unfolded(mesh: TetMesh, u: np.ndarray, fixed: np.ndarray, *, order: int, ma
         bad = _inverted(mesh, u, order)
         if not np.any(bad) or k == max_rounds:  # the count returned is that of the u returned
             break
-        t = mesh.tets[bad]
-        for j, (a, b) in enumerate(GMSH_TET10_EDGES):
-            m = t[:, 4 + j]
-            u[m] = np.where(fixed[m, None], u[m], 0.5 * (x[t[:, a]] + x[t[:, b]]) - mesh.nodes_mm[m])
+        m, mid = edge_midpoints(mesh.tets[bad], x)
+        u[m] = np.where(fixed[m][..., None], u[m], mid - mesh.nodes_mm[m])
     return u, int(bad.sum())
 
 
