@@ -214,10 +214,13 @@ def run_adaptive_variant(*, animal: str, variant: str, contours_path, pose_path,
         summary, mesh = result.solution.summary, result.mesh
         u, strain = result.solution.displacement_mm, result.solution.strain
     else:
-        summary = (_failed_first_pass(animal, variant, result, study) if result is not None else
-                   failed_summary(animal=animal, variant=variant, reason=f"adaptive run: {reason}",
-                                  strain_measure=study.strain_measure, threshold=study.threshold,
-                                  gamma_sampling=study.gamma_sampling, n_elements=None))
+        if result is not None:  # the first solve did not converge
+            reason = f"adaptive pass 0: {result.stop_reason}"
+            n_tets = result.passes[-1].n_tets if result.passes else None
+        else:
+            reason, n_tets = f"adaptive run: {reason}", None
+        summary = failed_summary(animal=animal, variant=variant, reason=reason, strain_measure=study.strain_measure,
+                                 threshold=study.threshold, gamma_sampling=study.gamma_sampling, n_elements=n_tets)
         mesh = limb_mesher(contours, pose, variant, cast=cast, settings=model_cfg, animal=animal)(None) if vtu_path else None
         u = None if mesh is None else np.zeros_like(mesh.nodes_mm)
         strain = None if mesh is None else element_strain(mesh, u)
@@ -233,13 +236,3 @@ def run_adaptive_variant(*, animal: str, variant: str, contours_path, pose_path,
         log.warning("%s: QC warnings not read (%s)", pose_path, exc)
     write_summary(summary_path, summary)
     return result
-
-
-def _failed_first_pass(animal: str, variant: str, result: AdaptResult, study: StudySettings) -> Summary:
-    """The summary of a run whose first solve did not converge."""
-    from .summary import failed_summary
-
-    p = result.passes[-1] if result.passes else None
-    return failed_summary(animal=animal, variant=variant, reason=f"adaptive pass 0: {result.stop_reason}",
-                          strain_measure=study.strain_measure, threshold=study.threshold,
-                          gamma_sampling=study.gamma_sampling, n_elements=None if p is None else p.n_tets)
