@@ -34,6 +34,6 @@ include: "workflow/rules/docs.smk"
 
 
 rule all:
+    default_target: True
     input:
         FINAL_OUTPUTS,
-    default_target: True

@@ -48,7 +48,10 @@ def neohooke_stress(F, material):
     ok, Fs, J, H, I1 = _kin(np.asarray(F, float))
     mu, K = material.mu_mpa, material.bulk_mpa
     c = J ** (-2.0 / 3.0)
-    P = mu * c[..., None, None] * (Fs - (I1 / 3.0)[..., None, None] * H) + (K * (J - 1.0) * J)[..., None, None] * H
+    P = (
+        mu * c[..., None, None] * (Fs - (I1 / 3.0)[..., None, None] * H)
+        + (K * (J - 1.0) * J)[..., None, None] * H
+    )
     return P
 
 
@@ -65,7 +68,11 @@ def neohooke_stress_tangent(F, material):
     HF = np.einsum("...iJ,...kL->...iJkL", H, Fs)
     I4 = np.einsum("ik,JL->iJkL", e, e)
     x = lambda a: a[..., None, None, None, None]
-    A = mu * x(c) * (I4 - 2.0 / 3.0 * FH - 2.0 / 3.0 * HF + 2.0 / 9.0 * x(I1) * HH + 1.0 / 3.0 * x(I1) * HHt)
+    A = (
+        mu
+        * x(c)
+        * (I4 - 2.0 / 3.0 * FH - 2.0 / 3.0 * HF + 2.0 / 9.0 * x(I1) * HH + 1.0 / 3.0 * x(I1) * HHt)
+    )
     A = A + K * x((2.0 * J - 1.0) * J) * HH - K * x(J * J - J) * HHt
     return W, P, A
 

@@ -29,13 +29,17 @@ class Leg:
     channel_mm: float = 0.8
 
 
-def masked_legs(legs, *, n=(112, 96, 8), px_mm=0.25, dz_mm=1.0, extra=None, animal="twin", path="legs.nii.gz"):
+def masked_legs(
+    legs, *, n=(112, 96, 8), px_mm=0.25, dz_mm=1.0, extra=None, animal="twin", path="legs.nii.gz"
+):
     """A :class:`Volume` of ``legs`` (a list of :class:`Leg`); ``extra``: ``{slice: (x, y, radius)}`` dark discs
     [mm] added on single slices (structures that do not run along the leg)."""
     ni, nj, nk = n
     affine = np.diag([px_mm, px_mm, dz_mm, 1.0])
     affine[:3, 3] = [-(ni - 1) / 2 * px_mm, -(nj - 1) / 2 * px_mm, -(nk - 1) / 2 * dz_mm]
-    X, Y = np.meshgrid(affine[0, 3] + px_mm * np.arange(ni), affine[1, 3] + px_mm * np.arange(nj), indexing="ij")
+    X, Y = np.meshgrid(
+        affine[0, 3] + px_mm * np.arange(ni), affine[1, 3] + px_mm * np.arange(nj), indexing="ij"
+    )
     data = np.zeros(n, np.float32)
     for k in range(nk):
         img = np.zeros((ni, nj), np.float32)
@@ -51,7 +55,9 @@ def masked_legs(legs, *, n=(112, 96, 8), px_mm=0.25, dz_mm=1.0, extra=None, anim
             one[np.hypot(X - tx, Y - ty) <= leg.tibia_radius_mm] = 0.0
             fx, fy = cx + leg.fibula_mm[0], cy + leg.fibula_mm[1]
             one[np.hypot(X - fx, Y - fy) <= leg.fibula_radius_mm] = 0.0
-            if k in leg.open_slices:  # a dark channel from the tibia straight out into the fat ring
+            if (
+                k in leg.open_slices
+            ):  # a dark channel from the tibia straight out into the fat ring
                 one[(np.abs(X - tx) <= leg.channel_mm / 2) & (Y >= ty) & (r <= inner + 0.05)] = 0.0
             img = np.maximum(img, one)
         for kk, (x, y, rad) in (extra or {}).items():

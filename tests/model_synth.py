@@ -46,9 +46,28 @@ def leg_contours(
             zn, f, w = narrowing
             s *= 1.0 + (f - 1.0) * 0.5 * (1.0 - np.tanh((zk - zn) / w))
         cx, cy = 0.1 * np.sin(0.2 * zk), 0.08 * np.cos(0.15 * zk)
-        skin.append(_ring(cx, cy, skin_axes_mm[0] * s, skin_axes_mm[1] * s, zk, n_points=n_points, wobble=wobble, phase=0.3 * k))
+        skin.append(
+            _ring(
+                cx,
+                cy,
+                skin_axes_mm[0] * s,
+                skin_axes_mm[1] * s,
+                zk,
+                n_points=n_points,
+                wobble=wobble,
+                phase=0.3 * k,
+            )
+        )
         bone.append(
-            _ring(cx + bone_centre_mm[0], cy + bone_centre_mm[1], bone_radius_mm, 0.92 * bone_radius_mm, zk, n_points=n_points, wobble=0.01)
+            _ring(
+                cx + bone_centre_mm[0],
+                cy + bone_centre_mm[1],
+                bone_radius_mm,
+                0.92 * bone_radius_mm,
+                zk,
+                n_points=n_points,
+                wobble=0.01,
+            )
         )
     return Contours(skin=np.array(skin), bone=np.array(bone))
 

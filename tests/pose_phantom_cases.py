@@ -22,18 +22,53 @@ from pathlib import Path
 import numpy as np
 
 CASES = {
-    "rat01": dict(seed=1, depth_mm=2.0, tilt_deg=(5.0, -3.0), bone_rotation_deg=(1.0, -0.5, 0.8),
-                  bone_translation_mm=(0.05, -0.10, 0.02), snr=20),
-    "rat02": dict(seed=2, depth_mm=2.5, tilt_deg=(-8.0, 6.0), bone_rotation_deg=(-1.5, 0.8, 0.3),
-                  bone_translation_mm=(-0.08, -0.12, 0.04), snr=15),
-    "rat03": dict(seed=3, depth_mm=1.5, tilt_deg=(12.0, 4.0), bone_rotation_deg=(0.5, 1.2, -1.0),
-                  bone_translation_mm=(0.02, -0.06, -0.05), snr=25),
-    "tilt25x-shallow": dict(seed=4, depth_mm=1.0, tilt_deg=(25.0, 0.0), bone_rotation_deg=(3.0, 0.0, 0.0),
-                            bone_translation_mm=(0.04, -0.03, 0.15), snr=12),
-    "tilt25z-deep": dict(seed=5, depth_mm=3.0, tilt_deg=(0.0, 25.0), bone_rotation_deg=(-0.5, 1.0, 2.5),
-                         bone_translation_mm=(0.03, -0.05, 0.04), snr=12),
-    "tilt18-deep-norot": dict(seed=6, depth_mm=3.0, tilt_deg=(-18.0, -18.0), bone_translation_mm=(0.05, 0.05, -0.12),
-                              snr=12),
+    "rat01": dict(
+        seed=1,
+        depth_mm=2.0,
+        tilt_deg=(5.0, -3.0),
+        bone_rotation_deg=(1.0, -0.5, 0.8),
+        bone_translation_mm=(0.05, -0.10, 0.02),
+        snr=20,
+    ),
+    "rat02": dict(
+        seed=2,
+        depth_mm=2.5,
+        tilt_deg=(-8.0, 6.0),
+        bone_rotation_deg=(-1.5, 0.8, 0.3),
+        bone_translation_mm=(-0.08, -0.12, 0.04),
+        snr=15,
+    ),
+    "rat03": dict(
+        seed=3,
+        depth_mm=1.5,
+        tilt_deg=(12.0, 4.0),
+        bone_rotation_deg=(0.5, 1.2, -1.0),
+        bone_translation_mm=(0.02, -0.06, -0.05),
+        snr=25,
+    ),
+    "tilt25x-shallow": dict(
+        seed=4,
+        depth_mm=1.0,
+        tilt_deg=(25.0, 0.0),
+        bone_rotation_deg=(3.0, 0.0, 0.0),
+        bone_translation_mm=(0.04, -0.03, 0.15),
+        snr=12,
+    ),
+    "tilt25z-deep": dict(
+        seed=5,
+        depth_mm=3.0,
+        tilt_deg=(0.0, 25.0),
+        bone_rotation_deg=(-0.5, 1.0, 2.5),
+        bone_translation_mm=(0.03, -0.05, 0.04),
+        snr=12,
+    ),
+    "tilt18-deep-norot": dict(
+        seed=6,
+        depth_mm=3.0,
+        tilt_deg=(-18.0, -18.0),
+        bone_translation_mm=(0.05, 0.05, -0.12),
+        snr=12,
+    ),
 }
 
 
@@ -49,13 +84,25 @@ def extra_cases() -> dict:
         depth = float(rng.uniform(1, 3))
         tr = rng.uniform(-0.1, 0.1, 3)
         tr[2] *= 1.5  # up to 0.15 mm along the leg
-        out[f"extra{seed}"] = dict(seed=seed, depth_mm=depth, tilt_deg=tuple(tilt), bone_rotation_deg=tuple(rot),
-                                   bone_translation_mm=tuple(tr), snr=12)
+        out[f"extra{seed}"] = dict(
+            seed=seed,
+            depth_mm=depth,
+            tilt_deg=tuple(tilt),
+            bone_rotation_deg=tuple(rot),
+            bone_translation_mm=tuple(tr),
+            snr=12,
+        )
     return out
 
 
-def segmented_contours(name: str, *, supersample: int = 8, cache: Path | None = None, exact: bool = False,
-                       spec_extra: dict | None = None):
+def segmented_contours(
+    name: str,
+    *,
+    supersample: int = 8,
+    cache: Path | None = None,
+    exact: bool = False,
+    spec_extra: dict | None = None,
+):
     """(phantom truth Pose, during volume, affine, pre Contours, during Contours) of case ``name``
     (``spec_extra``: further PhantomSpec keys, e.g. ``{"fibula": False}``)."""
     from deeptissue.contours import Contours
@@ -65,14 +112,25 @@ def segmented_contours(name: str, *, supersample: int = 8, cache: Path | None = 
     from deeptissue.segment import segment_volume
 
     tag = "".join(f"_{k}{v}" for k, v in sorted((spec_extra or {}).items()))
-    f = None if cache is None else Path(cache) / f"{name}_ss{supersample}{'_exact' if exact else ''}{tag}.npz"
+    f = (
+        None
+        if cache is None
+        else Path(cache) / f"{name}_ss{supersample}{'_exact' if exact else ''}{tag}.npz"
+    )
     if f is not None and f.exists():
         d = np.load(f, allow_pickle=True)
         truth = Pose.from_dict(d["truth"].item())
         fib = {k: (d[k] if k in d.files else None) for k in ("pre_fibula", "dur_fibula")}
-        return (truth, d["during"], d["affine"], Contours(d["pre_skin"], d["pre_bone"], fib["pre_fibula"]),
-                Contours(d["dur_skin"], d["dur_bone"], fib["dur_fibula"]))
-    ph = make_phantom(PhantomSpec(**{**CASES[name], **(spec_extra or {})}, supersample=supersample))
+        return (
+            truth,
+            d["during"],
+            d["affine"],
+            Contours(d["pre_skin"], d["pre_bone"], fib["pre_fibula"]),
+            Contours(d["dur_skin"], d["dur_bone"], fib["dur_fibula"]),
+        )
+    ph = make_phantom(
+        PhantomSpec(**{**CASES[name], **(spec_extra or {})}, supersample=supersample)
+    )
     if exact:
         pre, dur = ph.truth_pre, ph.truth_during
     else:
@@ -80,9 +138,22 @@ def segmented_contours(name: str, *, supersample: int = 8, cache: Path | None = 
         dur, _ = segment_volume(Volume(ph.during, ph.affine), state="during")
     if f is not None:
         f.parent.mkdir(parents=True, exist_ok=True)
-        fib = {k: v for k, v in (("pre_fibula", pre.fibula), ("dur_fibula", dur.fibula)) if v is not None}
-        np.savez(f, truth=np.array(ph.truth.to_dict(), dtype=object), during=ph.during, affine=ph.affine,
-                 pre_skin=pre.skin, pre_bone=pre.bone, dur_skin=dur.skin, dur_bone=dur.bone, **fib)
+        fib = {
+            k: v
+            for k, v in (("pre_fibula", pre.fibula), ("dur_fibula", dur.fibula))
+            if v is not None
+        }
+        np.savez(
+            f,
+            truth=np.array(ph.truth.to_dict(), dtype=object),
+            during=ph.during,
+            affine=ph.affine,
+            pre_skin=pre.skin,
+            pre_bone=pre.bone,
+            dur_skin=dur.skin,
+            dur_bone=dur.bone,
+            **fib,
+        )
     return ph.truth, ph.during, ph.affine, pre, dur
 
 
@@ -95,9 +166,16 @@ def main() -> None:
     ap.add_argument("--exact", action="store_true")
     ap.add_argument("--cache", default=None)
     ap.add_argument("--supersample", type=int, default=8)
-    ap.add_argument("--extra", action="store_true", help="the eight random phantoms of extra_cases() instead")
-    ap.add_argument("--spec", action="append", default=[], metavar="KEY=JSON",
-                    help="a further PhantomSpec key for every case, e.g. --spec fibula=false")
+    ap.add_argument(
+        "--extra", action="store_true", help="the eight random phantoms of extra_cases() instead"
+    )
+    ap.add_argument(
+        "--spec",
+        action="append",
+        default=[],
+        metavar="KEY=JSON",
+        help="a further PhantomSpec key for every case, e.g. --spec fibula=false",
+    )
     ap.add_argument("cases", nargs="*")
     a = ap.parse_args()
     import json
@@ -107,16 +185,25 @@ def main() -> None:
         CASES.update(extra_cases())
     names = a.cases or ([n for n in CASES if n.startswith("extra")] if a.extra else list(CASES))
     opts = PoseOptions() if a.dof is None else PoseOptions(bone_dof=a.dof)
-    print(f"bone_dof {opts.bone_dof}, {'exact' if a.exact else 'segmented'} contours, spec {spec_extra}")
-    print(f"{'case':20s} {'axis':>6s} {'tip':>6s} {'depth':>6s} {'start':>6s} {'rot':>6s} {'drx':>7s} {'dry':>7s} {'drz':>7s}"
-          f" {'trans':>6s} {'dtx':>7s} {'dty':>7s} {'dtz':>7s} {'dof':>3s} {'fib':>5s} {'s':>5s}")
+    print(
+        f"bone_dof {opts.bone_dof}, {'exact' if a.exact else 'segmented'} contours, spec {spec_extra}"
+    )
+    print(
+        f"{'case':20s} {'axis':>6s} {'tip':>6s} {'depth':>6s} {'start':>6s} {'rot':>6s} {'drx':>7s} {'dry':>7s} {'drz':>7s}"
+        f" {'trans':>6s} {'dtx':>7s} {'dty':>7s} {'dtz':>7s} {'dof':>3s} {'fib':>5s} {'s':>5s}"
+    )
     from deeptissue.segment import SegmentationError
 
     for name in names:
         t0 = time.time()
         try:
-            truth, during, affine, pre, dur = segmented_contours(name, supersample=a.supersample, cache=a.cache,
-                                                                 exact=a.exact, spec_extra=spec_extra)
+            truth, during, affine, pre, dur = segmented_contours(
+                name,
+                supersample=a.supersample,
+                cache=a.cache,
+                exact=a.exact,
+                spec_extra=spec_extra,
+            )
         except SegmentationError as exc:
             print(f"{name:20s} segmentation failed: {exc}", flush=True)
             continue
@@ -126,12 +213,14 @@ def main() -> None:
         t = pose.bone_translation_mm + (R - np.eye(3)) @ (truth.bone_com_mm - pose.bone_com_mm)
         dt = t - truth.bone_translation_mm
         dr = pose.bone_rotation_deg - truth.bone_rotation_deg
-        print(f"{name:20s} {e['axis_error_deg']:6.3f} {e['tip_end_error_mm']:6.3f} {e['depth_error_mm']:6.3f} "
-              f"{e['tip_start_error_mm']:6.3f} {e['bone_rotation_error_deg']:6.3f} {dr[0]:7.3f} {dr[1]:7.3f} {dr[2]:7.3f} "
-              f"{e['bone_translation_error_mm']:6.3f} {dt[0]:7.3f} {dt[1]:7.3f} {dt[2]:7.3f} "
-              f"{pose.extra.get('bone_dof', '-')!s:>3s} {'/'.join(map(str, pose.extra.get('bone_fibula_slices', [])))!s:>5s} "
-              f"{time.time() - t0:5.1f}",
-              flush=True)
+        print(
+            f"{name:20s} {e['axis_error_deg']:6.3f} {e['tip_end_error_mm']:6.3f} {e['depth_error_mm']:6.3f} "
+            f"{e['tip_start_error_mm']:6.3f} {e['bone_rotation_error_deg']:6.3f} {dr[0]:7.3f} {dr[1]:7.3f} {dr[2]:7.3f} "
+            f"{e['bone_translation_error_mm']:6.3f} {dt[0]:7.3f} {dt[1]:7.3f} {dt[2]:7.3f} "
+            f"{pose.extra.get('bone_dof', '-')!s:>3s} {'/'.join(map(str, pose.extra.get('bone_fibula_slices', [])))!s:>5s} "
+            f"{time.time() - t0:5.1f}",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

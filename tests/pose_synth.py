@@ -38,8 +38,19 @@ def capsule_sd(p, head, axis, radius):
     return np.linalg.norm(d - s[..., None] * axis, axis=-1) - radius
 
 
-def indenter_volume(*, head_mm, axis, inner_radius_mm=1.2, leg_radius_mm=5.0, fluid=3.0, tissue=1.0,
-                    subsamples=5, blobs=(), rng=None, noise_sigma=0.0):
+def indenter_volume(
+    *,
+    head_mm,
+    axis,
+    inner_radius_mm=1.2,
+    leg_radius_mm=5.0,
+    fluid=3.0,
+    tissue=1.0,
+    subsamples=5,
+    blobs=(),
+    rng=None,
+    noise_sigma=0.0,
+):
     """Intensity volume (256, 256, 20) with the fluid of the indenter, a leg disc and bright blobs.
 
     Partial volume along z: each voxel averages ``subsamples`` planes over its 1 mm thickness.
@@ -67,8 +78,9 @@ def indenter_volume(*, head_mm, axis, inner_radius_mm=1.2, leg_radius_mm=5.0, fl
     return vol, A
 
 
-def leg_skin(*, leg_radius_mm=5.0, n_points=100, head_mm=None, axis=None, outer_radius_mm=1.5,
-             drho=0.001):
+def leg_skin(
+    *, leg_radius_mm=5.0, n_points=100, head_mm=None, axis=None, outer_radius_mm=1.5, drho=0.001
+):
     """Skin contours (20, n_points, 3): circles, pushed in where the indenter capsule occupies them."""
     th = np.radians(90.0) + 2 * np.pi * np.arange(n_points) / n_points
     rho = np.arange(leg_radius_mm - 4.0, leg_radius_mm + drho / 2, drho)  # dimples are < 4 mm deep
@@ -76,7 +88,14 @@ def leg_skin(*, leg_radius_mm=5.0, n_points=100, head_mm=None, axis=None, outer_
     for k, z in enumerate(SLICE_Z):
         r = np.full(n_points, leg_radius_mm)
         if head_mm is not None:
-            P = np.stack([np.cos(th)[:, None] * rho, np.sin(th)[:, None] * rho, np.full((n_points, rho.size), z)], -1)
+            P = np.stack(
+                [
+                    np.cos(th)[:, None] * rho,
+                    np.sin(th)[:, None] * rho,
+                    np.full((n_points, rho.size), z),
+                ],
+                -1,
+            )
             inside = capsule_sd(P, head_mm, axis, outer_radius_mm) <= 0
             first = np.where(inside.any(axis=1), inside.argmax(axis=1), rho.size - 1)
             r = np.minimum(r, rho[first])
@@ -96,6 +115,7 @@ def circle_entry(axis, *, aim_mm=(0.0, 0.0, 0.0), leg_radius_mm=5.0):
 
 
 # --- bone -----------------------------------------------------------------------------------
+
 
 def _bone_body(theta, w):
     """Body-frame bone surface point for polar angle theta and height w (arrays broadcast)."""
@@ -117,12 +137,26 @@ def fibula_body(theta, w):
     slice per mm of z, converging on the tibia distally (-z)."""
     d = 2.8 + 0.3 * w
     u = np.array([np.cos(np.radians(-30.0)), np.sin(np.radians(-30.0))])
-    return np.stack([0.6 + d * u[0] + 0.4 * np.cos(theta), -1.0 + d * u[1] + 0.4 * np.sin(theta), w + 0 * theta],
-                    axis=-1)
+    return np.stack(
+        [
+            0.6 + d * u[0] + 0.4 * np.cos(theta),
+            -1.0 + d * u[1] + 0.4 * np.sin(theta),
+            w + 0 * theta,
+        ],
+        axis=-1,
+    )
 
 
-def bone_stack(*, rotation_deg=(0, 0, 0), centre_mm=(0, 0, 0), translation_mm=(0, 0, 0), n_points=100,
-               noise_mm=0.0, rng=None, body=_bone_body):
+def bone_stack(
+    *,
+    rotation_deg=(0, 0, 0),
+    centre_mm=(0, 0, 0),
+    translation_mm=(0, 0, 0),
+    n_points=100,
+    noise_mm=0.0,
+    rng=None,
+    body=_bone_body,
+):
     """Bone contours (20, n_points, 3) at the fixed slice planes of the bone moved rigidly.
 
     The moved surface x' = R (x - c) + c + t is cut by each plane z = z_k: for every polar angle the

@@ -73,11 +73,25 @@ def _new_instance(sop_class_uid: str) -> Dataset:
     return ds
 
 
-def write_series(folder, data: np.ndarray, affine: np.ndarray, *, patient_position: str = "HFS",
-                 series_number: int = 1, description: str = "T2 RARE", echo_time_ms: float = 12.0,
-                 echo_number: int = 1, repetition_time_ms: float = 2500.0, study_uid: str | None = None,
-                 series_uid: str | None = None, slices=None, instance_start: int = 1,
-                 temporal_position: int | None = None, name: str = "IM", slope: float | None = None) -> list[Path]:
+def write_series(
+    folder,
+    data: np.ndarray,
+    affine: np.ndarray,
+    *,
+    patient_position: str = "HFS",
+    series_number: int = 1,
+    description: str = "T2 RARE",
+    echo_time_ms: float = 12.0,
+    echo_number: int = 1,
+    repetition_time_ms: float = 2500.0,
+    study_uid: str | None = None,
+    series_uid: str | None = None,
+    slices=None,
+    instance_start: int = 1,
+    temporal_position: int | None = None,
+    name: str = "IM",
+    slope: float | None = None,
+) -> list[Path]:
     """Write ``data`` (ni, nj, nk) with its RAS ``affine`` as one file per slice into ``folder``.
 
     ``slices`` picks (and orders) the slices written (default all, in order k = 0..nk-1); files are
@@ -134,7 +148,9 @@ def write_series(folder, data: np.ndarray, affine: np.ndarray, *, patient_positi
         ds.PixelSpacing = [_ds(np.linalg.norm(lps[:, 1])), _ds(np.linalg.norm(lps[:, 0]))]
         ds.SliceThickness = _ds(np.linalg.norm(lps[:, 2]))
         ds.SpacingBetweenSlices = _ds(np.linalg.norm(lps[:, 2]))
-        ds.SliceLocation = _ds(np.dot(np.cross(row_dir, col_dir), lps @ np.array([0.0, 0.0, k, 1.0])))
+        ds.SliceLocation = _ds(
+            np.dot(np.cross(row_dir, col_dir), lps @ np.array([0.0, 0.0, k, 1.0]))
+        )
         ds.Rows, ds.Columns = data.shape[1], data.shape[0]
         ds.SamplesPerPixel = 1
         ds.PhotometricInterpretation = "MONOCHROME2"
@@ -150,11 +166,20 @@ def write_series(folder, data: np.ndarray, affine: np.ndarray, *, patient_positi
 
 def _jcamp(path: Path, params: dict) -> None:
     """A JCAMP-DX parameter file as ParaVision writes them: ``##$Key=value``, arrays as ``( n )`` then values."""
-    lines = ["##TITLE=Parameter List, ParaVision 6.0.1", "##JCAMPDX=4.24", "##DATATYPE=Parameter Values"]
+    lines = [
+        "##TITLE=Parameter List, ParaVision 6.0.1",
+        "##JCAMPDX=4.24",
+        "##DATATYPE=Parameter Values",
+    ]
     for key, value in params.items():
         if isinstance(value, np.ndarray):
             dims = ", ".join(str(n) for n in value.shape)
-            lines += [f"##${key}=( {dims} )", " ".join(repr(float(v)) if value.dtype.kind == "f" else str(v) for v in value.ravel())]
+            lines += [
+                f"##${key}=( {dims} )",
+                " ".join(
+                    repr(float(v)) if value.dtype.kind == "f" else str(v) for v in value.ravel()
+                ),
+            ]
         elif isinstance(value, tuple):  # (shape, text): a structured value written as is
             lines += [f"##${key}=( {value[0]} )", value[1]]
         else:
@@ -163,10 +188,20 @@ def _jcamp(path: Path, params: dict) -> None:
     path.write_text("\n".join(lines) + "\n")
 
 
-def write_paravision(study, scan: int, data: np.ndarray, affine: np.ndarray, *, reco: int = 1,
-                     subject_position: str = "Head_Prone", subject_type: str = "Quadruped",
-                     protocol: str = "T2_TurboRARE", echo_time_ms: float = 12.0,
-                     repetition_time_ms: float = 2500.0, slope: float | None = None) -> Path:
+def write_paravision(
+    study,
+    scan: int,
+    data: np.ndarray,
+    affine: np.ndarray,
+    *,
+    reco: int = 1,
+    subject_position: str = "Head_Prone",
+    subject_type: str = "Quadruped",
+    protocol: str = "T2_TurboRARE",
+    echo_time_ms: float = 12.0,
+    repetition_time_ms: float = 2500.0,
+    slope: float | None = None,
+) -> Path:
     """Write ``data`` (ni, nj, nk) with its RAS ``affine`` as scan ``scan`` / reco ``reco`` of a ParaVision study.
 
     ``data`` (ni, nj, nk, ne) is a multi-echo scan: frames in echo-fastest order, an FG_ECHO frame group
@@ -182,7 +217,9 @@ def write_paravision(study, scan: int, data: np.ndarray, affine: np.ndarray, *, 
     scan_dir = study / str(scan)
     reco_dir = scan_dir / "pdata" / str(reco)
     reco_dir.mkdir(parents=True, exist_ok=True)
-    (study / "subject").write_text("##TITLE=Parameter List, ParaVision 6.0.1\n##JCAMPDX=4.24\n##$SUBJECT_id=<phantom>\n##END=\n")
+    (study / "subject").write_text(
+        "##TITLE=Parameter List, ParaVision 6.0.1\n##JCAMPDX=4.24\n##$SUBJECT_id=<phantom>\n##END=\n"
+    )
     data = np.asarray(data, float)
     ne = data.shape[3] if data.ndim == 4 else 1
     ni, nj, nk = data.shape[:3]
@@ -193,34 +230,68 @@ def write_paravision(study, scan: int, data: np.ndarray, affine: np.ndarray, *, 
     step = np.linalg.norm(lps[:, :3], axis=0)
     orient = np.tile(dirs.T.ravel(), (nk, 1))
     pos = np.array([lps @ np.array([0.0, 0.0, k, 1.0]) for k in range(nk)])
-    _jcamp(scan_dir / "acqp", {"ACQ_protocol_name": ("64", f"<{protocol}>"), "ACQ_scan_name": ("64", f"<{protocol}>"),
-                                "BF1": 300.300, "BYTORDA": "little", "ACQ_word_size": "_32_BIT",
-                                "ACQ_scaling_phase": 1, "ACQ_dim": 2})
-    _jcamp(scan_dir / "method", {"Method": "<Bruker:RARE>", "PVM_EchoTime": echo_time_ms,
-                                  "PVM_RepetitionTime": repetition_time_ms, "PVM_NSPacks": 1,
-                                  "PVM_SPackArrNSlices": np.array([nk]),
-                                  "PVM_SPackArrSliceDistance": np.array([float(step[2])]),
-                                  "PVM_SPackArrSliceGap": np.array([0.0]),
-                                  "PVM_SPackArrSliceOrient": ("1", "axial"),
-                                  "PVM_ObjOrderScheme": "Interlaced"})
-    _jcamp(reco_dir / "reco", {"RECO_wordtype": "_16BIT_SGN_INT", "RECO_byte_order": "littleEndian"})
-    _jcamp(reco_dir / "visu_pars", {
-        "VisuCoreFrameCount": nk * ne, "VisuCoreDim": 2, "VisuCoreSize": np.array([ni, nj]),
-        "VisuCoreDimDesc": ("2", "spatial spatial"),
-        "VisuCoreExtent": np.array([float(step[0] * ni), float(step[1] * nj)]),
-        "VisuCoreFrameThickness": np.array([float(step[2])]), "VisuCoreUnits": ("2, 65", "<mm> <mm>"),
-        "VisuCoreOrientation": orient, "VisuCorePosition": pos,
-        "VisuCoreDataMin": np.zeros(nk * ne), "VisuCoreDataMax": np.full(nk * ne, levels.max() * slope),
-        "VisuCoreDataOffs": np.zeros(nk * ne), "VisuCoreDataSlope": np.full(nk * ne, slope),
-        "VisuCoreFrameType": "MAGNITUDE_IMAGE", "VisuCoreWordType": "_16BIT_SGN_INT",
-        "VisuCoreByteOrder": "littleEndian", "VisuFGOrderDescDim": 1 if ne == 1 else 2,
-        "VisuFGOrderDesc": ("1", f"({nk}, <FG_SLICE>, <>, 0, 2)") if ne == 1
-        else ("2", f"({ne}, <FG_ECHO>, <>, 0, 0) ({nk}, <FG_SLICE>, <>, 0, 2)"),
-        "VisuGroupDepVals": ("2", "(<VisuCoreOrientation>, 0) (<VisuCorePosition>, 0)"),
-        "VisuSubjectPosition": subject_position, "VisuSubjectType": subject_type,
-        "VisuAcqEchoTime": echo_time_ms * np.arange(1.0, ne + 1), "VisuAcqRepetitionTime": np.array([repetition_time_ms]),
-        "VisuMagneticFieldStrength": 7.0, "VisuCreatorVersion": "<6.0.1>", "VisuCoreVersion": 5,
-    })
+    _jcamp(
+        scan_dir / "acqp",
+        {
+            "ACQ_protocol_name": ("64", f"<{protocol}>"),
+            "ACQ_scan_name": ("64", f"<{protocol}>"),
+            "BF1": 300.300,
+            "BYTORDA": "little",
+            "ACQ_word_size": "_32_BIT",
+            "ACQ_scaling_phase": 1,
+            "ACQ_dim": 2,
+        },
+    )
+    _jcamp(
+        scan_dir / "method",
+        {
+            "Method": "<Bruker:RARE>",
+            "PVM_EchoTime": echo_time_ms,
+            "PVM_RepetitionTime": repetition_time_ms,
+            "PVM_NSPacks": 1,
+            "PVM_SPackArrNSlices": np.array([nk]),
+            "PVM_SPackArrSliceDistance": np.array([float(step[2])]),
+            "PVM_SPackArrSliceGap": np.array([0.0]),
+            "PVM_SPackArrSliceOrient": ("1", "axial"),
+            "PVM_ObjOrderScheme": "Interlaced",
+        },
+    )
+    _jcamp(
+        reco_dir / "reco", {"RECO_wordtype": "_16BIT_SGN_INT", "RECO_byte_order": "littleEndian"}
+    )
+    _jcamp(
+        reco_dir / "visu_pars",
+        {
+            "VisuCoreFrameCount": nk * ne,
+            "VisuCoreDim": 2,
+            "VisuCoreSize": np.array([ni, nj]),
+            "VisuCoreDimDesc": ("2", "spatial spatial"),
+            "VisuCoreExtent": np.array([float(step[0] * ni), float(step[1] * nj)]),
+            "VisuCoreFrameThickness": np.array([float(step[2])]),
+            "VisuCoreUnits": ("2, 65", "<mm> <mm>"),
+            "VisuCoreOrientation": orient,
+            "VisuCorePosition": pos,
+            "VisuCoreDataMin": np.zeros(nk * ne),
+            "VisuCoreDataMax": np.full(nk * ne, levels.max() * slope),
+            "VisuCoreDataOffs": np.zeros(nk * ne),
+            "VisuCoreDataSlope": np.full(nk * ne, slope),
+            "VisuCoreFrameType": "MAGNITUDE_IMAGE",
+            "VisuCoreWordType": "_16BIT_SGN_INT",
+            "VisuCoreByteOrder": "littleEndian",
+            "VisuFGOrderDescDim": 1 if ne == 1 else 2,
+            "VisuFGOrderDesc": ("1", f"({nk}, <FG_SLICE>, <>, 0, 2)")
+            if ne == 1
+            else ("2", f"({ne}, <FG_ECHO>, <>, 0, 0) ({nk}, <FG_SLICE>, <>, 0, 2)"),
+            "VisuGroupDepVals": ("2", "(<VisuCoreOrientation>, 0) (<VisuCorePosition>, 0)"),
+            "VisuSubjectPosition": subject_position,
+            "VisuSubjectType": subject_type,
+            "VisuAcqEchoTime": echo_time_ms * np.arange(1.0, ne + 1),
+            "VisuAcqRepetitionTime": np.array([repetition_time_ms]),
+            "VisuMagneticFieldStrength": 7.0,
+            "VisuCreatorVersion": "<6.0.1>",
+            "VisuCoreVersion": 5,
+        },
+    )
     (reco_dir / "2dseq").write_bytes(levels.transpose(0, 1, 3, 2).tobytes(order="F"))
     return study
 
@@ -228,8 +299,17 @@ def write_paravision(study, scan: int, data: np.ndarray, affine: np.ndarray, *, 
 ENHANCED_MR_IMAGE_STORAGE = "1.2.840.10008.5.1.4.1.1.4.1"
 
 
-def write_enhanced(path, data: np.ndarray, affine: np.ndarray, *, echo_times_ms=(12.0,), series_number: int = 1,
-                   description: str = "T2 RARE", slope: float | None = None, skip_slices=()) -> Path:
+def write_enhanced(
+    path,
+    data: np.ndarray,
+    affine: np.ndarray,
+    *,
+    echo_times_ms=(12.0,),
+    series_number: int = 1,
+    description: str = "T2 RARE",
+    slope: float | None = None,
+    skip_slices=(),
+) -> Path:
     """Write ``data`` (ni, nj, nk) or (ni, nj, nk, ne echoes) as one enhanced (multi-frame) MR DICOM file.
 
     One frame per slice and echo (echo fastest), each with its PlanePositionSequence, the orientation
@@ -250,7 +330,11 @@ def write_enhanced(path, data: np.ndarray, affine: np.ndarray, *, echo_times_ms=
     row_dir = lps[:, 0] / np.linalg.norm(lps[:, 0])
     col_dir = lps[:, 1] / np.linalg.norm(lps[:, 1])
     ds = _new_instance(ENHANCED_MR_IMAGE_STORAGE)
-    ds.StudyInstanceUID, ds.SeriesInstanceUID, ds.FrameOfReferenceUID = generate_uid(), generate_uid(), generate_uid()
+    ds.StudyInstanceUID, ds.SeriesInstanceUID, ds.FrameOfReferenceUID = (
+        generate_uid(),
+        generate_uid(),
+        generate_uid(),
+    )
     ds.Modality, ds.Manufacturer = "MR", "Bruker BioSpin MRI GmbH"
     ds.PatientName = ds.PatientID = "phantom"
     ds.PatientPosition = "HFS"
@@ -281,7 +365,10 @@ def write_enhanced(path, data: np.ndarray, affine: np.ndarray, *, echo_times_ms=
     shared.PixelValueTransformationSequence = Sequence([scale])
     ds.SharedFunctionalGroupsSequence = Sequence([shared])
     dims = []
-    for pointer, group in ((0x00189082, 0x00189114), (0x00209057, 0x00209111)):  # echo time (MR echo), stack position
+    for pointer, group in (
+        (0x00189082, 0x00189114),
+        (0x00209057, 0x00209111),
+    ):  # echo time (MR echo), stack position
         dim = Dataset()
         dim.DimensionIndexPointer = pointer
         dim.FunctionalGroupPointer = group

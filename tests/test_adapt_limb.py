@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 from model_synth import leg_contours, leg_pose
-from study_meshes import box_tet10, boundary_tri6
+from study_meshes import boundary_tri6, box_tet10
 
 from deeptissue.adapt import AdaptSettings, SizeField, element_sizes, node_sizes
 from deeptissue.adapt_limb import contact_tets, limb_mesher, run_adaptive_variant
@@ -31,7 +31,9 @@ def limb():
 
 def _area_mm2(mesh: TetMesh, name: str) -> float:
     q = mesh.nodes_mm[mesh.facets[name][:, :3]]
-    return float(0.5 * np.linalg.norm(np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]), axis=1).sum())
+    return float(
+        0.5 * np.linalg.norm(np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]), axis=1).sum()
+    )
 
 
 def _centroids(mesh: TetMesh) -> np.ndarray:
@@ -45,14 +47,18 @@ def test_the_limb_mesher_puts_the_patch_and_the_cast_set_on_every_new_mesh(limb)
     first = build(None)
     h = element_sizes(first)
     near = np.linalg.norm(_centroids(first) - p.tip_end_mm, axis=1) < 2.5
-    refined = build(SizeField.from_mesh(first, node_sizes(first, np.where(near, 0.4, h), current_mm=h)))
+    refined = build(
+        SizeField.from_mesh(first, node_sizes(first, np.where(near, 0.4, h), current_mm=h))
+    )
     # the first pass: the model's element size everywhere (fewer elements than the default mesh, refined about the travel)
     assert first.n_tets < default.n_tets
     assert np.median(h) == pytest.approx(1.6, rel=0.2)
     for mesh in (first, refined):
         assert {"bone", "skin", "proximal", "distal", "patch", "patch_sphere"} <= set(mesh.facets)
         # the patch: the same 6 mm disc of skin about the final tip as on the default mesh
-        assert _area_mm2(mesh, "patch_sphere") == pytest.approx(_area_mm2(default, "patch_sphere"), rel=0.1)
+        assert _area_mm2(mesh, "patch_sphere") == pytest.approx(
+            _area_mm2(default, "patch_sphere"), rel=0.1
+        )
         assert _area_mm2(mesh, "patch_sphere") == pytest.approx(np.pi * 3.0**2, rel=0.25)
         patch_nodes = mesh.nodes_mm[np.unique(mesh.facets["patch_sphere"])]
         assert np.linalg.norm(patch_nodes - p.tip_end_mm, axis=1).max() < 3.0 + 1.6 + 1.5
@@ -65,7 +71,9 @@ def test_the_limb_mesher_puts_the_patch_and_the_cast_set_on_every_new_mesh(limb)
 
 def test_contact_tets_are_the_elements_the_indenter_holds():
     mesh = box_tet10(np.linspace(-3, 3, 7), np.linspace(-3, 0, 4), np.linspace(-3, 3, 7))
-    mesh = TetMesh(mesh.nodes_mm, mesh.tets, facets={"patch": boundary_tri6(mesh, lambda x: x[:, 1] > -1e-9)})
+    mesh = TetMesh(
+        mesh.nodes_mm, mesh.tets, facets={"patch": boundary_tri6(mesh, lambda x: x[:, 1] > -1e-9)}
+    )
     u = np.zeros_like(mesh.nodes_mm)
     # the nodes of the face y = 0 within the footprint of a 1.5 mm sphere 0.5 mm deep, pushed onto its surface
     r = np.linalg.norm(mesh.nodes_mm[:, [0, 2]], axis=1)
@@ -76,7 +84,9 @@ def test_contact_tets_are_the_elements_the_indenter_holds():
     assert np.array_equal(held, dent[mesh.tets].any(axis=1))
     assert 0 < held.sum() < mesh.n_tets
     # a 10 mm bar along z touching the face at x = 2.5 mm holds a strip of elements there
-    bar = Indenter(kind="bar", axis=(0, -1, 0), start_mm=(2.5, 1, 0), end_mm=(2.5, 0, 0), bar_length_mm=10.0)
+    bar = Indenter(
+        kind="bar", axis=(0, -1, 0), start_mm=(2.5, 1, 0), end_mm=(2.5, 0, 0), bar_length_mm=10.0
+    )
     strip = contact_tets(mesh, np.zeros_like(u), bar)
     x = _centroids(mesh)
     assert strip.any() and np.all(np.abs(x[strip, 0] - 2.5) < 1.0) and np.all(x[strip, 1] > -1.0)
@@ -91,15 +101,27 @@ def test_two_adaptive_passes_on_a_phantom_limb_refine_under_the_indenter(limb, t
     save_cast(tmp_path / "cast.npz", cast)
     study = {"threshold": 0.3}
     result = run_adaptive_variant(
-        animal="leg", variant="sphere", contours_path=tmp_path / "pre.npz", pose_path=tmp_path / "pose.json",
-        cast_path=tmp_path / "cast.npz", during_contours_path=None, passes_csv=tmp_path / "a/passes.csv",
-        summary_path=tmp_path / "a/summary.json", model_cfg=MODEL, fem_cfg={}, study_cfg=study,
-        vtu_path=tmp_path / "a/result.vtu", settings=AdaptSettings(max_passes=2, max_tets=4000))
+        animal="leg",
+        variant="sphere",
+        contours_path=tmp_path / "pre.npz",
+        pose_path=tmp_path / "pose.json",
+        cast_path=tmp_path / "cast.npz",
+        during_contours_path=None,
+        passes_csv=tmp_path / "a/passes.csv",
+        summary_path=tmp_path / "a/summary.json",
+        model_cfg=MODEL,
+        fem_cfg={},
+        study_cfg=study,
+        vtu_path=tmp_path / "a/result.vtu",
+        settings=AdaptSettings(max_passes=2, max_tets=4000),
+    )
     t = pd.read_csv(tmp_path / "a/passes.csv")
     assert len(t) == 2 and t["converged"].all(), t.to_string()
     assert set(t["animal"]) == {"leg"} and set(t["variant"]) == {"sphere"}
     assert t.loc[1, "n_dofs"] > t.loc[0, "n_dofs"]
-    assert t.loc[1, "n_tets"] <= 1.3 * 4000  # the budget, within gmsh's scatter about the estimated count
+    assert (
+        t.loc[1, "n_tets"] <= 1.3 * 4000
+    )  # the budget, within gmsh's scatter about the estimated count
     assert t.loc[1, "h_min_mm"] < 0.8 * t.loc[0, "h_min_mm"]
     # the refinement is where the VOI is decided: under the indenter
     mesh = result.mesh
@@ -119,7 +141,10 @@ def test_two_adaptive_passes_on_a_phantom_limb_refine_under_the_indenter(limb, t
     # the result for ParaView and the study's sections: the last pass's mesh, displacement and strain
     vtu_mesh, u, cells = read_result_vtu(tmp_path / "a/result.vtu")
     assert vtu_mesh.n_tets == mesh.n_tets and np.allclose(u, result.solution.displacement_mm)
-    assert np.allclose(cells["gamma_gl"], result.solution.strain.gamma_gl) and cells["converged"].all()
+    assert (
+        np.allclose(cells["gamma_gl"], result.solution.strain.gamma_gl)
+        and cells["converged"].all()
+    )
 
 
 def test_a_failed_adaptive_run_is_recorded_and_the_study_goes_on(limb, tmp_path):
@@ -129,13 +154,26 @@ def test_a_failed_adaptive_run_is_recorded_and_the_study_goes_on(limb, tmp_path)
     save_cast(tmp_path / "cast.npz", cast)
     out = tmp_path / "a"
     result = run_adaptive_variant(
-        animal="leg", variant="sphere", contours_path=tmp_path / "pre.npz", pose_path=tmp_path / "pose.json",
-        cast_path=tmp_path / "cast.npz", during_contours_path=None, passes_csv=out / "passes.csv",
-        summary_path=out / "summary.json", vtu_path=out / "result.vtu", model_cfg=MODEL,
-        fem_cfg={"material": {"mu_kpa": 3.65, "no_such_parameter": 1.0}}, study_cfg={"threshold": 0.3})
+        animal="leg",
+        variant="sphere",
+        contours_path=tmp_path / "pre.npz",
+        pose_path=tmp_path / "pose.json",
+        cast_path=tmp_path / "cast.npz",
+        during_contours_path=None,
+        passes_csv=out / "passes.csv",
+        summary_path=out / "summary.json",
+        vtu_path=out / "result.vtu",
+        model_cfg=MODEL,
+        fem_cfg={"material": {"mu_kpa": 3.65, "no_such_parameter": 1.0}},
+        study_cfg={"threshold": 0.3},
+    )
     assert result is None
     s = read_summary(out / "summary.json")
-    assert not s.converged and "no_such_parameter" in s.reason and s.reason.startswith("adaptive run: TypeError")
+    assert (
+        not s.converged
+        and "no_such_parameter" in s.reason
+        and s.reason.startswith("adaptive run: TypeError")
+    )
     assert len(pd.read_csv(out / "passes.csv")) == 0
     # the first pass's mesh, undeformed, flagged as not converged
     mesh, u, cells = read_result_vtu(out / "result.vtu")

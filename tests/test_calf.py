@@ -15,7 +15,12 @@ from scipy import ndimage
 from skimage.measure import find_contours
 
 from deeptissue.config import validate_config
-from deeptissue.contours import load_contours, point_to_polygon_distance, points_in_polygon, polygon_area_centroid
+from deeptissue.contours import (
+    load_contours,
+    point_to_polygon_distance,
+    points_in_polygon,
+    polygon_area_centroid,
+)
 from deeptissue.imaging import crop_volume, load_nifti, select_leg
 from deeptissue.segment import SegmentationSettings, segment_volume
 
@@ -24,13 +29,17 @@ ROOT = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("DEEPTISSUE_SHARED", ROOT.parent / "shared"))
 SCAN = SHARED / "data" / "calf" / "water.nii.gz"
 
-pytestmark = pytest.mark.skipif(not SCAN.is_file(), reason=f"real calf scan not found at {SCAN} (set DEEPTISSUE_SHARED)")
+pytestmark = pytest.mark.skipif(
+    not SCAN.is_file(), reason=f"real calf scan not found at {SCAN} (set DEEPTISSUE_SHARED)"
+)
 
 
 def _config():
     cfg = yaml.safe_load((ROOT / "config" / "calf.yaml").read_text())
     # the config names the scan relative to the repository; validate it where the scan is
-    cfg = validate_config(cfg, ROOT / "workflow" / "schemas" / "config.schema.yaml", base_dir=SHARED)
+    cfg = validate_config(
+        cfg, ROOT / "workflow" / "schemas" / "config.schema.yaml", base_dir=SHARED
+    )
     a = cfg["animals"]["calf"]
     return a, SegmentationSettings.from_config(cfg["segmentation"], a.get("segmentation"))
 
@@ -51,7 +60,9 @@ def test_skin_closed_on_every_slice_and_hugs_the_nonzero_region(calf):
         mask = ndimage.binary_fill_holes(vol.data[:, :, k] > 0)
         lab, n = ndimage.label(mask)
         mask = lab == 1 + np.argmax(ndimage.sum(mask, lab, range(1, n + 1)))
-        edge = max(find_contours(mask.astype(float), 0.5), key=len)  # boundary of the non-zero region
+        edge = max(
+            find_contours(mask.astype(float), 0.5), key=len
+        )  # boundary of the non-zero region
         edge_xy = vol.world(np.column_stack([edge, np.full(len(edge), k)]))[:, :2]
         skin = c.skin[k, :, :2]
         # both ways: every skin point near the edge, every edge point near the skin
@@ -110,7 +121,9 @@ def test_a_point_in_the_leg_gives_the_crop_box_contours(calf):
     vol, c = calf
     a, settings = _config()
     both = crop_volume(load_nifti(SCAN, animal="calf"), [[300.0, 700.0], *a["crop_mm"][1:]])
-    picked, _ = segment_volume(select_leg(both, [400.0, 460.0, 130.0]), settings=settings, state="pre")
+    picked, _ = segment_volume(
+        select_leg(both, [400.0, 460.0, 130.0]), settings=settings, state="pre"
+    )
     np.testing.assert_allclose(picked.skin, c.skin, atol=1e-9)
     np.testing.assert_allclose(picked.bone, c.bone, atol=1e-9)
 
@@ -131,18 +144,48 @@ def test_the_readme_command_runs_through_snakemake(calf, tmp_path):
     repo = _clone_beside_the_data(tmp_path)
     env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
     snakemake = [sys.executable, "-m", "snakemake"]
-    r = subprocess.run([*snakemake, "results/calf/qc/segmentation_pre.png", "--cores", "2", "--configfile",
-                        "config/calf.yaml"], cwd=repo, env=env, capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [
+            *snakemake,
+            "results/calf/qc/segmentation_pre.png",
+            "--cores",
+            "2",
+            "--configfile",
+            "config/calf.yaml",
+        ],
+        cwd=repo,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode == 0, r.stderr[-3000:]
     assert (repo / "results/calf/qc/segmentation_pre.png").stat().st_size > 0
-    np.testing.assert_allclose(load_contours(repo / "results/calf/contours/pre.npz").bone, calf[1].bone)
+    np.testing.assert_allclose(
+        load_contours(repo / "results/calf/contours/pre.npz").bone, calf[1].bone
+    )
     # the default target of a pre-only study segments and solves nothing
-    r = subprocess.run([*snakemake, "-n", "--cores", "2", "--configfile", "config/calf.yaml"], cwd=repo, env=env,
-                       capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [*snakemake, "-n", "--cores", "2", "--configfile", "config/calf.yaml"],
+        cwd=repo,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode == 0, r.stderr[-3000:]
     assert "Nothing to be done" in r.stdout + r.stderr
     # the study is pre-only: only the convergence target, when asked for, says it has nothing to run on
-    r = subprocess.run([*snakemake, "-n", "convergence", "--cores", "2", "--configfile", "config/calf.yaml"],
-                       cwd=repo, env=env, capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [*snakemake, "-n", "convergence", "--cores", "2", "--configfile", "config/calf.yaml"],
+        cwd=repo,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode != 0
-    assert "config key convergence.animals: null, and no configured animal has a during scan ['calf']" in r.stdout + r.stderr
+    assert (
+        "config key convergence.animals: null, and no configured animal has a during scan ['calf']"
+        in r.stdout + r.stderr
+    )

@@ -50,7 +50,9 @@ TINY = {
 def test_docs_config_md_is_the_schema_rendered():
     expected = schema_markdown(load_schema(SCHEMA))
     actual = DOCS.read_text() if DOCS.is_file() else ""
-    assert actual == expected, f"docs/config.md is out of date with the schema; regenerate it: {REGENERATE_COMMAND}"
+    assert actual == expected, (
+        f"docs/config.md is out of date with the schema; regenerate it: {REGENERATE_COMMAND}"
+    )
 
 
 def test_every_schema_key_is_documented():
@@ -64,7 +66,11 @@ def test_every_schema_key_is_documented():
         for key in schema["properties"][section]["properties"]:
             assert documented(f"{section}.{key}"), f"{section}.{key}"
     for key, sub in schema["properties"]["fem"]["properties"]["solver"]["properties"].items():
-        for path in [f"fem.solver.{key}.{k}" for k in sub["properties"]] if "properties" in sub else [f"fem.solver.{key}"]:
+        for path in (
+            [f"fem.solver.{key}.{k}" for k in sub["properties"]]
+            if "properties" in sub
+            else [f"fem.solver.{key}"]
+        ):
             assert documented(path), path
     for key in schema["definitions"]["phantom"]["properties"]:
         assert documented(f"animals.<name>.phantom.{key}"), key
@@ -76,7 +82,10 @@ def test_renderer_on_a_tiny_schema():
     assert "## `solver`\n\nSolver settings." in text
     assert "| `name` | string | required |  |  | Who it is. |" in text
     # default, unit, range, and a pipe in the description escaped so the table keeps its columns
-    assert "| `solver.depth_mm` | number | `2.5` | `mm` | > 0; ≤ 5 | How deep \\| the tip goes. |" in text
+    assert (
+        "| `solver.depth_mm` | number | `2.5` | `mm` | > 0; ≤ 5 | How deep \\| the tip goes. |"
+        in text
+    )
     assert '| `solver.method` | enum | `"b"` |  | one of `"a"`, `"b"` | Which way. |' in text
     assert text.endswith("\n") and not text.endswith("\n\n")
 
@@ -97,13 +106,30 @@ def _demo():
 @pytest.mark.parametrize(
     "mutate, match",
     [
-        (lambda c: c["study"].update(threshold=0.25), r"config key study\.bin_edges: must start at study\.threshold \(0\.25\), got 0\.3"),
-        (lambda c: c["study"].update(bin_edges=[0.3, 0.5, 0.4]), r"config key study\.bin_edges: not strictly increasing: \[0\.3, 0\.5, 0\.4\]"),
-        (lambda c: c["study"].update(figure_animal="rat09"), r"config key study\.figure_animal: 'rat09' is not a configured animal"),
-        (lambda c: c["convergence"].update(animals=["rat01", "rat09"]), r"config key convergence\.animals: \['rat09'\] are not configured animals \["),
         (
-            lambda c: (c["animals"].update(calf={"pre": "config/config.yaml", "crop_mm": [[0, 1], [0, 1], [0, 1]],
-                                                 "leg_point_mm": [0.5, 2.0, 0.5]})),
+            lambda c: c["study"].update(threshold=0.25),
+            r"config key study\.bin_edges: must start at study\.threshold \(0\.25\), got 0\.3",
+        ),
+        (
+            lambda c: c["study"].update(bin_edges=[0.3, 0.5, 0.4]),
+            r"config key study\.bin_edges: not strictly increasing: \[0\.3, 0\.5, 0\.4\]",
+        ),
+        (
+            lambda c: c["study"].update(figure_animal="rat09"),
+            r"config key study\.figure_animal: 'rat09' is not a configured animal",
+        ),
+        (
+            lambda c: c["convergence"].update(animals=["rat01", "rat09"]),
+            r"config key convergence\.animals: \['rat09'\] are not configured animals \[",
+        ),
+        (
+            lambda c: c["animals"].update(
+                calf={
+                    "pre": "config/config.yaml",
+                    "crop_mm": [[0, 1], [0, 1], [0, 1]],
+                    "leg_point_mm": [0.5, 2.0, 0.5],
+                }
+            ),
             r"config key animals\.calf\.leg_point_mm: \[0\.5, 2\.0, 0\.5\] lies outside animals\.calf\.crop_mm",
         ),
     ],
@@ -127,20 +153,30 @@ def test_figure_and_convergence_animals_defaults():
     cfg["convergence"]["animals"] = None
     assert figure_animal(cfg) == "rat03" and convergence_animals(cfg) == ["rat01"]
     # an animal without a during scan is skipped; with none, only the convergence target needs one
-    cfg = validate_config({"animals": {"calf": {"pre": "config/config.yaml"}}}, SCHEMA, base_dir=ROOT)
+    cfg = validate_config(
+        {"animals": {"calf": {"pre": "config/config.yaml"}}}, SCHEMA, base_dir=ROOT
+    )
     assert figure_animal(cfg) is None and convergence_animals(cfg) == []
     cfg["study"]["figure_animal"] = "calf"
-    with pytest.raises(ConfigError, match=r"config key study\.figure_animal: 'calf' has no during scan"):
+    with pytest.raises(
+        ConfigError, match=r"config key study\.figure_animal: 'calf' has no during scan"
+    ):
         check_config(cfg)
     cfg["study"]["figure_animal"] = None
-    with pytest.raises(ConfigError, match=r"config key convergence\.animals: null, and no configured animal has a during scan"):
+    with pytest.raises(
+        ConfigError,
+        match=r"config key convergence\.animals: null, and no configured animal has a during scan",
+    ):
         convergence_animals(cfg, required=True)
     # a study of pre-only animals is valid with the animal named too: only the convergence target refuses it
     cfg["convergence"]["animals"] = ["calf"]
     check_config(cfg)
     assert convergence_animals(cfg) == []
-    with pytest.raises(ConfigError, match=r"config key convergence\.animals: \['calf'\] have no during scan; the "
-                                          r"convergence target solves an indentation and needs animals with one"):
+    with pytest.raises(
+        ConfigError,
+        match=r"config key convergence\.animals: \['calf'\] have no during scan; the "
+        r"convergence target solves an indentation and needs animals with one",
+    ):
         convergence_animals(cfg, required=True)
     cfg["convergence"]["animals"] = None
     cfg["animals"] = {"calf": {"pre": "a.nii.gz"}, "rat": {"phantom": {}}}

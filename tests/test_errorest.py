@@ -2,11 +2,16 @@
 
 import numpy as np
 import pytest
-
-from deeptissue.errorest import (element_indicator, gamma_at_nodes, recovered_gamma, sampling_difference,
-                                 voi_error_estimate)
-from deeptissue.strain import element_strain, gamma_at_points, voi_statistics
 from study_meshes import box_tet10
+
+from deeptissue.errorest import (
+    element_indicator,
+    gamma_at_nodes,
+    recovered_gamma,
+    sampling_difference,
+    voi_error_estimate,
+)
+from deeptissue.strain import element_strain, gamma_at_points, voi_statistics
 
 
 def _homogeneous(mesh, F):
@@ -18,7 +23,9 @@ def _simple_shear_gamma(s):
     return 0.5 * s * np.sqrt(1 + s * s / 4)
 
 
-@pytest.mark.parametrize("s", [0.3, 0.9])  # γ 0.15 (below the threshold), 0.49 (inside the bin 0.4-0.5)
+@pytest.mark.parametrize(
+    "s", [0.3, 0.9]
+)  # γ 0.15 (below the threshold), 0.49 (inside the bin 0.4-0.5)
 def test_no_element_across_an_edge_gives_a_zero_estimate(s):
     m = box_tet10(np.linspace(0, 2, 3), np.linspace(0, 2, 3), np.linspace(0, 2, 3))
     F = np.eye(3)
@@ -34,7 +41,9 @@ def test_no_element_across_an_edge_gives_a_zero_estimate(s):
 def test_recovery_is_the_volume_weighted_nodal_average():
     m = box_tet10([0, 1, 3], [0, 1], [0, 1])  # two columns of elements, volumes 1 and 2 per cell
     vol = element_strain(m, np.zeros_like(m.nodes_mm)).volume_mm3
-    g = np.where(m.nodes_mm[m.tets].mean(axis=1)[:, 0] < 1, 1.0, 4.0)[:, None] * np.ones(m.tets.shape)
+    g = np.where(m.nodes_mm[m.tets].mean(axis=1)[:, 0] < 1, 1.0, 4.0)[:, None] * np.ones(
+        m.tets.shape
+    )
     star = recovered_gamma(m, g, vol)
     shared = np.isclose(m.nodes_mm[:, 0], 1.0)
     left = m.nodes_mm[:, 0] < 1 - 1e-9
@@ -46,10 +55,19 @@ def test_recovery_is_the_volume_weighted_nodal_average():
 def _block(h_mm):
     from deeptissue.fem.shapes import block_mesh
 
-    return block_mesh((2.0, 2.0, 4.0), h_mm=h_mm, refine_point_mm=(1.0, 1.0, 2.0), refine_h_mm=h_mm, refine_radius_mm=10.0)
+    return block_mesh(
+        (2.0, 2.0, 4.0),
+        h_mm=h_mm,
+        refine_point_mm=(1.0, 1.0, 2.0),
+        refine_h_mm=h_mm,
+        refine_radius_mm=10.0,
+    )
 
 
-K, P = 0.01, 5  # u_x = K z^P: simple shear of amount P K z^(P-1), γ from 0 at z = 0 to past every bin edge at z = 4
+K, P = (
+    0.01,
+    5,
+)  # u_x = K z^P: simple shear of amount P K z^(P-1), γ from 0 at z = 0 to past every bin edge at z = 4
 
 
 def _shear_field(mesh):
@@ -65,7 +83,9 @@ def _true_errors(mesh, u, g_h, v):
     z = tet10_shape_functions(tet_subdivision(2)[0]) @ mesh.nodes_mm[mesh.tets][..., 2].T  # (q, m)
     exact = voi_statistics(_simple_shear_gamma(P * K * z.T ** (P - 1)).ravel(), v.ravel())
     h = voi_statistics(g_h.ravel(), v.ravel())
-    return abs(h.voi_mm3 - exact.voi_mm3), max(abs(h.bins_percent[k] - exact.bins_percent[k]) for k in h.bins_percent)
+    return abs(h.voi_mm3 - exact.voi_mm3), max(
+        abs(h.bins_percent[k] - exact.bins_percent[k]) for k in h.bins_percent
+    )
 
 
 def test_the_indicator_lives_where_gamma_crosses_an_edge_and_shrinks_with_the_mesh():
@@ -115,13 +135,24 @@ def test_cylinder_mesh_sets_volume_and_refinement():
     from deeptissue.fem.cylinder import CylinderMesh, cylinder_mesh
     from deeptissue.strain import element_volumes_mm3
 
-    m = cylinder_mesh(CylinderMesh(element_size_mm=3.0, refine_size_mm=1.0, refine_radius_mm=2.0,
-                                   refine_transition_mm=1.0, refine_depth_mm=2.0), radius_mm=8.0, height_mm=8.0)
+    m = cylinder_mesh(
+        CylinderMesh(
+            element_size_mm=3.0,
+            refine_size_mm=1.0,
+            refine_radius_mm=2.0,
+            refine_transition_mm=1.0,
+            refine_depth_mm=2.0,
+        ),
+        radius_mm=8.0,
+        height_mm=8.0,
+    )
     assert {"bone", "patch", "side", "skin"} <= set(m.facets)
     z = m.nodes_mm[:, 2]
     r = np.hypot(m.nodes_mm[:, 0], m.nodes_mm[:, 1])
     assert np.allclose(z[m.facets["bone"]], 0.0) and np.allclose(z[m.facets["patch"]], 8.0)
-    assert np.allclose(r[m.facets["side"]], 8.0, atol=1e-6)  # curved P2 facets: mid-edge nodes on the cylinder
+    assert np.allclose(
+        r[m.facets["side"]], 8.0, atol=1e-6
+    )  # curved P2 facets: mid-edge nodes on the cylinder
     assert len(m.facets["skin"]) == len(m.facets["patch"]) + len(m.facets["side"])
     assert element_volumes_mm3(m).sum() == pytest.approx(np.pi * 64 * 8, rel=1e-4)
     # finer under the indenter (top centre) than at the bottom rim
@@ -149,14 +180,21 @@ def test_a_strain_jump_across_the_threshold_is_estimated_in_the_summary_and_voi_
     assert s.voi_mm3 == pytest.approx(1.0)
     # the recovered field averages 0.258 and 0.371 at the kink (0.31 > 0.3): part of the lower layer moves
     # into the VOI, only in the elements next to y = 1
-    assert 0 < s.voi_err_mm3 < 0.5 and s.bins_err_pp["0.3-0.4"] == pytest.approx(0, abs=1e-9)  # the same bin
+    assert 0 < s.voi_err_mm3 < 0.5 and s.bins_err_pp["0.3-0.4"] == pytest.approx(
+        0, abs=1e-9
+    )  # the same bin
     eta = element_indicator(m, u)
     yc = m.nodes_mm[m.tets].mean(axis=1)[:, 1]
-    assert np.all(eta[np.abs(yc - 1) > 0.5] == 0) and eta[np.abs(yc - 1) < 0.5].sum() == pytest.approx(s.voi_err_mm3)
+    assert np.all(eta[np.abs(yc - 1) > 0.5] == 0) and eta[
+        np.abs(yc - 1) < 0.5
+    ].sum() == pytest.approx(s.voi_err_mm3)
     write_summary(tmp_path / "summary.json", s)
     assert read_summary(tmp_path / "summary.json") == s
     voi, _ = summary_tables([s], animals=["a"], variants=["sphere"])
-    assert voi.loc[0, "voi_err_mm3"] == s.voi_err_mm3 and voi.loc[0, "bins_err_pp.0.3-0.4"] == s.bins_err_pp["0.3-0.4"]
+    assert (
+        voi.loc[0, "voi_err_mm3"] == s.voi_err_mm3
+        and voi.loc[0, "bins_err_pp.0.3-0.4"] == s.bins_err_pp["0.3-0.4"]
+    )
     assert {f"bins_err_pp.{k}" for k in s.bins_percent} <= set(voi.columns)
     # centroid sampling: the estimate of the centroid numbers (one point per element)
     c, _ = summarize_solution(m, u, animal="a", variant="sphere", gamma_sampling="centroid")
@@ -167,17 +205,32 @@ def test_cylinder_scene_on_a_coarse_mesh_gives_the_curve_and_the_estimated_voi()
     from deeptissue.fem.cylinder import CylinderMesh, cylinder_scene
     from deeptissue.fem.material import Ogden
 
-    coarse = CylinderMesh(element_size_mm=4.0, refine_size_mm=2.0, refine_radius_mm=2.0, refine_transition_mm=1.0,
-                          refine_depth_mm=3.0)
-    curve, voi = cylinder_scene(Ogden(), coarse, curve_depths_mm=[0.25], voi_depths_mm=[0.5], threshold=0.05,
-                                bin_edges=(0.05, 0.1, 0.2))
+    coarse = CylinderMesh(
+        element_size_mm=4.0,
+        refine_size_mm=2.0,
+        refine_radius_mm=2.0,
+        refine_transition_mm=1.0,
+        refine_depth_mm=3.0,
+    )
+    curve, voi = cylinder_scene(
+        Ogden(),
+        coarse,
+        curve_depths_mm=[0.25],
+        voi_depths_mm=[0.5],
+        threshold=0.05,
+        bin_edges=(0.05, 0.1, 0.2),
+    )
     assert list(curve["depth_mm"]) == [0.25, 0.5] and curve["converged"].all()
     assert 0 < curve["force_N"].iloc[0] < curve["force_N"].iloc[1]
     assert curve.attrs["mesh"] == "4 / 2 mm" and curve.attrs["n_dofs"] > 0
     row = voi.iloc[0]
     assert row["voi_mm3"] > 0 and row["voi_err_mm3"] == row["est_patch_moved_voi_mm3"] > 0
-    assert sum(row[f"bins_percent.{b}"] for b in ("0.05-0.1", "0.1-0.2", ">0.2")) == pytest.approx(100)
-    assert {"bins_err_pp.0.05-0.1", "est_sampling_voi_mm3", "est_average_diff_voi_mm3"} <= set(voi.columns)
+    assert sum(row[f"bins_percent.{b}"] for b in ("0.05-0.1", "0.1-0.2", ">0.2")) == pytest.approx(
+        100
+    )
+    assert {"bins_err_pp.0.05-0.1", "est_sampling_voi_mm3", "est_average_diff_voi_mm3"} <= set(
+        voi.columns
+    )
 
 
 def test_effectivity_table_divides_each_estimate_by_the_true_error_against_the_finest():
@@ -185,14 +238,37 @@ def test_effectivity_table_divides_each_estimate_by_the_true_error_against_the_f
 
     from deeptissue.fem.cylinder import effectivity_table
 
-    base = {"bins_percent.0.3-0.4": 70.0, "bins_percent.>1.0": 30.0, "bins_err_pp.0.3-0.4": 1.0, "bins_err_pp.>1.0": 2.0,
-            "est_sampling_voi_mm3": 0.5, "est_sampling_bins_pp": 4.0}
-    voi = pd.DataFrame([dict(base, mesh="fine", n_dofs=100, depth_mm=2.0, voi_mm3=10.0, voi_err_mm3=0.1),
-                        dict(base, mesh="coarse", n_dofs=10, depth_mm=2.0, voi_mm3=10.4, voi_err_mm3=0.8,
-                             **{"bins_percent.0.3-0.4": 71.0, "bins_percent.>1.0": 29.0})])
+    base = {
+        "bins_percent.0.3-0.4": 70.0,
+        "bins_percent.>1.0": 30.0,
+        "bins_err_pp.0.3-0.4": 1.0,
+        "bins_err_pp.>1.0": 2.0,
+        "est_sampling_voi_mm3": 0.5,
+        "est_sampling_bins_pp": 4.0,
+    }
+    voi = pd.DataFrame(
+        [
+            dict(base, mesh="fine", n_dofs=100, depth_mm=2.0, voi_mm3=10.0, voi_err_mm3=0.1),
+            dict(
+                base,
+                mesh="coarse",
+                n_dofs=10,
+                depth_mm=2.0,
+                voi_mm3=10.4,
+                voi_err_mm3=0.8,
+                **{"bins_percent.0.3-0.4": 71.0, "bins_percent.>1.0": 29.0},
+            ),
+        ]
+    )
     t = effectivity_table(voi)
     assert len(t) == 1 and t.loc[0, "mesh"] == "coarse"
-    assert t.loc[0, "true_voi_percent"] == pytest.approx(4.0) and t.loc[0, "true_bins_pp"] == pytest.approx(1.0)
+    assert t.loc[0, "true_voi_percent"] == pytest.approx(4.0) and t.loc[
+        0, "true_bins_pp"
+    ] == pytest.approx(1.0)
     assert t.loc[0, "patch, moved volume (the summary's): voi"] == pytest.approx(2.0)
-    assert t.loc[0, "patch, moved volume (the summary's): bins"] == pytest.approx(2.0)  # the largest bin estimate
-    assert t.loc[0, "two samplings: voi"] == pytest.approx(1.25) and t.loc[0, "two samplings: bins"] == pytest.approx(4.0)
+    assert t.loc[0, "patch, moved volume (the summary's): bins"] == pytest.approx(
+        2.0
+    )  # the largest bin estimate
+    assert t.loc[0, "two samplings: voi"] == pytest.approx(1.25) and t.loc[
+        0, "two samplings: bins"
+    ] == pytest.approx(4.0)

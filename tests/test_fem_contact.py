@@ -7,7 +7,13 @@ from deeptissue.fem.contact import WeightedContact
 from deeptissue.fem.indenters import Indenter
 from deeptissue.fem.material import Ogden
 from deeptissue.fem.shapes import block_mesh, cored_cylinder_mesh
-from deeptissue.fem.solver import BoneMotion, FacetSets, IncrementSettings, SolverSettings, solve_indentation
+from deeptissue.fem.solver import (
+    BoneMotion,
+    FacetSets,
+    IncrementSettings,
+    SolverSettings,
+    solve_indentation,
+)
 from deeptissue.mesh import TetMesh
 
 LAW = Ogden()
@@ -15,8 +21,14 @@ R_MM = 1.5
 
 
 def _block(size=(6.0, 6.0, 3.0), h_mm=1.5, fine_mm=0.45, fine_radius_mm=1.0):
-    m = block_mesh(size, h_mm=h_mm, refine_point_mm=(size[0] / 2, size[1] / 2, size[2]), refine_h_mm=fine_mm,
-                   refine_radius_mm=fine_radius_mm, refine_growth=0.5)
+    m = block_mesh(
+        size,
+        h_mm=h_mm,
+        refine_point_mm=(size[0] / 2, size[1] / 2, size[2]),
+        refine_h_mm=fine_mm,
+        refine_radius_mm=fine_radius_mm,
+        refine_growth=0.5,
+    )
     return TetMesh(m.nodes_mm, m.tets, {"bone": m.facets["bottom"], "patch": m.facets["top"]})
 
 
@@ -31,7 +43,13 @@ def _hertz_N(law, radius_mm, depth_mm):
 @pytest.fixture(scope="module")
 def pressed():
     m = _block()
-    ind = Indenter("sphere", axis=(0, 0, -1), start_mm=(3.0, 3.0, 3.2), end_mm=(3.0, 3.0, 2.75), radius_mm=R_MM)
+    ind = Indenter(
+        "sphere",
+        axis=(0, 0, -1),
+        start_mm=(3.0, 3.0, 3.2),
+        end_mm=(3.0, 3.0, 2.75),
+        radius_mm=R_MM,
+    )
     r = solve_indentation(m, material=LAW, indenter=ind, bone_motion=BoneMotion())
     return m, ind, r
 
@@ -78,9 +96,20 @@ def test_weighted_gaps_closed_and_no_tensile_force(pressed):
 def test_a_node_the_indenter_leaves_is_released():
     # the sphere presses in while sliding 2 mm along x: the nodes it touched first are behind it at the end
     m = _block((8.0, 6.0, 3.0), fine_mm=0.6, fine_radius_mm=1.5)
-    ind = Indenter("sphere", axis=(0, 0, -1), start_mm=(3.0, 3.0, 2.95), end_mm=(5.0, 3.0, 2.8), radius_mm=R_MM)
-    r = solve_indentation(m, material=LAW, indenter=ind, bone_motion=BoneMotion(),
-                                settings=SolverSettings(increments=IncrementSettings(max_increment=0.25)))
+    ind = Indenter(
+        "sphere",
+        axis=(0, 0, -1),
+        start_mm=(3.0, 3.0, 2.95),
+        end_mm=(5.0, 3.0, 2.8),
+        radius_mm=R_MM,
+    )
+    r = solve_indentation(
+        m,
+        material=LAW,
+        indenter=ind,
+        bone_motion=BoneMotion(),
+        settings=SolverSettings(increments=IncrementSettings(max_increment=0.25)),
+    )
     assert r.converged, r.reason
     seen = r.extra["active_nodes_per_increment"]
     ever = np.unique(np.concatenate(seen))
@@ -99,8 +128,13 @@ def test_missing_facet_set_raises():
     m = _block()
     ind = Indenter("sphere", axis=(0, 0, -1), start_mm=(3.0, 3.0, 3.2), end_mm=(3.0, 3.0, 2.9))
     with pytest.raises(ValueError, match="no facet set 'nope'"):
-        solve_indentation(m, material=LAW, indenter=ind, bone_motion=BoneMotion(),
-                          sets=FacetSets(indenter="nope"))
+        solve_indentation(
+            m,
+            material=LAW,
+            indenter=ind,
+            bone_motion=BoneMotion(),
+            sets=FacetSets(indenter="nope"),
+        )
 
 
 @pytest.mark.slow
@@ -109,7 +143,13 @@ def test_sphere_force_within_3_percent_of_hertz_at_small_depth():
 
     d = 0.06  # 0.04 R, the block and mesh of verification.hertz_curve
     m = _block_with_top_patch((40.0, 40.0, 20.0), 6.0, 0.1, 0.4, (20.0, 20.0, 20.0), 0.5)
-    ind = Indenter("sphere", axis=(0, 0, -1), start_mm=(20.0, 20.0, 20.001), end_mm=(20.0, 20.0, 20.0 - d), radius_mm=R_MM)
+    ind = Indenter(
+        "sphere",
+        axis=(0, 0, -1),
+        start_mm=(20.0, 20.0, 20.001),
+        end_mm=(20.0, 20.0, 20.0 - d),
+        radius_mm=R_MM,
+    )
     r = solve_indentation(m, material=LAW, indenter=ind, bone_motion=BoneMotion())
     assert r.converged, r.reason
     assert r.indenter_force_N == pytest.approx(_hertz_N(LAW, R_MM, d), rel=0.03)
@@ -121,7 +161,9 @@ def test_weighted_gap_rows_and_curvature_are_derivatives_of_the_gaps_and_forces(
     # that changes G's normals' weights (tested with the gap's own linearisation: G(u + du) - G(u) ~ the blocks)
     limb = cored_cylinder_mesh(length_mm=6.0, radius_mm=3.0, core_radius_mm=0.8, h_mm=1.2)
     facets = limb.facets["skin"] if nodes == 6 else limb.facets["skin"][:, :3]
-    wc = WeightedContact(limb.nodes_mm, [("indenter", facets)], np.unique(limb.facets["bone"]), young_mpa=0.01)
+    wc = WeightedContact(
+        limb.nodes_mm, [("indenter", facets)], np.unique(limb.facets["bone"]), young_mpa=0.01
+    )
     ind = Indenter("sphere", axis=(-1, 0, 0), radius_mm=1.5)
     tip = np.array([2.7, 0.0, 3.0])
     wc.gapfns[0] = lambda x, hessian=True: ind.gap(x, tip, hessian=hessian)
@@ -140,7 +182,9 @@ def test_weighted_gap_rows_and_curvature_are_derivatives_of_the_gaps_and_forces(
     Gdu = np.bincount(rows, weights=vals * du[cols], minlength=len(wc.node))
     np.testing.assert_allclose(((gp - gm) / 2)[ok], Gdu[ok], rtol=1e-5, atol=1e-12)
     # the force is G^T lam
-    np.testing.assert_allclose(force, np.bincount(cols, weights=vals * lam[rows], minlength=u.size), atol=1e-15)
+    np.testing.assert_allclose(
+        force, np.bincount(cols, weights=vals * lam[rows], minlength=u.size), atol=1e-15
+    )
     # d(G^T lam)/du = the curvature blocks + the change of the weights 1/m_j (zero: m_j uses reference areas)
     fp = wc.weighted(u + du, which, lam)[3]
     fm = wc.weighted(u - du, which, lam)[3]
@@ -163,7 +207,9 @@ def test_the_augmented_lagrangian_slope_is_its_derivative():
     constrained = np.zeros(limb.nodes_mm.size, bool)
     constrained[(3 * bone[:, None] + np.arange(3)).ravel()] = True
     asm = Assembler(limb, law, constrained=constrained)
-    wc = WeightedContact(limb.nodes_mm, [("indenter", limb.facets["skin"])], bone, young_mpa=law.young_mpa)
+    wc = WeightedContact(
+        limb.nodes_mm, [("indenter", limb.facets["skin"])], bone, young_mpa=law.young_mpa
+    )
     ind = Indenter("sphere", axis=(-1, 0, 0), radius_mm=1.5)
     tip = np.array([2.7, 0.0, 3.0])
     wc.gapfns[0] = lambda x, hessian=True: ind.gap(x, tip, hessian=hessian)
@@ -179,6 +225,13 @@ def test_the_augmented_lagrangian_slope_is_its_derivative():
     du = np.where(constrained, 0.0, 1e-3 * rng.standard_normal(u.size))
     dlam = np.where(near, 1e-5 * rng.standard_normal(len(wc.node)), 0.0)
     eps = 1e-4
-    for a, b in ((du, 0 * dlam), (0 * du, np.where(on, dlam, 0.0)), (0 * du, np.where(on, 0.0, dlam)), (du, dlam)):
-        fd = (p.lagrangian(u + eps * a, lam + eps * b) - p.lagrangian(u - eps * a, lam - eps * b)) / (2 * eps)
+    for a, b in (
+        (du, 0 * dlam),
+        (0 * du, np.where(on, dlam, 0.0)),
+        (0 * du, np.where(on, 0.0, dlam)),
+        (du, dlam),
+    ):
+        fd = (
+            p.lagrangian(u + eps * a, lam + eps * b) - p.lagrangian(u - eps * a, lam - eps * b)
+        ) / (2 * eps)
         assert p.lagrangian_slope(f, gw, G, lam, a, b) == pytest.approx(fd, rel=1e-5)

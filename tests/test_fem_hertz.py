@@ -29,8 +29,14 @@ def _facet_edges_near(m, name, centre_mm, radius_mm):
 def test_size_field_refines_the_facets_under_the_point():
     # a small refinement ball on a large block is found: the facets under it are ~refine_h_mm, not the
     # block's ~2.4 mm (gmsh samples the size field only at the vertices of the mesh it refines)
-    m = block_mesh((20.0, 20.0, 10.0), h_mm=2.5, refine_point_mm=(10.0, 10.0, 10.0), refine_h_mm=0.1,
-                   refine_radius_mm=0.4, refine_growth=0.5)
+    m = block_mesh(
+        (20.0, 20.0, 10.0),
+        h_mm=2.5,
+        refine_point_mm=(10.0, 10.0, 10.0),
+        refine_h_mm=0.1,
+        refine_radius_mm=0.4,
+        refine_growth=0.5,
+    )
     e = _facet_edges_near(m, "top", (10.0, 10.0), 0.4)
     assert len(e) > 20
     assert e.max() < 0.15

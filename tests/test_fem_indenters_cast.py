@@ -10,7 +10,9 @@ from deeptissue.fem.indenters import Indenter
 def test_sphere_head_and_shaft_distances():
     ind = Indenter("sphere", axis=(0, 0, -1), radius_mm=1.5)
     tip = np.array([0.0, 0.0, 0.0])  # head centre at z = 1.5
-    x = np.array([[0, 0, -0.2], [0, 0, 0.1], [3.0, 0, 1.5], [2.5, 0, 10.0], [0, 0, 1.5 + 1.5 + 0.3]])
+    x = np.array(
+        [[0, 0, -0.2], [0, 0, 0.1], [3.0, 0, 1.5], [2.5, 0, 10.0], [0, 0, 1.5 + 1.5 + 0.3]]
+    )
     g, n, _ = ind.gap(x, tip)
     # below the tip; inside near the tip; beside the head; beside the shaft far up; on the axis above
     np.testing.assert_allclose(g, [0.2, -0.1, 1.5, 1.0, -1.5], atol=1e-12)
@@ -22,7 +24,9 @@ def test_bar_is_a_capsule_along_the_leg():
     ind = Indenter("bar", axis=(1, 0, 0), radius_mm=1.5, bar_length_mm=10.0)
     np.testing.assert_allclose(ind.bar_direction(), [0, 0, 1])
     tip = np.zeros(3)  # core segment x = -1.5, y = 0, z in [-3.5, 3.5]
-    x = np.array([[0.5, 0, 3.0], [0.5, 0, -3.4], [-1.5, 0, 5.5], [-1.5, 0, -6.0], [-1.5, 2.0, 0.0]])
+    x = np.array(
+        [[0.5, 0, 3.0], [0.5, 0, -3.4], [-1.5, 0, 5.5], [-1.5, 0, -6.0], [-1.5, 2.0, 0.0]]
+    )
     g, _, _ = ind.gap(x, tip)
     np.testing.assert_allclose(g, [0.5, 0.5, 0.5, 1.0, 0.5], atol=1e-12)
 
@@ -56,7 +60,9 @@ def test_closest_point_on_triangles_against_dense_sampling():
         pts = a[i] + u[:, None] * (b[i] - a[i]) + v[:, None] * (c[i] - a[i])
         dmin = np.min(np.linalg.norm(pts - p[i], axis=1))
         d = np.linalg.norm(q[i] - p[i])
-        assert d <= dmin + 1e-12 and d >= dmin - 0.02 * np.linalg.norm(b[i] - a[i]) - 0.02 * np.linalg.norm(c[i] - a[i])
+        assert d <= dmin + 1e-12 and d >= dmin - 0.02 * np.linalg.norm(
+            b[i] - a[i]
+        ) - 0.02 * np.linalg.norm(c[i] - a[i])
 
 
 def _tube_cast(radius=3.0, length=10.0, n=48, m=10):
@@ -73,12 +79,16 @@ def _tube_cast(radius=3.0, length=10.0, n=48, m=10):
 
 
 def test_cast_signed_distance_toward_the_leg_and_free_ends():
-    cast = _tube_cast(m=41)  # 0.25 mm rows: no vertex within the weights' support of the points 0.5-1 mm off
+    cast = _tube_cast(
+        m=41
+    )  # 0.25 mm rows: no vertex within the weights' support of the points 0.5-1 mm off
     nrm = cast.normal[0]
     assert nrm @ (-cast.centroid[0] * [1, 1, 0]) > 0  # points toward the axis
     x = np.array([[2.0, 0, 5.0], [3.5, 0, 5.0], [0, 2.5, 4.0], [2.0, 0, 12.0]])
     g, n, _ = cast.gap(x)
-    r_poly = 3.0 * np.cos(np.pi / 48)  # inscribed radius at a facet centre (x = 2, 3.5 lie on a vertex line)
+    r_poly = 3.0 * np.cos(
+        np.pi / 48
+    )  # inscribed radius at a facet centre (x = 2, 3.5 lie on a vertex line)
     assert g[0] == pytest.approx(1.0, abs=3.0 - r_poly + 1e-9)
     assert g[1] < 0 and g[1] == pytest.approx(-0.5, abs=3.0 - r_poly + 1e-9)
     assert g[2] > 0
@@ -94,7 +104,9 @@ def test_cast_gap_is_smooth_across_facet_edges_with_its_exact_derivatives():
     x = np.array([[r0 * np.cos(s * eps), r0 * np.sin(s * eps), 5.0] for s in (-1.0, 1.0)])
     g, n, H = cast.gap(x)
     assert np.linalg.norm(n[0] - n[1]) < 1e-4
-    np.testing.assert_allclose(n[0] / np.linalg.norm(n[0]), [-1.0, 0.0, 0.0], atol=1e-5)  # toward the axis
+    np.testing.assert_allclose(
+        n[0] / np.linalg.norm(n[0]), [-1.0, 0.0, 0.0], atol=1e-5
+    )  # toward the axis
     # near the surface the gap is the distance to the tube to within the facets' sagitta (edge^2 / (2 R))
     rng = np.random.default_rng(6)
     th = rng.uniform(0, 2 * np.pi, 300)
@@ -102,12 +114,16 @@ def test_cast_gap_is_smooth_across_facet_edges_with_its_exact_derivatives():
     x = np.stack([rad * np.cos(th), rad * np.sin(th), rng.uniform(2, 8, 300)], axis=1)
     g, n, H = cast.gap(x)
     edge = 2 * np.pi * 3.0 / 24
-    np.testing.assert_allclose(g, 3.0 - rad, atol=edge ** 2 / (2 * 3.0))
+    np.testing.assert_allclose(g, 3.0 - rad, atol=edge**2 / (2 * 3.0))
     # the returned normal is the gap's gradient (finite differences): a consistent linearisation
     e = 1e-6
-    grad = np.stack([(cast.gap(x + e * d)[0] - cast.gap(x - e * d)[0]) / (2 * e) for d in np.eye(3)], axis=1)
+    grad = np.stack(
+        [(cast.gap(x + e * d)[0] - cast.gap(x - e * d)[0]) / (2 * e) for d in np.eye(3)], axis=1
+    )
     np.testing.assert_allclose(n, grad, atol=1e-6)
-    hess = np.stack([(cast.gap(x + e * d)[1] - cast.gap(x - e * d)[1]) / (2 * e) for d in np.eye(3)], axis=2)
+    hess = np.stack(
+        [(cast.gap(x + e * d)[1] - cast.gap(x - e * d)[1]) / (2 * e) for d in np.eye(3)], axis=2
+    )
     np.testing.assert_allclose(H, hess, atol=1e-4)
     np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=0.05)
 
@@ -122,7 +138,7 @@ def test_cast_gap_weighs_every_vertex_of_its_support_and_skips_the_hessian_on_re
     x = np.stack([rad * np.cos(th), rad * np.sin(th), rng.uniform(2, 8, 50)], axis=1)
     g, n, H = cast.gap(x)
     d = x[:, None, :] - cast.v[None]
-    s = np.sum(d ** 2, axis=2) / cast.radius_mm ** 2
+    s = np.sum(d**2, axis=2) / cast.radius_mm**2
     w = np.where(s < 1, (1 - s) ** 4, 0.0)
     assert np.all(np.count_nonzero(w, axis=1) > 16)
     g_all = np.sum(w * np.einsum("nvi,vi->nv", d, cast.vertex_normal), axis=1) / w.sum(axis=1)

@@ -77,7 +77,9 @@ def test_an_ill_conditioned_matrix_falls_back_to_double_precision():
     x = s.solve(U, b)
     assert s.double_fallbacks == 1
     assert _backward_error(U, x, b) < 1e-14
-    exact = np.arange(1, n + 1) * (n + 0.5) - 0.5 * np.arange(1, n + 1) ** 2  # -x'' = 1, x(0) = 0, x'(n) ~ 0
+    exact = (
+        np.arange(1, n + 1) * (n + 0.5) - 0.5 * np.arange(1, n + 1) ** 2
+    )  # -x'' = 1, x(0) = 0, x'(n) ~ 0
     assert np.abs(x - exact).max() < 1e-6 * exact.max()
 
 
@@ -179,8 +181,13 @@ _ROOT = Path(__file__).resolve().parents[1]
 def _run_two_threads(code: str) -> str:
     env = dict(os.environ, PYTHONPATH=str(_ROOT / "src"), MKL_NUM_THREADS="2", OMP_NUM_THREADS="2")
     env.pop("MKL_CBWR", None)
-    p = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], env=env, capture_output=True, text=True,
-                       timeout=600)
+    p = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert p.returncode == 0, p.stderr[-3000:]
     return p.stdout.strip().splitlines()[-1]
 

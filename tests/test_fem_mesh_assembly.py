@@ -97,7 +97,9 @@ def test_tangent_is_the_assembly_of_the_element_matrices_on_the_free_dofs(order)
     np.testing.assert_allclose(Ke, Ke.transpose(0, 2, 1), atol=1e-12 * np.abs(Ke).max())
     rows = np.repeat(A.edofs, A.edofs.shape[1], axis=1).ravel()
     cols = np.tile(A.edofs, (1, A.edofs.shape[1])).ravel()
-    K = sp.coo_matrix((Ke.ravel(), (rows, cols)), shape=(A.n_dofs, A.n_dofs)).tocsr()[A.free][:, A.free]
+    K = sp.coo_matrix((Ke.ravel(), (rows, cols)), shape=(A.n_dofs, A.n_dofs)).tocsr()[A.free][
+        :, A.free
+    ]
     assert abs(A.full_matrix(data) - K).max() < 1e-12 * abs(K).max()
     assert len(A.bc_elems) and len(A.bc_elems) < len(m.tets)
     np.testing.assert_array_equal(Ke_bc, Ke[A.bc_elems])
@@ -117,7 +119,9 @@ def test_folded_curved_tet_is_straightened():
     m = block_mesh((2.0, 2.0, 2.0), h_mm=1.0)
     p = m.nodes_mm.copy()
     t = m.tets[0]
-    p[t[4]] = p[t[0]] + 1.5 * (p[t[1]] - p[t[0]])  # mid-node of edge (0, 1) pushed past corner 1: folded
+    p[t[4]] = p[t[0]] + 1.5 * (
+        p[t[1]] - p[t[0]]
+    )  # mid-node of edge (0, 1) pushed past corner 1: folded
     bad = TetMesh(nodes_mm=p, tets=m.tets, facets=m.facets)
     assert np.any(reference_jacobians(bad, order=2) <= 0)
     fixed, n = straighten_invalid(bad)
@@ -136,26 +140,51 @@ def _skin_facet_size_near(m, point):
 def test_refinement_along_a_segment_reaches_both_of_its_ends():
     # a bar's footprint: the segment from (5, 0, 6) to (5, 0, 14) on the skin of the cylinder
     a, b = (5.0, 0.0, 6.0), (5.0, 0.0, 14.0)
-    seg = cored_cylinder_mesh(length_mm=20.0, radius_mm=5.0, core_radius_mm=1.0, h_mm=2.0, refine_point_mm=(a, b),
-                              refine_h_mm=0.5, refine_radius_mm=1.0)
-    pt = cored_cylinder_mesh(length_mm=20.0, radius_mm=5.0, core_radius_mm=1.0, h_mm=2.0, refine_point_mm=(5.0, 0.0, 10.0),
-                             refine_h_mm=0.5, refine_radius_mm=1.0)
+    seg = cored_cylinder_mesh(
+        length_mm=20.0,
+        radius_mm=5.0,
+        core_radius_mm=1.0,
+        h_mm=2.0,
+        refine_point_mm=(a, b),
+        refine_h_mm=0.5,
+        refine_radius_mm=1.0,
+    )
+    pt = cored_cylinder_mesh(
+        length_mm=20.0,
+        radius_mm=5.0,
+        core_radius_mm=1.0,
+        h_mm=2.0,
+        refine_point_mm=(5.0, 0.0, 10.0),
+        refine_h_mm=0.5,
+        refine_radius_mm=1.0,
+    )
     for p in (a, b, (5.0, 0.0, 10.0)):
         assert _skin_facet_size_near(seg, p) < 0.8
     assert _skin_facet_size_near(pt, a) > 1.2  # a point refines only around itself
     with pytest.raises(ValueError, match="segment"):
-        cored_cylinder_mesh(h_mm=2.0, refine_point_mm=(a, b, a), refine_h_mm=0.5, refine_radius_mm=1.0)
+        cored_cylinder_mesh(
+            h_mm=2.0, refine_point_mm=(a, b, a), refine_h_mm=0.5, refine_radius_mm=1.0
+        )
 
 
 def test_refinement_along_a_segment_with_negative_components():
     # an indenter's travel from the skin toward the core (-x) and a point at negative coordinates
     a, b = (5.0, 0.0, 10.0), (1.2, 0.0, 10.0)
-    m = cored_cylinder_mesh(length_mm=20.0, radius_mm=5.0, core_radius_mm=1.0, h_mm=2.0, refine_point_mm=(a, b),
-                            refine_h_mm=0.5, refine_radius_mm=1.0)
+    m = cored_cylinder_mesh(
+        length_mm=20.0,
+        radius_mm=5.0,
+        core_radius_mm=1.0,
+        h_mm=2.0,
+        refine_point_mm=(a, b),
+        refine_h_mm=0.5,
+        refine_radius_mm=1.0,
+    )
     X, T = m.nodes_mm, m.tets[:, :4]
     c = X[T].mean(axis=1)
     edge = np.linalg.norm(X[T[:, 0]] - X[T[:, 1]], axis=1)
     near_core = np.linalg.norm(c - np.array([1.5, 0.0, 10.0]), axis=1) < 0.5
     assert near_core.any() and np.median(edge[near_core]) < 0.8
-    neg = cored_cylinder_mesh(h_mm=2.0, refine_point_mm=(-5.0, -0.5, 10.0), refine_h_mm=0.5, refine_radius_mm=1.0)
+    neg = cored_cylinder_mesh(
+        h_mm=2.0, refine_point_mm=(-5.0, -0.5, 10.0), refine_h_mm=0.5, refine_radius_mm=1.0
+    )
     assert _skin_facet_size_near(neg, (-5.0, 0.0, 10.0)) < 0.8

@@ -28,10 +28,19 @@ def test_demo_config_is_valid_and_gets_defaults():
 @pytest.mark.parametrize(
     "mutate, match",
     [
-        (lambda c: c["animals"]["rat01"]["phantom"].update(depht_mm=2), r"animals\.rat01\.phantom: unknown key\(s\) \['depht_mm'\]"),
-        (lambda c: c["animals"]["rat01"]["phantom"].update(snr="high"), r"animals\.rat01\.phantom\.snr"),
+        (
+            lambda c: c["animals"]["rat01"]["phantom"].update(depht_mm=2),
+            r"animals\.rat01\.phantom: unknown key\(s\) \['depht_mm'\]",
+        ),
+        (
+            lambda c: c["animals"]["rat01"]["phantom"].update(snr="high"),
+            r"animals\.rat01\.phantom\.snr",
+        ),
         (lambda c: c.update(segmentaton={}), r"unknown key\(s\) \['segmentaton'\]"),
-        (lambda c: c["animals"].update(rat09={"pre": "nowhere/pre.nii.gz"}), r"animals\.rat09\.pre: file not found"),
+        (
+            lambda c: c["animals"].update(rat09={"pre": "nowhere/pre.nii.gz"}),
+            r"animals\.rat09\.pre: file not found",
+        ),
     ],
 )
 def test_bad_config_names_the_key(mutate, match):
@@ -58,8 +67,13 @@ def test_contours_reject_mismatched_slices():
 
 def test_pose_round_trip_and_validation(tmp_path):
     p = Pose(
-        indenter_axis=[0, -1, 0], tip_start_mm=[0, 6, 10], tip_end_mm=[0, 3, 10], depth_mm=2.0,
-        bone_com_mm=[1, -1, 10], bone_rotation_deg=[1, 0, 0], bone_translation_mm=[0, 0.1, 0],
+        indenter_axis=[0, -1, 0],
+        tip_start_mm=[0, 6, 10],
+        tip_end_mm=[0, 3, 10],
+        depth_mm=2.0,
+        bone_com_mm=[1, -1, 10],
+        bone_rotation_deg=[1, 0, 0],
+        bone_translation_mm=[0, 0.1, 0],
         extra={"residual_mm": 0.01},
     )
     save_pose(tmp_path / "pose.json", p)
@@ -68,8 +82,15 @@ def test_pose_round_trip_and_validation(tmp_path):
     assert back.extra == {"residual_mm": 0.01}
     assert back.travel_mm == pytest.approx(3.0)
     with pytest.raises(ValueError, match="indenter_axis: not a unit vector"):
-        Pose(indenter_axis=[0, -2, 0], tip_start_mm=[0, 0, 0], tip_end_mm=[0, 0, 0], depth_mm=0,
-             bone_com_mm=[0, 0, 0], bone_rotation_deg=[0, 0, 0], bone_translation_mm=[0, 0, 0])
+        Pose(
+            indenter_axis=[0, -2, 0],
+            tip_start_mm=[0, 0, 0],
+            tip_end_mm=[0, 0, 0],
+            depth_mm=0,
+            bone_com_mm=[0, 0, 0],
+            bone_rotation_deg=[0, 0, 0],
+            bone_translation_mm=[0, 0, 0],
+        )
 
 
 def test_rigid_motion_keeps_centre_and_distances():
@@ -80,7 +101,9 @@ def test_rigid_motion_keeps_centre_and_distances():
     d0 = np.linalg.norm(pts[:, None] - pts[None], axis=-1)
     d1 = np.linalg.norm(moved[:, None] - moved[None], axis=-1)
     np.testing.assert_allclose(d0, d1, atol=1e-12)
-    np.testing.assert_allclose(apply_rigid(c, rotation_deg=[10, -20, 5], centre_mm=c, translation_mm=[0, 0, 0]), c)
+    np.testing.assert_allclose(
+        apply_rigid(c, rotation_deg=[10, -20, 5], centre_mm=c, translation_mm=[0, 0, 0]), c
+    )
 
 
 def test_euler_steps_compose_to_the_rotation():
@@ -100,9 +123,13 @@ def test_variant_names():
     assert parse_variant("bar").turn_axis is None
     with pytest.raises(ValueError, match="variant 'cube'"):
         parse_variant("cube")
-    axis, start, end = variant_travel(v, axis=[0, -1, 0], tip_start_mm=[0, 5, 0], tip_end_mm=[0, 2, 0])
+    axis, start, end = variant_travel(
+        v, axis=[0, -1, 0], tip_start_mm=[0, 5, 0], tip_end_mm=[0, 2, 0]
+    )
     # turning -y by +15 deg about x tilts it toward -z; the travel length is kept
-    np.testing.assert_allclose(axis, [0, -np.cos(np.radians(15)), -np.sin(np.radians(15))], atol=1e-12)
+    np.testing.assert_allclose(
+        axis, [0, -np.cos(np.radians(15)), -np.sin(np.radians(15))], atol=1e-12
+    )
     np.testing.assert_allclose(np.linalg.norm(end - start), 3.0)
 
 
@@ -112,7 +139,10 @@ def test_mesh_groups_put_each_indenter_shape_on_its_own_mesh():
     six = ["sphere", "bar", "sphere_rx+15", "sphere_rx-15", "sphere_rz+15", "sphere_rz-15"]
     assert mesh_groups(six) == {"all": six}  # the default: one mesh per animal
     g = mesh_groups(six, by="indenter")
-    assert g == {"sphere": ["sphere", "sphere_rx+15", "sphere_rx-15", "sphere_rz+15", "sphere_rz-15"], "bar": ["bar"]}
+    assert g == {
+        "sphere": ["sphere", "sphere_rx+15", "sphere_rx-15", "sphere_rz+15", "sphere_rz-15"],
+        "bar": ["bar"],
+    }
     assert mesh_group_of("sphere_rz-15", g) == "sphere" and mesh_group_of("bar", g) == "bar"
     assert mesh_groups(six, by="animal") == {"all": six}
     assert mesh_groups(["bar_rx+15", "bar"], by="indenter") == {"bar": ["bar_rx+15", "bar"]}
@@ -135,7 +165,9 @@ def test_solve_priority_starts_bars_and_deeper_indentations_first():
     from deeptissue.variants import solve_priority
 
     assert solve_priority("bar") > solve_priority("sphere")
-    assert solve_priority("bar_rx+15", 1.5) > solve_priority("sphere_rz-15", 3.0)  # any bar before any sphere
+    assert solve_priority("bar_rx+15", 1.5) > solve_priority(
+        "sphere_rz-15", 3.0
+    )  # any bar before any sphere
     assert solve_priority("sphere", 2.5) > solve_priority("sphere", 2.0) > solve_priority("sphere")
     assert solve_priority("bar", 2.5) > solve_priority("bar", 1.5)
     with pytest.raises(ValueError, match="variant 'cube'"):
@@ -169,12 +201,15 @@ def test_schema_solver_defaults_are_the_solvers_own():
     cfg = validate_config(_demo(), SCHEMA, base_dir=ROOT)
     solver_cfg = cfg["fem"]["solver"]
     assert {"newton", "increments", "contact", "max_wall_s"} <= set(solver_cfg)
-    assert {"rtol", "max_iterations"} <= set(solver_cfg["newton"]) and "gap_tol_rel" in solver_cfg["contact"]
+    assert {"rtol", "max_iterations"} <= set(solver_cfg["newton"]) and "gap_tol_rel" in solver_cfg[
+        "contact"
+    ]
     assert solver_settings_from_config(solver_cfg) == SolverSettings()
     # at most 20 settings, every one described
     props = load_schema(SCHEMA)["properties"]["fem"]["properties"]["solver"]["properties"]
     leaves = [k for k, v in props.items() if "properties" not in v] + [
-        f"{g}.{k}" for g, v in props.items() if "properties" in v for k in v["properties"]]
+        f"{g}.{k}" for g, v in props.items() if "properties" in v for k in v["properties"]
+    ]
     assert len(leaves) <= 20, leaves
     with pytest.raises(ValueError, match=r"fem.solver.newton: unknown keys \['rtoll'\]"):
         solver_settings_from_config({"newton": {"rtoll": 1e-6}})

@@ -1,7 +1,6 @@
 """Ogden material point: stress and tangent against finite differences, small-strain elasticity,
 rotations and the analytical homogeneous responses (principal-stretch form)."""
 
-import math
 from pathlib import Path
 
 import numpy as np
@@ -10,7 +9,13 @@ import yaml
 
 from deeptissue.config import validate_config
 from deeptissue.fem import analytic
-from deeptissue.fem.material import Ogden, ogden_energy, ogden_stress, ogden_stress_tangent, sym_eig3
+from deeptissue.fem.material import (
+    Ogden,
+    ogden_energy,
+    ogden_stress,
+    ogden_stress_tangent,
+    sym_eig3,
+)
 from deeptissue.fem.material_checks import (
     FD_STEP_SECOND,
     FD_STEP_STRESS,
@@ -34,10 +39,20 @@ def test_units_and_defaults():
     assert MAT.bulk_mpa == pytest.approx(2.0 / 57.0, rel=1e-15)
     cfg = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())
     validate_config(cfg, ROOT / "workflow" / "schemas" / "config.schema.yaml", base_dir=ROOT)
-    assert Ogden.from_config(cfg["fem"]["material"]) == Ogden(mu_kpa=3.65, alpha=5.0, d_mm2_per_n=57.0)
+    assert Ogden.from_config(cfg["fem"]["material"]) == Ogden(
+        mu_kpa=3.65, alpha=5.0, d_mm2_per_n=57.0
+    )
 
 
-@pytest.mark.parametrize("kw, match", [({"mu_kpa": -1.0}, "mu_kpa"), ({"alpha": 0.0}, "alpha"), ({"d_mm2_per_n": 0.0}, "d_mm2_per_n"), ({"mu_kpa": float("nan")}, "mu_kpa")])
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        ({"mu_kpa": -1.0}, "mu_kpa"),
+        ({"alpha": 0.0}, "alpha"),
+        ({"d_mm2_per_n": 0.0}, "d_mm2_per_n"),
+        ({"mu_kpa": float("nan")}, "mu_kpa"),
+    ],
+)
 def test_bad_parameters_are_refused(kw, match):
     with pytest.raises(ValueError, match=match):
         Ogden(**kw)
@@ -96,11 +111,15 @@ def test_objectivity_and_isotropy():
     Wq, Pq, Aq = ogden_stress_tangent(Q @ F, MAT)
     np.testing.assert_allclose(Wq, W, rtol=1e-12)
     np.testing.assert_allclose(Pq, Q @ P, rtol=0, atol=1e-13 * np.abs(P).max())
-    np.testing.assert_allclose(Aq, np.einsum("nia,nkb,naJbL->niJkL", Q, Q, A), rtol=0, atol=1e-13 * np.abs(A).max())
+    np.testing.assert_allclose(
+        Aq, np.einsum("nia,nkb,naJbL->niJkL", Q, Q, A), rtol=0, atol=1e-13 * np.abs(A).max()
+    )
     Wm, Pm, Am = ogden_stress_tangent(F @ Q, MAT)
     np.testing.assert_allclose(Wm, W, rtol=1e-12)
     np.testing.assert_allclose(Pm, P @ Q, rtol=0, atol=1e-13 * np.abs(P).max())
-    np.testing.assert_allclose(Am, np.einsum("niMkN,nMJ,nNL->niJkL", A, Q, Q), rtol=0, atol=1e-13 * np.abs(A).max())
+    np.testing.assert_allclose(
+        Am, np.einsum("niMkN,nMJ,nNL->niJkL", A, Q, Q), rtol=0, atol=1e-13 * np.abs(A).max()
+    )
 
 
 def test_rigid_rotation_is_stress_free():
@@ -120,7 +139,9 @@ def test_tangent_is_continuous_through_coalescence():
         A = ogden_stress_tangent(R1 @ np.diag([a, a + d, b]) @ R2, MAT)[2]
         diffs.append(np.abs(A - A0).max() / np.abs(A0).max())
     # first-order convergence with a modest constant, down to rounding
-    assert diffs[0] < 10 * 1e-4 and diffs[1] < 10 * 1e-6 and diffs[2] < 10 * 1e-9 and diffs[3] < 1e-11
+    assert (
+        diffs[0] < 10 * 1e-4 and diffs[1] < 10 * 1e-6 and diffs[2] < 10 * 1e-9 and diffs[3] < 1e-11
+    )
     assert diffs[0] > 1e-6  # the tangent does depend on the split (the check can fail)
 
 
@@ -142,7 +163,16 @@ def test_batch_shapes_and_inverted_points():
     np.testing.assert_allclose(A1, A[0, 1], rtol=0, atol=1e-15)
 
 
-@pytest.mark.parametrize("spectrum", [[1.7, 0.9, 0.4], [1.0, 1.0, 1.0], [2.0, 2.0, 0.5], [1.0, 1.0 + 1e-9, 1.0 - 1e-9], [9.0, 0.09, 0.09 + 1e-12]])
+@pytest.mark.parametrize(
+    "spectrum",
+    [
+        [1.7, 0.9, 0.4],
+        [1.0, 1.0, 1.0],
+        [2.0, 2.0, 0.5],
+        [1.0, 1.0 + 1e-9, 1.0 - 1e-9],
+        [9.0, 0.09, 0.09 + 1e-12],
+    ],
+)
 def test_jacobi_eigensolver_is_backward_stable(spectrum):
     """C V = V diag(c), V^T V = I to rounding; eigenvalues equal to the constructed spectrum."""
     R = random_rotations(200, np.random.default_rng(4))
@@ -151,7 +181,9 @@ def test_jacobi_eigensolver_is_backward_stable(spectrum):
     scale = max(spectrum)
     assert np.abs(C @ V - V * c[:, None, :]).max() <= 1e-14 * scale
     assert np.abs(np.swapaxes(V, 1, 2) @ V - np.eye(3)).max() <= 1e-14
-    np.testing.assert_allclose(np.sort(c, axis=1), np.broadcast_to(np.sort(spectrum), c.shape), rtol=0, atol=1e-14 * scale)
+    np.testing.assert_allclose(
+        np.sort(c, axis=1), np.broadcast_to(np.sort(spectrum), c.shape), rtol=0, atol=1e-14 * scale
+    )
     np.testing.assert_array_equal(sym_eig3(C, vectors=False), c)
 
 
@@ -184,7 +216,9 @@ def test_lapack_fallback_for_unconverged_jacobi_gives_the_same_result(monkeypatc
     W1, P1, A1 = ogden_stress_tangent(F, MAT)
     C = np.swapaxes(F, 1, 2) @ F
     c1, V1 = sym_eig3(C)
-    assert mat._jacobi(C[:, 0, 0], C[:, 1, 1], C[:, 2, 2], C[:, 0, 1], C[:, 0, 2], C[:, 1, 2], vectors=False)[2].all()
+    assert mat._jacobi(
+        C[:, 0, 0], C[:, 1, 1], C[:, 2, 2], C[:, 0, 1], C[:, 0, 2], C[:, 1, 2], vectors=False
+    )[2].all()
     np.testing.assert_allclose(W1, W, rtol=1e-13)
     np.testing.assert_allclose(P1, P, rtol=0, atol=1e-13 * np.abs(P).max())
     np.testing.assert_allclose(A1, A, rtol=0, atol=1e-13 * np.abs(A).max())
@@ -225,7 +259,9 @@ def test_analytic_simple_shear_matches_spectral_reconstruction():
         sigma = (n * np.array(tau)) @ n.T
         np.testing.assert_allclose(analytic.simple_shear_cauchy(g, MAT), sigma, rtol=0, atol=1e-14)
     # small-shear limit: sigma_12 = mu gamma
-    assert analytic.simple_shear_cauchy(1e-6, MAT)[0, 1] == pytest.approx(MAT.mu_mpa * 1e-6, rel=1e-9)
+    assert analytic.simple_shear_cauchy(1e-6, MAT)[0, 1] == pytest.approx(
+        MAT.mu_mpa * 1e-6, rel=1e-9
+    )
 
 
 # ---- homogeneous responses of the model vs the truth ------------------------------------------
@@ -244,7 +280,12 @@ def test_homogeneous_responses_match_analytic():
 
 @pytest.mark.parametrize(
     "material",
-    [Ogden(), Ogden(mu_kpa=10.0, alpha=-2.5, d_mm2_per_n=1.0), Ogden(mu_kpa=1.0, alpha=2.0, d_mm2_per_n=500.0), Ogden(alpha=12.0)],
+    [
+        Ogden(),
+        Ogden(mu_kpa=10.0, alpha=-2.5, d_mm2_per_n=1.0),
+        Ogden(mu_kpa=1.0, alpha=2.0, d_mm2_per_n=500.0),
+        Ogden(alpha=12.0),
+    ],
     ids=["default", "negative-alpha", "neo-hookean-like", "stiffening"],
 )
 def test_all_material_point_checks_pass(material):

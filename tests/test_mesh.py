@@ -17,7 +17,11 @@ def box_mesh():
         gmsh.model.occ.synchronize()
         gmsh.model.addPhysicalGroup(3, [1], name="tissue")
         # the face at z = 0
-        bottom = [t for d, t in gmsh.model.getEntities(2) if abs(gmsh.model.occ.getCenterOfMass(d, t)[2]) < 1e-9]
+        bottom = [
+            t
+            for d, t in gmsh.model.getEntities(2)
+            if abs(gmsh.model.occ.getCenterOfMass(d, t)[2]) < 1e-9
+        ]
         gmsh.model.addPhysicalGroup(2, bottom, name="bottom")
         gmsh.option.setNumber("Mesh.MeshSizeMax", 1.0)
         gmsh.model.mesh.generate(3)

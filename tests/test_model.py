@@ -12,7 +12,7 @@ import pytest
 from model_synth import leg_contours, leg_pose
 
 from deeptissue import geometry as geo
-from deeptissue.contours import Contours
+from deeptissue.contours import Contours, save_contours
 from deeptissue.mesh import (
     MeshQualityError,
     TetMesh,
@@ -22,9 +22,16 @@ from deeptissue.mesh import (
     tet10_volume_mm3,
     tet_scaled_jacobian,
 )
-from deeptissue.model import build_cast, build_model, cast_hole_boundary, load_cast, run_mesh, save_cast, write_model
+from deeptissue.model import (
+    build_cast,
+    build_model,
+    cast_hole_boundary,
+    load_cast,
+    run_mesh,
+    save_cast,
+    write_model,
+)
 from deeptissue.pose import save_pose
-from deeptissue.contours import save_contours
 
 VARIANTS = ["sphere", "bar", "sphere_rx+15", "sphere_rx-15", "sphere_rz+15", "sphere_rz-15"]
 
@@ -35,7 +42,11 @@ VARIANTS = ["sphere", "bar", "sphere_rx+15", "sphere_rx-15", "sphere_rz+15", "sp
 def outward_facet_normals(mesh: TetMesh, name: str) -> np.ndarray:
     """Unit normals of a facet set pointing out of the mesh: away from the tet's fourth corner."""
     f = mesh.facets[name][:, :3]
-    key = {tuple(sorted(t[list(c)])): t[[i for i in range(4) if i not in c][0]] for t in mesh.tets[:, :4] for c in [(0, 1, 2), (0, 1, 3), (0, 2, 3), (1, 2, 3)]}
+    key = {
+        tuple(sorted(t[list(c)])): t[[i for i in range(4) if i not in c][0]]
+        for t in mesh.tets[:, :4]
+        for c in [(0, 1, 2), (0, 1, 3), (0, 2, 3), (1, 2, 3)]
+    }
     p = mesh.nodes_mm[f]
     n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
     n /= np.linalg.norm(n, axis=1, keepdims=True)
@@ -57,7 +68,9 @@ def test_prismatoid_volume_of_polygonal_frustum_is_exact():
     t = np.linspace(0, 2 * np.pi, n, endpoint=False)
     z = np.array([0.0, 0.7, 2.5, 3.1, 6.0])
     r = 5.0 - 2.0 * z / h
-    rings = np.stack([np.stack([rk * np.cos(t), rk * np.sin(t), np.full(n, zk)], 1) for rk, zk in zip(r, z)])
+    rings = np.stack(
+        [np.stack([rk * np.cos(t), rk * np.sin(t), np.full(n, zk)], 1) for rk, zk in zip(r, z)]
+    )
     area = lambda rad: 0.5 * n * rad**2 * np.sin(2 * np.pi / n)  # noqa: E731
     truth = h / 3 * (area(5.0) + area(3.0) + np.sqrt(area(5.0) * area(3.0)))
     assert geo.prismatoid_volume_mm3(rings) == pytest.approx(truth, rel=1e-12)
@@ -71,7 +84,9 @@ def test_point_triangle_distance_matches_dense_sampling():
     u, v = np.meshgrid(np.linspace(0, 1, 201), np.linspace(0, 1, 201))
     m = (u + v) <= 1
     u, v = u[m], v[m]
-    samples = a[:, None] + u[None, :, None] * (b - a)[:, None] + v[None, :, None] * (c - a)[:, None]
+    samples = (
+        a[:, None] + u[None, :, None] * (b - a)[:, None] + v[None, :, None] * (c - a)[:, None]
+    )
     brute = np.linalg.norm(samples - p[:, None], axis=2).min(axis=1)
     assert np.all(d <= brute + 1e-12)
     assert np.allclose(d, brute, atol=0.03)
@@ -98,8 +113,13 @@ def leg():
     # the paper's seed (1.0 / 0.5 mm): fine enough that every boundary mid-node is curved onto the loft (at
     # the 1.6 mm default 4 of 328 mid-nodes on the 2 mm tibia stay on chords, up to 0.23 mm off, all more
     # than 9 mm from the indenter tip: curving them would fail the curved-element quality gate)
-    model = build_model(c, p, variants=VARIANTS, settings={"bar_length_mm": 10.0, "element_size_mm": 1.0,
-                                                            "refine_size_mm": 0.5}, animal="synth")
+    model = build_model(
+        c,
+        p,
+        variants=VARIANTS,
+        settings={"bar_length_mm": 10.0, "element_size_mm": 1.0, "refine_size_mm": 0.5},
+        animal="synth",
+    )
     return c, p, model
 
 
@@ -118,8 +138,13 @@ def test_quality_is_reported_and_elements_valid(leg):
     assert st["n_tets"] == m.n_tets > 1000
     assert np.all(m.volumes_mm3() > 0)
     assert np.all(tet10_min_det_jacobian(m) > 0)
-    assert st["min_scaled_jacobian"] == pytest.approx(tet_scaled_jacobian(m.nodes_mm[m.tets[:, :4]]).min())
-    assert st["min_scaled_jacobian"] > 0.05 and 2.0 < st["min_dihedral_deg"] < st["max_dihedral_deg"] < 178.0
+    assert st["min_scaled_jacobian"] == pytest.approx(
+        tet_scaled_jacobian(m.nodes_mm[m.tets[:, :4]]).min()
+    )
+    assert (
+        st["min_scaled_jacobian"] > 0.05
+        and 2.0 < st["min_dihedral_deg"] < st["max_dihedral_deg"] < 178.0
+    )
     # quadratic: mid-edge nodes at their edge's midpoint, or curved onto the surface by a sagitta
     # (edge length L on a radius >= 1 mm: L^2 / 8 <= L / 8 for L <= 1 mm, so < 0.2 L allowing for L > 1)
     p = m.nodes_mm[m.tets]
@@ -134,7 +159,14 @@ def test_quality_is_reported_and_elements_valid(leg):
 def test_facet_sets_lie_on_their_surfaces(leg):
     c, _, model = leg
     m = model.mesh
-    assert set(m.facets) == {"bone", "skin", "proximal", "distal", "patch", *(f"patch_{v}" for v in VARIANTS)}
+    assert set(m.facets) == {
+        "bone",
+        "skin",
+        "proximal",
+        "distal",
+        "patch",
+        *(f"patch_{v}" for v in VARIANTS),
+    }
     z = c.z_mm
     assert np.allclose(m.nodes_mm[m.facets["distal"]][..., 2], z[0], atol=1e-6)
     assert np.allclose(m.nodes_mm[m.facets["proximal"]][..., 2], z[-1], atol=1e-6)
@@ -143,10 +175,18 @@ def test_facet_sets_lie_on_their_surfaces(leg):
         x = m.nodes_mm[np.unique(m.facets[name])]
         k = np.clip(np.round(x[:, 2] - z[0]).astype(int), 0, len(z) - 1)
         on_slice = np.abs(x[:, 2] - z[k]) < 1e-6
-        d = np.array([geo._ring_distance(x[i : i + 1, :2], rings[k[i]])[0] for i in np.flatnonzero(on_slice)])
+        d = np.array(
+            [
+                geo._ring_distance(x[i : i + 1, :2], rings[k[i]])[0]
+                for i in np.flatnonzero(on_slice)
+            ]
+        )
         assert on_slice.sum() > 20 and d.max() < 0.02, name
     # outward normals: skin away from the leg centre, bone toward the tibia centre... every boundary facet is on the boundary once
-    all_faces = np.sort(np.concatenate([m.facets[k][:, :3] for k in ("bone", "skin", "proximal", "distal")]), axis=1)
+    all_faces = np.sort(
+        np.concatenate([m.facets[k][:, :3] for k in ("bone", "skin", "proximal", "distal")]),
+        axis=1,
+    )
     assert len(np.unique(all_faces, axis=0)) == len(all_faces)
 
 
@@ -167,7 +207,9 @@ def test_patches_within_3p5_mm_of_their_axis_and_facing_the_indenter(leg):
             assert line_distance(m.nodes_mm[f], end, axis).max() <= 3.5, v
             # projected area along the axis close to the 6 mm circle's
             pts = m.nodes_mm[f[:, :3]]
-            proj_area = 0.5 * np.abs(np.cross(pts[:, 1] - pts[:, 0], pts[:, 2] - pts[:, 0]) @ axis).sum()
+            proj_area = (
+                0.5 * np.abs(np.cross(pts[:, 1] - pts[:, 0], pts[:, 2] - pts[:, 0]) @ axis).sum()
+            )
             assert proj_area == pytest.approx(np.pi * 3.0**2, rel=0.1), v
         union |= {tuple(r) for r in np.sort(f[:, :3], axis=1)}
     assert {tuple(r) for r in np.sort(m.facets["patch"][:, :3], axis=1)} == union
@@ -180,17 +222,28 @@ def test_a_mesh_of_the_sphere_variants_is_refined_only_where_the_sphere_goes(leg
     # model.mesh_groups "indenter": the five sphere orientations share a mesh without the bar's refined sweep
     c, p, model = leg
     spheres = [v for v in VARIANTS if v != "bar"]
-    sm = build_model(c, p, variants=spheres, settings={"bar_length_mm": 10.0, "element_size_mm": 1.0,
-                                                       "refine_size_mm": 0.5}, animal="synth")
-    assert {f"patch_{v}" for v in spheres} <= set(sm.mesh.facets) and "patch_bar" not in sm.mesh.facets
+    sm = build_model(
+        c,
+        p,
+        variants=spheres,
+        settings={"bar_length_mm": 10.0, "element_size_mm": 1.0, "refine_size_mm": 0.5},
+        animal="synth",
+    )
+    assert {f"patch_{v}" for v in spheres} <= set(
+        sm.mesh.facets
+    ) and "patch_bar" not in sm.mesh.facets
     assert sm.info["variants"] == spheres
     assert len(sm.mesh.nodes_mm) < 0.9 * len(model.mesh.nodes_mm)
+
     # the same elements near the sphere's tip: the size field there does not depend on the bar
     def near_tip_volume_per_tet(m):
         cen = m.nodes_mm[m.tets[:, :4]].mean(axis=1)
         near = np.linalg.norm(cen - p.tip_end_mm, axis=1) < 2.0
         return m.volumes_mm3()[near].mean()
-    assert near_tip_volume_per_tet(sm.mesh) == pytest.approx(near_tip_volume_per_tet(model.mesh), rel=0.25)
+
+    assert near_tip_volume_per_tet(sm.mesh) == pytest.approx(
+        near_tip_volume_per_tet(model.mesh), rel=0.25
+    )
 
 
 def test_cast_is_0p2_mm_from_the_skin_except_at_the_hole(leg):
@@ -223,7 +276,9 @@ def test_cast_is_0p2_mm_from_the_skin_except_at_the_hole(leg):
             q = q - np.clip(q @ b, -3.5, 3.5)[:, None] * b
         dist.append(np.linalg.norm(q, axis=1))
     np.testing.assert_allclose(np.min(dist, axis=0), 3.0, atol=1e-6)
-    assert np.ptp(cast.vertices_mm[rim][:, 2]) > 12.0  # the bar's outline: 2 x (3.5 + 3) mm along the leg
+    assert (
+        np.ptp(cast.vertices_mm[rim][:, 2]) > 12.0
+    )  # the bar's outline: 2 x (3.5 + 3) mm along the leg
     # a consistently oriented manifold: every directed edge once, every undirected edge once or twice
     t = cast.triangles
     directed = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
@@ -247,7 +302,12 @@ def test_cast_normals_point_toward_the_leg(leg):
 
 def test_model_files_round_trip(leg, tmp_path):
     c, p, model = leg
-    out = {k: tmp_path / f for k, f in dict(mesh_npz="mesh.npz", mesh_msh="mesh.msh", mesh_vtu="mesh.vtu", model_json="model.json").items()}
+    out = {
+        k: tmp_path / f
+        for k, f in dict(
+            mesh_npz="mesh.npz", mesh_msh="mesh.msh", mesh_vtu="mesh.vtu", model_json="model.json"
+        ).items()
+    }
     write_model(model, **out)
     back = load_tetmesh(out["mesh_npz"])
     np.testing.assert_array_equal(back.tets, model.mesh.tets)
@@ -292,7 +352,12 @@ def test_hard_legs_mesh(case):
     assert np.all(tet10_min_det_jacobian(model.mesh) > 0)
     n = outward_facet_normals(model.mesh, "patch_sphere")
     assert np.all(n @ p.indenter_axis < 0)
-    assert line_distance(model.mesh.nodes_mm[model.mesh.facets["patch_sphere"]], p.tip_end_mm, p.indenter_axis).max() <= 3.5
+    assert (
+        line_distance(
+            model.mesh.nodes_mm[model.mesh.facets["patch_sphere"]], p.tip_end_mm, p.indenter_axis
+        ).max()
+        <= 3.5
+    )
 
 
 def test_hole_past_the_end_and_wider_than_the_leg_are_resolved_and_logged():
@@ -303,7 +368,9 @@ def test_hole_past_the_end_and_wider_than_the_leg_are_resolved_and_logged():
     z = cast.vertices_mm[:, 2]
     assert z.max() == pytest.approx(c.z_mm[-1] + 1.0)
     # a thin leg (5 mm across): the hole stops at the silhouette, the far side stays whole
-    thin = leg_contours(skin_axes_mm=(2.5, 2.5), taper=0.0, bone_radius_mm=0.6, bone_centre_mm=(0.0, 0.0))
+    thin = leg_contours(
+        skin_axes_mm=(2.5, 2.5), taper=0.0, bone_radius_mm=0.6, bone_centre_mm=(0.0, 0.0)
+    )
     pt = leg_pose(thin)
     cast = build_cast(thin, pt, animal="thin")
     assert any("silhouette" in m for m in cast.log)
@@ -318,10 +385,16 @@ def _banana():
     a = np.deg2rad(120)
     outer = [4 * np.array([np.cos(s), np.sin(s)]) for s in np.linspace(-a, a, 80, endpoint=False)]
     c1 = 3 * np.array([np.cos(a), np.sin(a)])
-    cap1 = [c1 + np.array([np.cos(a + s), np.sin(a + s)]) for s in np.linspace(0, np.pi, 16, endpoint=False)]
+    cap1 = [
+        c1 + np.array([np.cos(a + s), np.sin(a + s)])
+        for s in np.linspace(0, np.pi, 16, endpoint=False)
+    ]
     inner = [2 * np.array([np.cos(s), np.sin(s)]) for s in np.linspace(a, -a, 40, endpoint=False)]
     c2 = 3 * np.array([np.cos(-a), np.sin(-a)])
-    cap2 = [c2 + np.array([np.cos(-a + np.pi + s), np.sin(-a + np.pi + s)]) for s in np.linspace(0, np.pi, 16, endpoint=False)]
+    cap2 = [
+        c2 + np.array([np.cos(-a + np.pi + s), np.sin(-a + np.pi + s)])
+        for s in np.linspace(0, np.pi, 16, endpoint=False)
+    ]
     return np.array(outer + cap1 + inner + cap2)
 
 
@@ -330,7 +403,12 @@ def test_radial_offset_falls_back_to_normal_on_non_star_shaped_contours():
     assert not geo.is_star_shaped(ring)
     skin = np.stack([np.column_stack([ring, np.full(len(ring), z)]) for z in np.arange(5.0)])
     t = np.linspace(0, 2 * np.pi, len(ring), endpoint=False)
-    bone = np.stack([np.column_stack([3 + 0.4 * np.cos(t), 0.4 * np.sin(t), np.full(len(t), z)]) for z in np.arange(5.0)])
+    bone = np.stack(
+        [
+            np.column_stack([3 + 0.4 * np.cos(t), 0.4 * np.sin(t), np.full(len(t), z)])
+            for z in np.arange(5.0)
+        ]
+    )
     geo.check_contours(skin, bone, animal="banana")
     off, msgs = geo.offset_rings(skin, 0.2, direction="radial", animal="banana")
     assert any("not star-shaped" in m for m in msgs)
@@ -338,7 +416,12 @@ def test_radial_offset_falls_back_to_normal_on_non_star_shaped_contours():
     d = geo._ring_distance(off[2, :, :2], skin[2])
     assert np.abs(d - 0.2).max() < 0.005
     # a star-shaped circle offset radially: exactly 0.2 mm further out, no message
-    circle = np.stack([np.column_stack([4 * np.cos(t), 4 * np.sin(t), np.full(len(t), z)]) for z in np.arange(5.0)])
+    circle = np.stack(
+        [
+            np.column_stack([4 * np.cos(t), 4 * np.sin(t), np.full(len(t), z)])
+            for z in np.arange(5.0)
+        ]
+    )
     off, msgs = geo.offset_rings(circle, 0.2, direction="radial")
     assert not msgs and np.allclose(np.linalg.norm(off[..., :2], axis=2), 4.2)
 
@@ -350,23 +433,47 @@ def test_bad_contours_are_refused_naming_the_animal_and_slice():
     c = leg_contours(n_slices=4)
     cw = c.skin.copy()
     cw[2] = cw[2, ::-1]
-    with pytest.raises(geo.ModelInputError, match=r"animal rat9: slice 2: skin contour is clockwise"):
+    with pytest.raises(
+        geo.ModelInputError, match=r"animal rat9: slice 2: skin contour is clockwise"
+    ):
         build_model(Contours(skin=cw, bone=c.bone), leg_pose(c), animal="rat9")
     out = c.bone.copy()
     out[1, :, 0] += 6.0
-    with pytest.raises(geo.ModelInputError, match=r"animal rat9: slice 1: bone contour is not inside the skin"):
+    with pytest.raises(
+        geo.ModelInputError, match=r"animal rat9: slice 1: bone contour is not inside the skin"
+    ):
         build_cast(Contours(skin=c.skin, bone=out), leg_pose(c), animal="rat9")
     swapped = c.skin[[0, 2, 1, 3]]
-    with pytest.raises(geo.ModelInputError, match=r"animal rat9: slices 1 and 2: z not strictly increasing"):
+    with pytest.raises(
+        geo.ModelInputError, match=r"animal rat9: slices 1 and 2: z not strictly increasing"
+    ):
         build_cast(Contours(skin=swapped, bone=c.bone[[0, 2, 1, 3]]), leg_pose(c), animal="rat9")
 
 
 def test_axis_missing_the_leg_is_refused():
     c = leg_contours(n_slices=6)
     p = leg_pose(c)
-    miss = type(p)(**{**{k: getattr(p, k) for k in ("indenter_axis", "tip_start_mm", "tip_end_mm", "depth_mm", "bone_com_mm", "bone_rotation_deg", "bone_translation_mm")},
-                      "tip_end_mm": p.tip_end_mm + [30.0, 0, 0], "tip_start_mm": p.tip_start_mm + [30.0, 0, 0]})
-    with pytest.raises(geo.ModelInputError, match="animal rat5: the indenter axis does not meet the cast"):
+    miss = type(p)(
+        **{
+            **{
+                k: getattr(p, k)
+                for k in (
+                    "indenter_axis",
+                    "tip_start_mm",
+                    "tip_end_mm",
+                    "depth_mm",
+                    "bone_com_mm",
+                    "bone_rotation_deg",
+                    "bone_translation_mm",
+                )
+            },
+            "tip_end_mm": p.tip_end_mm + [30.0, 0, 0],
+            "tip_start_mm": p.tip_start_mm + [30.0, 0, 0],
+        }
+    )
+    with pytest.raises(
+        geo.ModelInputError, match="animal rat5: the indenter axis does not meet the cast"
+    ):
         build_cast(c, miss, animal="rat5")
 
 
@@ -378,7 +485,9 @@ def test_unknown_setting_is_refused():
 
 def test_quality_gate_refuses_naming_the_animal():
     c = leg_contours(n_slices=5)
-    with pytest.raises(MeshQualityError, match="animal rat7: mesh refused: .*scaled Jacobian below 0.99"):
+    with pytest.raises(
+        MeshQualityError, match="animal rat7: mesh refused: .*scaled Jacobian below 0.99"
+    ):
         mesh_limb(c.skin, c.bone, element_size_mm=2.0, min_scaled_jacobian=0.99, animal="rat7")
     # an inverted element is refused by the independent det J check too
     reg = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
@@ -395,9 +504,25 @@ def test_run_mesh_writes_every_output(tmp_path):
     save_contours(tmp_path / "pre.npz", c)
     save_pose(tmp_path / "pose.json", p)
     save_cast(tmp_path / "cast.npz", build_cast(c, p, animal="r"))
-    outs = {k: tmp_path / v for k, v in dict(mesh_npz="mesh.npz", mesh_msh="mesh.msh", mesh_vtu="mesh.vtu", model_json="model.json", qc_png="qc.png").items()}
-    run_mesh(contours_npz=tmp_path / "pre.npz", pose_json=tmp_path / "pose.json", cast_npz=tmp_path / "cast.npz", variants=["sphere"],
-             settings={"element_size_mm": 1.5, "refine_size_mm": 1.0}, animal="r", **outs)
+    outs = {
+        k: tmp_path / v
+        for k, v in dict(
+            mesh_npz="mesh.npz",
+            mesh_msh="mesh.msh",
+            mesh_vtu="mesh.vtu",
+            model_json="model.json",
+            qc_png="qc.png",
+        ).items()
+    }
+    run_mesh(
+        contours_npz=tmp_path / "pre.npz",
+        pose_json=tmp_path / "pose.json",
+        cast_npz=tmp_path / "cast.npz",
+        variants=["sphere"],
+        settings={"element_size_mm": 1.5, "refine_size_mm": 1.0},
+        animal="r",
+        **outs,
+    )
     assert all(f.stat().st_size > 0 for f in outs.values())
     info = json.loads(outs["model_json"].read_text())
     assert 0.18 < info["cast"]["skin_gap_mm"]["min"] <= info["cast"]["skin_gap_mm"]["max"] < 0.22
@@ -422,4 +547,9 @@ def test_demo_phantom_meshes_without_manual_input():
     for v in VARIANTS:
         n = outward_facet_normals(model.mesh, f"patch_{v}")
         assert len(n) > 20 and np.all(n @ np.array(model.info["patches"][v]["axis"]) < 0)
-    assert 0.19 < model.info["cast"]["skin_gap_mm"]["min"] <= model.info["cast"]["skin_gap_mm"]["max"] < 0.21
+    assert (
+        0.19
+        < model.info["cast"]["skin_gap_mm"]["min"]
+        <= model.info["cast"]["skin_gap_mm"]["max"]
+        < 0.21
+    )

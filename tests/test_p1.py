@@ -23,7 +23,12 @@ from deeptissue.fem.solver import solve_indentation, solve_prescribed
 from deeptissue.mesh import TetMesh, load_tetmesh, save_tetmesh
 from deeptissue.rigid import BoneMotion, apply_rigid
 from deeptissue.strain import element_strain
-from deeptissue.summary import deformed_surface, read_result_vtu, summarize_solution, write_result_vtu
+from deeptissue.summary import (
+    deformed_surface,
+    read_result_vtu,
+    summarize_solution,
+    write_result_vtu,
+)
 
 LAW = as_material_law(Ogden())
 
@@ -39,7 +44,11 @@ def limb1():
 def test_tetmesh_order_is_checked_and_round_trips(tmp_path):
     nodes = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1]], float)
     tets = np.array([[0, 1, 2, 3], [1, 2, 3, 4]])
-    m = TetMesh(nodes_mm=nodes, tets=tets, facets={"base": np.array([[0, 2, 1]]), "none": np.zeros((0, 3), np.int64)})
+    m = TetMesh(
+        nodes_mm=nodes,
+        tets=tets,
+        facets={"base": np.array([[0, 2, 1]]), "none": np.zeros((0, 3), np.int64)},
+    )
     assert m.order == 1 and m.n_tets == 2
     np.testing.assert_allclose(m.volumes_mm3(), [1 / 6, 1 / 3])  # det of the edge vectors / 6
     save_tetmesh(tmp_path / "m.npz", m)
@@ -49,9 +58,15 @@ def test_tetmesh_order_is_checked_and_round_trips(tmp_path):
     np.testing.assert_array_equal(back.facets["base"], m.facets["base"])
     assert back.facets["none"].shape == (0, 3)
     with pytest.raises(ValueError, match=r"facets\['base'\].*\(n, 3\)"):
-        TetMesh(nodes_mm=nodes, tets=tets, facets={"base": np.array([[0, 2, 1, 0, 0, 0]])})  # 6-node facets on 4-node tets
+        TetMesh(
+            nodes_mm=nodes, tets=tets, facets={"base": np.array([[0, 2, 1, 0, 0, 0]])}
+        )  # 6-node facets on 4-node tets
     with pytest.raises(ValueError, match=r"\(n, 6\)"):
-        TetMesh(nodes_mm=nodes, tets=np.zeros((1, 10), np.int64), facets={"base": np.array([[0, 2, 1]])})
+        TetMesh(
+            nodes_mm=nodes,
+            tets=np.zeros((1, 10), np.int64),
+            facets={"base": np.array([[0, 2, 1]])},
+        )
     with pytest.raises(ValueError, match=r"tets.*\(n, 4\)"):
         TetMesh(nodes_mm=nodes, tets=np.zeros((1, 5), np.int64))
     with pytest.raises(ValueError, match="out of range"):
@@ -110,7 +125,10 @@ def test_linear_contact_facets_measure_area_and_penetration(limb1):
     np.testing.assert_allclose(surf.dA0.sum(axis=1), area, rtol=1e-12)
     # a sphere 0.3 mm into the skin: the deepest quadrature point is at most that deep
     ind = Indenter("sphere", axis=(-1, 0, 0), radius_mm=1.5)
-    g = surf.gaps(np.zeros(limb1.nodes_mm.size), lambda x, hessian=True: ind.gap(x, np.array([2.7, 0.0, 3.0]), hessian=hessian))
+    g = surf.gaps(
+        np.zeros(limb1.nodes_mm.size),
+        lambda x, hessian=True: ind.gap(x, np.array([2.7, 0.0, 3.0]), hessian=hessian),
+    )
     assert 0.0 < -g.min() <= 0.3 + 1e-12
 
 
@@ -119,26 +137,44 @@ def test_linear_contact_facets_measure_area_and_penetration(limb1):
 
 def test_p1_patch_test_on_a_distorted_mesh_and_strain_post_processing(tmp_path):
     m = distort_interior(block_mesh((3.0, 2.0, 2.0), h_mm=0.8, order=1), amount=0.3, seed=1)
-    assert m.order == 1 and np.any(np.abs(m.nodes_mm - block_mesh((3.0, 2.0, 2.0), h_mm=0.8, order=1).nodes_mm) > 0.01)
+    assert m.order == 1 and np.any(
+        np.abs(m.nodes_mm - block_mesh((3.0, 2.0, 2.0), h_mm=0.8, order=1).nodes_mm) > 0.01
+    )
     F0 = np.array([[1.12, 0.05, 0.0], [0.02, 0.93, 0.04], [0.03, 0.0, 1.06]])
-    r = solve_prescribed(m, material=LAW, bc_sets=list(m.facets), displacement_mm=lambda X, s: s * X @ (F0 - np.eye(3)).T)
+    r = solve_prescribed(
+        m,
+        material=LAW,
+        bc_sets=list(m.facets),
+        displacement_mm=lambda X, s: s * X @ (F0 - np.eye(3)).T,
+    )
     assert r.converged, r.reason
     assert r.n_dofs == 3 * len(m.nodes_mm)
     np.testing.assert_allclose(r.displacement_mm, m.nodes_mm @ (F0 - np.eye(3)).T, atol=1e-9)
-    np.testing.assert_allclose(r.deformation_gradient, np.broadcast_to(F0, r.deformation_gradient.shape), atol=1e-9)
+    np.testing.assert_allclose(
+        r.deformation_gradient, np.broadcast_to(F0, r.deformation_gradient.shape), atol=1e-9
+    )
     # post-processing: the same F per element, Green-Lagrange principal values of F0, volumes of the box
     s = element_strain(m, r.displacement_mm)
     np.testing.assert_allclose(s.F, np.broadcast_to(F0, s.F.shape), atol=1e-9)
     E = 0.5 * (F0.T @ F0 - np.eye(3))
     ev = np.sort(np.linalg.eigvalsh(E))[::-1]
-    np.testing.assert_allclose(s.principal_gl, np.broadcast_to(ev, s.principal_gl.shape), atol=1e-9)
+    np.testing.assert_allclose(
+        s.principal_gl, np.broadcast_to(ev, s.principal_gl.shape), atol=1e-9
+    )
     assert s.volume_mm3.sum() == pytest.approx(12.0, rel=1e-12)
     # the deformed top face is the plane F0 maps z = 2 to; its flat facets are the mesh facets
     verts, tris = deformed_surface(m, r.displacement_mm, facet="top")
     np.testing.assert_array_equal(tris, m.facets["top"])
     ms = TetMesh(m.nodes_mm, m.tets, {**m.facets, "skin": m.facets["top"]})
-    summary, st = summarize_solution(ms, r.displacement_mm, animal="a", variant="v", threshold=0.05,
-                                     bin_edges=(0.05, 0.1, 1.0), skin_contours_mm=verts[np.unique(tris)])
+    summary, st = summarize_solution(
+        ms,
+        r.displacement_mm,
+        animal="a",
+        variant="v",
+        threshold=0.05,
+        bin_edges=(0.05, 0.1, 1.0),
+        skin_contours_mm=verts[np.unique(tris)],
+    )
     assert summary.skin_mean_mm == pytest.approx(0.0, abs=1e-12)
     write_result_vtu(tmp_path / "r.vtu", m, r.displacement_mm, st)
     back, u, cd = read_result_vtu(tmp_path / "r.vtu")
@@ -149,12 +185,19 @@ def test_p1_patch_test_on_a_distorted_mesh_and_strain_post_processing(tmp_path):
 
 
 def test_p1_rigid_bone_motion_gives_zero_strain(limb1, tmp_path):
-    motion = BoneMotion(rotation_deg=tuple(60.0 * np.array([0.6, -0.48, 0.64])), centre_mm=(0.5, -0.2, 3.0),
-                        translation_mm=(0.3, -0.4, 0.2))
+    motion = BoneMotion(
+        rotation_deg=tuple(60.0 * np.array([0.6, -0.48, 0.64])),
+        centre_mm=(0.5, -0.2, 3.0),
+        translation_mm=(0.3, -0.4, 0.2),
+    )
     r = solve_indentation(limb1, material=LAW, indenter=None, bone_motion=motion)
     assert r.converged, r.reason
-    moved = apply_rigid(limb1.nodes_mm, rotation_deg=motion.rotation_deg, centre_mm=motion.centre_mm,
-                        translation_mm=motion.translation_mm)
+    moved = apply_rigid(
+        limb1.nodes_mm,
+        rotation_deg=motion.rotation_deg,
+        centre_mm=motion.centre_mm,
+        translation_mm=motion.translation_mm,
+    )
     np.testing.assert_allclose(limb1.nodes_mm + r.displacement_mm, moved, atol=1e-7)
     s = element_strain(limb1, r.displacement_mm)
     assert np.abs(s.principal_gl).max() < 1e-7 and np.abs(s.gamma_log).max() < 1e-7
@@ -176,8 +219,16 @@ def test_p1_sphere_indentation_converges_and_is_stiffer_than_p2():
     # A linear tet with nu = 0.45 is too stiff (its strain is constant per element), never softer.
     forces = {}
     for order in (1, 2):
-        m = cored_cylinder_mesh(length_mm=4.0, radius_mm=3.0, core_radius_mm=0.8, h_mm=0.8, refine_point_mm=(3.0, 0.0, 2.0),
-                                refine_h_mm=0.2, refine_radius_mm=1.0, order=order)
+        m = cored_cylinder_mesh(
+            length_mm=4.0,
+            radius_mm=3.0,
+            core_radius_mm=0.8,
+            h_mm=0.8,
+            refine_point_mm=(3.0, 0.0, 2.0),
+            refine_h_mm=0.2,
+            refine_radius_mm=1.0,
+            order=order,
+        )
         assert m.order == order
         ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(3.1, 0.0, 2.0), end_mm=(2.8, 0.0, 2.0))
         r = solve_indentation(m, material=LAW, indenter=ind, bone_motion=BoneMotion())
@@ -201,12 +252,15 @@ def test_p1_limb_mesh_has_the_corner_tets_of_the_p2_mesh():
     c = leg_contours(n_slices=12, n_points=60)
     pose = leg_pose(c, depth_mm=0.5)
     base = {"element_size_mm": 1.6, "refine_size_mm": 1.6}
-    m1 = build_model(c, pose, variants=["sphere"], settings={**base, "element_order": 1}, animal="synth")
+    m1 = build_model(
+        c, pose, variants=["sphere"], settings={**base, "element_order": 1}, animal="synth"
+    )
     m2 = build_model(c, pose, variants=["sphere"], settings=base, animal="synth")
     a, b = m1.mesh, m2.mesh
     assert a.order == 1 and b.order == 2 and a.tets.shape[1] == 4
     assert set(a.facets) == set(b.facets) and all(f.shape[1] == 3 for f in a.facets.values())
     assert all(len(a.facets[k]) == len(b.facets[k]) for k in a.facets)
+
     # the same gmsh mesh up to setOrder(2): the same corner coordinates and tetrahedra
     def corner_sets(m):
         p = np.round(m.nodes_mm[m.tets[:, :4]], 9)  # (n, 4, 3)
@@ -214,7 +268,9 @@ def test_p1_limb_mesh_has_the_corner_tets_of_the_p2_mesh():
 
     assert a.n_tets == b.n_tets
     assert corner_sets(a) == corner_sets(b)
-    np.testing.assert_allclose(np.sort(a.volumes_mm3()), np.sort(b.volumes_mm3()), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(
+        np.sort(a.volumes_mm3()), np.sort(b.volumes_mm3()), rtol=1e-9, atol=1e-12
+    )
     assert len(a.nodes_mm) == len(np.unique(b.tets[:, :4]))
     st = m1.info["mesh"]
     assert st["element_order"] == 1 and st["min_curved_ratio"] == 1.0
@@ -247,19 +303,42 @@ def test_element_order_must_be_1_or_2():
 def test_run_discretisation_runs_a_p1_setting():
     from model_synth import leg_contours, leg_pose
 
-    from deeptissue.convergence import ROW_COLUMNS, Discretisation, default_ladder, run_discretisation
+    from deeptissue.convergence import (
+        ROW_COLUMNS,
+        Discretisation,
+        default_ladder,
+        run_discretisation,
+    )
 
-    lad = default_ladder({"element_orders": [1, 2], "element_sizes_mm": [1.6], "refined_element_sizes_mm": [],
-                          "tolerances": [{"name": "default"}]}, model_cfg={"element_size_mm": 1.0, "refine_size_mm": 0.5})
+    lad = default_ladder(
+        {
+            "element_orders": [1, 2],
+            "element_sizes_mm": [1.6],
+            "refined_element_sizes_mm": [],
+            "tolerances": [{"name": "default"}],
+        },
+        model_cfg={"element_size_mm": 1.0, "refine_size_mm": 0.5},
+    )
     assert {"p1_h1.6", "p2_h1.6", "p1_h1_r0.5", "p2_h1_r0.5"} <= set(lad.names) and not lad.notes
     assert lad.default_name == "p2_h1_r0.5"
-    assert default_ladder({"element_orders": [1, 2]}, model_cfg={"element_order": 1}).default_name == "p1_h1.6_r0.8"
+    assert (
+        default_ladder({"element_orders": [1, 2]}, model_cfg={"element_order": 1}).default_name
+        == "p1_h1.6_r0.8"
+    )
     c = leg_contours(n_slices=12, n_points=60)
     pose = leg_pose(c, depth_mm=0.5)
     s = Discretisation(name="p1_h2", family="P1 uniform", element_size_mm=2.0, element_order=1)
     assert s.model_settings({})["element_order"] == 1
     study = {"variants": ["sphere"], "threshold": 0.05, "bin_edges": [0.05, 0.1, 0.2]}
-    row = run_discretisation(animal="synth", variant="sphere", setting=s, contours=c, pose=pose, cast=False, study_cfg=study)
+    row = run_discretisation(
+        animal="synth",
+        variant="sphere",
+        setting=s,
+        contours=c,
+        pose=pose,
+        cast=False,
+        study_cfg=study,
+    )
     assert set(ROW_COLUMNS) <= set(row)
     assert row["converged"], row["reason"]
     assert row["element_order"] == 1 and row["setting"] == "p1_h2"
@@ -290,12 +369,28 @@ def test_p1_model_files_and_solve_job_with_the_cast(tmp_path):
     save_contours(tmp_path / "contours.npz", c)
     save_pose(tmp_path / "pose.json", pose)
     settings = {"element_size_mm": 2.0, "refine_size_mm": 1.0, "element_order": 1}
-    run_cast(contours_npz=tmp_path / "contours.npz", pose_json=tmp_path / "pose.json", cast_npz=tmp_path / "cast.npz",
-             variants=["sphere"], settings=settings, animal="synth")
+    run_cast(
+        contours_npz=tmp_path / "contours.npz",
+        pose_json=tmp_path / "pose.json",
+        cast_npz=tmp_path / "cast.npz",
+        variants=["sphere"],
+        settings=settings,
+        animal="synth",
+    )
     out = {k: tmp_path / f"mesh.{k}" for k in ("npz", "msh", "vtu")}
-    run_mesh(contours_npz=tmp_path / "contours.npz", pose_json=tmp_path / "pose.json", cast_npz=tmp_path / "cast.npz",
-             mesh_npz=out["npz"], mesh_msh=out["msh"], mesh_vtu=out["vtu"], model_json=tmp_path / "model.json",
-             qc_png=tmp_path / "qc.png", variants=["sphere"], settings=settings, animal="synth")
+    run_mesh(
+        contours_npz=tmp_path / "contours.npz",
+        pose_json=tmp_path / "pose.json",
+        cast_npz=tmp_path / "cast.npz",
+        mesh_npz=out["npz"],
+        mesh_msh=out["msh"],
+        mesh_vtu=out["vtu"],
+        model_json=tmp_path / "model.json",
+        qc_png=tmp_path / "qc.png",
+        variants=["sphere"],
+        settings=settings,
+        animal="synth",
+    )
     mesh = load_tetmesh(out["npz"])
     assert mesh.order == 1
     v = meshio.read(out["vtu"])
@@ -303,10 +398,18 @@ def test_p1_model_files_and_solve_job_with_the_cast(tmp_path):
     info = json.loads((tmp_path / "model.json").read_text())
     assert info["settings"]["element_order"] == 1 and info["mesh"]["element_order"] == 1
     assert (tmp_path / "qc.png").read_bytes()[:4] == b"\x89PNG"
-    s = run_solve(animal="synth", variant="sphere", mesh_path=out["npz"], cast_path=tmp_path / "cast.npz",
-                  pose_path=tmp_path / "pose.json", during_contours_path=tmp_path / "contours.npz",
-                  summary_path=tmp_path / "summary.json", vtu_path=tmp_path / "result.vtu", fem_cfg={},
-                  study_cfg={"threshold": 0.05, "bin_edges": [0.05, 0.1, 0.2]})
+    s = run_solve(
+        animal="synth",
+        variant="sphere",
+        mesh_path=out["npz"],
+        cast_path=tmp_path / "cast.npz",
+        pose_path=tmp_path / "pose.json",
+        during_contours_path=tmp_path / "contours.npz",
+        summary_path=tmp_path / "summary.json",
+        vtu_path=tmp_path / "result.vtu",
+        fem_cfg={},
+        study_cfg={"threshold": 0.05, "bin_edges": [0.05, 0.1, 0.2]},
+    )
     assert s.converged, s.reason
     back = read_summary(tmp_path / "summary.json")
     assert back.n_elements == mesh.n_tets and back.indenter_force_N > 0 and back.voi_mm3 > 0

@@ -7,8 +7,14 @@ from deeptissue.contours import points_in_polygon, polygon_area_centroid
 from deeptissue.phantom import PhantomSpec, _Scene, make_phantom
 from deeptissue.rigid import apply_rigid
 
-SPEC = PhantomSpec(seed=1, depth_mm=2.0, tilt_deg=(5.0, -3.0), bone_rotation_deg=(1.0, -0.5, 0.8),
-                   bone_translation_mm=(0.05, -0.10, 0.02), snr=20)
+SPEC = PhantomSpec(
+    seed=1,
+    depth_mm=2.0,
+    tilt_deg=(5.0, -3.0),
+    bone_rotation_deg=(1.0, -0.5, 0.8),
+    bone_translation_mm=(0.05, -0.10, 0.02),
+    snr=20,
+)
 
 
 @pytest.fixture(scope="module")
@@ -43,7 +49,9 @@ def test_indenter_truth(ph):
     assert t.indenter_axis[1] < -0.9  # from the anterior coil side into the leg
     # travel: 1 mm approach plus the depth
     assert t.travel_mm == pytest.approx(SPEC.depth_mm + 1.0, abs=1e-9)
-    np.testing.assert_allclose((t.tip_end_mm - t.tip_start_mm) / t.travel_mm, t.indenter_axis, atol=1e-12)
+    np.testing.assert_allclose(
+        (t.tip_end_mm - t.tip_start_mm) / t.travel_mm, t.indenter_axis, atol=1e-12
+    )
     # the skin point is on the pre skin (independently: the truth contour of its slice, interpolated in z)
     sc = _Scene(SPEC)
     skin_pt = np.array(t.extra["skin_point_mm"])
@@ -86,7 +94,12 @@ def test_bone_motion_and_com(ph):
     sc = _Scene(SPEC)
     k = 10
     pts = ph.dense[("during", "bone")][k][::50]
-    back = apply_rigid(pts - t.bone_com_mm - t.bone_translation_mm + t.bone_com_mm, rotation_deg=-np.asarray(t.bone_rotation_deg), centre_mm=t.bone_com_mm, translation_mm=[0, 0, 0])
+    back = apply_rigid(
+        pts - t.bone_com_mm - t.bone_translation_mm + t.bone_com_mm,
+        rotation_deg=-np.asarray(t.bone_rotation_deg),
+        centre_mm=t.bone_com_mm,
+        translation_mm=[0, 0, 0],
+    )
     f = sc.an.bone_f(back[:, 0], back[:, 1], back[:, 2])
     assert np.abs(f).max() < 2e-3
     # and the centroid of the during bone moved roughly by the translation (rotation is small)
@@ -118,7 +131,9 @@ def test_during_skin_excludes_indenter(ph):
         sd = sc.indenter_sd(pts[:, 0], pts[:, 1], pts[:, 2])
         assert sd.min() > -0.02
         # bone inside skin
-        assert points_in_polygon(ph.truth_during.bone[k, :, :2], ph.truth_during.skin[k, :, :2]).all()
+        assert points_in_polygon(
+            ph.truth_during.bone[k, :, :2], ph.truth_during.skin[k, :, :2]
+        ).all()
 
 
 def test_tibia_is_a_tapering_rounded_triangle():
@@ -132,7 +147,9 @@ def test_tibia_is_a_tapering_rounded_triangle():
     across = np.linalg.norm(xy[:, None] - xy[None], axis=-1).max()
     assert 1.8 <= across <= 2.6
     r = np.hypot(*(xy - np.array(an.tib_centre(0.0))).T)
-    assert r.max() / r.min() > 1.3  # corners stand out (an ellipse with axes 1.15, 0.95 gives 1.21)
+    assert (
+        r.max() / r.min() > 1.3
+    )  # corners stand out (an ellipse with axes 1.15, 0.95 gives 1.21)
     e1 = np.roll(xy, -1, axis=0) - xy
     e0 = xy - np.roll(xy, 1, axis=0)
     assert np.all(e0[:, 0] * e1[:, 1] - e0[:, 1] * e1[:, 0] > 0)  # convex, counter-clockwise
@@ -147,8 +164,9 @@ def test_tibia_is_a_tapering_rounded_triangle():
     assert moved.max() > 0.004
 
 
-@pytest.mark.parametrize("bad", [dict(tibia_inradius_mm=0.4), dict(tibia_taper=0.08),
-                                 dict(tibia_rounding_slope=0.03)])
+@pytest.mark.parametrize(
+    "bad", [dict(tibia_inradius_mm=0.4), dict(tibia_taper=0.08), dict(tibia_rounding_slope=0.03)]
+)
 def test_impossible_tibia_is_refused(bad):
     with pytest.raises(ValueError, match="phantom: .*tibia"):
         _Scene(PhantomSpec(seed=1, **bad))
@@ -169,7 +187,9 @@ def test_fibula_is_a_thin_oblique_bone_that_moves_with_the_tibia(ph):
         area, cf = polygon_area_centroid(f)
         _, ct = polygon_area_centroid(ph.dense[("pre", "bone")][k][:, :2])
         d = cf - ct
-        assert d[0] > 0 and d[1] < 0  # lateral (+x, away from the tibia's side of the leg) and posterior
+        assert (
+            d[0] > 0 and d[1] < 0
+        )  # lateral (+x, away from the tibia's side of the leg) and posterior
         # separate from the tibia, inside the skin below the skin layer
         from deeptissue.contours import point_to_polygon_distance
 
@@ -185,8 +205,12 @@ def test_fibula_is_a_thin_oblique_bone_that_moves_with_the_tibia(ph):
     # the during fibula is the pre fibula moved by the tibia's rigid motion (about the tibia's centre)
     for k in (0, 7, 15):
         pts = ph.dense[("during", "fibula")][k][::25]
-        back = apply_rigid(pts - t.bone_translation_mm, rotation_deg=-np.asarray(t.bone_rotation_deg),
-                           centre_mm=t.bone_com_mm, translation_mm=[0, 0, 0])
+        back = apply_rigid(
+            pts - t.bone_translation_mm,
+            rotation_deg=-np.asarray(t.bone_rotation_deg),
+            centre_mm=t.bone_com_mm,
+            translation_mm=[0, 0, 0],
+        )
         assert np.abs(sc.an.fibula_f(back[:, 0], back[:, 1], back[:, 2])).max() < 2e-3
     # and it is dark in the image: cortex and marrow below half the muscle signal
     k = 10
@@ -208,8 +232,14 @@ def test_phantom_without_fibula():
     assert (with_fib.pre < ph.pre - 0.3).sum() > 50
 
 
-@pytest.mark.parametrize("bad, what", [(dict(fibula_offset_mm=5.0), "skin"), (dict(fibula_distal_offset_mm=1.3), "tibia"),
-                                       (dict(fibula_cortex_mm=0.38), "marrow")])
+@pytest.mark.parametrize(
+    "bad, what",
+    [
+        (dict(fibula_offset_mm=5.0), "skin"),
+        (dict(fibula_distal_offset_mm=1.3), "tibia"),
+        (dict(fibula_cortex_mm=0.38), "marrow"),
+    ],
+)
 def test_impossible_fibula_is_refused(bad, what):
     with pytest.raises(ValueError, match=f"phantom: .*fibula.*{what}"):
         _Scene(PhantomSpec(seed=1, **bad))

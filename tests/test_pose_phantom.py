@@ -14,13 +14,37 @@ from deeptissue.pose import estimate_pose, fit_bone_motion, pose_errors
 from deeptissue.rigid import rotation_matrix
 
 CASES = {
-    "rat01-like": dict(seed=1, depth_mm=2.0, tilt_deg=(5.0, -3.0), bone_rotation_deg=(1.0, -0.5, 0.8),
-                       bone_translation_mm=(0.05, -0.10, 0.02), snr=20),
-    "tilt25x-shallow": dict(seed=4, depth_mm=1.0, tilt_deg=(25.0, 0.0), bone_rotation_deg=(3.0, 0.0, 0.0),
-                            bone_translation_mm=(0.04, -0.03, 0.15), snr=12),
-    "tilt18-deep-norot": dict(seed=6, depth_mm=3.0, tilt_deg=(-18.0, -18.0), bone_translation_mm=(0.05, 0.05, -0.12), snr=12),
-    "tilt12-rat03-like": dict(seed=3, depth_mm=1.5, tilt_deg=(12.0, 4.0), bone_rotation_deg=(0.5, 1.2, -1.0),
-                              bone_translation_mm=(0.02, -0.06, -0.05), snr=12),
+    "rat01-like": dict(
+        seed=1,
+        depth_mm=2.0,
+        tilt_deg=(5.0, -3.0),
+        bone_rotation_deg=(1.0, -0.5, 0.8),
+        bone_translation_mm=(0.05, -0.10, 0.02),
+        snr=20,
+    ),
+    "tilt25x-shallow": dict(
+        seed=4,
+        depth_mm=1.0,
+        tilt_deg=(25.0, 0.0),
+        bone_rotation_deg=(3.0, 0.0, 0.0),
+        bone_translation_mm=(0.04, -0.03, 0.15),
+        snr=12,
+    ),
+    "tilt18-deep-norot": dict(
+        seed=6,
+        depth_mm=3.0,
+        tilt_deg=(-18.0, -18.0),
+        bone_translation_mm=(0.05, 0.05, -0.12),
+        snr=12,
+    ),
+    "tilt12-rat03-like": dict(
+        seed=3,
+        depth_mm=1.5,
+        tilt_deg=(12.0, 4.0),
+        bone_rotation_deg=(0.5, 1.2, -1.0),
+        bone_translation_mm=(0.02, -0.06, -0.05),
+        snr=12,
+    ),
 }
 
 

@@ -22,12 +22,29 @@ from deeptissue.pose import estimate_pose, pose_errors
 from deeptissue.segment import segment_volume
 
 CASES = {
-    "rat01-like": dict(seed=1, depth_mm=2.0, tilt_deg=(5.0, -3.0), bone_rotation_deg=(1.0, -0.5, 0.8),
-                       bone_translation_mm=(0.05, -0.10, 0.02), snr=20),
-    "tilt25x-shallow": dict(seed=4, depth_mm=1.0, tilt_deg=(25.0, 0.0), bone_rotation_deg=(3.0, 0.0, 0.0),
-                            bone_translation_mm=(0.04, -0.03, 0.15), snr=12),
-    "tilt18-deep-norot": dict(seed=6, depth_mm=3.0, tilt_deg=(-18.0, -18.0), bone_translation_mm=(0.05, 0.05, -0.12),
-                              snr=12),
+    "rat01-like": dict(
+        seed=1,
+        depth_mm=2.0,
+        tilt_deg=(5.0, -3.0),
+        bone_rotation_deg=(1.0, -0.5, 0.8),
+        bone_translation_mm=(0.05, -0.10, 0.02),
+        snr=20,
+    ),
+    "tilt25x-shallow": dict(
+        seed=4,
+        depth_mm=1.0,
+        tilt_deg=(25.0, 0.0),
+        bone_rotation_deg=(3.0, 0.0, 0.0),
+        bone_translation_mm=(0.04, -0.03, 0.15),
+        snr=12,
+    ),
+    "tilt18-deep-norot": dict(
+        seed=6,
+        depth_mm=3.0,
+        tilt_deg=(-18.0, -18.0),
+        bone_translation_mm=(0.05, 0.05, -0.12),
+        snr=12,
+    ),
 }
 
 
@@ -41,8 +58,13 @@ def test_pose_from_segmented_phantom(name, caplog):
     pose, _ = estimate_pose(ph.during, ph.affine, pre, dur, animal=name)
     assert pose.extra["bone_dof"] == 6
     err = pose_errors(pose, ph.truth)
-    for key in ("axis_error_deg", "tip_end_error_mm", "depth_error_mm", "bone_rotation_error_deg",
-                "bone_translation_error_mm"):
+    for key in (
+        "axis_error_deg",
+        "tip_end_error_mm",
+        "depth_error_mm",
+        "bone_rotation_error_deg",
+        "bone_translation_error_mm",
+    ):
         assert err[key] <= TOL[key], (key, err[key])
     if not np.any(ph.truth.bone_rotation_deg):
         # a zero rotation comes back close to zero (0.01-0.03 deg on these phantoms), not as a fit of noise
@@ -50,10 +72,17 @@ def test_pose_from_segmented_phantom(name, caplog):
     # the same scans without the fibula contours (a scan where it is not seen): 5 DOF, a log line,
     # rotation and the translation across the leg still within tolerance; along z only the centroid's
     with caplog.at_level(logging.INFO, logger="deeptissue.pose"):
-        alone, _ = estimate_pose(ph.during, ph.affine, Contours(pre.skin, pre.bone), Contours(dur.skin, dur.bone),
-                                 animal=name)
+        alone, _ = estimate_pose(
+            ph.during,
+            ph.affine,
+            Contours(pre.skin, pre.bone),
+            Contours(dur.skin, dur.bone),
+            animal=name,
+        )
     assert alone.extra["bone_dof"] == 5 and f"animal {name}: bone_dof auto -> 5" in caplog.text
     e = pose_errors(alone, ph.truth)
     assert e["bone_rotation_error_deg"] <= TOL["bone_rotation_error_deg"]
     if abs(ph.truth.bone_translation_mm[2]) >= 0.1:
-        assert e["bone_translation_error_mm"] > 0.05  # the shift along the leg is missed without the fibula
+        assert (
+            e["bone_translation_error_mm"] > 0.05
+        )  # the shift along the leg is missed without the fibula

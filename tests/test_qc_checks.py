@@ -10,7 +10,14 @@ import pytest
 from deeptissue.contours import Contours
 from deeptissue.io import write_json
 from deeptissue.pose import Pose
-from deeptissue.pose.checks import LIMITS, evaluate_checks, failed_message, tibia_steps, warnings_of, write_checks
+from deeptissue.pose.checks import (
+    LIMITS,
+    evaluate_checks,
+    failed_message,
+    tibia_steps,
+    warnings_of,
+    write_checks,
+)
 from deeptissue.summary import Summary, qc_warnings_of
 
 
@@ -20,7 +27,9 @@ def _stack(centres, radius=0.9, n=40):
     out = []
     for k, (cx, cy) in enumerate(centres):
         r = radius[k] if np.ndim(radius) else radius
-        out.append(np.column_stack([cx + r * np.cos(th), cy + r * np.sin(th), np.full(n, float(k))]))
+        out.append(
+            np.column_stack([cx + r * np.cos(th), cy + r * np.sin(th), np.full(n, float(k))])
+        )
     return np.stack(out)
 
 
@@ -30,12 +39,24 @@ def _contours(centres, radius=0.9):
 
 
 def _pose(**extra):
-    base = dict(bone_rms_final_mm=0.01, bone_slices_used=[10, 10], axis_inertia_vs_cylinder_deg=0.3,
-                fluid_column_length_mm=9.0,
-                bone_fit_sd=[0.003, 0.003, 0.005, 0.0003, 0.0003])
+    base = dict(
+        bone_rms_final_mm=0.01,
+        bone_slices_used=[10, 10],
+        axis_inertia_vs_cylinder_deg=0.3,
+        fluid_column_length_mm=9.0,
+        bone_fit_sd=[0.003, 0.003, 0.005, 0.0003, 0.0003],
+    )
     base.update(extra)
-    return Pose(indenter_axis=[0, -1, 0], tip_start_mm=[0, 5, 0], tip_end_mm=[0, 3, 0], depth_mm=2.0,
-                bone_com_mm=[0, 0, 4.5], bone_rotation_deg=[0, 0, 0], bone_translation_mm=[0, 0, 0], extra=base)
+    return Pose(
+        indenter_axis=[0, -1, 0],
+        tip_start_mm=[0, 5, 0],
+        tip_end_mm=[0, 3, 0],
+        depth_mm=2.0,
+        bone_com_mm=[0, 0, 4.5],
+        bone_rotation_deg=[0, 0, 0],
+        bone_translation_mm=[0, 0, 0],
+        extra=base,
+    )
 
 
 STRAIGHT = [(0.02 * k, -0.01 * k) for k in range(10)]
@@ -57,14 +78,26 @@ def test_good_estimates_pass_every_check():
     checks = evaluate_checks(_pose(), c, c)
     assert {ch.name for ch in checks} == set(LIMITS)
     assert all(ch.status == "ok" and ch.action == "" for ch in checks), checks
-    assert warnings_of(checks) == [] and failed_message(checks, animal="rat9", pre_file="a", during_file="b") is None
+    assert (
+        warnings_of(checks) == []
+        and failed_message(checks, animal="rat9", pre_file="a", during_file="b") is None
+    )
 
 
 def test_mismatch_fails_naming_animal_files_and_number():
     c = _contours(STRAIGHT)
     checks = evaluate_checks(_pose(bone_rms_final_mm=0.19), c, c)
-    msg = failed_message(checks, animal="rat9", pre_file="scans/rat9_pre.nii.gz", during_file="scans/rat7_during.nii.gz")
-    assert "animal rat9" in msg and "scans/rat9_pre.nii.gz" in msg and "scans/rat7_during.nii.gz" in msg
+    msg = failed_message(
+        checks,
+        animal="rat9",
+        pre_file="scans/rat9_pre.nii.gz",
+        during_file="scans/rat7_during.nii.gz",
+    )
+    assert (
+        "animal rat9" in msg
+        and "scans/rat9_pre.nii.gz" in msg
+        and "scans/rat7_during.nii.gz" in msg
+    )
     assert "pre/during mismatch" in msg
     assert f"bone_fit_rms_mm 0.19 > {LIMITS['bone_fit_rms_mm'].fail:.4g}" in msg
 
@@ -72,29 +105,47 @@ def test_mismatch_fails_naming_animal_files_and_number():
 def test_warning_between_the_limits_and_below_limits():
     c = _contours(STRAIGHT)
     lim = LIMITS["axis_inertia_vs_cylinder_deg"]
-    checks = evaluate_checks(_pose(axis_inertia_vs_cylinder_deg=(lim.warn + lim.fail) / 2,
-                                   bone_slices_used=[6, 10]), c, c)
+    checks = evaluate_checks(
+        _pose(axis_inertia_vs_cylinder_deg=(lim.warn + lim.fail) / 2, bone_slices_used=[6, 10]),
+        c,
+        c,
+    )
     by = {ch.name: ch for ch in checks}
     assert by["axis_inertia_vs_cylinder_deg"].status == "warn"
-    assert by["bone_slices_used"].status == "warn"  # 0.6 of the slices: below the 0.75 warning, above 0.5
-    assert by["bone_slices_used"].describe() == f"bone_slices_used 0.6 < {LIMITS['bone_slices_used'].warn:.4g}"
-    assert len(warnings_of(checks)) == 2 and failed_message(checks, animal="a", pre_file="p", during_file="d") is None
+    assert (
+        by["bone_slices_used"].status == "warn"
+    )  # 0.6 of the slices: below the 0.75 warning, above 0.5
+    assert (
+        by["bone_slices_used"].describe()
+        == f"bone_slices_used 0.6 < {LIMITS['bone_slices_used'].warn:.4g}"
+    )
+    assert (
+        len(warnings_of(checks)) == 2
+        and failed_message(checks, animal="a", pre_file="p", during_file="d") is None
+    )
 
 
 def test_steep_indenter_fails_and_an_unrefined_axis_warns():
     c = _contours(STRAIGHT)
-    checks = evaluate_checks(_pose(fluid_column_length_mm=3.4, axis_inertia_vs_cylinder_deg=float("nan")), c, c)
+    checks = evaluate_checks(
+        _pose(fluid_column_length_mm=3.4, axis_inertia_vs_cylinder_deg=float("nan")), c, c
+    )
     by = {ch.name: ch for ch in checks}
     assert by["fluid_column_length_mm"].status == "fail"
     assert by["axis_inertia_vs_cylinder_deg"].status == "warn"
-    assert by["axis_inertia_vs_cylinder_deg"].describe() == "axis_inertia_vs_cylinder_deg not measured"
+    assert (
+        by["axis_inertia_vs_cylinder_deg"].describe()
+        == "axis_inertia_vs_cylinder_deg not measured"
+    )
     msg = failed_message(checks, animal="ratX", pre_file="p.nii", during_file="d.nii")
     assert f"fluid_column_length_mm 3.4 < {LIMITS['fluid_column_length_mm'].fail:.4g}" in msg
 
 
 def test_few_slices_warn_through_the_fit_errors():
     c = _contours(STRAIGHT)
-    checks = evaluate_checks(_pose(bone_fit_sd=[0.0137, 0.0137, 0.0063, 0.0004, 0.0006, 0.0158]), c, c)
+    checks = evaluate_checks(
+        _pose(bone_fit_sd=[0.0137, 0.0137, 0.0063, 0.0004, 0.0006, 0.0158]), c, c
+    )
     assert [ch.name for ch in checks if ch.status != "ok"] == ["bone_translation_sd_mm"]
 
 
@@ -127,7 +178,10 @@ def test_checks_csv_and_warnings_into_the_summary(tmp_path):
     pose = _pose(qc_warnings=warnings_of(checks))
     write_json(tmp_path / "pose.json", pose.to_dict())
     text = qc_warnings_of(tmp_path / "pose.json")
-    assert text == f"axis_inertia_vs_cylinder_deg 3 > {LIMITS['axis_inertia_vs_cylinder_deg'].warn:.4g}"
+    assert (
+        text
+        == f"axis_inertia_vs_cylinder_deg 3 > {LIMITS['axis_inertia_vs_cylinder_deg'].warn:.4g}"
+    )
     s = Summary(animal="a", variant="sphere", converged=True, qc_warnings=text)
     assert Summary.from_dict(s.to_dict()).qc_warnings == text
     write_json(tmp_path / "pose2.json", _pose().to_dict())

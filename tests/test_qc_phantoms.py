@@ -3,7 +3,7 @@ the wrong inputs of the issue are refused or flagged (about 30 s per phantom, al
 
 import csv
 from dataclasses import replace
-from functools import lru_cache
+from functools import cache
 
 import numpy as np
 import pytest
@@ -15,16 +15,32 @@ from deeptissue.pose import PoseError, run_pose
 from deeptissue.segment import segment_files
 
 # config/config.yaml's rat01 and rat02
-RAT01 = PhantomSpec(seed=1, depth_mm=2.0, tilt_deg=(5.0, -3.0), bone_rotation_deg=(1.0, -0.5, 0.8),
-                    bone_translation_mm=(0.05, -0.10, 0.02), snr=20)
-RAT02 = PhantomSpec(seed=2, depth_mm=2.5, tilt_deg=(-8.0, 6.0), bone_rotation_deg=(-1.5, 0.8, 0.3),
-                    bone_translation_mm=(-0.08, -0.12, 0.04), snr=15)
+RAT01 = PhantomSpec(
+    seed=1,
+    depth_mm=2.0,
+    tilt_deg=(5.0, -3.0),
+    bone_rotation_deg=(1.0, -0.5, 0.8),
+    bone_translation_mm=(0.05, -0.10, 0.02),
+    snr=20,
+)
+RAT02 = PhantomSpec(
+    seed=2,
+    depth_mm=2.5,
+    tilt_deg=(-8.0, 6.0),
+    bone_rotation_deg=(-1.5, 0.8, 0.3),
+    bone_translation_mm=(-0.08, -0.12, 0.04),
+    snr=15,
+)
 
 
-@lru_cache(maxsize=None)
+@cache
 def _phantom(name):
-    spec = {"rat01": RAT01, "rat02": RAT02, "tilt60": replace(RAT01, tilt_deg=(60.0, 0.0)),
-            "slices5": replace(RAT01, n_slices=5)}[name]
+    spec = {
+        "rat01": RAT01,
+        "rat02": RAT02,
+        "tilt60": replace(RAT01, tilt_deg=(60.0, 0.0)),
+        "slices5": replace(RAT01, n_slices=5),
+    }[name]
     return make_phantom(spec)
 
 
@@ -35,15 +51,41 @@ def _run(tmp_path, pre_of, during_of, animal="ratQ"):
     write_nifti(pre_nii, pre_ph.pre, pre_ph.affine)
     write_nifti(dur_nii, dur_ph.during, dur_ph.affine)
     c = {st: tmp_path / f"{st}.npz" for st in ("pre", "during")}
-    segment_files(pre_nii, contours_out=c["pre"], qc_out=tmp_path / "pre.png", animal=animal, state="pre", settings={})
-    segment_files(dur_nii, contours_out=c["during"], qc_out=tmp_path / "during.png", animal=animal, state="during",
-                  settings={}, reference=pre_nii, pre_contours=c["pre"])
-    out = dict(pose_json=tmp_path / "pose.json", axis_png=tmp_path / "a.png", tip_png=tmp_path / "t.png",
-               bone_png=tmp_path / "b.png", checks_csv=tmp_path / "checks.csv")
+    segment_files(
+        pre_nii,
+        contours_out=c["pre"],
+        qc_out=tmp_path / "pre.png",
+        animal=animal,
+        state="pre",
+        settings={},
+    )
+    segment_files(
+        dur_nii,
+        contours_out=c["during"],
+        qc_out=tmp_path / "during.png",
+        animal=animal,
+        state="during",
+        settings={},
+        reference=pre_nii,
+        pre_contours=c["pre"],
+    )
+    out = dict(
+        pose_json=tmp_path / "pose.json",
+        axis_png=tmp_path / "a.png",
+        tip_png=tmp_path / "t.png",
+        bone_png=tmp_path / "b.png",
+        checks_csv=tmp_path / "checks.csv",
+    )
     error = None
     try:
-        run_pose(during_nifti=dur_nii, pre_nifti=pre_nii, pre_contours=c["pre"], during_contours=c["during"],
-                 animal=animal, **out)
+        run_pose(
+            during_nifti=dur_nii,
+            pre_nifti=pre_nii,
+            pre_contours=c["pre"],
+            during_contours=c["during"],
+            animal=animal,
+            **out,
+        )
     except PoseError as exc:
         error = str(exc)
     with open(out["checks_csv"]) as fh:
@@ -55,7 +97,9 @@ def _run(tmp_path, pre_of, during_of, animal="ratQ"):
 def test_good_scan_passes_every_check(tmp_path):
     rows, error, *_ = _run(tmp_path, "rat01", "rat01")
     assert error is None
-    assert all(r["status"] == "ok" for r in rows.values()), {k: r["value"] for k, r in rows.items()}
+    assert all(r["status"] == "ok" for r in rows.values()), {
+        k: r["value"] for k, r in rows.items()
+    }
     assert read_json(tmp_path / "pose.json")["qc_warnings"] == []
 
 
@@ -87,4 +131,6 @@ def test_five_slices_are_flagged(tmp_path):
     assert any(w.startswith("bone_translation_sd_mm") for w in warnings)
     truth = _phantom("slices5").truth
     pose = read_json(tmp_path / "pose.json")
-    assert np.linalg.norm(np.subtract(pose["bone_translation_mm"], truth.bone_translation_mm)) > 0.03
+    assert (
+        np.linalg.norm(np.subtract(pose["bone_translation_mm"], truth.bone_translation_mm)) > 0.03
+    )

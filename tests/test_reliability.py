@@ -15,10 +15,23 @@ import numpy as np
 import pytest
 import yaml
 
-from deeptissue.config import (RESERVED_ANIMAL_NAMES, ConfigError, load_config_file, study_name, validate_config)
+from deeptissue.config import (
+    RESERVED_ANIMAL_NAMES,
+    ConfigError,
+    load_config_file,
+    study_name,
+    validate_config,
+)
 from deeptissue.fem.indenters import Indenter
-from deeptissue.fem.solver import (BoneState, EndState, SolverSettings, load_bone_state, load_end_state,
-                                   save_bone_state, save_end_state)
+from deeptissue.fem.solver import (
+    BoneState,
+    EndState,
+    SolverSettings,
+    load_bone_state,
+    load_end_state,
+    save_bone_state,
+    save_end_state,
+)
 from deeptissue.imaging import ImagingError, load_nifti, write_nifti
 from deeptissue.io import atomic_path, save_npz, write_json
 from deeptissue.phantom import PhantomSpec, _Scene, check_indenter
@@ -47,8 +60,19 @@ def _write(path: Path, text: str) -> Path:
 
 def _dry_run(workdir: Path, *targets_then_options: str) -> subprocess.CompletedProcess:
     """``snakemake -n`` of the real Snakefile in ``workdir`` (targets first: --configfile takes every word after it)."""
-    cmd = [sys.executable, "-m", "snakemake", *targets_then_options, "-n", "--cores", "1",
-           "-s", str(ROOT / "Snakefile"), "--directory", str(workdir)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "snakemake",
+        *targets_then_options,
+        "-n",
+        "--cores",
+        "1",
+        "-s",
+        str(ROOT / "Snakefile"),
+        "--directory",
+        str(workdir),
+    ]
     return subprocess.run(cmd, env=ENV, capture_output=True, text=True, timeout=300)
 
 
@@ -61,7 +85,9 @@ def _validate(text: str, name="study.yaml") -> dict:
 
 def test_a_key_given_twice_is_refused_with_both_lines(tmp_path):
     f = _write(tmp_path / "study.yaml", GOOD + "animals:\n  rat03:\n    phantom: {seed: 3}\n")
-    with pytest.raises(ConfigError, match=r"study.yaml, line 8: key 'animals' is given twice \(lines 1 and 8\)"):
+    with pytest.raises(
+        ConfigError, match=r"study.yaml, line 8: key 'animals' is given twice \(lines 1 and 8\)"
+    ):
         load_config_file(f)
     f = _write(tmp_path / "animal.yaml", GOOD.replace("  rat02:", "  rat01:"))
     with pytest.raises(ConfigError, match=r"line 4: key 'rat01' is given twice \(lines 2 and 4\)"):
@@ -70,16 +96,29 @@ def test_a_key_given_twice_is_refused_with_both_lines(tmp_path):
 
 def test_an_unquoted_numeric_animal_name_says_to_quote_it(tmp_path):
     f = _write(tmp_path / "study.yaml", GOOD.replace("rat01:", "01:"))
-    with pytest.raises(ConfigError, match=r"line 2: animal name 01 is read by YAML as an int, not a name; quote it: '01'"):
+    with pytest.raises(
+        ConfigError,
+        match=r"line 2: animal name 01 is read by YAML as an int, not a name; quote it: '01'",
+    ):
         load_config_file(f)
-    with pytest.raises(ConfigError, match=r"config key animals: animal name 1 is read by YAML as an int.*quote it"):
+    with pytest.raises(
+        ConfigError, match=r"config key animals: animal name 1 is read by YAML as an int.*quote it"
+    ):
         _validate(GOOD.replace("rat01:", "01:"))
-    assert list(load_config_file(_write(tmp_path / "q.yaml", GOOD.replace("rat01:", "'01':")))["animals"]) == ["01", "rat02"]
+    assert list(
+        load_config_file(_write(tmp_path / "q.yaml", GOOD.replace("rat01:", "'01':")))["animals"]
+    ) == ["01", "rat02"]
 
 
 def test_a_yaml_syntax_error_names_file_line_and_column(tmp_path):
-    f = _write(tmp_path / "study.yaml", GOOD.replace("{seed: 2, depth_mm: 2.5}", "{seed: 2, depth_mm: 2.5"))
-    with pytest.raises(ConfigError, match=r"study.yaml, line 6, column 6: YAML syntax error: expected ',' or '}', but got ':'"):
+    f = _write(
+        tmp_path / "study.yaml",
+        GOOD.replace("{seed: 2, depth_mm: 2.5}", "{seed: 2, depth_mm: 2.5"),
+    )
+    with pytest.raises(
+        ConfigError,
+        match=r"study.yaml, line 6, column 6: YAML syntax error: expected ',' or '}', but got ':'",
+    ):
         load_config_file(f)
 
 
@@ -89,7 +128,15 @@ def test_config_files_are_checked_without_snakemake(tmp_path, capsys, monkeypatc
 
     monkeypatch.chdir(ROOT)
     overlay = _write(tmp_path / "overlay.yaml", "study: {variants: [bar]}\n")
-    main(["--check", str(_write(tmp_path / "paper2.yaml", GOOD)), str(overlay), "--schema", str(SCHEMA)])
+    main(
+        [
+            "--check",
+            str(_write(tmp_path / "paper2.yaml", GOOD)),
+            str(overlay),
+            "--schema",
+            str(SCHEMA),
+        ]
+    )
     assert "config OK: study paper2, animals ['rat01', 'rat02']" in capsys.readouterr().out
     bad = _write(tmp_path / "bad.yaml", GOOD.replace("[sphere]", "[sphere"))
     with pytest.raises(SystemExit) as exit_:
@@ -100,7 +147,9 @@ def test_config_files_are_checked_without_snakemake(tmp_path, capsys, monkeypatc
 
 def test_animals_named_like_a_folder_of_results_are_refused():
     for name in RESERVED_ANIMAL_NAMES:
-        with pytest.raises(ConfigError, match=f"config key animals.{name}: '{name}' is a folder of results/"):
+        with pytest.raises(
+            ConfigError, match=f"config key animals.{name}: '{name}' is a folder of results/"
+        ):
             _validate(GOOD.replace("rat02:", f"{name}:"))
 
 
@@ -113,12 +162,21 @@ def test_the_reserved_names_are_every_study_folder_of_results():
 
 
 def test_phantom_values_it_cannot_render_are_refused_with_the_range_that_works():
-    with pytest.raises(ConfigError, match=r"animals.rat01.phantom.depth_mm: 0 is less than or equal to the minimum of 0"):
+    with pytest.raises(
+        ConfigError,
+        match=r"animals.rat01.phantom.depth_mm: 0 is less than or equal to the minimum of 0",
+    ):
         _validate(GOOD.replace("depth_mm: 2.0", "depth_mm: 0"))
-    with pytest.raises(ConfigError, match=r"animals.rat01.phantom: tilt_deg \[89.0, 0.0\]: .* tilt about X works "
-                                          r"from -\d+\.\d to \d+\.\d deg"):
+    with pytest.raises(
+        ConfigError,
+        match=r"animals.rat01.phantom: tilt_deg \[89.0, 0.0\]: .* tilt about X works "
+        r"from -\d+\.\d to \d+\.\d deg",
+    ):
         _validate(GOOD.replace("depth_mm: 2.0", "depth_mm: 2.0, tilt_deg: [89, 0]"))
-    with pytest.raises(ConfigError, match=r"animals.rat02.phantom: depth_mm 5 mm: .* works from 0 to below \d\.\d\d mm"):
+    with pytest.raises(
+        ConfigError,
+        match=r"animals.rat02.phantom: depth_mm 5 mm: .* works from 0 to below \d\.\d\d mm",
+    ):
         _validate(GOOD.replace("depth_mm: 2.5", "depth_mm: 5"))
 
 
@@ -131,7 +189,9 @@ def test_the_ranges_check_indenter_states_are_what_the_phantom_renders():
     assert -80 < lo < -30 and 30 < hi < 80
     slab = (-9.5, 9.5)  # the default 20 slices 1 mm apart
     for t in (lo + 0.5, hi - 0.5):
-        scene = _Scene(PhantomSpec(tilt_deg=(t, 0.0)))  # renders, with the indenter inside the slab
+        scene = _Scene(
+            PhantomSpec(tilt_deg=(t, 0.0))
+        )  # renders, with the indenter inside the slab
         assert all(slab[0] <= p[2] <= slab[1] for p in (scene.skin_point, scene.tip_end))
     scene = _Scene(PhantomSpec(tilt_deg=(hi + 1.0, 0.0)))
     assert not all(slab[0] <= p[2] <= slab[1] for p in (scene.skin_point, scene.tip_end))
@@ -157,11 +217,26 @@ def test_a_study_is_named_after_its_first_config_file():
 @pytest.mark.parametrize(
     "change, message",
     [
-        (lambda t: t.replace("  rat02:", "  rat01:"), r"line 4: key 'rat01' is given twice \(lines 2 and 4\)"),
-        (lambda t: t.replace("rat01:", "01:"), r"animal name 01 is read by YAML as an int, not a name; quote it: '01'"),
-        (lambda t: t.replace("rat02:", "summary:"), r"config key animals.summary: 'summary' is a folder of results/"),
-        (lambda t: t.replace("depth_mm: 2.0", "depth_mm: 0"), r"animals.rat01.phantom.depth_mm: 0 is less than"),
-        (lambda t: t.replace("depth_mm: 2.0", "depth_mm: 2.0, tilt_deg: [89, 0]"), r"tilt about X works from"),
+        (
+            lambda t: t.replace("  rat02:", "  rat01:"),
+            r"line 4: key 'rat01' is given twice \(lines 2 and 4\)",
+        ),
+        (
+            lambda t: t.replace("rat01:", "01:"),
+            r"animal name 01 is read by YAML as an int, not a name; quote it: '01'",
+        ),
+        (
+            lambda t: t.replace("rat02:", "summary:"),
+            r"config key animals.summary: 'summary' is a folder of results/",
+        ),
+        (
+            lambda t: t.replace("depth_mm: 2.0", "depth_mm: 0"),
+            r"animals.rat01.phantom.depth_mm: 0 is less than",
+        ),
+        (
+            lambda t: t.replace("depth_mm: 2.0", "depth_mm: 2.0, tilt_deg: [89, 0]"),
+            r"tilt about X works from",
+        ),
     ],
     ids=["duplicate", "numeric", "reserved", "depth0", "tilt89"],
 )
@@ -178,7 +253,10 @@ def test_a_syntax_error_in_the_default_config_names_line_and_column(tmp_path):
     _write(tmp_path / "config" / "config.yaml", GOOD.replace("[sphere]", "[sphere"))
     r = _dry_run(tmp_path)
     assert r.returncode != 0
-    assert "config file config/config.yaml, line 8, column 1: YAML syntax error" in r.stdout + r.stderr
+    assert (
+        "config file config/config.yaml, line 8, column 1: YAML syntax error"
+        in r.stdout + r.stderr
+    )
 
 
 @pytest.mark.slow
@@ -192,26 +270,49 @@ def test_targets_come_before_configfile_as_the_readme_says(tmp_path):
 
 @pytest.mark.slow
 def test_two_studies_in_one_checkout_write_their_own_tables(tmp_path):
-    a, b = _write(tmp_path / "a.yaml", GOOD), _write(tmp_path / "b.yaml", GOOD.replace("[sphere]", "[sphere, bar]"))
-    ra, rb = _dry_run(tmp_path, "study", "--configfile", str(a)), _dry_run(tmp_path, "study", "--configfile", str(b))
+    a, b = (
+        _write(tmp_path / "a.yaml", GOOD),
+        _write(tmp_path / "b.yaml", GOOD.replace("[sphere]", "[sphere, bar]")),
+    )
+    ra, rb = (
+        _dry_run(tmp_path, "study", "--configfile", str(a)),
+        _dry_run(tmp_path, "study", "--configfile", str(b)),
+    )
     assert ra.returncode == 0 and rb.returncode == 0, ra.stderr[-2000:] + rb.stderr[-2000:]
-    assert "results/summary/a/voi.csv" in ra.stdout and "results/summary/b/voi.csv" not in ra.stdout
-    assert "results/summary/b/voi.csv" in rb.stdout and "results/summary/a/voi.csv" not in rb.stdout
+    assert (
+        "results/summary/a/voi.csv" in ra.stdout and "results/summary/b/voi.csv" not in ra.stdout
+    )
+    assert (
+        "results/summary/b/voi.csv" in rb.stdout and "results/summary/a/voi.csv" not in rb.stdout
+    )
 
 
 # --- files whole, readable and not lost ---
 
 
 def _bone_state(n=30):
-    return BoneState(displacement_mm=np.arange(n, dtype=float), contact={"cast": (np.arange(3), np.ones(3))},
-                     strain_energy_mJ=1.5, history=(), newton_iterations=4, wall_s=1.0, assembly_s=0.5,
-                     linear_solve_s=0.3, contact_s=0.1, settings=SolverSettings())
+    return BoneState(
+        displacement_mm=np.arange(n, dtype=float),
+        contact={"cast": (np.arange(3), np.ones(3))},
+        strain_energy_mJ=1.5,
+        history=(),
+        newton_iterations=4,
+        wall_s=1.0,
+        assembly_s=0.5,
+        linear_solve_s=0.3,
+        contact_s=0.1,
+        settings=SolverSettings(),
+    )
 
 
 def _end_state(n=30):
-    return EndState(displacement_mm=np.arange(n, dtype=float),
-                    contact={"indenter": (np.arange(2), np.ones(2))},
-                    indenter=Indenter(), bone_motion=BoneMotion(), settings=SolverSettings())
+    return EndState(
+        displacement_mm=np.arange(n, dtype=float),
+        contact={"indenter": (np.arange(2), np.ones(2))},
+        indenter=Indenter(),
+        bone_motion=BoneMotion(),
+        settings=SolverSettings(),
+    )
 
 
 class _Interrupted(KeyboardInterrupt):
@@ -252,7 +353,9 @@ def test_the_states_read_back_after_an_atomic_write(tmp_path):
     save_bone_state(tmp_path / "bone_state.npz", _bone_state())
     save_end_state(tmp_path / "end_state.npz", _end_state())
     assert load_bone_state(tmp_path / "bone_state.npz").newton_iterations == 4
-    assert np.array_equal(load_end_state(tmp_path / "end_state.npz").displacement_mm, np.arange(30.0))
+    assert np.array_equal(
+        load_end_state(tmp_path / "end_state.npz").displacement_mm, np.arange(30.0)
+    )
 
 
 def test_the_study_failure_markers_are_written_atomically(tmp_path, monkeypatch):
@@ -260,8 +363,13 @@ def test_the_study_failure_markers_are_written_atomically(tmp_path, monkeypatch)
     from deeptissue.study import run_bone_state
 
     out = tmp_path / "bone_state.npz"
-    kw = dict(mesh_path=tmp_path / "missing.npz", cast_path=None, pose_path=tmp_path / "pose.json", state_path=out,
-              fem_cfg={})
+    kw = dict(
+        mesh_path=tmp_path / "missing.npz",
+        cast_path=None,
+        pose_path=tmp_path / "pose.json",
+        state_path=out,
+        fem_cfg={},
+    )
     with monkeypatch.context() as m:
         _interrupt_after_some_bytes(m, "savez_compressed")
         with pytest.raises(_Interrupted):
@@ -298,8 +406,11 @@ def _truncated_nifti(tmp_path) -> Path:
 
 def test_a_truncated_scan_names_animal_and_file(tmp_path):
     path = _truncated_nifti(tmp_path)
-    with pytest.raises(ImagingError, match=rf"animal rat01, file {re.escape(str(path))}: cannot read the voxel data, "
-                                           "the file is truncated or corrupt"):
+    with pytest.raises(
+        ImagingError,
+        match=rf"animal rat01, file {re.escape(str(path))}: cannot read the voxel data, "
+        "the file is truncated or corrupt",
+    ):
         load_nifti(path, animal="rat01")
 
 
@@ -308,9 +419,20 @@ def test_the_pose_stage_reads_the_scan_through_the_same_error(tmp_path):
 
     path = _truncated_nifti(tmp_path)
     out = {k: tmp_path / f"{k}.png" for k in ("axis_png", "tip_png", "bone_png")}
-    with pytest.raises(ImagingError, match=rf"animal rat01, file {re.escape(str(path))}: cannot read the voxel data"):
-        run_pose(during_nifti=path, pre_contours=tmp_path / "pre.npz", during_contours=tmp_path / "during.npz",
-                 pose_json=tmp_path / "pose.json", options={}, override={}, animal="rat01", **out)
+    with pytest.raises(
+        ImagingError,
+        match=rf"animal rat01, file {re.escape(str(path))}: cannot read the voxel data",
+    ):
+        run_pose(
+            during_nifti=path,
+            pre_contours=tmp_path / "pre.npz",
+            during_contours=tmp_path / "during.npz",
+            pose_json=tmp_path / "pose.json",
+            options={},
+            override={},
+            animal="rat01",
+            **out,
+        )
 
 
 # --- a job stops with its Snakemake ---
@@ -358,24 +480,37 @@ def _job_pid(marker: Path, parent: int) -> int | None:
 
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs /proc (Linux)")
 def test_a_job_stops_without_writing_when_its_snakemake_is_killed(tmp_path):
-    job, fake = _write(tmp_path / "job.py", _JOB), _write(tmp_path / "bin" / "snakemake", _SNAKEMAKE)
+    job, fake = (
+        _write(tmp_path / "job.py", _JOB),
+        _write(tmp_path / "bin" / "snakemake", _SNAKEMAKE),
+    )
     out, started = tmp_path / "results" / "summary.json", tmp_path / "started"
     out.parent.mkdir()
-    parent = subprocess.Popen([sys.executable, str(fake), str(job), str(out), str(started)], env=ENV)
+    parent = subprocess.Popen(
+        [sys.executable, str(fake), str(job), str(out), str(started)], env=ENV
+    )
     try:
         assert _wait_for(started.exists, 30)
         pid = _job_pid(started, parent.pid)
         assert pid is not None
         parent.kill()  # SIGKILL: Snakemake cannot stop its jobs itself
         parent.wait()
-        assert _wait_for(lambda: not Path(f"/proc/{pid}").exists() or "Z" in Path(f"/proc/{pid}/stat").read_text()
-                         .rsplit(")", 1)[1].split()[0], 10)
+        assert _wait_for(
+            lambda: (
+                not Path(f"/proc/{pid}").exists()
+                or "Z" in Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+            ),
+            10,
+        )
     finally:
         if parent.poll() is None:
             parent.kill()
     assert list(out.parent.iterdir()) == [out.with_suffix(".log")]  # no result, no temporary file
     log = out.with_suffix(".log").read_text()
-    assert f"Snakemake (pid {parent.pid}) is gone: stopping this job" in log and "solve stopped (interrupted)" in log
+    assert (
+        f"Snakemake (pid {parent.pid}) is gone: stopping this job" in log
+        and "solve stopped (interrupted)" in log
+    )
 
 
 @pytest.mark.skipif(not hasattr(signal, "SIGTERM"), reason="needs SIGTERM")

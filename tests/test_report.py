@@ -3,6 +3,7 @@
 import numpy as np
 import pandas as pd
 import pytest
+from study_meshes import box_tet10, centroids
 
 from deeptissue.pose import Pose, save_pose
 from deeptissue.report import (
@@ -14,8 +15,13 @@ from deeptissue.report import (
     summary_tables,
     voi_change_percent,
 )
-from deeptissue.summary import Summary, failed_summary, summarize_solution, write_result_vtu, write_summary
-from study_meshes import box_tet10, centroids
+from deeptissue.summary import (
+    Summary,
+    failed_summary,
+    summarize_solution,
+    write_result_vtu,
+    write_summary,
+)
 
 LABELS = ["0.3-0.4", "0.4-0.5", "0.5-0.6", "0.6-0.7", "0.7-0.8", "0.8-0.9", "0.9-1.0", ">1.0"]
 VARIANTS = ["sphere", "bar", "sphere_rx+15"]
@@ -24,37 +30,80 @@ VARIANTS = ["sphere", "bar", "sphere_rx+15"]
 def _ok(animal, variant, voi, first_bin=100.0):
     bins = dict.fromkeys(LABELS, 0.0)
     bins["0.3-0.4"], bins[">1.0"] = first_bin, 100.0 - first_bin
-    return Summary(animal=animal, variant=variant, converged=True, voi_mm3=voi, bins_percent=bins,
-                   below_threshold_percent=90.0, peak_gamma=1.1, strain_energy_mJ=0.01, indenter_force_N=0.2,
-                   n_elements=100, n_dofs=900, increments=3, newton_iterations=12, wall_s=4.0,
-                   skin_mean_mm=0.1, skin_p95_mm=0.3)
+    return Summary(
+        animal=animal,
+        variant=variant,
+        converged=True,
+        voi_mm3=voi,
+        bins_percent=bins,
+        below_threshold_percent=90.0,
+        peak_gamma=1.1,
+        strain_energy_mJ=0.01,
+        indenter_force_N=0.2,
+        n_elements=100,
+        n_dofs=900,
+        increments=3,
+        newton_iterations=12,
+        wall_s=4.0,
+        skin_mean_mm=0.1,
+        skin_p95_mm=0.3,
+    )
 
 
 def _study():
     return [
-        _ok("ratA", "sphere", 10.0, 60.0), _ok("ratA", "bar", 15.0), _ok("ratA", "sphere_rx+15", 8.0),
+        _ok("ratA", "sphere", 10.0, 60.0),
+        _ok("ratA", "bar", 15.0),
+        _ok("ratA", "sphere_rx+15", 8.0),
         _ok("ratB", "sphere", 20.0),
-        failed_summary(animal="ratB", variant="bar", reason="inverted element at 40% depth", n_elements=100),
+        failed_summary(
+            animal="ratB", variant="bar", reason="inverted element at 40% depth", n_elements=100
+        ),
         _ok("ratB", "sphere_rx+15", 22.0),
     ]
 
 
 def test_tables_flag_the_whole_animal_when_one_variant_fails(tmp_path):
     voi, bins = summary_tables(_study(), animals=["ratA", "ratB"], variants=VARIANTS)
-    assert list(zip(voi["animal"], voi["variant"])) == [(a, v) for a in ("ratA", "ratB") for v in VARIANTS]
+    assert list(zip(voi["animal"], voi["variant"])) == [
+        (a, v) for a in ("ratA", "ratB") for v in VARIANTS
+    ]
     assert voi.loc[voi["animal"] == "ratA", "excluded"].eq(False).all()
     b = voi[voi["animal"] == "ratB"]
     assert b["excluded"].all()
     assert b["exclusion_reason"].iloc[0] == "not converged: bar: inverted element at 40% depth"
     # a variant that was not solved because it is infeasible is named as such
-    infeasible = failed_summary(animal="ratB", variant="bar", reason="infeasible: the indenter ends 0.2 mm inside the moved bone")
-    assert exclusions([infeasible])["ratB"] == "bar: infeasible: the indenter ends 0.2 mm inside the moved bone"
-    both = exclusions([infeasible, failed_summary(animal="ratB", variant="sphere", reason="line search failed")])
+    infeasible = failed_summary(
+        animal="ratB",
+        variant="bar",
+        reason="infeasible: the indenter ends 0.2 mm inside the moved bone",
+    )
+    assert (
+        exclusions([infeasible])["ratB"]
+        == "bar: infeasible: the indenter ends 0.2 mm inside the moved bone"
+    )
+    both = exclusions(
+        [infeasible, failed_summary(animal="ratB", variant="sphere", reason="line search failed")]
+    )
     assert both["ratB"].startswith("not converged: bar: infeasible")
     assert (b["converged"].tolist(), b["voi_mm3"].iloc[0]) == ([True, False, True], 20.0)
-    for col in ["voi_mm3", "below_threshold_percent", "peak_gamma", "strain_energy_mJ", "indenter_force_N", "n_elements",
-                "n_dofs", "increments", "newton_iterations", "wall_s", "skin_mean_mm", "skin_p95_mm", "reason",
-                "bins_percent.0.3-0.4", "bins_percent.>1.0"]:
+    for col in [
+        "voi_mm3",
+        "below_threshold_percent",
+        "peak_gamma",
+        "strain_energy_mJ",
+        "indenter_force_N",
+        "n_elements",
+        "n_dofs",
+        "increments",
+        "newton_iterations",
+        "wall_s",
+        "skin_mean_mm",
+        "skin_p95_mm",
+        "reason",
+        "bins_percent.0.3-0.4",
+        "bins_percent.>1.0",
+    ]:
         assert col in voi.columns, col
     assert voi.loc[0, "bins_percent.0.3-0.4"] == 60.0 and voi.loc[0, "bins_percent.>1.0"] == 40.0
     assert "bins_percent" not in voi.columns and np.isnan(b["bins_percent.0.3-0.4"].iloc[1])
@@ -62,7 +111,9 @@ def test_tables_flag_the_whole_animal_when_one_variant_fails(tmp_path):
     assert list(bins.columns) == ["animal", "variant", "bin", "percent", "excluded"]
     failed = bins[(bins["animal"] == "ratB") & (bins["variant"] == "bar")]
     assert list(failed["bin"]) == LABELS and failed["percent"].isna().all()
-    a_sphere = bins[(bins["animal"] == "ratA") & (bins["variant"] == "sphere")].set_index("bin")["percent"]
+    a_sphere = bins[(bins["animal"] == "ratA") & (bins["variant"] == "sphere")].set_index("bin")[
+        "percent"
+    ]
     assert a_sphere["0.3-0.4"] == 60.0 and a_sphere.sum() == pytest.approx(100.0)
 
     all_failed = [failed_summary(animal="ratC", variant="sphere", reason="diverged")]
@@ -112,7 +163,15 @@ def test_sections_sample_the_planes_through_the_axis():
     cz = centroids(m)
     tip = np.array([0.5, 8.0, 0.25])
     axis = np.array([0.0, -1.0, 0.0])  # into the leg from y = 8; planes have normal z
-    s = sample_sections(m, cz[:, 2], axis=axis, tip_mm=tip, half_width_mm=3.0, v_range_mm=(-1.0, 5.0), resolution_mm=0.25)
+    s = sample_sections(
+        m,
+        cz[:, 2],
+        axis=axis,
+        tip_mm=tip,
+        half_width_mm=3.0,
+        v_range_mm=(-1.0, 5.0),
+        resolution_mm=0.25,
+    )
     assert s.values.shape == (7, len(s.v_mm), len(s.u_mm))
     np.testing.assert_allclose(s.offsets_mm, [-3, -2, -1, 0, 1, 2, 3])
     inside = s.v_mm >= 0  # v < 0 lies above the block (y > 8): no tissue
@@ -121,7 +180,15 @@ def test_sections_sample_the_planes_through_the_axis():
     for k, off in enumerate(s.offsets_mm):
         assert np.nanmax(np.abs(s.values[k] - (tip[2] + off))) <= 0.25 + 1e-12
     # across the plane the sampled field follows x (u along e = n × a = z × -y = +x)
-    s2 = sample_sections(m, cz[:, 0], axis=axis, tip_mm=tip, half_width_mm=3.0, v_range_mm=(0.5, 4.0), resolution_mm=0.25)
+    s2 = sample_sections(
+        m,
+        cz[:, 0],
+        axis=axis,
+        tip_mm=tip,
+        half_width_mm=3.0,
+        v_range_mm=(0.5, 4.0),
+        resolution_mm=0.25,
+    )
     assert np.max(np.abs(s2.values[3] - (tip[0] + s2.u_mm)[None, :])) <= 0.25 + 1e-12
 
 
@@ -129,13 +196,22 @@ def test_sections_sample_the_planes_through_the_axis():
 def synthetic_study(tmp_path):
     """Two animals, three variants; ratB's bar fails; ratA has result.vtu files for the sections."""
     m = box_tet10(np.linspace(-4, 4, 9), np.linspace(0, 6, 7), np.linspace(-4, 4, 9))
-    pose = Pose(indenter_axis=[0, -1, 0], tip_start_mm=[0, 6, 0], tip_end_mm=[0, 4, 0], depth_mm=2.0,
-                bone_com_mm=[0, 1, 0], bone_rotation_deg=[0, 0, 0], bone_translation_mm=[0, 0, 0])
+    pose = Pose(
+        indenter_axis=[0, -1, 0],
+        tip_start_mm=[0, 6, 0],
+        tip_end_mm=[0, 4, 0],
+        depth_mm=2.0,
+        bone_com_mm=[0, 1, 0],
+        bone_rotation_deg=[0, 0, 0],
+        bone_translation_mm=[0, 0, 0],
+    )
     save_pose(tmp_path / "ratA" / "pose.json", pose)
     y = m.nodes_mm[:, 1]
     paths, vtus = [], {}
     for s in _study():
-        if s.animal == "ratA":  # a real solution-like field: shear growing towards the indented face
+        if (
+            s.animal == "ratA"
+        ):  # a real solution-like field: shear growing towards the indented face
             k = {"sphere": 0.8, "bar": 1.2, "sphere_rx+15": 0.6}[s.variant]
             u = np.column_stack([k * y**2 / 12, 0 * y, 0 * y])
             s, strain = summarize_solution(m, u, animal="ratA", variant=s.variant)
@@ -144,8 +220,18 @@ def synthetic_study(tmp_path):
         p = tmp_path / s.animal / s.variant / "summary.json"
         write_summary(p, s)
         paths.append(p)
-    outs = {k: tmp_path / "summary" / f"{k.rsplit('_', 1)[0]}.{k.rsplit('_', 1)[1]}" for k in
-            ["voi_csv", "bins_csv", "voi_png", "bins_png", "voi_change_png", "sections_png", "orientations_png"]}
+    outs = {
+        k: tmp_path / "summary" / f"{k.rsplit('_', 1)[0]}.{k.rsplit('_', 1)[1]}"
+        for k in [
+            "voi_csv",
+            "bins_csv",
+            "voi_png",
+            "bins_png",
+            "voi_change_png",
+            "sections_png",
+            "orientations_png",
+        ]
+    }
     return paths, vtus, outs, tmp_path
 
 
@@ -153,8 +239,15 @@ def synthetic_study(tmp_path):
 @pytest.mark.parametrize("figure_animal", ["ratA"])
 def test_aggregate_study_writes_tables_and_figures(synthetic_study, figure_animal):
     paths, vtus, outs, root = synthetic_study
-    aggregate_study(summary_paths=paths, animals=["ratA", "ratB"], variants=VARIANTS, outputs=outs,
-                    figure_animal=figure_animal, figure_results=vtus, pose_path=root / "ratA" / "pose.json")
+    aggregate_study(
+        summary_paths=paths,
+        animals=["ratA", "ratB"],
+        variants=VARIANTS,
+        outputs=outs,
+        figure_animal=figure_animal,
+        figure_results=vtus,
+        pose_path=root / "ratA" / "pose.json",
+    )
     voi = pd.read_csv(outs["voi_csv"])
     assert len(voi) == 6 and voi["excluded"].tolist() == [False] * 3 + [True] * 3
     bins = pd.read_csv(outs["bins_csv"])

@@ -14,12 +14,26 @@ from pathlib import Path
 import nibabel as nib
 import numpy as np
 import pytest
-from scanner_synth import quantised, reorder, rotated, write_enhanced, write_paravision, write_series
+from scanner_synth import (
+    quantised,
+    reorder,
+    rotated,
+    write_enhanced,
+    write_paravision,
+    write_series,
+)
 
 from deeptissue.config import ConfigError, validate_config
 from deeptissue.imaging import ImagingError, load_nifti
 from deeptissue.phantom import PhantomSpec, make_phantom
-from deeptissue.scanner import dicom_series, read_bruker, read_dicom, read_scan, scan_kind, write_scan
+from deeptissue.scanner import (
+    dicom_series,
+    read_bruker,
+    read_dicom,
+    read_scan,
+    scan_kind,
+    write_scan,
+)
 
 WORLD_TOL_MM = 0.01
 
@@ -30,7 +44,9 @@ def ph():
 
 
 def _canonical(data, affine):
-    img = nib.as_closest_canonical(nib.Nifti1Image(np.asarray(data, np.float32), np.asarray(affine, float)))
+    img = nib.as_closest_canonical(
+        nib.Nifti1Image(np.asarray(data, np.float32), np.asarray(affine, float))
+    )
     return np.asarray(img.dataobj, np.float32), img.affine
 
 
@@ -40,7 +56,9 @@ def assert_same_geometry(data0, affine0, data1, affine1):
     c1, a1 = _canonical(data1, affine1)
     assert c0.shape == c1.shape
     np.testing.assert_allclose(c1, c0, rtol=0, atol=1e-5 * float(np.abs(c0).max()))
-    corners = np.array(np.meshgrid(*[[0, n - 1] for n in c0.shape], indexing="ij")).reshape(3, -1).T
+    corners = (
+        np.array(np.meshgrid(*[[0, n - 1] for n in c0.shape], indexing="ij")).reshape(3, -1).T
+    )
     w0 = corners @ a0[:3, :3].T + a0[:3, 3]
     w1 = corners @ a1[:3, :3].T + a1[:3, 3]
     assert np.abs(w0 - w1).max() <= WORLD_TOL_MM
@@ -66,10 +84,15 @@ def assert_read_back(ph, affine, aff, vol, *, axial):
     (later stages read slices as data[:, :, k]); an axial stack comes back ordered and flipped toward
     +x, +y, +z world, as the phantom's own array."""
     assert_same_geometry(quantised(ph.pre), affine, vol.data, vol.affine)
-    normal_in, normal_out = aff[:3, 2] / np.linalg.norm(aff[:3, 2]), vol.affine[:3, 2] / np.linalg.norm(vol.affine[:3, 2])
+    normal_in, normal_out = (
+        aff[:3, 2] / np.linalg.norm(aff[:3, 2]),
+        vol.affine[:3, 2] / np.linalg.norm(vol.affine[:3, 2]),
+    )
     assert abs(abs(normal_in @ normal_out) - 1.0) < 1e-6
     if axial:
-        np.testing.assert_allclose(vol.data, quantised(ph.pre), rtol=0, atol=1e-5 * float(ph.pre.max()))
+        np.testing.assert_allclose(
+            vol.data, quantised(ph.pre), rtol=0, atol=1e-5 * float(ph.pre.max())
+        )
         np.testing.assert_allclose(vol.affine, ph.affine, atol=1e-5)
 
 
@@ -85,7 +108,11 @@ def test_dicom_geometry_round_trip(ph, tmp_path, name):
     assert_read_back(ph, affine, aff, vol, axial=perm == (0, 1, 2) and rot is None)
     assert all(vol.affine[np.argmax(np.abs(vol.affine[:3, a])), a] > 0 for a in range(3))
     assert meta["converter"] == "dcm2niix" and meta["patient_position"] == position
-    assert meta["field_strength_t"] == 7.0 and meta["echo_time_ms"] == 12.0 and meta["repetition_time_ms"] == 2500.0
+    assert (
+        meta["field_strength_t"] == 7.0
+        and meta["echo_time_ms"] == 12.0
+        and meta["repetition_time_ms"] == 2500.0
+    )
 
 
 def test_dicom_files_in_shuffled_order(ph, tmp_path):
@@ -109,7 +136,9 @@ def test_scan_kinds_and_sidecar(ph, tmp_path):
     assert side["kind"] == "dicom" and side["shape"] == [40, 40, 8]
     assert side["orientation"] == "RAS"
     # an axial series reads back as the very array and affine of its NIfTI twin
-    np.testing.assert_allclose(back.data, quantised(ph.pre), rtol=0, atol=1e-5 * float(ph.pre.max()))
+    np.testing.assert_allclose(
+        back.data, quantised(ph.pre), rtol=0, atol=1e-5 * float(ph.pre.max())
+    )
     np.testing.assert_allclose(back.affine, ph.affine, atol=1e-5)
     np.testing.assert_allclose(side["voxel_mm"], [25 / 40, 25 / 40, 1.0])
     # a NIfTI entry reads as before, with the same sidecar keys
@@ -123,9 +152,14 @@ def test_scan_kinds_and_sidecar(ph, tmp_path):
 
 def test_refuses_several_series_and_picks_one(ph, tmp_path):
     write_series(tmp_path / "d", ph.pre, ph.affine, series_number=3, description="T2 RARE pre")
-    write_series(tmp_path / "d", ph.during, ph.affine, series_number=4, description="T2 RARE during")
-    with pytest.raises(ImagingError, match=r"animal rat, folder .*d: 2 DICOM series \(series 3 'T2 RARE pre' \(8 files\); "
-                                           r"series 4 'T2 RARE during' \(8 files\)\); pick one with .*series"):
+    write_series(
+        tmp_path / "d", ph.during, ph.affine, series_number=4, description="T2 RARE during"
+    )
+    with pytest.raises(
+        ImagingError,
+        match=r"animal rat, folder .*d: 2 DICOM series \(series 3 'T2 RARE pre' \(8 files\); "
+        r"series 4 'T2 RARE during' \(8 files\)\); pick one with .*series",
+    ):
         read_dicom(tmp_path / "d", animal="rat")
     assert [r["series"] for r in dicom_series(tmp_path / "d")] == [3, 4]
     vol, meta = read_dicom(tmp_path / "d", series=4)
@@ -139,7 +173,10 @@ def test_refuses_several_series_and_picks_one(ph, tmp_path):
 
 def test_refuses_missing_slice(ph, tmp_path):
     write_series(tmp_path / "d", ph.pre, ph.affine, slices=[0, 1, 2, 4, 5, 6, 7])
-    with pytest.raises(ImagingError, match=r"folder .*d: 1 slice\(s\) missing: slice gap 2.0000 mm .* others are 1.0000 mm"):
+    with pytest.raises(
+        ImagingError,
+        match=r"folder .*d: 1 slice\(s\) missing: slice gap 2.0000 mm .* others are 1.0000 mm",
+    ):
         read_dicom(tmp_path / "d", animal="rat")
 
 
@@ -148,7 +185,9 @@ def test_refuses_uneven_slices(ph, tmp_path):
     write_series(tmp_path / "d", ph.pre[:, :, :4], aff)
     aff2 = aff.copy()
     aff2[2, 3] += 4 * aff[2, 2] + 0.3  # the second half 0.3 mm further on
-    write_series(tmp_path / "d", ph.pre[:, :, 4:], aff2, series_uid=None, instance_start=5, name="B")
+    write_series(
+        tmp_path / "d", ph.pre[:, :, 4:], aff2, series_uid=None, instance_start=5, name="B"
+    )
     # written as two series: join them into one (same series UID) to make one uneven stack
     import pydicom
 
@@ -157,15 +196,22 @@ def test_refuses_uneven_slices(ph, tmp_path):
         ds = pydicom.dcmread(p)
         ds.SeriesInstanceUID = uid
         ds.save_as(p)
-    with pytest.raises(ImagingError, match=r"folder .*d: unevenly spaced slices: slice gap 1.3000 mm"):
+    with pytest.raises(
+        ImagingError, match=r"folder .*d: unevenly spaced slices: slice gap 1.3000 mm"
+    ):
         read_dicom(tmp_path / "d")
 
 
 def test_refuses_tilted_stack_and_mixed_orientations(ph, tmp_path):
     sheared = ph.affine.copy()
-    sheared[0, 2] = 0.2  # each slice 0.2 mm further along x: a gantry-tilted stack, not a box of voxels
+    sheared[0, 2] = (
+        0.2  # each slice 0.2 mm further along x: a gantry-tilted stack, not a box of voxels
+    )
     write_series(tmp_path / "tilt", ph.pre, sheared)
-    with pytest.raises(ImagingError, match=r"folder .*tilt: slices shifted in-plane from one to the next \(a tilted stack\)"):
+    with pytest.raises(
+        ImagingError,
+        match=r"folder .*tilt: slices shifted in-plane from one to the next \(a tilted stack\)",
+    ):
         read_dicom(tmp_path / "tilt")
     import pydicom
 
@@ -174,7 +220,9 @@ def test_refuses_tilted_stack_and_mixed_orientations(ph, tmp_path):
     ds = pydicom.dcmread(last)
     ds.ImageOrientationPatient = ["1", "0", "0", "0", "0.9950042", "0.0998334"]
     ds.save_as(last)
-    with pytest.raises(ImagingError, match=r"folder .*mixed: slices with different orientations in one series"):
+    with pytest.raises(
+        ImagingError, match=r"folder .*mixed: slices with different orientations in one series"
+    ):
         read_dicom(tmp_path / "mixed")
 
 
@@ -186,8 +234,11 @@ def test_enhanced_multiframe_dicom(ph, tmp_path):
     assert_same_geometry(quantised(ph.pre), affine, vol.data, vol.affine)
     both = np.stack([ph.pre, ph.during], axis=3)
     write_enhanced(tmp_path / "me" / "x.dcm", both, affine, echo_times_ms=(12.0, 24.0))
-    with pytest.raises(ImagingError, match=r"folder .*me: dcm2niix splits the series into 2 volumes \(volume_e1, volume_e2: "
-                                           r"echoes .*\); pick one with .*volume"):
+    with pytest.raises(
+        ImagingError,
+        match=r"folder .*me: dcm2niix splits the series into 2 volumes \(volume_e1, volume_e2: "
+        r"echoes .*\); pick one with .*volume",
+    ):
         read_dicom(tmp_path / "me", animal="rat")
     with pytest.raises(ImagingError, match=r"volume 3 does not exist"):
         read_dicom(tmp_path / "me", volume=3)
@@ -197,7 +248,9 @@ def test_enhanced_multiframe_dicom(ph, tmp_path):
         assert meta["volume"] == n
     # a frame missing from the stack is found in the per-frame positions
     write_enhanced(tmp_path / "gap" / "x.dcm", ph.pre, affine, skip_slices=(3,))
-    with pytest.raises(ImagingError, match=r"folder .*gap: 1 slice\(s\) missing: slice gap 2.0000 mm"):
+    with pytest.raises(
+        ImagingError, match=r"folder .*gap: 1 slice\(s\) missing: slice gap 2.0000 mm"
+    ):
         read_dicom(tmp_path / "gap")
 
 
@@ -205,11 +258,30 @@ def test_refuses_multi_echo_without_volume(ph, tmp_path):
     import pydicom.uid
 
     uid = pydicom.uid.generate_uid()
-    write_series(tmp_path / "d", ph.pre, ph.affine, series_uid=uid, echo_number=1, echo_time_ms=10.0, name="E1_")
-    write_series(tmp_path / "d", ph.during, ph.affine, series_uid=uid, echo_number=2, echo_time_ms=30.0,
-                 instance_start=9, name="E2_")
-    with pytest.raises(ImagingError, match=r"folder .*d: the series holds 2 volumes \(volume 1: echo 1, TE 10.0 ms, 8 slices; "
-                                           r"volume 2: echo 2, TE 30.0 ms, 8 slices\); pick one with .*volume"):
+    write_series(
+        tmp_path / "d",
+        ph.pre,
+        ph.affine,
+        series_uid=uid,
+        echo_number=1,
+        echo_time_ms=10.0,
+        name="E1_",
+    )
+    write_series(
+        tmp_path / "d",
+        ph.during,
+        ph.affine,
+        series_uid=uid,
+        echo_number=2,
+        echo_time_ms=30.0,
+        instance_start=9,
+        name="E2_",
+    )
+    with pytest.raises(
+        ImagingError,
+        match=r"folder .*d: the series holds 2 volumes \(volume 1: echo 1, TE 10.0 ms, 8 slices; "
+        r"volume 2: echo 2, TE 30.0 ms, 8 slices\); pick one with .*volume",
+    ):
         read_dicom(tmp_path / "d", animal="rat")
     vol, meta = read_dicom(tmp_path / "d", volume=2)
     assert_same_geometry(quantised(ph.during), ph.affine, vol.data, vol.affine)
@@ -223,8 +295,18 @@ def test_refuses_repeated_series_without_volume(ph, tmp_path):
     import pydicom.uid
 
     uid = pydicom.uid.generate_uid()
-    write_series(tmp_path / "d", ph.pre, ph.affine, series_uid=uid, temporal_position=1, name="T1_")
-    write_series(tmp_path / "d", ph.during, ph.affine, series_uid=uid, temporal_position=2, instance_start=9, name="T2_")
+    write_series(
+        tmp_path / "d", ph.pre, ph.affine, series_uid=uid, temporal_position=1, name="T1_"
+    )
+    write_series(
+        tmp_path / "d",
+        ph.during,
+        ph.affine,
+        series_uid=uid,
+        temporal_position=2,
+        instance_start=9,
+        name="T2_",
+    )
     with pytest.raises(ImagingError, match=r"folder .*d: the series holds 2 volumes"):
         read_dicom(tmp_path / "d")
     vol, _ = read_dicom(tmp_path / "d", volume=1)
@@ -264,50 +346,91 @@ SCHEMA = ROOT / "workflow" / "schemas" / "config.schema.yaml"
 def test_config_accepts_scanner_forms(tmp_path):
     (tmp_path / "dcm").mkdir()
     (tmp_path / "study").mkdir()
-    cfg = {"animals": {"rat": {"pre": "dcm", "during": {"bruker": "study", "scan": 6, "reco": 1}},
-                       "rat2": {"pre": {"dicom": "dcm", "series": 3, "volume": 1}, "during": {"dicom": "dcm", "series": "T2 during"}}}}
+    cfg = {
+        "animals": {
+            "rat": {"pre": "dcm", "during": {"bruker": "study", "scan": 6, "reco": 1}},
+            "rat2": {
+                "pre": {"dicom": "dcm", "series": 3, "volume": 1},
+                "during": {"dicom": "dcm", "series": "T2 during"},
+            },
+        }
+    }
     out = validate_config(cfg, SCHEMA, base_dir=tmp_path)
     # no key is filled into a scan mapping (a default would leak into the other forms)
     assert out["animals"]["rat"]["during"] == {"bruker": "study", "scan": 6, "reco": 1}
     assert out["animals"]["rat2"]["during"] == {"dicom": "dcm", "series": "T2 during"}
 
 
-@pytest.mark.parametrize("during, match", [
-    ({"bruker": "nowhere", "scan": 6}, r"animals\.rat\.during: folder not found: nowhere"),
-    ({"dicom": "dcm", "scan": 6}, r"animals\.rat\.during: unknown key\(s\) \[.scan.\]; allowed: \[.dicom., .series., .volume.\]"),
-    ({"bruker": "dcm"}, r"animals\.rat\.during: .scan. is a required property"),
-    ("nowhere", r"animals\.rat\.during: file not found: nowhere"),
-])
+@pytest.mark.parametrize(
+    "during, match",
+    [
+        ({"bruker": "nowhere", "scan": 6}, r"animals\.rat\.during: folder not found: nowhere"),
+        (
+            {"dicom": "dcm", "scan": 6},
+            r"animals\.rat\.during: unknown key\(s\) \[.scan.\]; allowed: \[.dicom., .series., .volume.\]",
+        ),
+        ({"bruker": "dcm"}, r"animals\.rat\.during: .scan. is a required property"),
+        ("nowhere", r"animals\.rat\.during: file not found: nowhere"),
+    ],
+)
 def test_config_refuses_bad_scanner_forms(tmp_path, during, match):
     (tmp_path / "dcm").mkdir()
     with pytest.raises(ConfigError, match=match):
-        validate_config({"animals": {"rat": {"pre": "dcm", "during": during}}}, SCHEMA, base_dir=tmp_path)
+        validate_config(
+            {"animals": {"rat": {"pre": "dcm", "during": during}}}, SCHEMA, base_dir=tmp_path
+        )
 
 
 # --- ParaVision: a study written as brkraw discovers it (tests/scanner_synth.write_paravision) ---
 
 
-@pytest.mark.parametrize("name", ["axial_head_first", "axial_feet_first", "coronal", "sagittal", "oblique",
-                                  "oblique_coronal_feet_first"])
+@pytest.mark.parametrize(
+    "name",
+    [
+        "axial_head_first",
+        "axial_feet_first",
+        "coronal",
+        "sagittal",
+        "oblique",
+        "oblique_coronal_feet_first",
+    ],
+)
 def test_paravision_geometry_round_trip(ph, tmp_path, name):
     perm, flip, rot, _ = ORIENTATIONS[name]
     affine = ph.affine if rot is None else rotated(ph.affine, rot)
     data, aff = reorder(ph.pre, affine, perm=perm, flip=flip)
-    write_paravision(tmp_path / "study", 5, data, aff, subject_position="Foot_Prone" if "feet" in name else "Head_Prone")
+    write_paravision(
+        tmp_path / "study",
+        5,
+        data,
+        aff,
+        subject_position="Foot_Prone" if "feet" in name else "Head_Prone",
+    )
     vol, meta = read_bruker(tmp_path / "study", scan=5, reco=1, animal="rat")
     assert_read_back(ph, affine, aff, vol, axial=perm == (0, 1, 2) and rot is None)
-    assert meta["converter"] == "brkraw" and meta["scan"] == 5 and meta["sequence"] == "<Bruker:RARE>"
-    assert meta["echo_time_ms"] == 12.0 and meta["repetition_time_ms"] == 2500.0 and meta["field_strength_t"] == 7.053
+    assert (
+        meta["converter"] == "brkraw" and meta["scan"] == 5 and meta["sequence"] == "<Bruker:RARE>"
+    )
+    assert (
+        meta["echo_time_ms"] == 12.0
+        and meta["repetition_time_ms"] == 2500.0
+        and meta["field_strength_t"] == 7.053
+    )
 
 
 def test_paravision_refusals(ph, tmp_path):
     study = tmp_path / "20190312_rat07"
     write_paravision(study, 5, ph.pre, ph.affine, protocol="T2_pre")
     write_paravision(study, 6, ph.during, ph.affine, protocol="T2_during")
-    with pytest.raises(ImagingError, match=r"animal rat, folder .*20190312_rat07: no scan 7; the study holds: "
-                                           r"scan 5 'T2_pre' \(recos \[1\]\); scan 6 'T2_during' \(recos \[1\]\)"):
+    with pytest.raises(
+        ImagingError,
+        match=r"animal rat, folder .*20190312_rat07: no scan 7; the study holds: "
+        r"scan 5 'T2_pre' \(recos \[1\]\); scan 6 'T2_during' \(recos \[1\]\)",
+    ):
         read_bruker(study, scan=7, animal="rat")
-    with pytest.raises(ImagingError, match=r"folder .*20190312_rat07, scan 6: no reco 2; the scan has recos \[1\]"):
+    with pytest.raises(
+        ImagingError, match=r"folder .*20190312_rat07, scan 6: no reco 2; the scan has recos \[1\]"
+    ):
         read_bruker(study, scan=6, reco=2)
     vol, _ = read_scan({"bruker": "20190312_rat07", "scan": 6}, base_dir=tmp_path)
     assert_same_geometry(quantised(ph.during), ph.affine, vol.data, vol.affine)
@@ -317,16 +440,25 @@ def test_paravision_refusals(ph, tmp_path):
     k = text.index(next(t for t in text if t.startswith("##$VisuCoreDataSlope")))
     text[k + 1] = " ".join(["0.001"] + text[k + 1].split()[1:])
     visu.write_text("\n".join(text) + "\n")
-    with pytest.raises(ImagingError, match=r"scan 6, reco 1: VisuCoreDataSlope differs between frames"):
+    with pytest.raises(
+        ImagingError, match=r"scan 6, reco 1: VisuCoreDataSlope differs between frames"
+    ):
         read_bruker(study, scan=6)
     # a multi-echo scan: one volume per echo, and a refusal without a choice
     write_paravision(study, 8, np.stack([ph.pre, ph.during], axis=3), ph.affine, protocol="MGE")
-    with pytest.raises(ImagingError, match=r"folder .*20190312_rat07, scan 8, reco 1: 2 volumes .*; pick one with .*volume"):
+    with pytest.raises(
+        ImagingError,
+        match=r"folder .*20190312_rat07, scan 8, reco 1: 2 volumes .*; pick one with .*volume",
+    ):
         read_bruker(study, scan=8, animal="rat")
     for n, truth in ((1, ph.pre), (2, ph.during)):
-        vol, meta = read_scan({"bruker": "20190312_rat07", "scan": 8, "volume": n}, base_dir=tmp_path)
+        vol, meta = read_scan(
+            {"bruker": "20190312_rat07", "scan": 8, "volume": n}, base_dir=tmp_path
+        )
         slope = float(max(ph.pre.max(), ph.during.max())) / 4000
-        np.testing.assert_allclose(vol.data, np.round(truth / slope) * slope, rtol=0, atol=1e-5 * slope * 4000)
+        np.testing.assert_allclose(
+            vol.data, np.round(truth / slope) * slope, rtol=0, atol=1e-5 * slope * 4000
+        )
         np.testing.assert_allclose(vol.affine, ph.affine, atol=1e-5)
         assert meta["volume"] == n and meta["echo_time_ms"] == 12.0 * n
     with pytest.raises(ImagingError, match=r"volume 3 does not exist"):
@@ -355,23 +487,46 @@ def test_study_from_scanner_copies_matches_its_nifti_twin(tmp_path):
 
     from deeptissue.imaging import write_nifti
 
-    spec = PhantomSpec(seed=1, depth_mm=2.0, tilt_deg=(5.0, -3.0), bone_rotation_deg=(1.0, -0.5, 0.8),
-                       bone_translation_mm=(0.05, -0.10, 0.02), snr=20, supersample=2)
+    spec = PhantomSpec(
+        seed=1,
+        depth_mm=2.0,
+        tilt_deg=(5.0, -3.0),
+        bone_rotation_deg=(1.0, -0.5, 0.8),
+        bone_translation_mm=(0.05, -0.10, 0.02),
+        snr=20,
+        supersample=2,
+    )
     ph = make_phantom(spec)
     step = 2.0**-12
     data = tmp_path / "data"
-    vols = {s: (np.round(getattr(ph, s) / step) * step).astype(np.float32) for s in ("pre", "during")}
+    vols = {
+        s: (np.round(getattr(ph, s) / step) * step).astype(np.float32) for s in ("pre", "during")
+    }
     for s, (series, scan) in {"pre": (3, 5), "during": (4, 6)}.items():
         write_nifti(data / "nifti" / f"{s}.nii.gz", vols[s], ph.affine)
         d, a = reorder(vols[s], ph.affine, flip=(True, False, True))
-        write_series(data / "dicom", d, a, series_number=series, description=f"T2 {s}", patient_position="FFS", slope=step)
+        write_series(
+            data / "dicom",
+            d,
+            a,
+            series_number=series,
+            description=f"T2 {s}",
+            patient_position="FFS",
+            slope=step,
+        )
         d, a = reorder(vols[s], ph.affine, flip=(False, True, False))
         write_paravision(data / "study", scan, d, a, protocol=f"T2_{s}", slope=step)
     cfg = {
         "animals": {
             "twin": {s: str(data / "nifti" / f"{s}.nii.gz") for s in ("pre", "during")},
-            "dicom": {"pre": {"dicom": str(data / "dicom"), "series": 3}, "during": {"dicom": str(data / "dicom"), "series": 4}},
-            "bruker": {"pre": {"bruker": str(data / "study"), "scan": 5}, "during": {"bruker": str(data / "study"), "scan": 6}},
+            "dicom": {
+                "pre": {"dicom": str(data / "dicom"), "series": 3},
+                "during": {"dicom": str(data / "dicom"), "series": 4},
+            },
+            "bruker": {
+                "pre": {"bruker": str(data / "study"), "scan": 5},
+                "during": {"bruker": str(data / "study"), "scan": 6},
+            },
         },
         "study": {"name": "scanners", "variants": ["sphere"]},
         "model": {"element_size_mm": 2.5, "refine_size_mm": 1.25},
@@ -379,19 +534,41 @@ def test_study_from_scanner_copies_matches_its_nifti_twin(tmp_path):
     (tmp_path / "study.yaml").write_text(yaml.safe_dump(cfg))
     wd = tmp_path / "wd"
     env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
-    r = subprocess.run([sys.executable, "-m", "snakemake", "results/summary/scanners/voi.csv", "--cores", "2", "-s", str(ROOT / "Snakefile"),
-                        "--directory", str(wd), "--configfile", str(tmp_path / "study.yaml")],
-                       env=env, capture_output=True, text=True, timeout=3000)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "snakemake",
+            "results/summary/scanners/voi.csv",
+            "--cores",
+            "2",
+            "-s",
+            str(ROOT / "Snakefile"),
+            "--directory",
+            str(wd),
+            "--configfile",
+            str(tmp_path / "study.yaml"),
+        ],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=3000,
+    )
     assert r.returncode == 0, r.stderr[-3000:]
     for animal in ("dicom", "bruker"):
         for s in ("pre", "during"):
             got = load_nifti(wd / "results" / animal / "mri" / f"{s}.nii.gz")
             np.testing.assert_array_equal(got.data, vols[s])
             np.testing.assert_array_equal(got.affine, ph.affine)
-        assert json.loads((wd / "results" / animal / "mri" / "pre.json").read_text())["kind"] == animal
+        assert (
+            json.loads((wd / "results" / animal / "mri" / "pre.json").read_text())["kind"]
+            == animal
+        )
     voi = pd.read_csv(wd / "results" / "summary" / "scanners" / "voi.csv").set_index("animal")
     # every number but the timings (columns ending in _s) is the same
     numeric = [c for c in voi.select_dtypes("number").columns if not c.endswith("_s")]
     assert voi.loc["twin", "converged"]
     for animal in ("dicom", "bruker"):
-        pd.testing.assert_series_equal(voi.loc[animal, numeric], voi.loc["twin", numeric], check_names=False, rtol=1e-9)
+        pd.testing.assert_series_equal(
+            voi.loc[animal, numeric], voi.loc["twin", numeric], check_names=False, rtol=1e-9
+        )

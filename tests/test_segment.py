@@ -1,7 +1,6 @@
 """Segmentation against the phantom truth (snr 12), PCHIP resampling, manual override, bad input."""
 
 import re
-from pathlib import Path
 
 import nibabel as nib
 import numpy as np
@@ -9,8 +8,15 @@ import pytest
 import yaml
 
 from deeptissue.config import ConfigError
-from deeptissue.contours import points_in_polygon, polygon_area_centroid, resample_closed
-from deeptissue.imaging import ImagingError, Volume, check_matching, crop_volume, load_nifti, write_nifti
+from deeptissue.contours import polygon_area_centroid, resample_closed
+from deeptissue.imaging import (
+    ImagingError,
+    Volume,
+    check_matching,
+    crop_volume,
+    load_nifti,
+    write_nifti,
+)
 from deeptissue.phantom import PhantomSpec, _Scene, make_phantom
 from deeptissue.segment import (
     SegmentationError,
@@ -22,8 +28,14 @@ from deeptissue.segment import (
 )
 
 # the hardest demo animal (deepest, most tilted) at the lowest claimed snr
-SPEC = PhantomSpec(seed=2, depth_mm=2.5, tilt_deg=(-8.0, 6.0), bone_rotation_deg=(-1.5, 0.8, 0.3),
-                   bone_translation_mm=(-0.08, -0.12, 0.04), snr=12)
+SPEC = PhantomSpec(
+    seed=2,
+    depth_mm=2.5,
+    tilt_deg=(-8.0, 6.0),
+    bone_rotation_deg=(-1.5, 0.8, 0.3),
+    bone_translation_mm=(-0.08, -0.12, 0.04),
+    snr=12,
+)
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +48,9 @@ def segmented(ph):
     """Both states segmented with the default settings (about 5 s)."""
     out = {}
     for state in ("pre", "during"):
-        vol = Volume(data=getattr(ph, state), affine=ph.affine, path=f"{state}.nii.gz", animal="ratT")
+        vol = Volume(
+            data=getattr(ph, state), affine=ph.affine, path=f"{state}.nii.gz", animal="ratT"
+        )
         out[state] = segment_volume(vol, state=state)[0]
     return out
 
@@ -48,12 +62,19 @@ def _distances(seg, ph, state, structure):
         pts = getattr(seg, structure)[k, :, :2]
         rows = contour_accuracy(
             type(seg)(skin=seg.skin[k : k + 1], bone=seg.bone[k : k + 1]),
-            {structure: [ph.dense[(state, structure)][k]], "skin" if structure == "bone" else "bone": [ph.dense[(state, "skin" if structure == "bone" else "bone")][k]]},
+            {
+                structure: [ph.dense[(state, structure)][k]],
+                "skin" if structure == "bone" else "bone": [
+                    ph.dense[(state, "skin" if structure == "bone" else "bone")][k]
+                ],
+            },
         )
         from deeptissue.contours import point_to_polygon_distance
 
         dk = point_to_polygon_distance(pts, ph.dense[(state, structure)][k][:, :2])
-        assert np.isclose(dk.mean(), [r for r in rows if r["structure"] == structure][0]["mean_mm"])
+        assert np.isclose(
+            dk.mean(), [r for r in rows if r["structure"] == structure][0]["mean_mm"]
+        )
         d.append(dk)
         post.append(pts[:, 1] < pts[:, 1].mean())
     return np.concatenate(d), np.concatenate(post)
@@ -211,7 +232,10 @@ def test_manual_override_replaces_slices(ph, tmp_path):
 def test_override_bone_outside_skin_is_an_error(ph, tmp_path):
     vol = Volume(data=ph.pre[:, :, :8], affine=ph.affine, path="pre.nii.gz", animal="ratT")
     far = [[9, 9], [10, 9], [10, 10], [9, 10]]
-    with pytest.raises(SegmentationError, match=r"animal ratT, file pre\.nii\.gz, slice 5: bone contour outside the skin"):
+    with pytest.raises(
+        SegmentationError,
+        match=r"animal ratT, file pre\.nii\.gz, slice 5: bone contour outside the skin",
+    ):
         segment_volume(vol, state="pre", overrides={"pre": {"bone": {5: np.array(far, float)}}})
 
 
@@ -219,12 +243,21 @@ def test_override_slice_given_twice_names_file_and_key(tmp_path):
     pts = "[[0, 0], [1, 0], [1, 1], [0, 1]]"
     f = tmp_path / "ov.yaml"
     f.write_text(f"pre:\n  bone:\n    4: {pts}\n    5: {pts}\n    4: {pts}\n")
-    with pytest.raises(ConfigError, match=rf"config file {re.escape(str(f))}, line 5: key '4' is given twice \(lines 3 and 5\)"):
+    with pytest.raises(
+        ConfigError,
+        match=rf"config file {re.escape(str(f))}, line 5: key '4' is given twice \(lines 3 and 5\)",
+    ):
         load_overrides(f)
-    f.write_text(f"pre:\n  bone:\n    4: {pts}\n    '04': {pts}\n")  # YAML reads these as two keys: one slice
-    with pytest.raises(ValueError, match=rf"{re.escape(str(f))}: pre\.bone: slice 4 is given twice \(key '04'\)"):
+    f.write_text(
+        f"pre:\n  bone:\n    4: {pts}\n    '04': {pts}\n"
+    )  # YAML reads these as two keys: one slice
+    with pytest.raises(
+        ValueError, match=rf"{re.escape(str(f))}: pre\.bone: slice 4 is given twice \(key '04'\)"
+    ):
         load_overrides(f)
-    f.write_text(f"during:\n  bone:\n    4: {pts}\n  skin:\n    4: {pts}\n")  # one slice per structure is fine
+    f.write_text(
+        f"during:\n  bone:\n    4: {pts}\n  skin:\n    4: {pts}\n"
+    )  # one slice per structure is fine
     assert sorted(load_overrides(f)["during"]) == ["bone", "skin"]
 
 
@@ -262,10 +295,15 @@ def test_mismatched_slices(ph, tmp_path):
     A = ph.affine.copy()
     A[2, 3] += 0.5
     shifted = _nifti(tmp_path / "during.nii.gz", ph.pre[:16, :16], A)
-    with pytest.raises(ImagingError, match=r"animal rat9, file .*during\.nii\.gz vs .*pre\.nii\.gz, slice 0: slices do not match"):
+    with pytest.raises(
+        ImagingError,
+        match=r"animal rat9, file .*during\.nii\.gz vs .*pre\.nii\.gz, slice 0: slices do not match",
+    ):
         check_matching(load_nifti(pre, animal="rat9"), load_nifti(shifted, animal="rat9"))
     fewer = _nifti(tmp_path / "during2.nii.gz", ph.pre[:16, :16, :19], ph.affine)
-    with pytest.raises(ImagingError, match=r"slice 19: slices do not match: during has 19 slices, pre has 20"):
+    with pytest.raises(
+        ImagingError, match=r"slice 19: slices do not match: during has 19 slices, pre has 20"
+    ):
         check_matching(load_nifti(pre, animal="rat9"), load_nifti(fewer, animal="rat9"))
 
 
@@ -275,15 +313,26 @@ def test_no_closed_contour_names_slice_and_writes_nothing(ph, tmp_path):
     img = tmp_path / "pre.nii.gz"
     write_nifti(img, data, ph.affine)
     out = tmp_path / "out" / "pre.npz"
-    with pytest.raises(SegmentationError, match=r"animal rat9, file .*pre\.nii\.gz, slice 7: no closed skin contour"):
-        segment_files(img, contours_out=out, qc_out=tmp_path / "out" / "qc.png", animal="rat9", state="pre",
-                      settings={})
+    with pytest.raises(
+        SegmentationError,
+        match=r"animal rat9, file .*pre\.nii\.gz, slice 7: no closed skin contour",
+    ):
+        segment_files(
+            img,
+            contours_out=out,
+            qc_out=tmp_path / "out" / "qc.png",
+            animal="rat9",
+            state="pre",
+            settings={},
+        )
     assert not out.exists() and not (tmp_path / "out" / "qc.png").exists()
 
 
 def test_leg_cut_by_the_crop_has_no_closed_contour(ph):
     vol = Volume(data=ph.pre, affine=ph.affine, path="pre.nii.gz", animal="rat9")
-    cut = crop_volume(vol, [[-12.5, 12.5], [0.0, 12.5], [-10, 10]])  # the posterior half is cut off
+    cut = crop_volume(
+        vol, [[-12.5, 12.5], [0.0, 12.5], [-10, 10]]
+    )  # the posterior half is cut off
     with pytest.raises(SegmentationError, match=r"slice 0: no closed skin contour"):
         segment_volume(cut, state="pre")
 
@@ -292,9 +341,13 @@ def test_no_bone_is_an_error(ph):
     data = ph.pre.copy()
     sc = _Scene(SPEC)
     X, Y = np.meshgrid(*(ph.affine[0, 3] + ph.affine[0, 0] * np.arange(256),) * 2, indexing="ij")
-    data[:, :, 4][sc.an.bone_f(X, Y, ph.z_mm[4]) < 0.3] = np.median(data[100:150, 100:150, 4])  # fill the tibia
+    data[:, :, 4][sc.an.bone_f(X, Y, ph.z_mm[4]) < 0.3] = np.median(
+        data[100:150, 100:150, 4]
+    )  # fill the tibia
     vol = Volume(data=data, affine=ph.affine, path="pre.nii.gz", animal="rat9")
-    with pytest.raises(SegmentationError, match=r"slice 4: no closed bone contour inside the skin"):
+    with pytest.raises(
+        SegmentationError, match=r"slice 4: no closed bone contour inside the skin"
+    ):
         segment_volume(vol, state="pre")
 
 
@@ -310,7 +363,11 @@ def test_crop_keeps_world_coordinates(ph):
 @pytest.mark.slow
 def test_accuracy_holds_at_high_snr():
     # "snr >= 12" includes nearly noise-free images: the automatic skin level must not drift with noise
-    ph = make_phantom(PhantomSpec(seed=5, depth_mm=2.0, tilt_deg=(4.0, -4.0), snr=80, n_slices=6, indenter_z_mm=-2.5))
+    ph = make_phantom(
+        PhantomSpec(
+            seed=5, depth_mm=2.0, tilt_deg=(4.0, -4.0), snr=80, n_slices=6, indenter_z_mm=-2.5
+        )
+    )
     for state in ("pre", "during"):
         seg, _ = segment_volume(Volume(data=getattr(ph, state), affine=ph.affine), state=state)
         for structure in ("skin", "bone"):
@@ -331,25 +388,50 @@ def test_rule_functions_write_whole_outputs(tmp_path):
 
     spec = PhantomSpec(seed=6, snr=15, n_slices=4, indenter_z_mm=0.0)
     m = tmp_path / "mri"
-    ph = write_phantom(spec, pre_path=m / "pre.nii.gz", during_path=m / "during.nii.gz", truth_path=m / "truth.json",
-                       truth_pre_path=m / "truth_pre.npz", truth_during_path=m / "truth_during.npz", n_points=64)
+    ph = write_phantom(
+        spec,
+        pre_path=m / "pre.nii.gz",
+        during_path=m / "during.nii.gz",
+        truth_path=m / "truth.json",
+        truth_pre_path=m / "truth_pre.npz",
+        truth_during_path=m / "truth_during.npz",
+        n_points=64,
+    )
     vol = load_nifti(m / "during.nii.gz", animal="ratW")
     np.testing.assert_allclose(vol.affine, ph.affine, atol=1e-6)
     np.testing.assert_allclose(vol.data, ph.during, atol=1e-6)
     np.testing.assert_allclose(load_pose(m / "truth.json").tip_end_mm, ph.truth.tip_end_mm)
     ov = tmp_path / "ov.yaml"
-    ov.write_text(yaml.safe_dump({"during": {"bone": {2: ph.truth_during.bone[2, :, :2].tolist()},
-                                             "fibula": {1: ph.truth_during.fibula[1, :, :2].tolist()}}}))
+    ov.write_text(
+        yaml.safe_dump(
+            {
+                "during": {
+                    "bone": {2: ph.truth_during.bone[2, :, :2].tolist()},
+                    "fibula": {1: ph.truth_during.fibula[1, :, :2].tolist()},
+                }
+            }
+        )
+    )
     out = tmp_path / "contours" / "during.npz"
-    segment_files(m / "during.nii.gz", contours_out=out, qc_out=tmp_path / "qc" / "seg.png", animal="ratW",
-                  state="during", settings={"n_points": 64}, reference=m / "pre.nii.gz", overrides=ov,
-                  truth=m / "truth_during.npz")
+    segment_files(
+        m / "during.nii.gz",
+        contours_out=out,
+        qc_out=tmp_path / "qc" / "seg.png",
+        animal="ratW",
+        state="during",
+        settings={"n_points": 64},
+        reference=m / "pre.nii.gz",
+        overrides=ov,
+        truth=m / "truth_during.npz",
+    )
     c = load_contours(out)
     assert c.skin.shape == (4, 64, 3) and c.fibula.shape == (4, 64, 3)
     assert (tmp_path / "qc" / "seg.png").stat().st_size > 10_000
     # the overridden slice carries the hand-drawn (here: true) bone contour
     np.testing.assert_allclose(c.bone[2], ph.truth_during.bone[2], atol=1e-3)
-    np.testing.assert_allclose(c.fibula[1], ph.truth_during.fibula[1], atol=1e-3)  # a hand-drawn fibula too
+    np.testing.assert_allclose(
+        c.fibula[1], ph.truth_during.fibula[1], atol=1e-3
+    )  # a hand-drawn fibula too
     rows = write_accuracy(out, m / "truth_during.npz", tmp_path / "qc" / "acc.csv")
     df = pd.read_csv(tmp_path / "qc" / "acc.csv")
     assert len(df) == 12 and set(df["structure"]) == {"skin", "bone", "fibula"}

@@ -25,8 +25,13 @@ from deeptissue.rigid import BoneMotion
 from deeptissue.segment import SegmentationError, find_indenter, segment_volume
 
 # the test config's animal (rat01): tilt 5/-3 deg, bone rotation ~1.4 deg, snr 15
-BASE = PhantomSpec(seed=1, tilt_deg=(5.0, -3.0), bone_rotation_deg=(1.0, -0.5, 0.8),
-                   bone_translation_mm=(0.05, -0.10, 0.02), snr=15)
+BASE = PhantomSpec(
+    seed=1,
+    tilt_deg=(5.0, -3.0),
+    bone_rotation_deg=(1.0, -0.5, 0.8),
+    bone_translation_mm=(0.05, -0.10, 0.02),
+    snr=15,
+)
 
 
 def depth_for_gap(spec: PhantomSpec, gap_mm: float) -> float:
@@ -40,14 +45,21 @@ def depth_for_gap(spec: PhantomSpec, gap_mm: float) -> float:
 
 
 def _distances(seg: Contours, ph, state: str, structure: str) -> np.ndarray:
-    return np.concatenate([point_to_polygon_distance(getattr(seg, structure)[k, :, :2],
-                                                     ph.dense[(state, structure)][k][:, :2])
-                           for k in range(seg.n_slices)])
+    return np.concatenate(
+        [
+            point_to_polygon_distance(
+                getattr(seg, structure)[k, :, :2], ph.dense[(state, structure)][k][:, :2]
+            )
+            for k in range(seg.n_slices)
+        ]
+    )
 
 
 def _segment_both(ph):
-    vols = {st: Volume(data=getattr(ph, st), affine=ph.affine, path=f"{st}.nii.gz", animal="ratG")
-            for st in ("pre", "during")}
+    vols = {
+        st: Volume(data=getattr(ph, st), affine=ph.affine, path=f"{st}.nii.gz", animal="ratG")
+        for st in ("pre", "during")
+    }
     pre, _ = segment_volume(vols["pre"], state="pre")
     skins, _ = segment_volume(vols["during"], state="during", _skin_only=True)
     indenter = find_indenter(vols["during"], skins.skin)
@@ -63,10 +75,16 @@ def small():
 
 def test_indenter_signed_distance_matches_the_phantom(small):
     scene = _Scene(small.spec)
-    shape = IndenterShape(axis=scene.axis, head_centre_mm=scene.head_centre, radius_mm=small.spec.indenter_radius_mm,
-                          fluid_radius_mm=small.spec.indenter_radius_mm - small.spec.indenter_wall_mm)
+    shape = IndenterShape(
+        axis=scene.axis,
+        head_centre_mm=scene.head_centre,
+        radius_mm=small.spec.indenter_radius_mm,
+        fluid_radius_mm=small.spec.indenter_radius_mm - small.spec.indenter_wall_mm,
+    )
     p = np.random.default_rng(0).uniform(-6, 6, (500, 3))
-    assert np.allclose(shape.signed_distance_mm(p), scene.indenter_sd(p[:, 0], p[:, 1], p[:, 2]), atol=1e-12)
+    assert np.allclose(
+        shape.signed_distance_mm(p), scene.indenter_sd(p[:, 0], p[:, 1], p[:, 2]), atol=1e-12
+    )
     assert np.allclose(shape.tip_mm, small.truth.tip_end_mm) and np.isclose(shape.wall_mm, 0.5)
 
 
@@ -87,8 +105,11 @@ def test_no_fluid_means_no_indenter(small):
 def test_moved_section_is_the_moved_bone(small):
     """The pre tibia, moved by the true motion and cut at a slice plane, is the during tibia of that slice."""
     t = small.truth
-    motion = BoneMotion(rotation_deg=tuple(t.bone_rotation_deg), centre_mm=tuple(t.bone_com_mm),
-                        translation_mm=tuple(t.bone_translation_mm))
+    motion = BoneMotion(
+        rotation_deg=tuple(t.bone_rotation_deg),
+        centre_mm=tuple(t.bone_com_mm),
+        translation_mm=tuple(t.bone_translation_mm),
+    )
     for k in (2, 5):
         sec = moved_section(small.truth_pre.bone, motion, float(small.z_mm[k]))
         d = point_to_polygon_distance(sec[:, :2], small.dense[("during", "bone")][k][:, :2])
@@ -119,7 +140,10 @@ def test_bone_hidden_round_trip_and_shape(small, tmp_path):
     save_contours(tmp_path / "c.npz", h)
     back = load_contours(tmp_path / "c.npz")
     assert np.array_equal(back.bone_hidden, hidden) and back.bone_seen.sum() == c.n_slices - 1
-    assert Contours(skin=c.skin, bone=c.bone, bone_hidden=np.zeros(c.n_slices, bool)).bone_hidden is None
+    assert (
+        Contours(skin=c.skin, bone=c.bone, bone_hidden=np.zeros(c.n_slices, bool)).bone_hidden
+        is None
+    )
     with pytest.raises(ValueError, match="bone_hidden"):
         Contours(skin=c.skin, bone=c.bone, bone_hidden=hidden[:-1])
 
@@ -130,7 +154,9 @@ def test_too_many_hidden_slices_is_an_error(small):
     vol = Volume(data=small.during, affine=small.affine, path="during.nii.gz", animal="ratG")
     hidden = np.arange(small.spec.n_slices) < 5
     bones = list(small.truth_during.bone)
-    with pytest.raises(SegmentationError, match=r"ratG.*touches the indenter on 5 of 8 slices \(0, 1, 2, 3, 4\)"):
+    with pytest.raises(
+        SegmentationError, match=r"ratG.*touches the indenter on 5 of 8 slices \(0, 1, 2, 3, 4\)"
+    ):
         _fill_hidden(vol, bones, [None] * 8, hidden, small.truth_pre, SegmentationSettings())
     bones[0] = None
     with pytest.raises(SegmentationError, match="no pre contours"):
@@ -151,15 +177,22 @@ def test_indenter_at_the_tibia(gap_mm, tilt):
     pre, during, info, indenter = _segment_both(ph)
     assert indenter is not None
     if gap_mm <= 0.1:
-        assert info["bone_hidden"], "the tibia within a pixel of the indenter is hidden on some slice"
+        assert info["bone_hidden"], (
+            "the tibia within a pixel of the indenter is hidden on some slice"
+        )
     assert len(info["bone_hidden"]) <= 3
     assert np.array_equal(np.nonzero(~during.bone_seen)[0], info["bone_hidden"])
     for state, seg in (("pre", pre), ("during", during)):
         for structure in ("skin", "bone"):
             d = _distances(seg, ph, state, structure)
-            assert d.mean() <= 0.05 and d.max() <= 0.25, f"{state} {structure}: {d.mean():.4f} / {d.max():.4f} mm"
+            assert d.mean() <= 0.05 and d.max() <= 0.25, (
+                f"{state} {structure}: {d.mean():.4f} / {d.max():.4f} mm"
+            )
     pose, _ = estimate_pose(ph.during, ph.affine, pre, during)
-    assert pose.extra["bone_slices_used"] == [ph.spec.n_slices - len(info["bone_hidden"]), ph.spec.n_slices]
+    assert pose.extra["bone_slices_used"] == [
+        ph.spec.n_slices - len(info["bone_hidden"]),
+        ph.spec.n_slices,
+    ]
     err = pose_errors(pose, ph.truth)
     for k, tol in ACCURACY_TOLERANCES.items():
         assert err[k] <= tol, f"{k} {err[k]:.4f} > {tol}"

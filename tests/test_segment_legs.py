@@ -7,11 +7,24 @@ from masked_legs import Leg, masked_legs
 from deeptissue import segment
 from deeptissue.contours import load_contours, polygon_area_centroid
 from deeptissue.imaging import ImagingError, body_mask, select_leg, write_nifti
-from deeptissue.segment import SegmentationError, SegmentationSettings, segment_files, segment_volume
+from deeptissue.segment import (
+    SegmentationError,
+    SegmentationSettings,
+    segment_files,
+    segment_volume,
+)
 
 # a masked scan: background and fat exactly 0, nothing to smooth, the skin at the edge of the non-zero region
-MASKED = SegmentationSettings(smooth_mm=0.0, skin_level=0.05, bone_level=0.25, bone_select="anterior",
-                              bone_min_area_mm2=0.5, bias_erode_mm=1.0, bias_degree=2, fluid_level=None)
+MASKED = SegmentationSettings(
+    smooth_mm=0.0,
+    skin_level=0.05,
+    bone_level=0.25,
+    bone_select="anterior",
+    bone_min_area_mm2=0.5,
+    bias_erode_mm=1.0,
+    bias_degree=2,
+    fluid_level=None,
+)
 PX_MM = 0.25
 # two legs side by side, offset in x and y, whose skins overlap by 0.4 mm along a 3 mm seam
 R_MM = 6.3
@@ -39,8 +52,10 @@ def test_no_crop_box_parts_the_touching_legs(twin):
     assert (in_box & (_distance_from(w, A) > R_MM + PX_MM)).sum() > 100
 
 
-@pytest.mark.parametrize("point, mine, other", [((-5.0, -3.0, 0.0), A, B), ((4.0, 4.0, -2.0), B, A),
-                                                 ((-1.5, 1.0, 3.0), A, B)])
+@pytest.mark.parametrize(
+    "point, mine, other",
+    [((-5.0, -3.0, 0.0), A, B), ((4.0, 4.0, -2.0), B, A), ((-1.5, 1.0, 3.0), A, B)],
+)
 def test_a_point_picks_one_leg_whole(twin, point, mine, other):
     leg = select_leg(twin, point)
     body, kept = body_mask(twin), body_mask(leg)
@@ -48,16 +63,22 @@ def test_a_point_picks_one_leg_whole(twin, point, mine, other):
     keep = kept[body]
     d_mine, d_other = _distance_from(w, mine), _distance_from(w, other)
     assert keep[d_other > R_MM + PX_MM].all()  # all of the picked leg that is not the other's too
-    assert not keep[d_mine > R_MM + 3 * PX_MM].any()  # of the other, at most the cut's margin of two pixels
+    assert not keep[
+        d_mine > R_MM + 3 * PX_MM
+    ].any()  # of the other, at most the cut's margin of two pixels
     assert leg.data.shape == twin.data.shape and (leg.data[~kept] == 0).all()
 
 
 def test_the_picked_leg_segments_alone(twin):
     together, _ = segment_volume(twin, settings=MASKED)
-    assert _distance_from(together.skin, A).max() > 2 * R_MM  # without a point the skin runs around both legs
+    assert (
+        _distance_from(together.skin, A).max() > 2 * R_MM
+    )  # without a point the skin runs around both legs
     c, _ = segment_volume(select_leg(twin, (-5.0, -3.0, 0.0)), settings=MASKED)
     r = _distance_from(c.skin, A)
-    assert r.min() >= R_MM - PX_MM and r.max() <= R_MM + 3 * PX_MM  # within the margin left along the cut
+    assert (
+        r.min() >= R_MM - PX_MM and r.max() <= R_MM + 3 * PX_MM
+    )  # within the margin left along the cut
     tibia = np.add(A, TWIN[0].tibia_mm)
     for k in range(c.n_slices):
         assert np.hypot(*(polygon_area_centroid(c.bone[k, :, :2])[1] - tibia)) < PX_MM
@@ -67,19 +88,33 @@ def test_segment_files_takes_the_point(twin, tmp_path):
     img = tmp_path / "legs.nii.gz"
     write_nifti(img, twin.data, twin.affine)
     out = tmp_path / "pre.npz"
-    segment_files(img, contours_out=out, qc_out=tmp_path / "qc.png", animal="twin", state="pre", settings=MASKED,
-                  crop_mm=[[-14, 14], [-12, 12], [-2, 2]], leg_point_mm=[4.0, 4.0, 0.0])
+    segment_files(
+        img,
+        contours_out=out,
+        qc_out=tmp_path / "qc.png",
+        animal="twin",
+        state="pre",
+        settings=MASKED,
+        crop_mm=[[-14, 14], [-12, 12], [-2, 2]],
+        leg_point_mm=[4.0, 4.0, 0.0],
+    )
     c = load_contours(out)
     assert c.n_slices == 4 and (tmp_path / "qc.png").stat().st_size > 0
     assert np.abs(_distance_from(c.skin, B) - R_MM).max() <= 3 * PX_MM
 
 
 def test_a_point_outside_the_leg_is_refused(twin):
-    with pytest.raises(ImagingError, match=r"animal twin, file legs\.nii\.gz, slice 3: leg_point_mm \[12\.0, -10\.0, "
-                                           r"-0\.5\] lies outside the body"):
+    with pytest.raises(
+        ImagingError,
+        match=r"animal twin, file legs\.nii\.gz, slice 3: leg_point_mm \[12\.0, -10\.0, "
+        r"-0\.5\] lies outside the body",
+    ):
         select_leg(twin, (12.0, -10.0, -0.5))
-    with pytest.raises(ImagingError, match=r"animal twin, file legs\.nii\.gz: leg_point_mm \[0\.0, 0\.0, 9\.0\] lies "
-                                           r"outside the image"):
+    with pytest.raises(
+        ImagingError,
+        match=r"animal twin, file legs\.nii\.gz: leg_point_mm \[0\.0, 0\.0, 9\.0\] lies "
+        r"outside the image",
+    ):
         select_leg(twin, (0.0, 0.0, 9.0))
 
 
@@ -94,9 +129,13 @@ def test_one_leg_is_kept_whole():
 def test_masked_tibia_on_every_slice_not_a_larger_dark_spot_on_one():
     # on slice 3 a dark region larger than the tibia (a vessel, a gap): slice by slice 'largest' would take it
     vol = masked_legs([Leg((0.0, 0.0))], extra={3: (2.0, -2.0, 1.6)})
-    c, _ = segment_volume(vol, settings=SegmentationSettings(**{**MASKED.__dict__, "bone_select": "largest"}))
+    c, _ = segment_volume(
+        vol, settings=SegmentationSettings(**{**MASKED.__dict__, "bone_select": "largest"})
+    )
     for k in range(vol.n_slices):
-        assert np.hypot(*(polygon_area_centroid(c.bone[k, :, :2])[1] - (0.5, 2.6))) < PX_MM, f"slice {k}"
+        assert np.hypot(*(polygon_area_centroid(c.bone[k, :, :2])[1] - (0.5, 2.6))) < PX_MM, (
+            f"slice {k}"
+        )
 
 
 @pytest.mark.parametrize("select", ["anterior", "largest"])
@@ -105,9 +144,12 @@ def test_masked_tibia_open_into_the_fat_is_refused_naming_the_slices(select):
     # is the only dark region left, and it is not taken for the tibia
     vol = masked_legs([Leg((0.0, 0.0), open_slices=(2, 5))])
     settings = SegmentationSettings(**{**MASKED.__dict__, "bone_select": select})
-    with pytest.raises(SegmentationError, match=r"animal twin, file legs\.nii\.gz: the tibia \(.* near x 0\.5 mm, "
-                                                r"y 2\.6 mm\) is not a closed dark region inside the skin on slice\(s\) "
-                                                r"2, 5 of 8"):
+    with pytest.raises(
+        SegmentationError,
+        match=r"animal twin, file legs\.nii\.gz: the tibia \(.* near x 0\.5 mm, "
+        r"y 2\.6 mm\) is not a closed dark region inside the skin on slice\(s\) "
+        r"2, 5 of 8",
+    ):
         segment_volume(vol, settings=settings)
     assert isinstance(SegmentationError("x"), ImagingError)
 
@@ -116,12 +158,18 @@ def test_no_structure_along_the_leg_is_refused():
     # the tibia and fibula on slices 0-2 only; on 3-7 a dark spot that moves 1.4 mm a slice (no bone does)
     n = (64, 64, 8)
     bones = masked_legs([Leg((0.0, 0.0))], n=n)
-    spots = masked_legs([Leg((0.0, 0.0), tibia_radius_mm=0.0, fibula_radius_mm=0.0)], n=n,
-                        extra={k: (-2.8 + 1.4 * (k - 3), -3.0, 0.6) for k in range(3, 8)})
+    spots = masked_legs(
+        [Leg((0.0, 0.0), tibia_radius_mm=0.0, fibula_radius_mm=0.0)],
+        n=n,
+        extra={k: (-2.8 + 1.4 * (k - 3), -3.0, 0.6) for k in range(3, 8)},
+    )
     data = np.concatenate([bones.data[:, :, :3], spots.data[:, :, 3:]], axis=2)
     vol = type(bones)(data=data, affine=bones.affine, path=bones.path, animal=bones.animal)
-    with pytest.raises(SegmentationError, match=r"animal twin, file legs\.nii\.gz: no dark structure runs through half "
-                                                r"of the 8 traced slices \(the longest is on 3: slices 0, 1, 2\)"):
+    with pytest.raises(
+        SegmentationError,
+        match=r"animal twin, file legs\.nii\.gz: no dark structure runs through half "
+        r"of the 8 traced slices \(the longest is on 3: slices 0, 1, 2\)",
+    ):
         segment_volume(vol, settings=MASKED)
 
 
@@ -131,8 +179,12 @@ FIBULA = np.add((0.0, 0.0), Leg((0.0, 0.0)).fibula_mm)  # the fibula's centre on
 
 
 def _fibula_centres(c):
-    return [None if not np.isfinite(c.fibula[k]).all() else polygon_area_centroid(c.fibula[k, :, :2])[1]
-            for k in range(c.n_slices)]
+    return [
+        None
+        if not np.isfinite(c.fibula[k]).all()
+        else polygon_area_centroid(c.fibula[k, :, :2])[1]
+        for k in range(c.n_slices)
+    ]
 
 
 def test_masked_fibula_on_every_slice_not_a_larger_dark_spot_on_one():
@@ -155,10 +207,15 @@ def test_a_dark_spot_where_the_fibula_is_missing_is_not_taken(monkeypatch):
     vol = type(legs)(data=data, affine=legs.affine, path=legs.path, animal=legs.animal)
     seen = []  # each slice's fibula candidates
     real = segment._fibula_candidates
-    monkeypatch.setattr(segment, "_fibula_candidates", lambda *a, **kw: seen.append(real(*a, **kw)) or seen[-1])
+    monkeypatch.setattr(
+        segment, "_fibula_candidates", lambda *a, **kw: seen.append(real(*a, **kw)) or seen[-1]
+    )
     c, info = segment_volume(vol, settings=MASKED)
     assert len(seen[4]) == 1  # the premise
-    assert np.hypot(*(vol.world([*polygon_area_centroid(seen[4][0][1])[1], 4])[:2] - (-1.6, -2.5))) < PX_MM
+    assert (
+        np.hypot(*(vol.world([*polygon_area_centroid(seen[4][0][1])[1], 4])[:2] - (-1.6, -2.5)))
+        < PX_MM
+    )
     cens = _fibula_centres(c)
     assert cens[4] is None and info["slices"][4]["fibula_source"] == "none"
     assert info["fibula_slices"] == vol.n_slices - 1

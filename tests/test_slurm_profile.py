@@ -26,9 +26,17 @@ def _job_rules() -> set[str]:
 
 def test_every_job_rule_has_its_own_memory_time_and_cpus():
     rules = _job_rules()
-    assert {"solve", "bone_state", "aggregate", "verify_locking", "config_docs"} <= rules  # the parse finds them
+    assert {
+        "solve",
+        "bone_state",
+        "aggregate",
+        "verify_locking",
+        "config_docs",
+    } <= rules  # the parse finds them
     entries = PROFILE["set-resources"]
-    assert rules <= set(entries), f"rules without a set-resources entry: {sorted(rules - set(entries))}"
+    assert rules <= set(entries), (
+        f"rules without a set-resources entry: {sorted(rules - set(entries))}"
+    )
     assert set(entries) <= rules, f"entries of no rule: {sorted(set(entries) - rules)}"
     for rule in rules:
         assert {"mem_mb", "runtime", "cpus_per_task"} <= set(entries[rule]), rule
@@ -45,8 +53,11 @@ def test_job_states_come_from_squeue_which_needs_no_accounting():
 def _readme_cluster_commands() -> list[str]:
     text = (ROOT / "README.md").read_text()
     section = text.split("## On a SLURM cluster", 1)[1].split("\n## ", 1)[0]
-    return [line.split("#")[0].strip() for line in section.splitlines()
-            if line.startswith(".venv/bin/snakemake") and "--profile profiles/slurm" in line]
+    return [
+        line.split("#")[0].strip()
+        for line in section.splitlines()
+        if line.startswith(".venv/bin/snakemake") and "--profile profiles/slurm" in line
+    ]
 
 
 @pytest.mark.slow
@@ -58,21 +69,37 @@ def test_the_readmes_cluster_commands_plan_every_job_with_its_resources():
     env = dict(os.environ, PYTHONPATH=str(ROOT / "src"))
     for command in commands:
         args = command.split()[1:]
-        if "slurm_account=" in command:  # every target: the account replaces default-resources for all rules
+        if (
+            "slurm_account=" in command
+        ):  # every target: the account replaces default-resources for all rules
             args = ["convergence", "verify", *args]
         if "-n" not in args:
             args.append("-n")
         # --forceall: plan every job whatever results/ already holds
-        p = subprocess.run([str(exe), *args, "--forceall"], cwd=ROOT, env=env, capture_output=True, text=True,
-                           timeout=300)
+        p = subprocess.run(
+            [str(exe), *args, "--forceall"],
+            cwd=ROOT,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
         out = p.stdout + p.stderr
         assert p.returncode == 0, f"{command}\n{out[-3000:]}"
-        jobs = [(rule, resources) for rule, resources in
-                re.findall(r"^rule (\w+):\n(?:    .*\n)*?    resources: (.*)$", out, flags=re.M) if rule in job_rules]
+        jobs = [
+            (rule, resources)
+            for rule, resources in re.findall(
+                r"^rule (\w+):\n(?:    .*\n)*?    resources: (.*)$", out, flags=re.M
+            )
+            if rule in job_rules
+        ]
         assert jobs, out[-2000:]  # (target rules such as study have no action and run no job)
         if "slurm_account=" in command:
             assert {"verify_locking", "convergence_run", "solve"} <= {rule for rule, _ in jobs}
         for rule, resources in jobs:
             assert "mem_mb=" in resources and "runtime=" in resources, (command, rule, resources)
             if "slurm_account=" in command:
-                assert "slurm_account=ACCT" in resources and "slurm_partition=PART" in resources, (rule, resources)
+                assert "slurm_account=ACCT" in resources and "slurm_partition=PART" in resources, (
+                    rule,
+                    resources,
+                )

@@ -5,6 +5,7 @@ from math import factorial
 import gmsh
 import numpy as np
 import pytest
+from study_meshes import box_tet10, centroids
 
 from deeptissue.mesh import TetMesh
 from deeptissue.rigid import rotation_matrix
@@ -25,11 +26,21 @@ from deeptissue.strain import (
     tet_subdivision,
     voi_statistics,
 )
-from study_meshes import box_tet10, centroids
 
 REF_TET = np.array(
-    [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1],
-     [0.5, 0, 0], [0.5, 0.5, 0], [0, 0.5, 0], [0, 0, 0.5], [0, 0.5, 0.5], [0.5, 0, 0.5]], float
+    [
+        [0, 0, 0],
+        [1, 0, 0],
+        [0, 1, 0],
+        [0, 0, 1],
+        [0.5, 0, 0],
+        [0.5, 0.5, 0],
+        [0, 0.5, 0],
+        [0, 0, 0.5],
+        [0, 0.5, 0.5],
+        [0.5, 0, 0.5],
+    ],
+    float,
 )
 
 
@@ -42,17 +53,25 @@ def test_shape_functions_and_gradients_match_gmsh_tetrahedron10():
         _, grad, _ = gmsh.model.mesh.getBasisFunctions(11, pts.ravel().tolist(), "GradLagrange")
     finally:
         gmsh.finalize()
-    np.testing.assert_allclose(tet10_shape_functions(pts), np.reshape(val, (len(pts), 10)), atol=1e-12)
-    np.testing.assert_allclose(tet10_shape_gradients(pts), np.reshape(grad, (len(pts), 10, 3)), atol=1e-12)
+    np.testing.assert_allclose(
+        tet10_shape_functions(pts), np.reshape(val, (len(pts), 10)), atol=1e-12
+    )
+    np.testing.assert_allclose(
+        tet10_shape_gradients(pts), np.reshape(grad, (len(pts), 10, 3)), atol=1e-12
+    )
     # Kronecker property at the gmsh reference nodes
     np.testing.assert_allclose(tet10_shape_functions(REF_TET), np.eye(10), atol=1e-14)
 
 
-@pytest.mark.parametrize("a,b,c", [(0, 0, 0), (1, 0, 0), (2, 1, 0), (1, 1, 1), (0, 3, 0), (0, 1, 2)])
+@pytest.mark.parametrize(
+    "a,b,c", [(0, 0, 0), (1, 0, 0), (2, 1, 0), (1, 1, 1), (0, 3, 0), (0, 1, 2)]
+)
 def test_quadrature_integrates_cubic_monomials_exactly(a, b, c):
     x, w = tet_quadrature(3)
     exact = factorial(a) * factorial(b) * factorial(c) / factorial(a + b + c + 3)
-    assert np.sum(w * x[:, 0] ** a * x[:, 1] ** b * x[:, 2] ** c) == pytest.approx(exact, rel=1e-13)
+    assert np.sum(w * x[:, 0] ** a * x[:, 1] ** b * x[:, 2] ** c) == pytest.approx(
+        exact, rel=1e-13
+    )
 
 
 def test_curved_element_volume_integrates_det_j():
@@ -63,7 +82,9 @@ def test_curved_element_volume_integrates_det_j():
     nodes = np.column_stack([x + a * y**2, y + b * z**2, z + c * x**2])
     m = TetMesh(nodes_mm=nodes, tets=np.arange(10)[None])
     assert element_volumes_mm3(m)[0] == pytest.approx(1 / 6 + a * b * c / 90, rel=1e-13)
-    assert m.volumes_mm3()[0] != pytest.approx(1 / 6 + a * b * c / 90, rel=1e-3)  # corners alone miss it
+    assert m.volumes_mm3()[0] != pytest.approx(
+        1 / 6 + a * b * c / 90, rel=1e-3
+    )  # corners alone miss it
 
 
 def test_box_volumes_sum_to_the_box():
@@ -86,9 +107,12 @@ def test_centroid_gradient_of_a_quadratic_field_is_exact():
     def grad(X):
         x, y, z = X.T
         G = np.broadcast_to(A, (len(X), 3, 3)).copy()
-        G[:, 0, 0] += q[0] * y; G[:, 0, 1] += q[0] * x
-        G[:, 1, 1] += q[1] * z; G[:, 1, 2] += q[1] * y
-        G[:, 2, 2] += q[2] * x; G[:, 2, 0] += q[2] * z
+        G[:, 0, 0] += q[0] * y
+        G[:, 0, 1] += q[0] * x
+        G[:, 1, 1] += q[1] * z
+        G[:, 1, 2] += q[1] * y
+        G[:, 2, 2] += q[2] * x
+        G[:, 2, 0] += q[2] * z
         return G
 
     F = deformation_gradient_at_centroids(m, u(m.nodes_mm))
@@ -105,7 +129,11 @@ def test_simple_shear_closed_form(k):
     F = np.array([[1, k, 0], [0, 1, 0], [0, 0, 1.0]])
     s = element_strain(m, _homogeneous(m, F))
     root = np.sqrt(k * k + 4)
-    np.testing.assert_allclose(s.principal_gl, np.tile([(k * k + k * root) / 4, 0, (k * k - k * root) / 4], (m.n_tets, 1)), atol=1e-13)
+    np.testing.assert_allclose(
+        s.principal_gl,
+        np.tile([(k * k + k * root) / 4, 0, (k * k - k * root) / 4], (m.n_tets, 1)),
+        atol=1e-13,
+    )
     np.testing.assert_allclose(s.gamma_gl, k * root / 4, rtol=1e-12)
     # principal stretches of simple shear: (sqrt(k^2+4) ± k)/2, so (ln λ1 - ln λ3)/2 = asinh(k/2)
     np.testing.assert_allclose(s.gamma_log, np.arcsinh(k / 2), rtol=1e-12)
@@ -188,8 +216,16 @@ def test_voi_bins_of_a_layered_shear_field_are_exact():
     st = voi_statistics(s.gamma_gl, s.volume_mm3, threshold=0.3, energy_density_mpa=energy_density)
     assert st.voi_mm3 == pytest.approx(2.5, rel=1e-12)
     assert st.total_mm3 == pytest.approx(3.0, rel=1e-12)
-    expected = {"0.3-0.4": 10.0, "0.4-0.5": 0.0, "0.5-0.6": 30.0, "0.6-0.7": 0.0, "0.7-0.8": 0.0,
-                "0.8-0.9": 0.0, "0.9-1.0": 40.0, ">1.0": 20.0}
+    expected = {
+        "0.3-0.4": 10.0,
+        "0.4-0.5": 0.0,
+        "0.5-0.6": 30.0,
+        "0.6-0.7": 0.0,
+        "0.7-0.8": 0.0,
+        "0.8-0.9": 0.0,
+        "0.9-1.0": 40.0,
+        ">1.0": 20.0,
+    }
     assert list(st.bins_percent) == list(expected)
     for key, val in expected.items():
         assert st.bins_percent[key] == pytest.approx(val, abs=1e-10)
@@ -214,7 +250,9 @@ def test_voi_statistics_edges_empty_voi_and_errors():
     assert empty.voi_mm3 == 0.0 and empty.below_threshold_percent == 100.0
     assert all(p == 0.0 for p in empty.bins_percent.values())
 
-    custom = voi_statistics(np.array([0.25, 0.6]), np.array([1.0, 3.0]), threshold=0.2, bin_edges=(0.2, 0.5))
+    custom = voi_statistics(
+        np.array([0.25, 0.6]), np.array([1.0, 3.0]), threshold=0.2, bin_edges=(0.2, 0.5)
+    )
     assert custom.bins_percent == {"0.2-0.5": 25.0, ">0.5": 75.0}
 
     with pytest.raises(ValueError, match="first edge must be the threshold"):
@@ -226,7 +264,16 @@ def test_voi_statistics_edges_empty_voi_and_errors():
 
 
 def test_bin_labels():
-    assert bin_labels(np.arange(3, 11) / 10) == ["0.3-0.4", "0.4-0.5", "0.5-0.6", "0.6-0.7", "0.7-0.8", "0.8-0.9", "0.9-1.0", ">1.0"]
+    assert bin_labels(np.arange(3, 11) / 10) == [
+        "0.3-0.4",
+        "0.4-0.5",
+        "0.5-0.6",
+        "0.6-0.7",
+        "0.7-0.8",
+        "0.8-0.9",
+        "0.9-1.0",
+        ">1.0",
+    ]
     assert bin_labels([0.25, 1, 2]) == ["0.25-1.0", "1.0-2.0", ">2.0"]
 
 
@@ -234,9 +281,15 @@ def test_tet_subdivision_is_a_midpoint_rule_on_equal_sub_tetrahedra():
     for levels, n in ((0, 1), (1, 8), (2, 64)):
         p, w = tet_subdivision(levels)
         assert p.shape == (n, 3) and np.allclose(w, 1 / 6 / n)
-        assert np.all(p > 0) and np.all(p.sum(axis=1) < 1)  # strictly inside the reference tetrahedron
-        np.testing.assert_allclose(w @ p, np.full(3, 1 / 24), rtol=1e-13)  # ∫ξ = 1/24: linear functions exact
-    assert len({tuple(x) for x in np.round(tet_subdivision(2)[0], 12)}) == 64  # no two sub-tets alike
+        assert np.all(p > 0) and np.all(
+            p.sum(axis=1) < 1
+        )  # strictly inside the reference tetrahedron
+        np.testing.assert_allclose(
+            w @ p, np.full(3, 1 / 24), rtol=1e-13
+        )  # ∫ξ = 1/24: linear functions exact
+    assert (
+        len({tuple(x) for x in np.round(tet_subdivision(2)[0], 12)}) == 64
+    )  # no two sub-tets alike
     with pytest.raises(ValueError, match="levels"):
         tet_subdivision(-1)
 
@@ -262,20 +315,30 @@ def test_gamma_sampled_at_points_measures_the_volume_above_a_threshold_inside_el
     np.testing.assert_allclose(vol.sum(axis=1), element_volumes_mm3(m), rtol=1e-12)
     # at every point γ is the closed form of the point's y
     pts, _ = tet_subdivision(2)
-    L = np.column_stack([1 - pts.sum(axis=1), pts])  # barycentric; y of a straight tet is linear in them
+    L = np.column_stack(
+        [1 - pts.sum(axis=1), pts]
+    )  # barycentric; y of a straight tet is linear in them
     yq = np.einsum("qa,ma->mq", L, m.nodes_mm[m.tets[:, :4], 1])
-    np.testing.assert_allclose(gam["green_lagrange"], k * yq * np.sqrt((k * yq) ** 2 + 4) / 4, atol=1e-12)
+    np.testing.assert_allclose(
+        gam["green_lagrange"], k * yq * np.sqrt((k * yq) ** 2 + 4) / 4, atol=1e-12
+    )
     np.testing.assert_allclose(gam["log"], np.arcsinh(k * yq / 2), atol=1e-12)
-    sampled = voi_statistics(gam["green_lagrange"].ravel(), vol.ravel(), threshold=t, bin_edges=(t, 0.5))
+    sampled = voi_statistics(
+        gam["green_lagrange"].ravel(), vol.ravel(), threshold=t, bin_edges=(t, 0.5)
+    )
     assert sampled.voi_mm3 == pytest.approx(exact, rel=0.02)  # -1.6 %
     gamma_from_centroids = element_strain(m, u).gamma_gl
-    centroid = voi_statistics(gamma_from_centroids, element_volumes_mm3(m), threshold=t, bin_edges=(t, 0.5))
+    centroid = voi_statistics(
+        gamma_from_centroids, element_volumes_mm3(m), threshold=t, bin_edges=(t, 0.5)
+    )
     assert abs(centroid.voi_mm3 - exact) > 5 * abs(sampled.voi_mm3 - exact)  # -21 %
     # 32 768 points per element: within 1 % of the slab for other shears and thresholds too
     for k, t in ((1.0, 0.3), (1.0, 0.2), (0.8, 0.3)):
         u = np.column_stack([0.5 * k * y**2, np.zeros_like(y), np.zeros_like(y)])
         g, v, _ = gamma_at_points(m, u, levels=5)
-        fine = voi_statistics(g["green_lagrange"].ravel(), v.ravel(), threshold=t, bin_edges=(t, 0.5))
+        fine = voi_statistics(
+            g["green_lagrange"].ravel(), v.ravel(), threshold=t, bin_edges=(t, 0.5)
+        )
         assert fine.voi_mm3 == pytest.approx(_slab_volume(k, t), rel=0.01)
     with pytest.raises(ValueError, match="strain_measure"):
         gamma_at_points(m, u, strain_measures=("cauchy",))
@@ -283,8 +346,15 @@ def test_gamma_sampled_at_points_measures_the_volume_above_a_threshold_inside_el
 
 def test_a_curved_element_that_folds_inside_is_sampled_at_its_centroid():
     corners = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
-    mids = np.array([(corners[a] + corners[b]) / 2 for a, b in ((0, 1), (1, 2), (0, 2), (0, 3), (2, 3), (1, 3))])
-    mids[0, 0] = 0.15  # edge (0, 1)'s mid node pulled toward corner 0: dx/dξ = 4·0.15 − 1 < 0 near that corner
+    mids = np.array(
+        [
+            (corners[a] + corners[b]) / 2
+            for a, b in ((0, 1), (1, 2), (0, 2), (0, 3), (2, 3), (1, 3))
+        ]
+    )
+    mids[0, 0] = (
+        0.15  # edge (0, 1)'s mid node pulled toward corner 0: dx/dξ = 4·0.15 − 1 < 0 near that corner
+    )
     m = TetMesh(nodes_mm=np.vstack([corners, mids]), tets=np.arange(10)[None])
     u = 0.1 * m.nodes_mm[:, [1, 0, 2]]  # a linear field: F constant
     gam, vol, n_folded = gamma_at_points(m, u)
@@ -297,10 +367,17 @@ def test_an_element_inverted_between_its_quadrature_points_is_sampled_at_its_cen
     """A P2 displacement that inverts the element near one corner only (det F <= 0 there) but not at
     the centroid: the log strain has no value at those points, so the element counts at its centroid."""
     corners = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
-    mids = np.array([(corners[a] + corners[b]) / 2 for a, b in ((0, 1), (1, 2), (0, 2), (0, 3), (2, 3), (1, 3))])
+    mids = np.array(
+        [
+            (corners[a] + corners[b]) / 2
+            for a, b in ((0, 1), (1, 2), (0, 2), (0, 3), (2, 3), (1, 3))
+        ]
+    )
     m = TetMesh(nodes_mm=np.vstack([corners, mids]), tets=np.arange(10)[None])
     u = np.zeros((10, 3))
-    u[4, 0] = -0.35  # mid node of edge (0, 1) pulled back: ∂u_x/∂x = 4·(−0.35) at corner 0, −1.4 < −1
+    u[
+        4, 0
+    ] = -0.35  # mid node of edge (0, 1) pulled back: ∂u_x/∂x = 4·(−0.35) at corner 0, −1.4 < −1
     F_c = deformation_gradient_at_centroids(m, u)
     assert np.linalg.det(F_c)[0] > 0
     gam, vol, n = gamma_at_points(m, u, strain_measures=("green_lagrange", "log"))

@@ -15,12 +15,26 @@ R, L = 5.0, 10.0  # cylinder radius and length [mm]
 @pytest.fixture(scope="module")
 def model_files(tmp_path_factory):
     d = tmp_path_factory.mktemp("model")
-    mesh = cored_cylinder_mesh(length_mm=L, radius_mm=R, core_radius_mm=1.0, h_mm=2.0,
-                               refine_point_mm=(0.0, R, L / 2), refine_h_mm=0.4, refine_radius_mm=2.0)
+    mesh = cored_cylinder_mesh(
+        length_mm=L,
+        radius_mm=R,
+        core_radius_mm=1.0,
+        h_mm=2.0,
+        refine_point_mm=(0.0, R, L / 2),
+        refine_h_mm=0.4,
+        refine_radius_mm=2.0,
+    )
     save_tetmesh(d / "mesh.npz", mesh)
     depth = 0.4
-    pose = Pose(indenter_axis=[0, -1, 0], tip_start_mm=[0, R + 1.0, L / 2], tip_end_mm=[0, R - depth, L / 2],
-                depth_mm=depth, bone_com_mm=[0, 0, L / 2], bone_rotation_deg=[0.5, 0, 0], bone_translation_mm=[0, 0.02, 0])
+    pose = Pose(
+        indenter_axis=[0, -1, 0],
+        tip_start_mm=[0, R + 1.0, L / 2],
+        tip_end_mm=[0, R - depth, L / 2],
+        depth_mm=depth,
+        bone_com_mm=[0, 0, L / 2],
+        bone_rotation_deg=[0.5, 0, 0],
+        bone_translation_mm=[0, 0.02, 0],
+    )
     save_pose(d / "pose.json", pose)
     return d, mesh
 
@@ -28,9 +42,18 @@ def model_files(tmp_path_factory):
 @pytest.mark.slow
 def test_solve_job_writes_a_converged_summary_and_result(model_files, tmp_path):
     d, mesh = model_files
-    s = run_solve(animal="cyl", variant="sphere", mesh_path=d / "mesh.npz", cast_path=None,
-                  pose_path=d / "pose.json", during_contours_path=None, summary_path=tmp_path / "summary.json",
-                  vtu_path=tmp_path / "result.vtu", fem_cfg={}, study_cfg={"threshold": 0.05, "bin_edges": [0.05, 0.1, 0.2]})
+    s = run_solve(
+        animal="cyl",
+        variant="sphere",
+        mesh_path=d / "mesh.npz",
+        cast_path=None,
+        pose_path=d / "pose.json",
+        during_contours_path=None,
+        summary_path=tmp_path / "summary.json",
+        vtu_path=tmp_path / "result.vtu",
+        fem_cfg={},
+        study_cfg={"threshold": 0.05, "bin_edges": [0.05, 0.1, 0.2]},
+    )
     assert s.converged, s.reason
     back = read_summary(tmp_path / "summary.json")
     assert back.converged and back.n_elements == mesh.n_tets
@@ -50,31 +73,70 @@ def test_solve_job_writes_a_converged_summary_and_result(model_files, tmp_path):
 def test_variants_start_from_the_bone_state_job_with_the_same_answer(model_files, tmp_path):
     # rule bone_state solves the bone rotation once per mesh; rule solve starts each variant from it
     d, mesh = model_files
-    state = run_bone_state(mesh_path=d / "mesh.npz", cast_path=None, pose_path=d / "pose.json",
-                           state_path=tmp_path / "bone_state.npz", fem_cfg={})
+    state = run_bone_state(
+        mesh_path=d / "mesh.npz",
+        cast_path=None,
+        pose_path=d / "pose.json",
+        state_path=tmp_path / "bone_state.npz",
+        fem_cfg={},
+    )
     assert state is not None and state.history and all(h.step < 4 for h in state.history)
-    common = dict(animal="cyl", variant="sphere", mesh_path=d / "mesh.npz", cast_path=None, pose_path=d / "pose.json",
-                  during_contours_path=None, fem_cfg={}, study_cfg={"threshold": 0.05, "bin_edges": [0.05, 0.1, 0.2]})
+    common = dict(
+        animal="cyl",
+        variant="sphere",
+        mesh_path=d / "mesh.npz",
+        cast_path=None,
+        pose_path=d / "pose.json",
+        during_contours_path=None,
+        fem_cfg={},
+        study_cfg={"threshold": 0.05, "bin_edges": [0.05, 0.1, 0.2]},
+    )
     own = run_solve(summary_path=tmp_path / "own.json", vtu_path=tmp_path / "own.vtu", **common)
-    shared = run_solve(summary_path=tmp_path / "shared.json", vtu_path=tmp_path / "shared.vtu",
-                       bone_state_path=tmp_path / "bone_state.npz", **common)
-    assert shared.converged and shared.extra["started_from_bone_state"] and not own.extra["started_from_bone_state"]
-    assert shared.newton_iterations == own.newton_iterations and shared.increments == own.increments
+    shared = run_solve(
+        summary_path=tmp_path / "shared.json",
+        vtu_path=tmp_path / "shared.vtu",
+        bone_state_path=tmp_path / "bone_state.npz",
+        **common,
+    )
+    assert (
+        shared.converged
+        and shared.extra["started_from_bone_state"]
+        and not own.extra["started_from_bone_state"]
+    )
+    assert (
+        shared.newton_iterations == own.newton_iterations and shared.increments == own.increments
+    )
     assert shared.voi_mm3 == pytest.approx(own.voi_mm3, rel=1e-9)
     assert shared.indenter_force_N == pytest.approx(own.indenter_force_N, rel=1e-8)
     # a bone-state job that fails says why in its file; the variants then solve the rotation themselves
     bad = tmp_path / "pose_bad.json"
     bad.write_text("{not json")
-    assert run_bone_state(mesh_path=d / "mesh.npz", cast_path=None, pose_path=bad,
-                          state_path=tmp_path / "failed_state.npz", fem_cfg={}) is None
-    alone = run_solve(summary_path=tmp_path / "alone.json", vtu_path=tmp_path / "alone.vtu",
-                      bone_state_path=tmp_path / "failed_state.npz", **common)
+    assert (
+        run_bone_state(
+            mesh_path=d / "mesh.npz",
+            cast_path=None,
+            pose_path=bad,
+            state_path=tmp_path / "failed_state.npz",
+            fem_cfg={},
+        )
+        is None
+    )
+    alone = run_solve(
+        summary_path=tmp_path / "alone.json",
+        vtu_path=tmp_path / "alone.vtu",
+        bone_state_path=tmp_path / "failed_state.npz",
+        **common,
+    )
     assert alone.converged and not alone.extra["started_from_bone_state"]
     assert alone.newton_iterations == own.newton_iterations
     # a file that is not a bone state: the variant is recorded as failed, naming the file
     (tmp_path / "junk.npz").write_text("junk")
-    junk = run_solve(summary_path=tmp_path / "junk.json", vtu_path=tmp_path / "junk.vtu",
-                     bone_state_path=tmp_path / "junk.npz", **common)
+    junk = run_solve(
+        summary_path=tmp_path / "junk.json",
+        vtu_path=tmp_path / "junk.vtu",
+        bone_state_path=tmp_path / "junk.npz",
+        **common,
+    )
     assert not junk.converged and "junk.npz: not a bone-state file" in junk.reason
 
 
@@ -82,14 +144,37 @@ def test_variants_start_from_the_bone_state_job_with_the_same_answer(model_files
 def test_turned_variant_job_starts_from_the_base_end_state(model_files, tmp_path):
     # rule solve of 'sphere' writes its end state; 'sphere_rz+15' turns the indenter from it (study.turn_from_base)
     d, mesh = model_files
-    common = dict(animal="cyl", mesh_path=d / "mesh.npz", cast_path=None, pose_path=d / "pose.json",
-                  during_contours_path=None, fem_cfg={}, study_cfg={"threshold": 0.05, "bin_edges": [0.05, 0.1, 0.2]})
-    base = run_solve(variant="sphere", summary_path=tmp_path / "b.json", vtu_path=tmp_path / "b.vtu",
-                     end_state_path=tmp_path / "sphere_end.npz", **common)
+    common = dict(
+        animal="cyl",
+        mesh_path=d / "mesh.npz",
+        cast_path=None,
+        pose_path=d / "pose.json",
+        during_contours_path=None,
+        fem_cfg={},
+        study_cfg={"threshold": 0.05, "bin_edges": [0.05, 0.1, 0.2]},
+    )
+    base = run_solve(
+        variant="sphere",
+        summary_path=tmp_path / "b.json",
+        vtu_path=tmp_path / "b.vtu",
+        end_state_path=tmp_path / "sphere_end.npz",
+        **common,
+    )
     assert base.converged and (tmp_path / "sphere_end.npz").exists()
-    own = run_solve(variant="sphere_rz+15", summary_path=tmp_path / "own.json", vtu_path=tmp_path / "own.vtu", **common)
-    turned = run_solve(variant="sphere_rz+15", summary_path=tmp_path / "t.json", vtu_path=tmp_path / "t.vtu",
-                       base_state_path=tmp_path / "sphere_end.npz", base_variant="sphere", **common)
+    own = run_solve(
+        variant="sphere_rz+15",
+        summary_path=tmp_path / "own.json",
+        vtu_path=tmp_path / "own.vtu",
+        **common,
+    )
+    turned = run_solve(
+        variant="sphere_rz+15",
+        summary_path=tmp_path / "t.json",
+        vtu_path=tmp_path / "t.vtu",
+        base_state_path=tmp_path / "sphere_end.npz",
+        base_variant="sphere",
+        **common,
+    )
     assert own.converged and turned.converged
     assert turned.extra["turned_from"] == "sphere" and own.extra["turned_from"] is None
     assert turned.newton_iterations < own.newton_iterations
@@ -99,17 +184,34 @@ def test_turned_variant_job_starts_from_the_base_end_state(model_files, tmp_path
     # a base that failed leaves a file saying why: the turned variant is solved from the start
     bad = tmp_path / "pose_bad.json"
     bad.write_text("{not json")
-    failed = run_solve(**{**common, "pose_path": bad}, variant="sphere", summary_path=tmp_path / "f.json",
-                       vtu_path=tmp_path / "f.vtu", end_state_path=tmp_path / "failed_end.npz")
+    failed = run_solve(
+        **{**common, "pose_path": bad},
+        variant="sphere",
+        summary_path=tmp_path / "f.json",
+        vtu_path=tmp_path / "f.vtu",
+        end_state_path=tmp_path / "failed_end.npz",
+    )
     assert not failed.converged and (tmp_path / "failed_end.npz").exists()
-    alone = run_solve(variant="sphere_rz+15", summary_path=tmp_path / "a.json", vtu_path=tmp_path / "a.vtu",
-                      base_state_path=tmp_path / "failed_end.npz", base_variant="sphere", **common)
+    alone = run_solve(
+        variant="sphere_rz+15",
+        summary_path=tmp_path / "a.json",
+        vtu_path=tmp_path / "a.vtu",
+        base_state_path=tmp_path / "failed_end.npz",
+        base_variant="sphere",
+        **common,
+    )
     assert alone.converged and alone.extra["turned_from"] is None
     assert alone.newton_iterations == own.newton_iterations
     # a file that is not an end state: recorded as failed, naming the file
     (tmp_path / "junk.npz").write_text("junk")
-    junk = run_solve(variant="sphere_rz+15", summary_path=tmp_path / "j.json", vtu_path=tmp_path / "j.vtu",
-                     base_state_path=tmp_path / "junk.npz", base_variant="sphere", **common)
+    junk = run_solve(
+        variant="sphere_rz+15",
+        summary_path=tmp_path / "j.json",
+        vtu_path=tmp_path / "j.vtu",
+        base_state_path=tmp_path / "junk.npz",
+        base_variant="sphere",
+        **common,
+    )
     assert not junk.converged and "junk.npz: not an end-state file" in junk.reason
 
 
@@ -131,9 +233,18 @@ def test_failed_job_is_recorded_with_its_reason(model_files, tmp_path):
     d, mesh = model_files
     bad = tmp_path / "pose.json"
     bad.write_text("{not json")
-    s = run_solve(animal="cyl", variant="bar", mesh_path=d / "mesh.npz", cast_path=None, pose_path=bad,
-                  during_contours_path=None, summary_path=tmp_path / "summary.json", vtu_path=tmp_path / "result.vtu",
-                  fem_cfg={}, study_cfg={})
+    s = run_solve(
+        animal="cyl",
+        variant="bar",
+        mesh_path=d / "mesh.npz",
+        cast_path=None,
+        pose_path=bad,
+        during_contours_path=None,
+        summary_path=tmp_path / "summary.json",
+        vtu_path=tmp_path / "result.vtu",
+        fem_cfg={},
+        study_cfg={},
+    )
     assert not s.converged
     back = read_summary(tmp_path / "summary.json")
     assert not back.converged and "pose.json" in back.reason and "not valid JSON" in back.reason
@@ -153,7 +264,9 @@ def test_variant_indenter_turns_about_the_final_tip(model_files):
     assert variant_indenter(pose, "bar").kind == "bar"
 
 
-def test_an_unconverged_solve_keeps_its_reason_when_its_last_state_has_no_strain(model_files, tmp_path, monkeypatch):
+def test_an_unconverged_solve_keeps_its_reason_when_its_last_state_has_no_strain(
+    model_files, tmp_path, monkeypatch
+):
     """A last state inverted at an element's centroid (one the solver admitted between its quadrature points) has no strain:
     the summary keeps the solver's reason, load and iterations, and result.vtu shows the undeformed mesh."""
     import deeptissue.study as study
@@ -164,20 +277,54 @@ def test_an_unconverged_solve_keeps_its_reason_when_its_last_state_has_no_strain
     X = mesh.nodes_mm[mesh.tets[0]]
     n = np.cross(X[2] - X[1], X[3] - X[1])
     n /= np.linalg.norm(n)
-    u[mesh.tets[0]] = -2.0 * ((X - X[1]) @ n)[:, None] * n  # the element mirrored through its face 1-2-3
+    u[mesh.tets[0]] = (
+        -2.0 * ((X - X[1]) @ n)[:, None] * n
+    )  # the element mirrored through its face 1-2-3
     z3 = np.zeros(3)
-    folded = SolveResult(converged=False, reason="wall-time budget of 600 s spent at t = 3.9854", displacement_mm=u,
-                         deformation_gradient=np.tile(np.eye(3), (mesh.n_tets, 1, 1)), history=(), indenter_force_N=0.37,
-                         force_on_tissue_N=z3, cast_force_N=z3, max_penetration_mm=0.3, max_penetration_rel=0.4,
-                         strain_energy_mJ=1.0, n_dofs=u.size, n_free_dofs=u.size, increments=29, newton_iterations=382,
-                         load_reached=3.9854, wall_s=600.0, assembly_s=0.0, linear_solve_s=0.0, contact_s=0.0)
+    folded = SolveResult(
+        converged=False,
+        reason="wall-time budget of 600 s spent at t = 3.9854",
+        displacement_mm=u,
+        deformation_gradient=np.tile(np.eye(3), (mesh.n_tets, 1, 1)),
+        history=(),
+        indenter_force_N=0.37,
+        force_on_tissue_N=z3,
+        cast_force_N=z3,
+        max_penetration_mm=0.3,
+        max_penetration_rel=0.4,
+        strain_energy_mJ=1.0,
+        n_dofs=u.size,
+        n_free_dofs=u.size,
+        increments=29,
+        newton_iterations=382,
+        load_reached=3.9854,
+        wall_s=600.0,
+        assembly_s=0.0,
+        linear_solve_s=0.0,
+        contact_s=0.0,
+    )
     monkeypatch.setattr(study, "solve_from", lambda *a, **k: folded)
-    s = run_solve(animal="cyl", variant="sphere", mesh_path=d / "mesh.npz", cast_path=None, pose_path=d / "pose.json",
-                  during_contours_path=None, summary_path=tmp_path / "s.json", vtu_path=tmp_path / "r.vtu",
-                  fem_cfg={}, study_cfg={"threshold": 0.05, "bin_edges": [0.05, 0.1, 0.2]})
+    s = run_solve(
+        animal="cyl",
+        variant="sphere",
+        mesh_path=d / "mesh.npz",
+        cast_path=None,
+        pose_path=d / "pose.json",
+        during_contours_path=None,
+        summary_path=tmp_path / "s.json",
+        vtu_path=tmp_path / "r.vtu",
+        fem_cfg={},
+        study_cfg={"threshold": 0.05, "bin_edges": [0.05, 0.1, 0.2]},
+    )
     back = read_summary(tmp_path / "s.json")
-    assert not back.converged and back.reason.startswith("wall-time budget of 600 s spent at t = 3.9854; ")
+    assert not back.converged and back.reason.startswith(
+        "wall-time budget of 600 s spent at t = 3.9854; "
+    )
     assert "inverted" in back.reason and "undeformed" in back.reason
-    assert back.newton_iterations == 382 and back.extra["load_reached"] == pytest.approx(3.9854) and s.increments == 29
+    assert (
+        back.newton_iterations == 382
+        and back.extra["load_reached"] == pytest.approx(3.9854)
+        and s.increments == 29
+    )
     _, u_vtu, cells = read_result_vtu(tmp_path / "r.vtu")
     assert np.all(u_vtu == 0) and np.all(cells["converged"] == 0)

@@ -9,18 +9,20 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
+from study_meshes import box_tet10
 
 from deeptissue.config import ConfigError, validate_config
 from deeptissue.pose import Pose, save_pose
 from deeptissue.summary import failed_summary, summarize_solution, write_result_vtu, write_summary
-from study_meshes import box_tet10
 
 ROOT = Path(__file__).resolve().parents[1]
 SCHEMA = ROOT / "workflow" / "schemas" / "config.schema.yaml"
 
 
 def _load(name):
-    return validate_config(yaml.safe_load((ROOT / "config" / name).read_text()), SCHEMA, base_dir=ROOT)
+    return validate_config(
+        yaml.safe_load((ROOT / "config" / name).read_text()), SCHEMA, base_dir=ROOT
+    )
 
 
 def test_paper_config_spans_the_study_variation():
@@ -36,18 +38,35 @@ def test_paper_config_spans_the_study_variation():
     assert rot.max() <= 3.0 + 1e-9 and rot.max() >= 2.9
     assert snr.min() == 10 and snr.max() == 30
     assert len({p["seed"] for p in ph}) == 10
-    assert c["study"]["variants"] == ["sphere", "bar", "sphere_rx+15", "sphere_rx-15", "sphere_rz+15", "sphere_rz-15"]
+    assert c["study"]["variants"] == [
+        "sphere",
+        "bar",
+        "sphere_rx+15",
+        "sphere_rx-15",
+        "sphere_rz+15",
+        "sphere_rz-15",
+    ]
 
 
 def test_test_config_and_study_defaults():
     c = _load("test.yaml")
-    assert list(c["animals"]) == ["rat01"] and c["study"]["variants"] == ["sphere", "bar", "sphere_rz+15"]
+    assert list(c["animals"]) == ["rat01"] and c["study"]["variants"] == [
+        "sphere",
+        "bar",
+        "sphere_rz+15",
+    ]
     assert c["study"]["threshold"] == 0.3
     assert c["study"]["bin_edges"] == [0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0]
     assert c["study"]["strain_measure"] == "green_lagrange" and c["study"]["figure_animal"] is None
     assert c["study"]["gamma_sampling"] == "points"
-    assert (c["model"]["element_size_mm"], c["model"]["refine_size_mm"]) == (2.5, 1.25)  # CI's coarse mesh
-    assert (_load("config.yaml")["model"]["element_size_mm"], _load("config.yaml")["model"]["refine_size_mm"]) == (1.6, 0.8)
+    assert (c["model"]["element_size_mm"], c["model"]["refine_size_mm"]) == (
+        2.5,
+        1.25,
+    )  # CI's coarse mesh
+    assert (
+        _load("config.yaml")["model"]["element_size_mm"],
+        _load("config.yaml")["model"]["refine_size_mm"],
+    ) == (1.6, 0.8)
     for key, value in (("strain_measure", "hencky"), ("gamma_sampling", "nodes")):
         bad = yaml.safe_load((ROOT / "config" / "test.yaml").read_text())
         bad["study"][key] = value
@@ -59,8 +78,18 @@ def _snakemake(workdir, *targets_then_options):
     """snakemake on the test config in ``workdir``; targets must come first (options like
     --allowed-rules take several values)."""
     env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
-    cmd = [sys.executable, "-m", "snakemake", *targets_then_options, "-s", str(ROOT / "Snakefile"),
-           "--directory", str(workdir), "--configfile", str(ROOT / "config" / "test.yaml")]
+    cmd = [
+        sys.executable,
+        "-m",
+        "snakemake",
+        *targets_then_options,
+        "-s",
+        str(ROOT / "Snakefile"),
+        "--directory",
+        str(workdir),
+        "--configfile",
+        str(ROOT / "config" / "test.yaml"),
+    ]
     return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
 
 
@@ -75,12 +104,19 @@ def test_the_solve_rule_schedules_the_longest_solves_first(tmp_path):
     jobs = re.findall(r"wildcards: animal=(\w+), variant=(\S+)\n\s+priority: ([\d.]+)", r.stdout)
     cfg = _load("test.yaml")
     depth = {a: c["phantom"]["depth_mm"] for a, c in cfg["animals"].items()}
-    assert sorted((a, v) for a, v, _ in jobs) == sorted((a, v) for a in depth for v in cfg["study"]["variants"])
+    assert sorted((a, v) for a, v, _ in jobs) == sorted(
+        (a, v) for a in depth for v in cfg["study"]["variants"]
+    )
     for animal, variant, prio in jobs:
         base = 50.0 if variant == "sphere" else 0.0
-        assert float(prio) == pytest.approx((10.0 if variant.startswith("bar") else 0.0) + depth[animal] + base)
+        assert float(prio) == pytest.approx(
+            (10.0 if variant.startswith("bar") else 0.0) + depth[animal] + base
+        )
     # the turned variant waits for its base's end state
-    turned = re.search(r"rule solve:\n\s+input: ([^\n]+)\n(?:.*\n){0,6}?\s+wildcards: animal=rat01, variant=sphere_rz\+15", r.stdout)
+    turned = re.search(
+        r"rule solve:\n\s+input: ([^\n]+)\n(?:.*\n){0,6}?\s+wildcards: animal=rat01, variant=sphere_rz\+15",
+        r.stdout,
+    )
     assert turned and "results/rat01/sphere/end_state.npz" in turned.group(1)
 
 
@@ -94,23 +130,53 @@ def test_rule_aggregate_runs_on_hand_made_summaries(tmp_path):
         u = np.column_stack([k * y**2 / 10, 0 * y, 0 * y])
         s, strain = summarize_solution(m, u, animal="rat01", variant=variant, indenter_force_N=0.1)
         if variant == "bar":
-            s = failed_summary(animal="rat01", variant="bar", reason="no convergence at 85% depth", increments=9)
+            s = failed_summary(
+                animal="rat01", variant="bar", reason="no convergence at 85% depth", increments=9
+            )
         write_summary(tmp_path / "results" / "rat01" / variant / "summary.json", s)
         write_result_vtu(tmp_path / "results" / "rat01" / variant / "result.vtu", m, u, strain)
-    save_pose(tmp_path / "results" / "rat01" / "pose.json",
-              Pose(indenter_axis=[0, -1, 0], tip_start_mm=[0, 5, 0], tip_end_mm=[0, 3, 0], depth_mm=2.0,
-                   bone_com_mm=[0, 1, 0], bone_rotation_deg=[0, 0, 0], bone_translation_mm=[0, 0, 0]))
+    save_pose(
+        tmp_path / "results" / "rat01" / "pose.json",
+        Pose(
+            indenter_axis=[0, -1, 0],
+            tip_start_mm=[0, 5, 0],
+            tip_end_mm=[0, 3, 0],
+            depth_mm=2.0,
+            bone_com_mm=[0, 1, 0],
+            bone_rotation_deg=[0, 0, 0],
+            bone_translation_mm=[0, 0, 0],
+        ),
+    )
     # the study's tables go to results/summary/<study.name>, here "test" from config/test.yaml
-    targets = ["results/summary/test/voi.csv", "results/summary/test/sections.png", "results/summary/test/orientations.png"]
+    targets = [
+        "results/summary/test/voi.csv",
+        "results/summary/test/sections.png",
+        "results/summary/test/orientations.png",
+    ]
     r = _snakemake(tmp_path, *targets, "--cores", "1", "--allowed-rules", "aggregate")
     assert r.returncode == 0, r.stderr[-3000:]
     voi = pd.read_csv(tmp_path / "results" / "summary" / "test" / "voi.csv")
-    assert list(voi["variant"]) == ["sphere", "bar", "sphere_rz+15"] and voi["converged"].tolist() == [True, False, True]
+    assert list(voi["variant"]) == ["sphere", "bar", "sphere_rz+15"] and voi[
+        "converged"
+    ].tolist() == [True, False, True]
     assert voi["excluded"].all()
     assert voi["exclusion_reason"].iloc[0] == "not converged: bar: no convergence at 85% depth"
-    bins = pd.read_csv(tmp_path / "results" / "summary" / "test" / "bins.csv").groupby("variant", sort=False)["percent"]
-    assert bins.sum(min_count=1).round(9).tolist()[0] == 100.0 and bins.count().tolist() == [8, 0, 8]
-    for name in ["bins.csv", "voi.png", "bins.png", "voi_change.png", "sections.png", "orientations.png"]:
+    bins = pd.read_csv(tmp_path / "results" / "summary" / "test" / "bins.csv").groupby(
+        "variant", sort=False
+    )["percent"]
+    assert bins.sum(min_count=1).round(9).tolist()[0] == 100.0 and bins.count().tolist() == [
+        8,
+        0,
+        8,
+    ]
+    for name in [
+        "bins.csv",
+        "voi.png",
+        "bins.png",
+        "voi_change.png",
+        "sections.png",
+        "orientations.png",
+    ]:
         assert (tmp_path / "results" / "summary" / "test" / name).stat().st_size > 0
     r = _snakemake(tmp_path, *targets, "-n", "--allowed-rules", "aggregate")
     assert r.returncode == 0 and "Nothing to be done" in r.stdout + r.stderr
@@ -122,7 +188,26 @@ def test_inconsistent_study_config_is_a_one_line_error(tmp_path):
     cfg["study"]["threshold"] = 0.25
     (tmp_path / "bad.yaml").write_text(yaml.safe_dump(cfg))
     env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
-    r = subprocess.run([sys.executable, "-m", "snakemake", "-n", "-s", str(ROOT / "Snakefile"), "--directory", str(tmp_path),
-                        "--configfile", str(tmp_path / "bad.yaml")], env=env, capture_output=True, text=True, timeout=120)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "snakemake",
+            "-n",
+            "-s",
+            str(ROOT / "Snakefile"),
+            "--directory",
+            str(tmp_path),
+            "--configfile",
+            str(tmp_path / "bad.yaml"),
+        ],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert r.returncode != 0
-    assert "config key study.bin_edges: must start at study.threshold (0.25), got 0.3" in r.stderr + r.stdout
+    assert (
+        "config key study.bin_edges: must start at study.threshold (0.25), got 0.3"
+        in r.stderr + r.stdout
+    )

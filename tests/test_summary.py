@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from study_meshes import boundary_tri6, box_tet10
 
 from deeptissue.mesh import TetMesh
 from deeptissue.summary import (
@@ -18,7 +19,6 @@ from deeptissue.summary import (
     write_result_vtu,
     write_summary,
 )
-from study_meshes import boundary_tri6, box_tet10, centroids
 
 
 def test_point_triangle_distance_regions():
@@ -46,11 +46,15 @@ def test_point_triangle_distance_against_dense_sampling():
     u, v = np.meshgrid(s, s)
     keep = u + v <= 1
     u, v = u[keep], v[keep]
-    samples = A[:, None] + u[None, :, None] * (B - A)[:, None] + v[None, :, None] * (C - A)[:, None]
+    samples = (
+        A[:, None] + u[None, :, None] * (B - A)[:, None] + v[None, :, None] * (C - A)[:, None]
+    )
     brute = np.linalg.norm(samples - P[:, None], axis=2).min(axis=1)
     assert np.all(d <= brute + 1e-12)  # exact distance never exceeds any sample's
     spacing = (np.linalg.norm(B - A, axis=1) + np.linalg.norm(C - A, axis=1)) / 120
-    assert np.all(brute - d <= spacing)  # the nearest sample is within one grid step of the closest point
+    assert np.all(
+        brute - d <= spacing
+    )  # the nearest sample is within one grid step of the closest point
 
 
 def _cube_surface(h):
@@ -87,7 +91,9 @@ def test_skin_agreement_on_a_deformed_p2_face():
     assert p95 == pytest.approx(np.percentile(np.abs(delta), 95), abs=1e-12)
     # contour points beyond the model's ends (z outside [0.2, 2.2]) do not count
     beyond = np.array([[2.3, 1.0, 5.0], [2.3, 1.0, -3.0]])
-    assert skin_agreement_mm(np.vstack([pts, beyond]), V, T) == pytest.approx((mean, p95), abs=1e-12)
+    assert skin_agreement_mm(np.vstack([pts, beyond]), V, T) == pytest.approx(
+        (mean, p95), abs=1e-12
+    )
     assert skin_agreement_mm(np.vstack([pts, beyond]), V, T, clip_to_surface_z=False)[0] > mean
     with pytest.raises(ValueError, match="no contour points"):
         skin_agreement_mm(beyond, V, T)
@@ -105,11 +111,23 @@ def _layered_shear(m, bounds, ks):
 
 def test_summarize_solution_and_json_round_trip(tmp_path):
     bounds = np.array([0.0, 1.0, 2.0])
-    ks = np.array([0.5, 0.7])  # γ_GL = k sqrt(k²+4)/4: 0.2577, 0.3707; γ_log = asinh(k/2): 0.2475, 0.3428
+    ks = np.array(
+        [0.5, 0.7]
+    )  # γ_GL = k sqrt(k²+4)/4: 0.2577, 0.3707; γ_log = asinh(k/2): 0.2475, 0.3428
     m = box_tet10([0, 1], bounds, [0, 1])
     u = _layered_shear(m, bounds, ks)
-    s, strain = summarize_solution(m, u, animal="rat01", variant="sphere", indenter_force_N=0.12, n_dofs=99,
-                                   increments=4, newton_iterations=17, wall_s=1.5, contact_nodes=12)
+    s, strain = summarize_solution(
+        m,
+        u,
+        animal="rat01",
+        variant="sphere",
+        indenter_force_N=0.12,
+        n_dofs=99,
+        increments=4,
+        newton_iterations=17,
+        wall_s=1.5,
+        contact_nodes=12,
+    )
     assert s.converged and s.reason is None
     assert s.voi_mm3 == pytest.approx(1.0, rel=1e-12)
     assert s.bins_percent["0.3-0.4"] == pytest.approx(100.0)
@@ -127,13 +145,22 @@ def test_summarize_solution_and_json_round_trip(tmp_path):
     for y0, k, f0 in [(0.5, 0.5, 0.25), (1.5, 0.7, 0.5 + 0.35)]:  # u_x at y0 = f0, slope k
         for z0 in (0.3, 0.6):
             pts.append([1.0 + f0 + 0.1, y0, z0])
-    s_skin, _ = summarize_solution(ms, u, animal="rat01", variant="sphere", skin_contours_mm=np.array(pts))
+    s_skin, _ = summarize_solution(
+        ms, u, animal="rat01", variant="sphere", skin_contours_mm=np.array(pts)
+    )
     d = np.repeat(0.1 / np.sqrt(1 + ks**2), 2)
     assert s_skin.skin_mean_mm == pytest.approx(d.mean(), rel=1e-12)
     assert s_skin.skin_p95_mm == pytest.approx(np.percentile(d, 95), rel=1e-12)
 
-    s_log, _ = summarize_solution(m, u, animal="rat01", variant="sphere", strain_measure="log", threshold=0.25,
-                                  bin_edges=(0.25, 0.3, 0.5))
+    s_log, _ = summarize_solution(
+        m,
+        u,
+        animal="rat01",
+        variant="sphere",
+        strain_measure="log",
+        threshold=0.25,
+        bin_edges=(0.25, 0.3, 0.5),
+    )
     assert s_log.voi_mm3 == pytest.approx(1.0)  # only the k = 0.7 layer has γ_log > 0.25
     assert s_log.bins_percent == pytest.approx({"0.25-0.3": 0.0, "0.3-0.5": 100.0, ">0.5": 0.0})
 
@@ -157,14 +184,23 @@ def test_gamma_sampling_chooses_the_reported_voi_and_both_are_kept():
     u = np.column_stack([0.5 * y**2, np.zeros_like(y), np.zeros_like(y)])
     w = np.full(m.n_tets, 2.0)  # energy density [MPa]
     pts, _ = summarize_solution(m, u, animal="a", variant="sphere", energy_density_mpa=w)
-    cen, _ = summarize_solution(m, u, animal="a", variant="sphere", gamma_sampling="centroid", energy_density_mpa=w)
+    cen, _ = summarize_solution(
+        m, u, animal="a", variant="sphere", gamma_sampling="centroid", energy_density_mpa=w
+    )
     assert pts.gamma_sampling == "points" and cen.gamma_sampling == "centroid"
-    assert pts.voi_sampled_mm3 == cen.voi_sampled_mm3 and pts.voi_centroid_mm3 == cen.voi_centroid_mm3
+    assert (
+        pts.voi_sampled_mm3 == cen.voi_sampled_mm3 and pts.voi_centroid_mm3 == cen.voi_centroid_mm3
+    )
     assert pts.voi_mm3 == pts.voi_sampled_mm3 and cen.voi_mm3 == cen.voi_centroid_mm3
     assert pts.voi_sampled_mm3 != pytest.approx(pts.voi_centroid_mm3, rel=0.01)
-    assert pts.bins_percent == pts.bins_sampled_percent and cen.bins_percent == cen.bins_centroid_percent
+    assert (
+        pts.bins_percent == pts.bins_sampled_percent
+        and cen.bins_percent == cen.bins_centroid_percent
+    )
     # the VOI energy follows the sampling: density 2 MPa times that VOI
-    assert pts.strain_energy_mJ == pytest.approx(2.0 * pts.voi_mm3) and cen.strain_energy_mJ == pytest.approx(2.0 * cen.voi_mm3)
+    assert pts.strain_energy_mJ == pytest.approx(
+        2.0 * pts.voi_mm3
+    ) and cen.strain_energy_mJ == pytest.approx(2.0 * cen.voi_mm3)
     assert pts.below_threshold_percent == pytest.approx(100 * (1 - pts.voi_mm3))  # unit cube
     assert pts.voi_by_measure_mm3["green_lagrange"] == pts.voi_mm3
     assert cen.peak_gamma == pts.peak_gamma  # always the largest centroid value
@@ -186,12 +222,21 @@ def test_result_vtu_uses_vtk_node_order(tmp_path):
 
 
 def test_failed_run_is_recorded_not_lost(tmp_path):
-    f = failed_summary(animal="rat02", variant="sphere_rx+15", reason="increment cut below 1e-4 at step 3",
-                       n_elements=5000, increments=7, wall_s=120.0, last_residual=3e-2)
+    f = failed_summary(
+        animal="rat02",
+        variant="sphere_rx+15",
+        reason="increment cut below 1e-4 at step 3",
+        n_elements=5000,
+        increments=7,
+        wall_s=120.0,
+        last_residual=3e-2,
+    )
     write_summary(tmp_path / "s.json", f)
     back = read_summary(tmp_path / "s.json")
     assert back.converged is False and back.reason.startswith("increment cut")
-    assert back.voi_mm3 is None and back.n_elements == 5000 and back.extra == {"last_residual": 3e-2}
+    assert (
+        back.voi_mm3 is None and back.n_elements == 5000 and back.extra == {"last_residual": 3e-2}
+    )
     # a summary written without animal/variant keys takes them from its path
     (tmp_path / "ratZ" / "bar").mkdir(parents=True)
     (tmp_path / "ratZ" / "bar" / "summary.json").write_text('{"converged": true, "voi_mm3": 1.5}')

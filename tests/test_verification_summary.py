@@ -14,40 +14,128 @@ from deeptissue.fem.verification import (
 
 
 def _tables(*, hertz_error=0.002, hard_30_converged=False, patch_error=1e-12, curve_stopped=False):
-    points = pd.DataFrame(dict(case=["reference F=I", "uniaxial"], quantity=["|W| / mu", "nominal_stress_kpa vs analytic"],
-                               max_error=[0.0, 3e-12], tolerance=[1e-12, 1e-10], **{"pass": [True, True]}))
-    hertz = pd.DataFrame(dict(depth_mm=[0.05, 0.1, 0.15], force_N=[1.0, 2.0, 3.0], hertz_N=[1.0, 2.0, 3.0],
-                              rel_error=[-0.001, hertz_error, -0.0027]))
-    curve = pd.DataFrame(dict(depth_mm=[1.5, 3.0], force_N=[0.04, 0.0975], hertz_N=[0.04, 0.1126], rel_error=[-0.05, -0.134],
-                              status=["converged", "converged"]))
+    points = pd.DataFrame(
+        dict(
+            case=["reference F=I", "uniaxial"],
+            quantity=["|W| / mu", "nominal_stress_kpa vs analytic"],
+            max_error=[0.0, 3e-12],
+            tolerance=[1e-12, 1e-10],
+            **{"pass": [True, True]},
+        )
+    )
+    hertz = pd.DataFrame(
+        dict(
+            depth_mm=[0.05, 0.1, 0.15],
+            force_N=[1.0, 2.0, 3.0],
+            hertz_N=[1.0, 2.0, 3.0],
+            rel_error=[-0.001, hertz_error, -0.0027],
+        )
+    )
+    curve = pd.DataFrame(
+        dict(
+            depth_mm=[1.5, 3.0],
+            force_N=[0.04, 0.0975],
+            hertz_N=[0.04, 0.1126],
+            rel_error=[-0.05, -0.134],
+            status=["converged", "converged"],
+        )
+    )
     if curve_stopped:
-        curve.loc[1] = dict(depth_mm=3.0, force_N=np.nan, hertz_N=0.1126, rel_error=np.nan,
-                            status="not converged: line search failed")
-    locking = pd.DataFrame(dict(d_mm2_per_n=[57.0, 0.57], nu=[0.45, 0.4995], depth_mm=[0.15, 0.15], force_N=[1.0, 1.0],
-                                hertz_N=[1.0, 1.0], rel_error=[-0.008, 0.022], n_dofs=[16065, 16065], converged=[True, True]))
-    checks = pd.DataFrame([
-        dict(case="patch test, straight distorted", converged=True, max_displacement_error_mm=patch_error, max_F_error=1e-13,
-             max_abs_green_strain=np.nan, max_position_error_mm=np.nan),
-        dict(case="rigid bone 15 deg", converged=True, max_displacement_error_mm=np.nan, max_F_error=np.nan,
-             max_abs_green_strain=2e-9, max_position_error_mm=3e-9),
-    ])
-    solve = dict(increments=9, newton_iterations=122, indenter_force_N=0.2, max_penetration_rel=0.009,
-                 n_dofs=20373, wall_s=63.0)
-    hard = pd.DataFrame([
-        dict(case="sphere to depth 2R (3 mm)", converged=True, reason="converged", load_reached=4.0, **solve),
-        dict(case="bar tilted 30 deg, 2 mm", converged=hard_30_converged, reason="line search failed",
-             load_reached=4.0 if hard_30_converged else 3.6051, **solve),
-    ])
-    bench = pd.DataFrame([dict(case="reference sphere 2 mm", converged=True, load_reached=4.0,
-                               increments=3, newton_iterations=25, wall_s=45.0)])
-    return dict(points=points, hertz=hertz, curve=curve, locking=locking, checks=checks, hard=hard, benchmark=bench)
+        curve.loc[1] = dict(
+            depth_mm=3.0,
+            force_N=np.nan,
+            hertz_N=0.1126,
+            rel_error=np.nan,
+            status="not converged: line search failed",
+        )
+    locking = pd.DataFrame(
+        dict(
+            d_mm2_per_n=[57.0, 0.57],
+            nu=[0.45, 0.4995],
+            depth_mm=[0.15, 0.15],
+            force_N=[1.0, 1.0],
+            hertz_N=[1.0, 1.0],
+            rel_error=[-0.008, 0.022],
+            n_dofs=[16065, 16065],
+            converged=[True, True],
+        )
+    )
+    checks = pd.DataFrame(
+        [
+            dict(
+                case="patch test, straight distorted",
+                converged=True,
+                max_displacement_error_mm=patch_error,
+                max_F_error=1e-13,
+                max_abs_green_strain=np.nan,
+                max_position_error_mm=np.nan,
+            ),
+            dict(
+                case="rigid bone 15 deg",
+                converged=True,
+                max_displacement_error_mm=np.nan,
+                max_F_error=np.nan,
+                max_abs_green_strain=2e-9,
+                max_position_error_mm=3e-9,
+            ),
+        ]
+    )
+    solve = dict(
+        increments=9,
+        newton_iterations=122,
+        indenter_force_N=0.2,
+        max_penetration_rel=0.009,
+        n_dofs=20373,
+        wall_s=63.0,
+    )
+    hard = pd.DataFrame(
+        [
+            dict(
+                case="sphere to depth 2R (3 mm)",
+                converged=True,
+                reason="converged",
+                load_reached=4.0,
+                **solve,
+            ),
+            dict(
+                case="bar tilted 30 deg, 2 mm",
+                converged=hard_30_converged,
+                reason="line search failed",
+                load_reached=4.0 if hard_30_converged else 3.6051,
+                **solve,
+            ),
+        ]
+    )
+    bench = pd.DataFrame(
+        [
+            dict(
+                case="reference sphere 2 mm",
+                converged=True,
+                load_reached=4.0,
+                increments=3,
+                newton_iterations=25,
+                wall_s=45.0,
+            )
+        ]
+    )
+    return dict(
+        points=points,
+        hertz=hertz,
+        curve=curve,
+        locking=locking,
+        checks=checks,
+        hard=hard,
+        benchmark=bench,
+    )
 
 
 def _status(summary, check):
     return summary.set_index("check").loc[check, "status"]
 
 
-KNOWN = {"hard case: bar tilted 30 deg, 2 mm": "open hard case: the bar squeezes the skin against the core"}
+KNOWN = {
+    "hard case: bar tilted 30 deg, 2 mm": "open hard case: the bar squeezes the skin against the core"
+}
 
 
 def test_a_passing_set_of_tables_has_only_passing_and_known_failures():
@@ -63,33 +151,51 @@ def test_a_passing_set_of_tables_has_only_passing_and_known_failures():
     row = s.set_index("check").loc["hard case: bar tilted 30 deg, 2 mm"]
     assert row["status"] == "known-failure"
     assert row["value"] == pytest.approx(3.6051) and row["limit"] == 4.0
-    assert KNOWN["hard case: bar tilted 30 deg, 2 mm"] in row["note"] and "line search failed" in row["note"]
+    assert (
+        KNOWN["hard case: bar tilted 30 deg, 2 mm"] in row["note"]
+        and "line search failed" in row["note"]
+    )
 
 
 def test_a_check_beyond_its_limit_fails_and_is_named():
-    s = verification_summary(**_tables(hertz_error=HERTZ_REL_LIMIT + 0.001, patch_error=1e-6), known_failures=KNOWN)
-    assert failed_checks(s) == ["Hertz: max |F / F_Hertz - 1| to 0.1 R",
-                                "fem check: patch test, straight distorted: max_displacement_error_mm"]
+    s = verification_summary(
+        **_tables(hertz_error=HERTZ_REL_LIMIT + 0.001, patch_error=1e-6), known_failures=KNOWN
+    )
+    assert failed_checks(s) == [
+        "Hertz: max |F / F_Hertz - 1| to 0.1 R",
+        "fem check: patch test, straight distorted: max_displacement_error_mm",
+    ]
     assert _status(s, "hard case: sphere to depth 2R (3 mm)") == "pass"
 
 
 def test_a_curve_that_stops_short_fails():
     s = verification_summary(**_tables(curve_stopped=True), known_failures=KNOWN)
     assert failed_checks(s) == ["Hertz curve: depth reached [mm]"]
-    assert "line search failed" in s.set_index("check").loc["Hertz curve: depth reached [mm]", "note"]
+    assert (
+        "line search failed" in s.set_index("check").loc["Hertz curve: depth reached [mm]", "note"]
+    )
 
 
 def test_a_known_failure_that_converges_passes_and_an_unlisted_one_fails():
-    assert _status(verification_summary(**_tables(hard_30_converged=True), known_failures=KNOWN),
-                   "hard case: bar tilted 30 deg, 2 mm") == "pass"
+    assert (
+        _status(
+            verification_summary(**_tables(hard_30_converged=True), known_failures=KNOWN),
+            "hard case: bar tilted 30 deg, 2 mm",
+        )
+        == "pass"
+    )
     s = verification_summary(**_tables(), known_failures={})
     assert failed_checks(s) == ["hard case: bar tilted 30 deg, 2 mm"]
 
 
 def test_a_failed_material_row_fails_whatever_its_pass_column_says():
     t = _tables()
-    t["points"].loc[0, "max_error"] = 1e-6  # the row keeps pass=True: the summary compares value and limit itself
-    assert failed_checks(verification_summary(**t, known_failures=KNOWN)) == ["material point: reference F=I: |W| / mu"]
+    t["points"].loc[0, "max_error"] = (
+        1e-6  # the row keeps pass=True: the summary compares value and limit itself
+    )
+    assert failed_checks(verification_summary(**t, known_failures=KNOWN)) == [
+        "material point: reference F=I: |W| / mu"
+    ]
 
 
 def test_the_summary_is_written_from_the_csv_files(tmp_path):
@@ -98,56 +204,137 @@ def test_the_summary_is_written_from_the_csv_files(tmp_path):
         paths[name] = tmp_path / f"{name}.csv"
         df.to_csv(paths[name], index=False)
     out = tmp_path / "summary.csv"
-    s = write_verification_summary(point_csv=paths["points"], hertz_csv=paths["hertz"], curve_csv=paths["curve"],
-                                   locking_csv=paths["locking"], checks_csv=paths["checks"], hard_csv=paths["hard"],
-                                   benchmark_csv=paths["benchmark"], summary_csv=out)
+    s = write_verification_summary(
+        point_csv=paths["points"],
+        hertz_csv=paths["hertz"],
+        curve_csv=paths["curve"],
+        locking_csv=paths["locking"],
+        checks_csv=paths["checks"],
+        hard_csv=paths["hard"],
+        benchmark_csv=paths["benchmark"],
+        summary_csv=out,
+    )
     back = pd.read_csv(out)
     assert list(back.columns) == SUMMARY_COLUMNS and len(back) == len(s)
-    assert failed_checks(back) == ["fem check: patch test, straight distorted: max_displacement_error_mm"]
+    assert failed_checks(back) == [
+        "fem check: patch test, straight distorted: max_displacement_error_mm"
+    ]
 
 
 def _cylinder(force_error=0.001, voi_error=0.01, estimate_mm3=0.2):
     meshes = [("1.6 / 0.8 mm", 29577), ("1.2 / 0.4 mm", 70503)]
-    curve = pd.DataFrame([dict(mesh=m, n_dofs=n, depth_mm=d, force_N=0.04 * d**1.5 * (1 + (force_error if n < 50000 else 0)),
-                               converged=True, wall_s=5.0) for m, n in meshes for d in (0.5, 1.5, 3.0)])
-    bins = {"bins_percent.0.3-0.4": 60.0, "bins_percent.>1.0": 40.0, "bins_err_pp.0.3-0.4": 0.5, "bins_err_pp.>1.0": 0.5}
-    voi = pd.DataFrame([dict(mesh=m, n_dofs=n, depth_mm=d, voi_mm3=10 * d * (1 + (voi_error if n < 50000 else 0)),
-                             voi_err_mm3=estimate_mm3 * d, **bins) for m, n in meshes for d in (1.5, 3.0)])
+    curve = pd.DataFrame(
+        [
+            dict(
+                mesh=m,
+                n_dofs=n,
+                depth_mm=d,
+                force_N=0.04 * d**1.5 * (1 + (force_error if n < 50000 else 0)),
+                converged=True,
+                wall_s=5.0,
+            )
+            for m, n in meshes
+            for d in (0.5, 1.5, 3.0)
+        ]
+    )
+    bins = {
+        "bins_percent.0.3-0.4": 60.0,
+        "bins_percent.>1.0": 40.0,
+        "bins_err_pp.0.3-0.4": 0.5,
+        "bins_err_pp.>1.0": 0.5,
+    }
+    voi = pd.DataFrame(
+        [
+            dict(
+                mesh=m,
+                n_dofs=n,
+                depth_mm=d,
+                voi_mm3=10 * d * (1 + (voi_error if n < 50000 else 0)),
+                voi_err_mm3=estimate_mm3 * d,
+                **bins,
+            )
+            for m, n in meshes
+            for d in (1.5, 3.0)
+        ]
+    )
     return curve, voi
 
 
 def test_cylinder_rows_hold_each_mesh_to_the_finest():
     curve, voi = _cylinder()
-    s = verification_summary(**_tables(), cylinder_curve=curve, cylinder_voi=voi).set_index("check")
+    s = verification_summary(**_tables(), cylinder_curve=curve, cylinder_voi=voi).set_index(
+        "check"
+    )
     rows = s[s.index.str.startswith("cylinder:")]
-    assert len(rows) == 3 + 4 * 2  # forces at 3 depths; VOI, bins and their estimates at 2 depths; not the finest
+    assert (
+        len(rows) == 3 + 4 * 2
+    )  # forces at 3 depths; VOI, bins and their estimates at 2 depths; not the finest
     assert (rows["status"] == "pass").all() and not rows.index.str.contains("0.4 mm mesh").any()
-    assert rows.loc["cylinder: 1.6 / 0.8 mm mesh: VOI at 3 mm: |VOI / VOI_finest - 1|", "value"] == pytest.approx(0.01)
+    assert rows.loc[
+        "cylinder: 1.6 / 0.8 mm mesh: VOI at 3 mm: |VOI / VOI_finest - 1|", "value"
+    ] == pytest.approx(0.01)
     # 0.3 mm^3 true error against an estimate of 0.6 mm^3
-    assert rows.loc["cylinder: 1.6 / 0.8 mm mesh: VOI at 1.5 mm: true error / estimate", "value"] == pytest.approx(0.5)
+    assert rows.loc[
+        "cylinder: 1.6 / 0.8 mm mesh: VOI at 1.5 mm: true error / estimate", "value"
+    ] == pytest.approx(0.5)
     curve, voi = _cylinder(force_error=0.006, voi_error=0.03, estimate_mm3=0.1)
-    assert rows.loc["cylinder: 1.6 / 0.8 mm mesh: bins at 3 mm: largest true error / largest estimate", "value"] == 0
-    failed = failed_checks(verification_summary(**_tables(), cylinder_curve=curve, cylinder_voi=voi, known_failures={}))
+    assert (
+        rows.loc[
+            "cylinder: 1.6 / 0.8 mm mesh: bins at 3 mm: largest true error / largest estimate",
+            "value",
+        ]
+        == 0
+    )
+    failed = failed_checks(
+        verification_summary(
+            **_tables(), cylinder_curve=curve, cylinder_voi=voi, known_failures={}
+        )
+    )
     assert "cylinder: 1.6 / 0.8 mm mesh: force at 0.5 mm: |F / F_finest - 1|" in failed
     assert "cylinder: 1.6 / 0.8 mm mesh: VOI at 3 mm: |VOI / VOI_finest - 1|" in failed
-    assert "cylinder: 1.6 / 0.8 mm mesh: VOI at 3 mm: true error / estimate" in failed  # 0.9 against 0.3 mm^3
+    assert (
+        "cylinder: 1.6 / 0.8 mm mesh: VOI at 3 mm: true error / estimate" in failed
+    )  # 0.9 against 0.3 mm^3
     # the default mesh's misses are known failures of the mesh; the estimate's are not
-    s = verification_summary(**_tables(), cylinder_curve=curve, cylinder_voi=voi).set_index("check")
-    assert s.loc["cylinder: 1.6 / 0.8 mm mesh: force at 0.5 mm: |F / F_finest - 1|", "status"] == "known-failure"
-    assert "too coarse" in s.loc["cylinder: 1.6 / 0.8 mm mesh: force at 0.5 mm: |F / F_finest - 1|", "note"]
-    assert s.loc["cylinder: 1.6 / 0.8 mm mesh: VOI at 3 mm: true error / estimate", "status"] == "fail"
+    s = verification_summary(**_tables(), cylinder_curve=curve, cylinder_voi=voi).set_index(
+        "check"
+    )
+    assert (
+        s.loc["cylinder: 1.6 / 0.8 mm mesh: force at 0.5 mm: |F / F_finest - 1|", "status"]
+        == "known-failure"
+    )
+    assert (
+        "too coarse"
+        in s.loc["cylinder: 1.6 / 0.8 mm mesh: force at 0.5 mm: |F / F_finest - 1|", "note"]
+    )
+    assert (
+        s.loc["cylinder: 1.6 / 0.8 mm mesh: VOI at 3 mm: true error / estimate", "status"]
+        == "fail"
+    )
 
 
 def test_the_cylinder_rows_are_read_from_their_csv_files(tmp_path):
     paths = {}
     curve, voi = _cylinder()
-    for name, df in {**_tables(hard_30_converged=True), "cylinder_curve": curve, "cylinder_voi": voi}.items():
+    for name, df in {
+        **_tables(hard_30_converged=True),
+        "cylinder_curve": curve,
+        "cylinder_voi": voi,
+    }.items():
         paths[name] = tmp_path / f"{name}.csv"
         df.to_csv(paths[name], index=False)
-    s = write_verification_summary(point_csv=paths["points"], hertz_csv=paths["hertz"], curve_csv=paths["curve"],
-                                   locking_csv=paths["locking"], checks_csv=paths["checks"], hard_csv=paths["hard"],
-                                   benchmark_csv=paths["benchmark"], summary_csv=tmp_path / "summary.csv",
-                                   cylinder_curve_csv=paths["cylinder_curve"], cylinder_voi_csv=paths["cylinder_voi"])
+    s = write_verification_summary(
+        point_csv=paths["points"],
+        hertz_csv=paths["hertz"],
+        curve_csv=paths["curve"],
+        locking_csv=paths["locking"],
+        checks_csv=paths["checks"],
+        hard_csv=paths["hard"],
+        benchmark_csv=paths["benchmark"],
+        summary_csv=tmp_path / "summary.csv",
+        cylinder_curve_csv=paths["cylinder_curve"],
+        cylinder_voi_csv=paths["cylinder_voi"],
+    )
     assert s["check"].str.startswith("cylinder:").sum() == 11 and not failed_checks(s)
 
 
@@ -161,11 +348,21 @@ def _adaptive(curve, voi, *, force_error=0.002, voi_error=-0.01, goal_met=True):
         f = curve[(curve["mesh"] == ref) & (curve["depth_mm"] == d)]["force_N"].iloc[0]
         v = voi[(voi["mesh"] == ref) & (voi["depth_mm"] == d)]
         last = index == 1 or d != 1.5
-        rows.append(dict(depth_mm=d, index=index, n_dofs=20000 * (index + 1), wall_s=10.0 * (index + 1),
-                         voi_mm3=float(v["voi_mm3"].iloc[0]) * (1 + voi_error) if len(v) else 0.0,
-                         voi_err_percent=1.0, bins_err_pp=0.5, force_N=f * (1 + (force_error if last else 0.05)),
-                         force_err_percent=1.0, goal_met=goal_met if last else False,
-                         **{"bins_percent.0.3-0.4": 60.3, "bins_percent.>1.0": 39.7}))
+        rows.append(
+            dict(
+                depth_mm=d,
+                index=index,
+                n_dofs=20000 * (index + 1),
+                wall_s=10.0 * (index + 1),
+                voi_mm3=float(v["voi_mm3"].iloc[0]) * (1 + voi_error) if len(v) else 0.0,
+                voi_err_percent=1.0,
+                bins_err_pp=0.5,
+                force_N=f * (1 + (force_error if last else 0.05)),
+                force_err_percent=1.0,
+                goal_met=goal_met if last else False,
+                **{"bins_percent.0.3-0.4": 60.3, "bins_percent.>1.0": 39.7},
+            )
+        )
     t = adaptive_comparison(pd.DataFrame(rows), voi, curve)
     t["stop_reason"] = np.where(t["kind"] == "adaptive", "goal" if goal_met else "passes", None)
     return t
@@ -173,36 +370,75 @@ def _adaptive(curve, voi, *, force_error=0.002, voi_error=-0.01, goal_met=True):
 
 def test_adaptive_cylinder_rows_hold_each_last_pass_to_the_finest_fixed_mesh():
     curve, voi = _cylinder()
-    s = verification_summary(**_tables(), cylinder_curve=curve, cylinder_voi=voi,
-                             cylinder_adaptive=_adaptive(curve, voi)).set_index("check")
+    s = verification_summary(
+        **_tables(),
+        cylinder_curve=curve,
+        cylinder_voi=voi,
+        cylinder_adaptive=_adaptive(curve, voi),
+    ).set_index("check")
     rows = s[s.index.str.startswith("cylinder: adaptive")]
     # goal and force at 3 depths; VOI and bins where the reference has them (1.5 and 3 mm)
     assert len(rows) == 3 * 2 + 2 * 2 and (rows["status"] == "pass").all()
-    assert rows.loc["cylinder: adaptive mesh: force at 0.5 mm: |F / F_finest - 1|", "value"] == pytest.approx(0.002)
-    assert rows.loc["cylinder: adaptive mesh: VOI at 1.5 mm: |VOI / VOI_finest - 1|", "value"] == pytest.approx(0.01)
-    assert rows.loc["cylinder: adaptive mesh: bins at 3 mm: max |p - p_finest| [pp]", "value"] == pytest.approx(0.3)
-    assert "pass 1, 40000 DOFs" in rows.loc["cylinder: adaptive mesh: force at 1.5 mm: |F / F_finest - 1|", "note"]
+    assert rows.loc[
+        "cylinder: adaptive mesh: force at 0.5 mm: |F / F_finest - 1|", "value"
+    ] == pytest.approx(0.002)
+    assert rows.loc[
+        "cylinder: adaptive mesh: VOI at 1.5 mm: |VOI / VOI_finest - 1|", "value"
+    ] == pytest.approx(0.01)
+    assert rows.loc[
+        "cylinder: adaptive mesh: bins at 3 mm: max |p - p_finest| [pp]", "value"
+    ] == pytest.approx(0.3)
+    assert (
+        "pass 1, 40000 DOFs"
+        in rows.loc["cylinder: adaptive mesh: force at 1.5 mm: |F / F_finest - 1|", "note"]
+    )
     assert "cylinder: adaptive mesh: VOI at 0.5 mm: |VOI / VOI_finest - 1|" not in rows.index
-    failed = failed_checks(verification_summary(**_tables(), cylinder_curve=curve, cylinder_voi=voi,
-                                                cylinder_adaptive=_adaptive(curve, voi, force_error=0.006,
-                                                                            voi_error=0.03, goal_met=False)))
-    assert {f"cylinder: adaptive mesh: force at {d:g} mm: |F / F_finest - 1|" for d in (0.5, 1.5, 3.0)} <= set(failed)
-    assert {f"cylinder: adaptive mesh at {d:g} mm: goal met by its own estimate" for d in (0.5, 1.5, 3.0)} <= set(failed)
+    failed = failed_checks(
+        verification_summary(
+            **_tables(),
+            cylinder_curve=curve,
+            cylinder_voi=voi,
+            cylinder_adaptive=_adaptive(
+                curve, voi, force_error=0.006, voi_error=0.03, goal_met=False
+            ),
+        )
+    )
+    assert {
+        f"cylinder: adaptive mesh: force at {d:g} mm: |F / F_finest - 1|" for d in (0.5, 1.5, 3.0)
+    } <= set(failed)
+    assert {
+        f"cylinder: adaptive mesh at {d:g} mm: goal met by its own estimate"
+        for d in (0.5, 1.5, 3.0)
+    } <= set(failed)
     assert "cylinder: adaptive mesh: VOI at 3 mm: |VOI / VOI_finest - 1|" in failed
 
 
 def test_the_adaptive_cylinder_rows_are_read_from_their_csv_file(tmp_path):
     paths = {}
     curve, voi = _cylinder()
-    tables = {**_tables(hard_30_converged=True), "cylinder_curve": curve, "cylinder_voi": voi,
-              "cylinder_adaptive": _adaptive(curve, voi, force_error=0.006)}
+    tables = {
+        **_tables(hard_30_converged=True),
+        "cylinder_curve": curve,
+        "cylinder_voi": voi,
+        "cylinder_adaptive": _adaptive(curve, voi, force_error=0.006),
+    }
     for name, df in tables.items():
         paths[name] = tmp_path / f"{name}.csv"
         df.to_csv(paths[name], index=False)
-    s = write_verification_summary(point_csv=paths["points"], hertz_csv=paths["hertz"], curve_csv=paths["curve"],
-                                   locking_csv=paths["locking"], checks_csv=paths["checks"], hard_csv=paths["hard"],
-                                   benchmark_csv=paths["benchmark"], summary_csv=tmp_path / "summary.csv",
-                                   cylinder_curve_csv=paths["cylinder_curve"], cylinder_voi_csv=paths["cylinder_voi"],
-                                   cylinder_adaptive_csv=paths["cylinder_adaptive"])
+    s = write_verification_summary(
+        point_csv=paths["points"],
+        hertz_csv=paths["hertz"],
+        curve_csv=paths["curve"],
+        locking_csv=paths["locking"],
+        checks_csv=paths["checks"],
+        hard_csv=paths["hard"],
+        benchmark_csv=paths["benchmark"],
+        summary_csv=tmp_path / "summary.csv",
+        cylinder_curve_csv=paths["cylinder_curve"],
+        cylinder_voi_csv=paths["cylinder_voi"],
+        cylinder_adaptive_csv=paths["cylinder_adaptive"],
+    )
     assert s["check"].str.startswith("cylinder: adaptive").sum() == 10
-    assert failed_checks(s) == [f"cylinder: adaptive mesh: force at {d:g} mm: |F / F_finest - 1|" for d in (0.5, 1.5, 3.0)]
+    assert failed_checks(s) == [
+        f"cylinder: adaptive mesh: force at {d:g} mm: |F / F_finest - 1|" for d in (0.5, 1.5, 3.0)
+    ]

@@ -12,16 +12,30 @@ callables, so the same loop serves the cylinder scene (:mod:`deeptissue.fem.cyli
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 import pandas as pd
 
 from .mesh import TetMesh
 
-__all__ = ["AdaptPass", "AdaptResult", "AdaptSettings", "GMSH_EDGE_RATIO", "GMSH_TET_VOLUME", "PassEstimate", "SizeField",
-           "adapt", "element_sizes", "estimated_tets", "fit_budget", "node_sizes", "set_background_size", "target_sizes"]
+__all__ = [
+    "AdaptPass",
+    "AdaptResult",
+    "AdaptSettings",
+    "GMSH_EDGE_RATIO",
+    "GMSH_TET_VOLUME",
+    "PassEstimate",
+    "SizeField",
+    "adapt",
+    "element_sizes",
+    "estimated_tets",
+    "fit_budget",
+    "node_sizes",
+    "set_background_size",
+    "target_sizes",
+]
 
 # the 6 edges of a tetrahedron by its corner indices
 _TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
@@ -80,18 +94,32 @@ class AdaptSettings:
 
     def __post_init__(self):
         if not 0 < self.h_min_mm <= self.h_max_mm:
-            raise ValueError(f"AdaptSettings: need 0 < h_min_mm <= h_max_mm, got {self.h_min_mm}, {self.h_max_mm}")
+            raise ValueError(
+                f"AdaptSettings: need 0 < h_min_mm <= h_max_mm, got {self.h_min_mm}, {self.h_max_mm}"
+            )
         if not 0 < self.max_shrink <= 1 <= self.max_growth:
-            raise ValueError(f"AdaptSettings: need 0 < max_shrink <= 1 <= max_growth, got {self.max_shrink}, {self.max_growth}")
-        if self.max_passes < 1 or self.max_wall_s <= 0 or not 0 < self.safety <= 1 or self.grading <= 0:
-            raise ValueError("AdaptSettings: need max_passes >= 1, max_wall_s > 0, 0 < safety <= 1, grading > 0")
+            raise ValueError(
+                f"AdaptSettings: need 0 < max_shrink <= 1 <= max_growth, got {self.max_shrink}, {self.max_growth}"
+            )
+        if (
+            self.max_passes < 1
+            or self.max_wall_s <= 0
+            or not 0 < self.safety <= 1
+            or self.grading <= 0
+        ):
+            raise ValueError(
+                "AdaptSettings: need max_passes >= 1, max_wall_s > 0, 0 < safety <= 1, grading > 0"
+            )
 
 
 def element_sizes(mesh: TetMesh) -> np.ndarray:
     """The gmsh size each tetrahedron corresponds to (n_tets,) [mm]: its mean corner-edge length over
     :data:`GMSH_EDGE_RATIO`, so that a mesh asked for at 0.8 mm has sizes near 0.8 mm."""
     X = mesh.nodes_mm[mesh.tets[:, :4]]
-    return np.linalg.norm(X[:, _TET_EDGES[:, 1]] - X[:, _TET_EDGES[:, 0]], axis=2).mean(axis=1) / GMSH_EDGE_RATIO
+    return (
+        np.linalg.norm(X[:, _TET_EDGES[:, 1]] - X[:, _TET_EDGES[:, 0]], axis=2).mean(axis=1)
+        / GMSH_EDGE_RATIO
+    )
 
 
 def _volumes(mesh: TetMesh) -> np.ndarray:
@@ -102,10 +130,14 @@ def _volumes(mesh: TetMesh) -> np.ndarray:
 def estimated_tets(volume_mm3, h_mm) -> float:
     """Number of tetrahedra gmsh makes of regions of volume ``volume_mm3`` (n,) [mm³] meshed at sizes
     ``h_mm`` (n,) [mm]: the sum of each volume over gmsh's mean tetrahedron volume :data:`GMSH_TET_VOLUME` h³."""
-    return float(np.sum(np.asarray(volume_mm3, float) / (GMSH_TET_VOLUME * np.asarray(h_mm, float) ** 3)))
+    return float(
+        np.sum(np.asarray(volume_mm3, float) / (GMSH_TET_VOLUME * np.asarray(h_mm, float) ** 3))
+    )
 
 
-def target_sizes(h_mm, indicator, target_total, settings: AdaptSettings = AdaptSettings()) -> np.ndarray:
+def target_sizes(
+    h_mm, indicator, target_total, settings: AdaptSettings = AdaptSettings()
+) -> np.ndarray:
     """New element sizes (n_tets,) [mm] from the current sizes ``h_mm`` and the indicator (n_tets,).
 
     Classic h-adaptation by equidistribution: each of the n elements with a non-zero indicator gets
@@ -136,7 +168,9 @@ def target_sizes(h_mm, indicator, target_total, settings: AdaptSettings = AdaptS
     return out
 
 
-def node_sizes(mesh: TetMesh, tet_sizes_mm, *, grading: float = AdaptSettings.grading, current_mm=None) -> np.ndarray:
+def node_sizes(
+    mesh: TetMesh, tet_sizes_mm, *, grading: float = AdaptSettings.grading, current_mm=None
+) -> np.ndarray:
     """Sizes at the corner nodes (n_nodes,) [mm; NaN at mid-edge nodes], limited so that they grow by
     at most ``grading`` mm per mm of distance along the mesh's edges (a small element's neighbours
     are refined too).
@@ -164,7 +198,9 @@ def node_sizes(mesh: TetMesh, tet_sizes_mm, *, grading: float = AdaptSettings.gr
         np.minimum.at(out, corners[shrink].ravel(), np.repeat(s[shrink], 4))
     edges = np.unique(np.sort(corners[:, _TET_EDGES].reshape(-1, 2), axis=1), axis=0)
     length = np.linalg.norm(mesh.nodes_mm[edges[:, 1]] - mesh.nodes_mm[edges[:, 0]], axis=1)
-    for _ in range(200):  # relax along the edges until no size changes (a sweep per graph distance)
+    for _ in range(
+        200
+    ):  # relax along the edges until no size changes (a sweep per graph distance)
         before = out.copy()
         np.minimum.at(out, edges[:, 0], out[edges[:, 1]] + grading * length)
         np.minimum.at(out, edges[:, 1], out[edges[:, 0]] + grading * length)
@@ -183,12 +219,16 @@ class SizeField:
     size_mm: np.ndarray
 
     @classmethod
-    def from_mesh(cls, mesh: TetMesh, node_size_mm) -> "SizeField":
+    def from_mesh(cls, mesh: TetMesh, node_size_mm) -> SizeField:
         """The field of ``mesh``'s corner nodes and sizes (the mid-edge nodes are dropped)."""
         corners = np.unique(mesh.tets[:, :4])
         index = np.full(len(mesh.nodes_mm), -1)
         index[corners] = np.arange(len(corners))
-        return cls(mesh.nodes_mm[corners], index[mesh.tets[:, :4]], np.asarray(node_size_mm, float)[corners])
+        return cls(
+            mesh.nodes_mm[corners],
+            index[mesh.tets[:, :4]],
+            np.asarray(node_size_mm, float)[corners],
+        )
 
     @property
     def h_min_mm(self) -> float:
@@ -214,7 +254,9 @@ def set_background_size(gmsh, sizes: SizeField, *, method: str = "view") -> None
         from scipy.spatial import cKDTree
 
         tree = cKDTree(sizes.nodes_mm)
-        gmsh.model.mesh.setSizeCallback(lambda dim, tag, x, y, z, lc: float(min(lc, h[tree.query((x, y, z))[1]])))
+        gmsh.model.mesh.setSizeCallback(
+            lambda dim, tag, x, y, z, lc: float(min(lc, h[tree.query((x, y, z))[1]]))
+        )
         return
     if method != "view":
         raise ValueError(f"method {method!r}: expected 'view' or 'callback'")
@@ -294,8 +336,15 @@ class AdaptResult:
 
     def table(self) -> pd.DataFrame:
         """One row per pass: the fields of :class:`AdaptPass`, ``bins_percent`` as ``bins_percent.<bin>`` columns."""
-        return pd.DataFrame([{**{k: v for k, v in p.__dict__.items() if k != "bins_percent"},
-                              **{f"bins_percent.{b}": x for b, x in p.bins_percent.items()}} for p in self.passes])
+        return pd.DataFrame(
+            [
+                {
+                    **{k: v for k, v in p.__dict__.items() if k != "bins_percent"},
+                    **{f"bins_percent.{b}": x for b, x in p.bins_percent.items()},
+                }
+                for p in self.passes
+            ]
+        )
 
     @property
     def goal_met(self) -> bool:
@@ -303,7 +352,9 @@ class AdaptResult:
         return bool(self.passes) and self.passes[-1].goal_met
 
 
-def _force_estimate(force_N, contact_h, previous, held, plan, settings) -> tuple[float, str, float]:
+def _force_estimate(
+    force_N, contact_h, previous, held, plan, settings
+) -> tuple[float, str, float]:
     """The force's estimate [%], its status (:class:`AdaptPass`) and the contact zone's shrink.
 
     ``previous`` is the previous pass's (force [N], contact zone mean size [mm]) or None, ``held`` the
@@ -321,14 +372,24 @@ def _force_estimate(force_N, contact_h, previous, held, plan, settings) -> tuple
     if held is not None:
         err, f_held, h_held = held
         if not contact_h > h_held / st.force_valid_shrink:
-            return max(err, 100.0 * abs(force_N - f_held) / max(abs(force_N), 1e-300)), "held", shrink
+            return (
+                max(err, 100.0 * abs(force_N - f_held) / max(abs(force_N), 1e-300)),
+                "held",
+                shrink,
+            )
         return np.nan, "coarsened", shrink
     return np.nan, plan or "not refined", shrink
 
 
-def adapt(build_mesh: Callable[[SizeField | None], TetMesh], solve: Callable[[TetMesh, tuple | None], object],
-          estimate: Callable[[TetMesh, object], PassEstimate], settings: AdaptSettings = AdaptSettings(), *,
-          initial: SizeField | None = None, log: Callable[[str], None] | None = None) -> AdaptResult:
+def adapt(
+    build_mesh: Callable[[SizeField | None], TetMesh],
+    solve: Callable[[TetMesh, tuple | None], object],
+    estimate: Callable[[TetMesh, object], PassEstimate],
+    settings: AdaptSettings = AdaptSettings(),
+    *,
+    initial: SizeField | None = None,
+    log: Callable[[str], None] | None = None,
+) -> AdaptResult:
     """Solve, estimate and remesh until the estimates meet the goals or the budget is spent.
 
     Parameters
@@ -362,7 +423,10 @@ def adapt(build_mesh: Callable[[SizeField | None], TetMesh], solve: Callable[[Te
     st = settings
     t_start = time.perf_counter()
     passes, field_, previous_force, last = [], initial, None, None
-    held, plan = None, ""  # the force's verdict in force; why the last remeshing left the contact zone alone
+    held, plan = (
+        None,
+        "",
+    )  # the force's verdict in force; why the last remeshing left the contact zone alone
     reason = "passes"
     for k in range(st.max_passes):
         t0 = time.perf_counter()
@@ -370,33 +434,84 @@ def adapt(build_mesh: Callable[[SizeField | None], TetMesh], solve: Callable[[Te
         t1 = time.perf_counter()
         sol = solve(mesh, None if last is None else last[:2])
         t2 = time.perf_counter()
-        if not sol.converged:  # a solve stopped by the loop's budget (the solver's max_wall_s) spent it
+        if (
+            not sol.converged
+        ):  # a solve stopped by the loop's budget (the solver's max_wall_s) spent it
             reason = "wall" if t2 - t_start >= st.max_wall_s else "not converged"
-            passes.append(AdaptPass(k, 3 * len(mesh.nodes_mm), int(mesh.n_tets), False, t1 - t0, t2 - t1, 0.0,
-                                    t2 - t_start, np.nan, np.nan, np.nan, np.nan, np.nan, np.nan, "no solve",
-                                    float(element_sizes(mesh).min()), False))
+            passes.append(
+                AdaptPass(
+                    k,
+                    3 * len(mesh.nodes_mm),
+                    int(mesh.n_tets),
+                    False,
+                    t1 - t0,
+                    t2 - t1,
+                    0.0,
+                    t2 - t_start,
+                    np.nan,
+                    np.nan,
+                    np.nan,
+                    np.nan,
+                    np.nan,
+                    np.nan,
+                    "no solve",
+                    float(element_sizes(mesh).min()),
+                    False,
+                )
+            )
             break
         est = estimate(mesh, sol)
         t3 = time.perf_counter()
         h = element_sizes(mesh)
-        contact_h = float(h[est.contact_tets].mean()) if est.contact_tets is not None and est.contact_tets.any() else np.nan
-        force_err, force_status, shrink = _force_estimate(est.force_N, contact_h, previous_force, held, plan, st)
+        contact_h = (
+            float(h[est.contact_tets].mean())
+            if est.contact_tets is not None and est.contact_tets.any()
+            else np.nan
+        )
+        force_err, force_status, shrink = _force_estimate(
+            est.force_N, contact_h, previous_force, held, plan, st
+        )
         if force_status == "estimated":
-            held = (force_err, est.force_N, contact_h) if force_err <= st.force_goal_percent else None
+            held = (
+                (force_err, est.force_N, contact_h) if force_err <= st.force_goal_percent else None
+            )
         elif force_status != "held" or not force_err <= st.force_goal_percent:
             held = None
         voi_pc = _voi_error_percent(est.voi_mm3, est.voi_err_mm3)
-        force_ok = st.force_goal_percent is None or force_err <= st.force_goal_percent  # NaN: not known, not met
-        met = bool(voi_pc <= st.voi_goal_percent and est.bins_err_pp <= st.bins_goal_pp and force_ok)
-        p = AdaptPass(k, 3 * len(mesh.nodes_mm), int(mesh.n_tets), True, t1 - t0, t2 - t1, t3 - t2, t3 - t_start,
-                      est.voi_mm3, voi_pc, est.bins_err_pp, est.force_N, force_err, shrink, force_status,
-                      float(h.min()), met, dict(est.bins_percent))
+        force_ok = (
+            st.force_goal_percent is None or force_err <= st.force_goal_percent
+        )  # NaN: not known, not met
+        met = bool(
+            voi_pc <= st.voi_goal_percent and est.bins_err_pp <= st.bins_goal_pp and force_ok
+        )
+        p = AdaptPass(
+            k,
+            3 * len(mesh.nodes_mm),
+            int(mesh.n_tets),
+            True,
+            t1 - t0,
+            t2 - t1,
+            t3 - t2,
+            t3 - t_start,
+            est.voi_mm3,
+            voi_pc,
+            est.bins_err_pp,
+            est.force_N,
+            force_err,
+            shrink,
+            force_status,
+            float(h.min()),
+            met,
+            dict(est.bins_percent),
+        )
         passes.append(p)
         last = (mesh, sol, est)
         if log is not None:
-            log(f"pass {k}: {p.n_dofs} DOFs, {p.solve_s:.1f} s solve, VOI {p.voi_mm3:.3f} mm3 +- {voi_pc:.2f} %, "
+            log(
+                f"pass {k}: {p.n_dofs} DOFs, {p.solve_s:.1f} s solve, VOI {p.voi_mm3:.3f} mm3 +- {voi_pc:.2f} %, "
                 f"bins +- {p.bins_err_pp:.2f} pp, force {p.force_N:.5f} N +- {force_err:.2f} % ({force_status}), "
-                f"goal met: {met}")
+                f"goal met: {met}"
+            )
         if met:
             reason = "goal"
             break
@@ -407,7 +522,9 @@ def adapt(build_mesh: Callable[[SizeField | None], TetMesh], solve: Callable[[Te
             break
         new_h, plan = _next_sizes(h, _volumes(mesh), est, voi_pc, force_err, st)
         previous_force = (est.force_N, contact_h)
-        field_ = SizeField.from_mesh(mesh, node_sizes(mesh, new_h, grading=st.grading, current_mm=h))
+        field_ = SizeField.from_mesh(
+            mesh, node_sizes(mesh, new_h, grading=st.grading, current_mm=h)
+        )
     mesh, sol, est = last if last is not None else (None, None, None)
     return AdaptResult(tuple(passes), mesh, sol, est, reason)
 
@@ -421,8 +538,9 @@ def _voi_error_percent(voi_mm3: float, voi_err_mm3: float) -> float:
     return 0.0 if voi_err_mm3 == 0 else np.inf
 
 
-def _next_sizes(h, volume_mm3, est: PassEstimate, voi_pc: float, force_err: float,
-                st: AdaptSettings) -> tuple[np.ndarray, str]:
+def _next_sizes(
+    h, volume_mm3, est: PassEstimate, voi_pc: float, force_err: float, st: AdaptSettings
+) -> tuple[np.ndarray, str]:
     """The next pass's element sizes, and why the contact zone is not refined (``'budget'``, ``'h_min'``
     or ``''``): for the VOI and for the bins, each missing its goal, the elements of its indicator by
     :func:`target_sizes`, aiming its total at ``safety`` over its ratio of estimate to goal (one
@@ -447,12 +565,22 @@ def _next_sizes(h, volume_mm3, est: PassEstimate, voi_pc: float, force_err: floa
             ratio = min(ratio, 1e12)
             new_h = np.minimum(new_h, target_sizes(h, part, st.safety * total / ratio, st))
     c = est.contact_tets
-    if st.force_goal_percent is None or c is None or not c.any() or force_err <= st.force_goal_percent:
+    if (
+        st.force_goal_percent is None
+        or c is None
+        or not c.any()
+        or force_err <= st.force_goal_percent
+    ):
         return fit_budget(h, new_h, volume_mm3, st.max_tets), ""
-    f = np.sqrt(st.max_shrink) if not np.isfinite(force_err) else np.clip(
-        (st.safety * st.force_goal_percent / force_err) ** 0.5, st.max_shrink, 1.0)
+    f = (
+        np.sqrt(st.max_shrink)
+        if not np.isfinite(force_err)
+        else np.clip((st.safety * st.force_goal_percent / force_err) ** 0.5, st.max_shrink, 1.0)
+    )
     refined = new_h.copy()
-    refined[c] = np.minimum(new_h[c], np.clip(h[c] * min(f, st.force_valid_shrink), st.h_min_mm, st.h_max_mm))
+    refined[c] = np.minimum(
+        new_h[c], np.clip(h[c] * min(f, st.force_valid_shrink), st.h_min_mm, st.h_max_mm)
+    )
     enough = st.force_valid_shrink * h[c].mean()
     if refined[c].mean() > enough:
         return fit_budget(h, new_h, volume_mm3, st.max_tets), "h_min"

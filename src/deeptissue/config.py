@@ -73,7 +73,9 @@ class _StrictLoader(yaml.SafeLoader):
         return super().construct_mapping(node, deep=deep)
 
 
-_StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _StrictLoader.construct_mapping)
+_StrictLoader.add_constructor(
+    yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _StrictLoader.construct_mapping
+)
 
 
 def _a(kind: str) -> str:
@@ -88,7 +90,10 @@ def _numeric_animal_names(node: yaml.Node, path: str) -> None:
     for key_node, value_node in node.value:
         if key_node.value == "animals" and isinstance(value_node, yaml.MappingNode):
             for name_node, _ in value_node.value:
-                if isinstance(name_node, yaml.ScalarNode) and name_node.tag != "tag:yaml.org,2002:str":
+                if (
+                    isinstance(name_node, yaml.ScalarNode)
+                    and name_node.tag != "tag:yaml.org,2002:str"
+                ):
                     raise ConfigError(
                         f"config file {path}, line {name_node.start_mark.line + 1}: animal name {name_node.value} "
                         f"is read by YAML as {_a(name_node.tag.rsplit(':', 1)[-1])}, not a name; quote it: "
@@ -123,7 +128,9 @@ def load_config_file(path: str | Path) -> dict:
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         where = f", line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-        raise ConfigError(f"config file {path}{where}: YAML syntax error: {exc.problem or exc.context}") from exc
+        raise ConfigError(
+            f"config file {path}{where}: YAML syntax error: {exc.problem or exc.context}"
+        ) from exc
     except yaml.YAMLError as exc:
         raise ConfigError(f"config file {path}: YAML syntax error: {exc}") from exc
     finally:
@@ -133,7 +140,9 @@ def load_config_file(path: str | Path) -> dict:
     if data is None:
         return {}
     if not isinstance(data, dict):
-        raise ConfigError(f"config file {path}: the top level must be a mapping of keys, got {type(data).__name__}")
+        raise ConfigError(
+            f"config file {path}: the top level must be a mapping of keys, got {type(data).__name__}"
+        )
     return data
 
 
@@ -244,15 +253,24 @@ def validate_config(
     _check_animal_keys(config)
     schema = load_schema(schema_path)
     validator = _DefaultFilling(schema)
-    errors = sorted(validator.iter_errors(config), key=lambda e: (len(e.absolute_path), list(map(str, e.absolute_path))))
+    errors = sorted(
+        validator.iter_errors(config),
+        key=lambda e: (len(e.absolute_path), list(map(str, e.absolute_path))),
+    )
     if errors:
         # the deepest error is the most specific; oneOf errors carry their context
         err = errors[-1]
         if err.context:
             # the allowed form the value comes closest to: fewest errors, then deepest, not a plain type mismatch
             per_form = Counter(e.relative_schema_path[0] for e in err.context)
-            err = min(err.context, key=lambda e: (e.validator == "type", per_form[e.relative_schema_path[0]],
-                                                  -len(e.absolute_path)))
+            err = min(
+                err.context,
+                key=lambda e: (
+                    e.validator == "type",
+                    per_form[e.relative_schema_path[0]],
+                    -len(e.absolute_path),
+                ),
+            )
         raise ConfigError(_message(err))
     _check_files(config, Path(base_dir))
     if config["study"]["name"] is None:
@@ -297,11 +315,17 @@ def _check_files(config: dict, base_dir: Path) -> None:
     for animal, cfg in (config.get("animals") or {}).items():
         for key in _FILE_KEYS:
             val = cfg.get(key)
-            if isinstance(val, dict):  # a scanner's folder: {dicom: folder, ...} or {bruker: study, ...}
+            if isinstance(
+                val, dict
+            ):  # a scanner's folder: {dicom: folder, ...} or {bruker: study, ...}
                 folder = val.get("dicom", val.get("bruker"))
                 if not (base_dir / folder).is_dir():
-                    raise ConfigError(f"config key animals.{animal}.{key}: folder not found: {folder}")
-            elif isinstance(val, str) and not ((base_dir / val).is_file() or (key != "overrides" and (base_dir / val).is_dir())):
+                    raise ConfigError(
+                        f"config key animals.{animal}.{key}: folder not found: {folder}"
+                    )
+            elif isinstance(val, str) and not (
+                (base_dir / val).is_file() or (key != "overrides" and (base_dir / val).is_dir())
+            ):
                 raise ConfigError(f"config key animals.{animal}.{key}: file not found: {val}")
 
 
@@ -394,9 +418,13 @@ def _check_figure_animal(config: dict[str, Any]) -> None:
     name = config["study"]["figure_animal"]
     animals = list(config["animals"])
     if name is not None and name not in animals:
-        raise ConfigError(f"config key study.figure_animal: {name!r} is not a configured animal {animals}")
+        raise ConfigError(
+            f"config key study.figure_animal: {name!r} is not a configured animal {animals}"
+        )
     if name is not None and not has_during_scan(config["animals"][name]):
-        raise ConfigError(f"config key study.figure_animal: {name!r} has no during scan: it has no FE results to draw")
+        raise ConfigError(
+            f"config key study.figure_animal: {name!r} has no during scan: it has no FE results to draw"
+        )
 
 
 def _check_convergence_animals(config: dict[str, Any]) -> None:
@@ -406,7 +434,9 @@ def _check_convergence_animals(config: dict[str, Any]) -> None:
     animals = list(config["animals"])
     unknown = [a for a in named if a not in animals]
     if unknown:
-        raise ConfigError(f"config key convergence.animals: {unknown} are not configured animals {animals}")
+        raise ConfigError(
+            f"config key convergence.animals: {unknown} are not configured animals {animals}"
+        )
 
 
 def _check_leg_points(config: dict[str, Any]) -> None:
@@ -508,7 +538,12 @@ def _type(node: dict) -> str:
     return text
 
 
-_BOUNDS = (("minimum", "≥"), ("exclusiveMinimum", ">"), ("maximum", "≤"), ("exclusiveMaximum", "<"))
+_BOUNDS = (
+    ("minimum", "≥"),
+    ("exclusiveMinimum", ">"),
+    ("maximum", "≤"),
+    ("exclusiveMaximum", "<"),
+)
 
 
 def _range(node: dict) -> str:
@@ -603,7 +638,10 @@ def schema_markdown(schema: dict) -> str:
         if not rows:
             lines.append("Only the sections below.")
             continue
-        lines += ["| key | type | default | unit | range | description |", "|---|---|---|---|---|---|"]
+        lines += [
+            "| key | type | default | unit | range | description |",
+            "|---|---|---|---|---|---|",
+        ]
         required = set(node.get("required", ()))
         for key, sub in rows:
             if "default" in sub:
@@ -611,7 +649,14 @@ def schema_markdown(schema: dict) -> str:
             else:
                 default = "required" if key.rsplit(".", 1)[-1] in required else ""
             unit = f"`{sub['unit']}`" if "unit" in sub else ""
-            cells = [f"`{key}`", _type(sub), _text(default), unit, _text(_range(sub)), _text(sub.get("description", ""))]
+            cells = [
+                f"`{key}`",
+                _type(sub),
+                _text(default),
+                unit,
+                _text(_range(sub)),
+                _text(sub.get("description", "")),
+            ]
             lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
@@ -620,7 +665,11 @@ def _merged(base: dict, overlay: dict) -> dict:
     """``base`` updated by ``overlay``, nested mappings key by key (as Snakemake merges config files)."""
     out = dict(base)
     for key, value in overlay.items():
-        out[key] = _merged(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+        out[key] = (
+            _merged(out[key], value)
+            if isinstance(value, dict) and isinstance(out.get(key), dict)
+            else value
+        )
     return out
 
 
@@ -638,11 +687,22 @@ def main(argv: list[str] | None = None) -> None:
     """
     from .io import atomic_path
 
-    parser = argparse.ArgumentParser(prog="python -m deeptissue.config", description=main.__doc__.splitlines()[0])
-    parser.add_argument("output", type=Path, nargs="?", help="the Markdown file to write, e.g. docs/config.md")
-    parser.add_argument("--schema", type=Path, default=SCHEMA_PATH, help="the configuration schema (YAML)")
-    parser.add_argument("--check", type=Path, nargs="+", metavar="CONFIG",
-                        help="check these config files (merged in order) instead of writing the page")
+    parser = argparse.ArgumentParser(
+        prog="python -m deeptissue.config", description=main.__doc__.splitlines()[0]
+    )
+    parser.add_argument(
+        "output", type=Path, nargs="?", help="the Markdown file to write, e.g. docs/config.md"
+    )
+    parser.add_argument(
+        "--schema", type=Path, default=SCHEMA_PATH, help="the configuration schema (YAML)"
+    )
+    parser.add_argument(
+        "--check",
+        type=Path,
+        nargs="+",
+        metavar="CONFIG",
+        help="check these config files (merged in order) instead of writing the page",
+    )
     args = parser.parse_args(argv)
     if args.check:
         try:

@@ -21,8 +21,17 @@ import numpy as np
 
 from .io import save_npz
 
-__all__ = ["Contours", "load_contours", "point_to_polygon_distance", "points_in_polygon", "polygon_area_centroid",
-           "resample_closed", "resample_contour_3d", "save_contours", "slices_with_contour"]
+__all__ = [
+    "Contours",
+    "load_contours",
+    "point_to_polygon_distance",
+    "points_in_polygon",
+    "polygon_area_centroid",
+    "resample_closed",
+    "resample_contour_3d",
+    "save_contours",
+    "slices_with_contour",
+]
 
 
 @dataclass(frozen=True)
@@ -31,14 +40,20 @@ class Contours:
 
     skin: np.ndarray  # (n_slices, n_points, 3) world mm
     bone: np.ndarray  # (n_slices, n_points, 3) world mm: the tibia
-    fibula: np.ndarray | None = None  # (n_slices, n_points_f, 3) world mm, NaN rows where absent; None: none
-    bone_hidden: np.ndarray | None = None  # (n_slices,) bool: tibia against the indenter, contour from the pre bone
+    fibula: np.ndarray | None = (
+        None  # (n_slices, n_points_f, 3) world mm, NaN rows where absent; None: none
+    )
+    bone_hidden: np.ndarray | None = (
+        None  # (n_slices,) bool: tibia against the indenter, contour from the pre bone
+    )
 
     def __post_init__(self):
         for name in ("skin", "bone"):
             a = getattr(self, name)
             if a.ndim != 3 or a.shape[2] != 3:
-                raise ValueError(f"contours.{name}: expected shape (n_slices, n_points, 3), got {a.shape}")
+                raise ValueError(
+                    f"contours.{name}: expected shape (n_slices, n_points, 3), got {a.shape}"
+                )
             if not np.all(np.isfinite(a)):
                 raise ValueError(f"contours.{name}: non-finite coordinates")
         if self.skin.shape[0] != self.bone.shape[0]:
@@ -48,17 +63,23 @@ class Contours:
         if self.fibula is not None:
             f = np.asarray(self.fibula, float)
             if f.ndim != 3 or f.shape[2] != 3 or f.shape[0] != self.skin.shape[0]:
-                raise ValueError(f"contours.fibula: expected shape ({self.skin.shape[0]}, n_points, 3), got {f.shape}")
+                raise ValueError(
+                    f"contours.fibula: expected shape ({self.skin.shape[0]}, n_points, 3), got {f.shape}"
+                )
             fin = np.isfinite(f).reshape(f.shape[0], -1)
             mixed = np.nonzero(fin.any(axis=1) & ~fin.all(axis=1))[0]
             if len(mixed):
-                raise ValueError(f"contours.fibula: slice {int(mixed[0])} is partly non-finite (a slice has a whole "
-                                 "contour or NaN throughout)")
+                raise ValueError(
+                    f"contours.fibula: slice {int(mixed[0])} is partly non-finite (a slice has a whole "
+                    "contour or NaN throughout)"
+                )
             object.__setattr__(self, "fibula", f if fin.any() else None)
         if self.bone_hidden is not None:
             h = np.asarray(self.bone_hidden, bool)
             if h.shape != (self.skin.shape[0],):
-                raise ValueError(f"contours.bone_hidden: expected shape ({self.skin.shape[0]},), got {h.shape}")
+                raise ValueError(
+                    f"contours.bone_hidden: expected shape ({self.skin.shape[0]},), got {h.shape}"
+                )
             object.__setattr__(self, "bone_hidden", h if h.any() else None)
 
     @property
@@ -146,8 +167,12 @@ def load_contours(path: str | Path) -> Contours:
     except (OSError, ValueError) as exc:
         raise ValueError(f"{path}: not a contour file ({exc})") from exc
     try:
-        return Contours(skin=np.asarray(skin, float), bone=np.asarray(bone, float),
-                        fibula=None if fibula is None else np.asarray(fibula, float), bone_hidden=hidden)
+        return Contours(
+            skin=np.asarray(skin, float),
+            bone=np.asarray(bone, float),
+            fibula=None if fibula is None else np.asarray(fibula, float),
+            bone_hidden=hidden,
+        )
     except ValueError as exc:
         raise ValueError(f"{path}: {exc}") from exc
 
@@ -170,7 +195,9 @@ def polygon_area_centroid(xy: np.ndarray) -> tuple[float, np.ndarray]:
     return float(area), np.array([cx, cy])
 
 
-def resample_closed(xy, *, n_points: int = 100, start_angle_deg: float = 90.0, oversample: int = 16) -> np.ndarray:
+def resample_closed(
+    xy, *, n_points: int = 100, start_angle_deg: float = 90.0, oversample: int = 16
+) -> np.ndarray:
     """Resample a closed planar curve to ``n_points`` circumferentially equidistant points.
 
     A shape-preserving piecewise cubic (PCHIP, periodic by wrapping) interpolates x and y over the
@@ -211,7 +238,9 @@ def resample_closed(xy, *, n_points: int = 100, start_angle_deg: float = 90.0, o
     step = np.linalg.norm(np.diff(p, axis=0, append=p[:1]), axis=1)
     p = p[step > 1e-12]
     if len(p) < 4:
-        raise ValueError(f"resample_closed: a closed contour needs at least 4 distinct points, got {len(p)}")
+        raise ValueError(
+            f"resample_closed: a closed contour needs at least 4 distinct points, got {len(p)}"
+        )
     area, _ = polygon_area_centroid(p)
     if area < 0:
         p = p[::-1]
@@ -246,15 +275,21 @@ def resample_closed(xy, *, n_points: int = 100, start_angle_deg: float = 90.0, o
         if a > 0 and a > best:
             best, s0 = a, sa[i] + t * (sa[i + 1] - sa[i])
     if not np.isfinite(best):
-        raise ValueError("resample_closed: the start-angle ray from the centroid does not cross the curve")
+        raise ValueError(
+            "resample_closed: the start-angle ray from the centroid does not cross the curve"
+        )
     st = (s0 + total * np.arange(n_points) / n_points) % total
     out = np.column_stack([np.interp(st, sa, dclosed[:, j]) for j in range(2)])
     return out
 
 
-def resample_contour_3d(points_mm, *, z_mm: float, n_points: int = 100, start_angle_deg: float = 90.0) -> np.ndarray:
+def resample_contour_3d(
+    points_mm, *, z_mm: float, n_points: int = 100, start_angle_deg: float = 90.0
+) -> np.ndarray:
     """:func:`resample_closed` of the x, y of ``points_mm`` (m, 2 or 3), returned as (n_points, 3) at ``z_mm``."""
-    xy = resample_closed(np.asarray(points_mm, float)[:, :2], n_points=n_points, start_angle_deg=start_angle_deg)
+    xy = resample_closed(
+        np.asarray(points_mm, float)[:, :2], n_points=n_points, start_angle_deg=start_angle_deg
+    )
     return np.column_stack([xy, np.full(len(xy), float(z_mm))])
 
 

@@ -22,11 +22,30 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 from scipy.spatial import cKDTree
 
-__all__ = ["ModelInputError", "axis_distance_mm", "bar_direction", "build_cast", "check_contours",
-           "closest_point_on_triangles", "extend_rings", "footprint_distance_mm", "grid_normals", "grid_triangles",
-           "is_star_shaped", "limb_volume_mm3", "loft_rings", "offset_rings", "point_triangle_distance",
-           "polygon_area_mm2", "prismatoid_volume_mm3", "resample_arclength", "select_patch", "surface_distance_mm",
-           "triangle_areas", "triangle_normals"]
+__all__ = [
+    "ModelInputError",
+    "axis_distance_mm",
+    "bar_direction",
+    "build_cast",
+    "check_contours",
+    "closest_point_on_triangles",
+    "extend_rings",
+    "footprint_distance_mm",
+    "grid_normals",
+    "grid_triangles",
+    "is_star_shaped",
+    "limb_volume_mm3",
+    "loft_rings",
+    "offset_rings",
+    "point_triangle_distance",
+    "polygon_area_mm2",
+    "prismatoid_volume_mm3",
+    "resample_arclength",
+    "select_patch",
+    "surface_distance_mm",
+    "triangle_areas",
+    "triangle_normals",
+]
 
 log = logging.getLogger(__name__)
 
@@ -98,11 +117,15 @@ def _ring_distance(points: np.ndarray, ring: np.ndarray) -> np.ndarray:
     b = np.roll(a, -1, axis=0)
     ab = b - a
     ap = points[:, None, :2] - a[None]
-    t = np.clip(np.einsum("mnk,nk->mn", ap, ab) / np.maximum(np.einsum("nk,nk->n", ab, ab), 1e-300), 0, 1)
+    t = np.clip(
+        np.einsum("mnk,nk->mn", ap, ab) / np.maximum(np.einsum("nk,nk->n", ab, ab), 1e-300), 0, 1
+    )
     return np.min(np.linalg.norm(ap - t[..., None] * ab[None], axis=2), axis=1)
 
 
-def check_contours(skin: np.ndarray, bone: np.ndarray, *, animal: str = "?", min_gap_mm: float = 0.05) -> dict:
+def check_contours(
+    skin: np.ndarray, bone: np.ndarray, *, animal: str = "?", min_gap_mm: float = 0.05
+) -> dict:
     """Refuse contours that cannot make a limb model; return per-slice facts used later.
 
     Checks: at least 2 slices of >= 8 points each, finite, every contour in one axial plane, slices
@@ -114,21 +137,31 @@ def check_contours(skin: np.ndarray, bone: np.ndarray, *, animal: str = "?", min
     bone = np.asarray(bone, float)
     for name, a in (("skin", skin), ("bone", bone)):
         if a.ndim != 3 or a.shape[2] != 3:
-            raise ModelInputError(f"animal {animal}: {name} contours: expected (n_slices, n_points, 3), got {a.shape}")
+            raise ModelInputError(
+                f"animal {animal}: {name} contours: expected (n_slices, n_points, 3), got {a.shape}"
+            )
         if a.shape[0] < 2:
-            raise ModelInputError(f"animal {animal}: {name} contours: need at least 2 slices, got {a.shape[0]}")
+            raise ModelInputError(
+                f"animal {animal}: {name} contours: need at least 2 slices, got {a.shape[0]}"
+            )
         if a.shape[1] < 8:
-            raise ModelInputError(f"animal {animal}: {name} contours: need at least 8 points per contour, got {a.shape[1]}")
+            raise ModelInputError(
+                f"animal {animal}: {name} contours: need at least 8 points per contour, got {a.shape[1]}"
+            )
         if not np.all(np.isfinite(a)):
             raise ModelInputError(f"animal {animal}: {name} contours: non-finite coordinates")
     if skin.shape[0] != bone.shape[0]:
-        raise ModelInputError(f"animal {animal}: {skin.shape[0]} skin slices but {bone.shape[0]} bone slices")
+        raise ModelInputError(
+            f"animal {animal}: {skin.shape[0]} skin slices but {bone.shape[0]} bone slices"
+        )
     z = skin[:, :, 2].mean(axis=1)
     gaps = np.zeros(len(z))
     for k in range(len(z)):
         for name, a in (("skin", skin[k]), ("bone", bone[k])):
             if np.ptp(a[:, 2]) > 1e-6 or abs(a[:, 2].mean() - z[k]) > 1e-6:
-                raise ModelInputError(f"animal {animal}: slice {k}: {name} contour is not in one axial plane z = {z[k]:.3f} mm")
+                raise ModelInputError(
+                    f"animal {animal}: slice {k}: {name} contour is not in one axial plane z = {z[k]:.3f} mm"
+                )
             area = polygon_area_mm2(a)
             if area <= 0:
                 raise ModelInputError(
@@ -137,7 +170,9 @@ def check_contours(skin: np.ndarray, bone: np.ndarray, *, animal: str = "?", min
             if _segments_intersect(a):
                 raise ModelInputError(f"animal {animal}: slice {k}: {name} contour crosses itself")
         if not np.all(_inside_polygon(bone[k], skin[k])):
-            raise ModelInputError(f"animal {animal}: slice {k}: bone contour is not inside the skin contour")
+            raise ModelInputError(
+                f"animal {animal}: slice {k}: bone contour is not inside the skin contour"
+            )
         gaps[k] = _ring_distance(bone[k], skin[k]).min()
         if gaps[k] < min_gap_mm:
             raise ModelInputError(
@@ -145,7 +180,9 @@ def check_contours(skin: np.ndarray, bone: np.ndarray, *, animal: str = "?", min
             )
     if np.any(np.diff(z) <= 0):
         k = int(np.argmin(np.diff(z)))
-        raise ModelInputError(f"animal {animal}: slices {k} and {k + 1}: z not strictly increasing ({z[k]:.3f}, {z[k + 1]:.3f} mm)")
+        raise ModelInputError(
+            f"animal {animal}: slices {k} and {k + 1}: z not strictly increasing ({z[k]:.3f}, {z[k + 1]:.3f} mm)"
+        )
     return {"z_mm": z, "min_gap_mm": gaps}
 
 
@@ -169,7 +206,6 @@ def resample_arclength(rings: np.ndarray, n_points: int | None = None) -> np.nda
     return out.reshape(*rings.shape[:-2], m, 3)
 
 
-
 def loft_rings(rings: np.ndarray, *, dz_mm: float = 0.25, ruled: bool = False) -> np.ndarray:
     """Resample a contour stack finely along z: corresponding points joined by a cubic spline in z, or
     by straight lines (``ruled``).
@@ -179,19 +215,31 @@ def loft_rings(rings: np.ndarray, *, dz_mm: float = 0.25, ruled: bool = False) -
     """
     z = rings[:, :, 2].mean(axis=1)
     n_sub = np.maximum(1, np.ceil(np.diff(z) / dz_mm).astype(int))
-    zs = np.concatenate([np.linspace(z[k], z[k + 1], n_sub[k], endpoint=False) for k in range(len(z) - 1)] + [z[-1:]])
+    zs = np.concatenate(
+        [np.linspace(z[k], z[k + 1], n_sub[k], endpoint=False) for k in range(len(z) - 1)]
+        + [z[-1:]]
+    )
     if len(z) < 3 or ruled:
-        xy = np.stack([np.interp(zs, z, rings[:, j, c]) for j in range(rings.shape[1]) for c in range(2)], axis=1)
+        xy = np.stack(
+            [np.interp(zs, z, rings[:, j, c]) for j in range(rings.shape[1]) for c in range(2)],
+            axis=1,
+        )
         xy = xy.reshape(len(zs), rings.shape[1], 2)
     else:
         xy = CubicSpline(z, rings[:, :, :2], axis=0, bc_type="not-a-knot")(zs)
-    return np.concatenate([xy, np.broadcast_to(zs[:, None, None], (len(zs), rings.shape[1], 1))], axis=2)
+    return np.concatenate(
+        [xy, np.broadcast_to(zs[:, None, None], (len(zs), rings.shape[1], 1))], axis=2
+    )
 
 
 def grid_normals(rings: np.ndarray) -> np.ndarray:
     """Outward unit normals (n_slices, n_points, 3) of the surface through a CCW contour stack."""
     tc = np.roll(rings, -1, axis=1) - np.roll(rings, 1, axis=1)  # along the contour (CCW)
-    tz = np.gradient(rings, axis=0) if len(rings) > 1 else np.broadcast_to([0.0, 0.0, 1.0], rings.shape)
+    tz = (
+        np.gradient(rings, axis=0)
+        if len(rings) > 1
+        else np.broadcast_to([0.0, 0.0, 1.0], rings.shape)
+    )
     n = np.cross(tc, tz)  # CCW tangent x +z direction = outward
     return n / np.linalg.norm(n, axis=2, keepdims=True)
 
@@ -204,7 +252,9 @@ def is_star_shaped(ring: np.ndarray) -> bool:
     return bool(np.all(step > 0))
 
 
-def offset_rings(rings: np.ndarray, offset_mm: float, *, direction: str = "normal", animal: str = "?") -> tuple[np.ndarray, list[str]]:
+def offset_rings(
+    rings: np.ndarray, offset_mm: float, *, direction: str = "normal", animal: str = "?"
+) -> tuple[np.ndarray, list[str]]:
     """Offset every contour of a stack outward by ``offset_mm`` within its slice plane.
 
     ``direction="normal"``: along the in-plane outward normal, lengthened so the 3D distance to the
@@ -214,7 +264,9 @@ def offset_rings(rings: np.ndarray, offset_mm: float, *, direction: str = "norma
     star-shaped use the normal. Returns the offset stack (same shape) and log messages.
     """
     if direction not in ("normal", "radial"):
-        raise ValueError(f"animal {animal}: cast offset direction {direction!r}: expected 'normal' or 'radial'")
+        raise ValueError(
+            f"animal {animal}: cast offset direction {direction!r}: expected 'normal' or 'radial'"
+        )
     msgs = []
     n3 = grid_normals(rings)
     n2 = n3.copy()
@@ -229,7 +281,9 @@ def offset_rings(rings: np.ndarray, offset_mm: float, *, direction: str = "norma
                 r = rings[k, :, :2] - c
                 out[k, :, :2] += offset_mm * r / np.linalg.norm(r, axis=1, keepdims=True)
                 continue
-            msgs.append(f"cast: slice {k} is not star-shaped about its centroid: offset along the normal instead of radially")
+            msgs.append(
+                f"cast: slice {k} is not star-shaped about its centroid: offset along the normal instead of radially"
+            )
         d = n2[k, :, :2] * (offset_mm * stretch[k])[:, None]
         for it in range(50):
             cand = rings[k, :, :2] + d
@@ -237,9 +291,13 @@ def offset_rings(rings: np.ndarray, offset_mm: float, *, direction: str = "norma
                 break
             d = (np.roll(d, 1, axis=0) + 2 * d + np.roll(d, -1, axis=0)) / 4.0
         else:
-            raise ModelInputError(f"animal {animal}: slice {k}: cannot offset the skin contour by {offset_mm} mm without self-intersection")
+            raise ModelInputError(
+                f"animal {animal}: slice {k}: cannot offset the skin contour by {offset_mm} mm without self-intersection"
+            )
         if it:
-            msgs.append(f"cast: slice {k}: offset contour crossed itself at a tight concavity; normals smoothed {it}x")
+            msgs.append(
+                f"cast: slice {k}: offset contour crossed itself at a tight concavity; normals smoothed {it}x"
+            )
         out[k, :, :2] = cand
     return out, msgs
 
@@ -263,7 +321,9 @@ def grid_triangles(n_rows: int, n_cols: int, *, inward: bool) -> np.ndarray:
     b = i * n_cols + (j + 1) % n_cols
     c = (i + 1) * n_cols + (j + 1) % n_cols
     d = (i + 1) * n_cols + j
-    tri = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
+    tri = np.concatenate(
+        [np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)]
+    )
     return tri[:, [0, 2, 1]] if inward else tri
 
 
@@ -290,7 +350,9 @@ def axis_distance_mm(points: np.ndarray, *, point_mm, axis) -> np.ndarray:
     return np.linalg.norm(r - np.einsum("...k,k->...", r, a)[..., None] * a, axis=-1)
 
 
-def footprint_distance_mm(points: np.ndarray, *, point_mm, axis, half_length_mm: float = 0.0, long_dir=None) -> np.ndarray:
+def footprint_distance_mm(
+    points: np.ndarray, *, point_mm, axis, half_length_mm: float = 0.0, long_dir=None
+) -> np.ndarray:
     """Distance from points to an indenter footprint projected along ``axis`` [mm].
 
     The footprint is the axis line (sphere) or, with ``half_length_mm > 0``, the strip swept by the
@@ -316,21 +378,34 @@ def bar_direction(axis) -> np.ndarray:
     return b / n
 
 
-def select_patch(centroids: np.ndarray, normals: np.ndarray, *, point_mm, axis, radius_mm: float, half_length_mm: float = 0.0, long_dir=None) -> np.ndarray:
+def select_patch(
+    centroids: np.ndarray,
+    normals: np.ndarray,
+    *,
+    point_mm,
+    axis,
+    radius_mm: float,
+    half_length_mm: float = 0.0,
+    long_dir=None,
+) -> np.ndarray:
     """Facets of the skin that may touch the indenter: (n,) bool.
 
     A facet is in the patch when its centroid, projected along ``axis``, lies within ``radius_mm`` of
     the footprint (the axis for a sphere, the bar's strip for a bar) and its outward normal faces the
     indenter (``normal . axis < 0``; the axis points from the indenter into the leg).
     """
-    d = footprint_distance_mm(centroids, point_mm=point_mm, axis=axis, half_length_mm=half_length_mm, long_dir=long_dir)
+    d = footprint_distance_mm(
+        centroids, point_mm=point_mm, axis=axis, half_length_mm=half_length_mm, long_dir=long_dir
+    )
     return (d <= radius_mm) & (normals @ np.asarray(axis, float) < 0)
 
 
 # --------------------------------------------------------------------------- cast with hole
 
 
-def _clip_surface(vertices: np.ndarray, triangles: np.ndarray, f: np.ndarray, active: np.ndarray, level=None):
+def _clip_surface(
+    vertices: np.ndarray, triangles: np.ndarray, f: np.ndarray, active: np.ndarray, level=None
+):
     """Remove the part of a triangle surface where ``f < 0`` on ``active`` triangles, cut along f = 0.
 
     Straddling triangles are split on their edges at the zero of the level function ``level(points
@@ -364,7 +439,9 @@ def _clip_surface(vertices: np.ndarray, triangles: np.ndarray, f: np.ndarray, ac
     edge_index: dict[tuple[int, int], int] = {}
     new_pts = []
     for (a, b), tk in zip(e.tolist(), t):
-        if tk <= 1e-9 or tk >= 1 - 1e-9:  # the cut passes through a vertex: reuse it (no duplicate)
+        if (
+            tk <= 1e-9 or tk >= 1 - 1e-9
+        ):  # the cut passes through a vertex: reuse it (no duplicate)
             edge_index[(a, b)] = a if tk <= 1e-9 else b
         else:
             new_pts.append(vertices[a] + tk * (vertices[b] - vertices[a]))
@@ -441,7 +518,9 @@ def build_cast(
     axis = np.asarray(axis, float)
     point = np.asarray(point_mm, float)
     if surface is None:
-        off, m = offset_rings(np.asarray(skin, float), offset_mm, direction=offset_direction, animal=animal)
+        off, m = offset_rings(
+            np.asarray(skin, float), offset_mm, direction=offset_direction, animal=animal
+        )
         msgs += m
         rings = loft_rings(extend_rings(off, extension_mm), dz_mm=dz_mm, ruled=ruled)
     else:
@@ -454,10 +533,14 @@ def build_cast(
                     rings[k] = grid[k]
                     rings[k, :, :2] += offset_mm * r / np.linalg.norm(r, axis=1, keepdims=True)
                 elif not any("not star-shaped" in m for m in msgs):
-                    msgs.append(f"cast: the skin is not star-shaped about its centroid at z = {grid[k, :, 2].mean():.2f} mm (and maybe elsewhere): offset along the normal there instead of radially")
+                    msgs.append(
+                        f"cast: the skin is not star-shaped about its centroid at z = {grid[k, :, 2].mean():.2f} mm (and maybe elsewhere): offset along the normal there instead of radially"
+                    )
         for k in range(len(rings)):
             if _segments_intersect(rings[k]):
-                raise ModelInputError(f"animal {animal}: the cast offset by {offset_mm} mm crosses itself at z = {rings[k, :, 2].mean():.2f} mm (a concavity of the skin tighter than the offset)")
+                raise ModelInputError(
+                    f"animal {animal}: the cast offset by {offset_mm} mm crosses itself at z = {rings[k, :, 2].mean():.2f} mm (a concavity of the skin tighter than the offset)"
+                )
         rings = extend_rings(rings, extension_mm)
     n_rows, n_cols = rings.shape[:2]
     verts = rings.reshape(-1, 3)
@@ -469,7 +552,15 @@ def build_cast(
 
     if footprints is None:
         footprints = [(point, axis, 0.0, None)]
-    fps = [(np.asarray(p_, float), np.asarray(a_, float) / np.linalg.norm(a_), float(h_), None if d_ is None else np.asarray(d_, float)) for p_, a_, h_, d_ in footprints]
+    fps = [
+        (
+            np.asarray(p_, float),
+            np.asarray(a_, float) / np.linalg.norm(a_),
+            float(h_),
+            None if d_ is None else np.asarray(d_, float),
+        )
+        for p_, a_, h_, d_ in footprints
+    ]
 
     def hole_level(x):
         """Signed distance-like level (m,) of points (m, 3): < 0 inside the hole's projected outline, and
@@ -494,12 +585,16 @@ def build_cast(
     facing_t = tri_out @ axis < 0
     in_cyl = np.any(f[tris] < 0, axis=1)
     if not np.any(in_cyl & facing_t):
-        raise ModelInputError(f"animal {animal}: the indenter axis does not meet the cast (no cast surface within {radius} mm of the axis facing the indenter)")
+        raise ModelInputError(
+            f"animal {animal}: the indenter axis does not meet the cast (no cast surface within {radius} mm of the axis facing the indenter)"
+        )
     # snap near-outline vertices (closer than 2% of the local edge length) onto the outline
     edge = np.linalg.norm(rings[:, 1:2] - rings[:, 0:1], axis=2).mean() if n_cols > 1 else 1.0
     snap = np.abs(f) < 0.02 * min(edge, dz_mm)
     if np.any(snap & facing_v):
-        msgs.append(f"cast: hole: {int(np.sum(snap & facing_v))} vertex(es) within {0.02 * min(edge, dz_mm):.4f} mm of the hole outline snapped onto it (no sliver triangles)")
+        msgs.append(
+            f"cast: hole: {int(np.sum(snap & facing_v))} vertex(es) within {0.02 * min(edge, dz_mm):.4f} mm of the hole outline snapped onto it (no sliver triangles)"
+        )
         _, vec = hole_level(verts[snap])
         verts = verts.copy()
         verts[snap] += (radius / np.linalg.norm(vec, axis=1) - 1.0)[:, None] * vec
@@ -514,7 +609,9 @@ def build_cast(
         mean_t = np.array([t_along[comp == lab].mean() for lab in labels])
         nearest = labels[np.argmin(mean_t)]
         if len(labels) > 1:
-            msgs.append(f"cast: hole: the projected circle meets {len(labels)} facing sheets; cut only the one nearest the indenter")
+            msgs.append(
+                f"cast: hole: the projected circle meets {len(labels)} facing sheets; cut only the one nearest the indenter"
+            )
         cand = comp == nearest
     # silhouette: removed region bounded by non-facing vertices still inside the circle
     sil = np.any((f[tris] < 0) & ~facing_v[tris], axis=1) & cand
@@ -523,18 +620,32 @@ def build_cast(
             f"cast: hole: the {hole_diameter_mm} mm circle is wider than the side of the cast facing the indenter; the hole stops at the silhouette ({int(sil.sum())} triangles there)"
         )
     # ends
-    end_rows = np.concatenate([np.arange(n_cols), np.arange((n_rows - 1) * n_cols, n_rows * n_cols)])
+    end_rows = np.concatenate(
+        [np.arange(n_cols), np.arange((n_rows - 1) * n_cols, n_rows * n_cols)]
+    )
     cut_v = np.zeros(len(verts), bool)
     cut_v[tris[cand].ravel()] = True
     if np.any(cut_v[end_rows] & (f[end_rows] < 0)):
-        which = "proximal" if np.any(cut_v[end_rows[n_cols:]] & (f[end_rows[n_cols:]] < 0)) else "distal"
-        msgs.append(f"cast: hole: the projected circle reaches past the {which} end of the cast; the hole opens into that end (a notch)")
+        which = (
+            "proximal"
+            if np.any(cut_v[end_rows[n_cols:]] & (f[end_rows[n_cols:]] < 0))
+            else "distal"
+        )
+        msgs.append(
+            f"cast: hole: the projected circle reaches past the {which} end of the cast; the hole opens into that end (a notch)"
+        )
     v2, t2 = _clip_surface(verts, tris, f, cand, level=lambda x: hole_level(x)[0])
     area = triangle_areas(v2, t2)
     t2 = t2[area > 1e-12]
     v2, t2 = _compact(v2, t2)
-    what = f"union of {len(fps)} variants' {hole_diameter_mm} mm outlines" if len(fps) > 1 else f"{hole_diameter_mm} mm circle"
-    msgs.append(f"cast: hole ({what}) cut on the facing side ({int(cand.sum())} triangles clipped or removed)")
+    what = (
+        f"union of {len(fps)} variants' {hole_diameter_mm} mm outlines"
+        if len(fps) > 1
+        else f"{hole_diameter_mm} mm circle"
+    )
+    msgs.append(
+        f"cast: hole ({what}) cut on the facing side ({int(cand.sum())} triangles clipped or removed)"
+    )
     return v2, t2, msgs
 
 
@@ -548,7 +659,9 @@ def _components(tris: np.ndarray, mask: np.ndarray, n_vertices: int) -> np.ndarr
     if len(idx) == 0:
         return out
     rows = np.repeat(np.arange(len(idx)), 3)
-    inc = coo_matrix((np.ones(rows.size), (rows, tris[idx].ravel())), shape=(len(idx), n_vertices)).tocsr()
+    inc = coo_matrix(
+        (np.ones(rows.size), (rows, tris[idx].ravel())), shape=(len(idx), n_vertices)
+    ).tocsr()
     adj = inc @ inc.T
     _, lab = connected_components(adj, directed=False)
     out[idx] = lab
@@ -618,7 +731,9 @@ def point_triangle_distance(p, a, b, c) -> np.ndarray:
     flat = np.linalg.norm(np.cross(ab, ac), axis=1) <= 1e-12 * (_dot(ab, ab) + _dot(ac, ac))
     if np.any(flat):
         pf, af, bf, cf = p[flat], a[flat], b[flat], c[flat]
-        dist[flat] = np.min([_seg_dist(pf, af, bf), _seg_dist(pf, bf, cf), _seg_dist(pf, cf, af)], axis=0)
+        dist[flat] = np.min(
+            [_seg_dist(pf, af, bf), _seg_dist(pf, bf, cf), _seg_dist(pf, cf, af)], axis=0
+        )
     return dist
 
 
@@ -657,7 +772,11 @@ def surface_distance_mm(points_mm, vertices_mm, triangles) -> np.ndarray:
     _, idx = tree.query(P, k=k)
     idx = idx.reshape(len(P), k)
     rows = np.repeat(np.arange(len(P)), k)
-    d0 = point_triangle_distance(P[rows], *(tri[idx.ravel(), j] for j in range(3))).reshape(len(P), k).min(axis=1)
+    d0 = (
+        point_triangle_distance(P[rows], *(tri[idx.ravel(), j] for j in range(3)))
+        .reshape(len(P), k)
+        .min(axis=1)
+    )
     cand = tree.query_ball_point(P, d0 + R + 1e-9)
     counts = np.fromiter((len(c) for c in cand), int, len(P))
     flat = np.fromiter((i for c in cand for i in c), np.int64, counts.sum())

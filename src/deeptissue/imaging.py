@@ -15,8 +15,16 @@ from scipy import ndimage
 
 from .io import atomic_path
 
-__all__ = ["ImagingError", "Volume", "check_matching", "crop_volume", "load_nifti", "select_leg", "write_nifti",
-           "body_mask"]
+__all__ = [
+    "ImagingError",
+    "Volume",
+    "check_matching",
+    "crop_volume",
+    "load_nifti",
+    "select_leg",
+    "write_nifti",
+    "body_mask",
+]
 
 #: touching legs are parted by in-plane erosions of this step, as a fraction of the widest leg's inscribed radius,
 #: up to LEG_ERODE_MAX: at half the radius a convex leg keeps its core and a seam up to the leg's radius long is cut
@@ -67,7 +75,7 @@ class Volume:
         return np.asarray(xyz, float) @ inv[:3, :3].T + inv[:3, 3]
 
     def where(self, k: int | None = None) -> str:
-        """"animal .., file ..[, slice k]" for error messages (k counted in the uncropped file)."""
+        """ "animal .., file ..[, slice k]" for error messages (k counted in the uncropped file)."""
         s = f"animal {self.animal or '?'}, file {self.path or '?'}"
         return s + (f", slice {k + self.index_offset[2]}" if k is not None else "")
 
@@ -78,7 +86,9 @@ def _check_affine(affine: np.ndarray, where: str) -> None:
     M = affine[:3, :3]
     sv = np.linalg.svd(M, compute_uv=False)
     if sv.min() <= 1e-6 or sv.max() / sv.min() > 1e4:
-        raise ImagingError(f"{where}: degenerate affine (voxel axes singular values {np.round(sv, 6).tolist()} mm)")
+        raise ImagingError(
+            f"{where}: degenerate affine (voxel axes singular values {np.round(sv, 6).tolist()} mm)"
+        )
 
 
 def load_nifti(path: str | Path, *, animal: str = "") -> Volume:
@@ -122,8 +132,10 @@ def load_nifti(path: str | Path, *, animal: str = "") -> Volume:
     try:  # nibabel reads the voxels lazily: a truncated or corrupt file fails here
         data = np.asarray(img.dataobj, dtype=np.float32).reshape(shape)
     except Exception as exc:
-        raise ImagingError(f"{where}: cannot read the voxel data, the file is truncated or corrupt "
-                           f"({type(exc).__name__}: {exc})") from exc
+        raise ImagingError(
+            f"{where}: cannot read the voxel data, the file is truncated or corrupt "
+            f"({type(exc).__name__}: {exc})"
+        ) from exc
     bad = ~np.isfinite(data)
     if bad.any():
         k = int(np.nonzero(bad.any(axis=(0, 1)))[0][0])
@@ -135,22 +147,30 @@ def check_matching(pre: Volume, during: Volume, *, atol_mm: float = 1e-3) -> Non
     """Raise :class:`ImagingError` unless ``during`` has the same slices (grid and position) as ``pre``."""
     where = f"animal {during.animal or pre.animal or '?'}, file {during.path} vs {pre.path}"
     if pre.data.shape[:2] != during.data.shape[:2]:
-        raise ImagingError(f"{where}: slices do not match: in-plane size {during.data.shape[:2]} vs {pre.data.shape[:2]}")
+        raise ImagingError(
+            f"{where}: slices do not match: in-plane size {during.data.shape[:2]} vs {pre.data.shape[:2]}"
+        )
     nk = min(pre.n_slices, during.n_slices)
     corners = np.array([[0, 0], [pre.data.shape[0] - 1, 0], [0, pre.data.shape[1] - 1]], float)
     for k in range(nk):
         ijk = np.column_stack([corners, np.full(3, k)])
         if not np.allclose(pre.world(ijk), during.world(ijk), atol=atol_mm):
-            raise ImagingError(f"{where}, slice {k}: slices do not match (slice position/orientation differs between pre and during)")
+            raise ImagingError(
+                f"{where}, slice {k}: slices do not match (slice position/orientation differs between pre and during)"
+            )
     if pre.n_slices != during.n_slices:
-        raise ImagingError(f"{where}, slice {nk}: slices do not match: during has {during.n_slices} slices, pre has {pre.n_slices}")
+        raise ImagingError(
+            f"{where}, slice {nk}: slices do not match: during has {during.n_slices} slices, pre has {pre.n_slices}"
+        )
 
 
 def crop_volume(vol: Volume, crop_mm) -> Volume:
     """The sub-volume whose voxel centres lie in the world box [[xmin, xmax], [ymin, ymax], [zmin, zmax]] mm."""
     box = np.asarray(crop_mm, float)
     if box.shape != (3, 2) or np.any(box[:, 1] <= box[:, 0]):
-        raise ImagingError(f"{vol.where()}: crop box {box.tolist()} is not [[xmin, xmax], [ymin, ymax], [zmin, zmax]] with min < max")
+        raise ImagingError(
+            f"{vol.where()}: crop box {box.tolist()} is not [[xmin, xmax], [ymin, ymax], [zmin, zmax]] with min < max"
+        )
     idx = np.indices(vol.data.shape).reshape(3, -1).T
     w = vol.world(idx)
     inside = np.all((w >= box[:, 0]) & (w <= box[:, 1]), axis=1).reshape(vol.data.shape)
@@ -165,8 +185,13 @@ def crop_volume(vol: Volume, crop_mm) -> Volume:
     aff = vol.affine.copy()
     aff[:3, 3] = vol.world(off)
     data = np.ascontiguousarray(vol.data[sl[0], sl[1], sl[2]])
-    return Volume(data=data, affine=aff, path=vol.path, animal=vol.animal,
-                  index_offset=tuple(int(o + p) for o, p in zip(off, vol.index_offset)))
+    return Volume(
+        data=data,
+        affine=aff,
+        path=vol.path,
+        animal=vol.animal,
+        index_offset=tuple(int(o + p) for o, p in zip(off, vol.index_offset)),
+    )
 
 
 def body_mask(vol: Volume) -> np.ndarray:
@@ -217,14 +242,21 @@ def select_leg(vol: Volume, point_mm) -> Volume:
     ijk = vol.voxel(point)
     idx = np.round(ijk).astype(int)
     if np.any(idx < 0) or np.any(idx >= vol.data.shape):
-        raise ImagingError(f"{vol.where()}: leg_point_mm {point.tolist()} lies outside the image "
-                           f"(voxel {np.round(ijk, 1).tolist()} of shape {list(vol.data.shape)})")
+        raise ImagingError(
+            f"{vol.where()}: leg_point_mm {point.tolist()} lies outside the image "
+            f"(voxel {np.round(ijk, 1).tolist()} of shape {list(vol.data.shape)})"
+        )
     body = body_mask(vol)
     if not body[tuple(idx)]:
-        raise ImagingError(f"{vol.where(int(idx[2]))}: leg_point_mm {point.tolist()} lies outside the body "
-                           "(in the background of the image): give a point inside the leg to segment")
+        raise ImagingError(
+            f"{vol.where(int(idx[2]))}: leg_point_mm {point.tolist()} lies outside the body "
+            "(in the background of the image): give a point inside the leg to segment"
+        )
     px = vol.pixel_mm
-    dist = np.stack([ndimage.distance_transform_edt(body[:, :, k], sampling=px) for k in range(body.shape[2])], -1)
+    dist = np.stack(
+        [ndimage.distance_transform_edt(body[:, :, k], sampling=px) for k in range(body.shape[2])],
+        -1,
+    )
     structure = np.zeros((3, 3, 3), bool)
     structure[:, :, 1] = True
     structure[1, 1, :] = True
@@ -235,16 +267,30 @@ def select_leg(vol: Volume, point_mm) -> Volume:
         if m >= 2 and np.sort(sizes)[-2] >= LEG_MIN_SHARE * sizes.max():
             keep = sizes >= LEG_MIN_SHARE * sizes.max()
             markers = np.where(np.isin(core, 1 + np.nonzero(keep)[0]), core, 0)
-            lab = np.stack([watershed(-dist[:, :, k], markers[:, :, k], mask=body[:, :, k])
-                            for k in range(body.shape[2])], -1)
+            lab = np.stack(
+                [
+                    watershed(-dist[:, :, k], markers[:, :, k], mask=body[:, :, k])
+                    for k in range(body.shape[2])
+                ],
+                -1,
+            )
             break
-    if lab[tuple(idx)] == 0:  # the point lies in a body part that no leg's core reaches on its slice
-        raise ImagingError(f"{vol.where(int(idx[2]))}: leg_point_mm {point.tolist()} lies in a part of the body "
-                           "that belongs to no leg; give a point nearer the leg's centre")
+    if (
+        lab[tuple(idx)] == 0
+    ):  # the point lies in a body part that no leg's core reaches on its slice
+        raise ImagingError(
+            f"{vol.where(int(idx[2]))}: leg_point_mm {point.tolist()} lies in a part of the body "
+            "that belongs to no leg; give a point nearer the leg's centre"
+        )
     # LEG_CUT_MARGIN_PX more in-plane, so the cut, jagged by a pixel, leaves the leg's own skin whole
     in_plane = np.zeros((3, 3, 3), bool)
     in_plane[:, :, 1] = ndimage.generate_binary_structure(2, 1)
-    leg = ndimage.binary_dilation(lab == lab[tuple(idx)], structure=in_plane, iterations=LEG_CUT_MARGIN_PX) & body
+    leg = (
+        ndimage.binary_dilation(
+            lab == lab[tuple(idx)], structure=in_plane, iterations=LEG_CUT_MARGIN_PX
+        )
+        & body
+    )
     d = vol.data
     frame = np.concatenate([d[:3].ravel(), d[-3:].ravel(), d[:, :3].ravel(), d[:, -3:].ravel()])
     data = np.where(leg, d, np.float32(np.median(frame))).astype(np.float32)

@@ -9,13 +9,21 @@ import os
 import signal
 import tempfile
 import threading
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 
-__all__ = ["atomic_path", "read_json", "save_npz", "script_log", "snakemake_ancestor", "stop_with_snakemake",
-           "write_json"]
+__all__ = [
+    "atomic_path",
+    "read_json",
+    "save_npz",
+    "script_log",
+    "snakemake_ancestor",
+    "stop_with_snakemake",
+    "write_json",
+]
 
 
 @contextlib.contextmanager
@@ -37,7 +45,9 @@ def script_log(log_path: str | Path, job: str) -> Iterator[None]:
             logging.getLogger(job).exception("%s failed", job)
             raise
         except KeyboardInterrupt:
-            logging.getLogger(job).error("%s stopped (interrupted); its outputs are not written", job)
+            logging.getLogger(job).error(
+                "%s stopped (interrupted); its outputs are not written", job
+            )
             raise
         finally:
             root.removeHandler(handler)
@@ -73,8 +83,9 @@ def snakemake_ancestor() -> tuple[int, str] | None:
 
 
 @contextlib.contextmanager
-def stop_with_snakemake(log: logging.Logger | None = None, *, poll_s: float = 2.0,
-                        grace_s: float = 60.0) -> Iterator[None]:
+def stop_with_snakemake(
+    log: logging.Logger | None = None, *, poll_s: float = 2.0, grace_s: float = 60.0
+) -> Iterator[None]:
     """Run the block so that SIGTERM, or the end of the Snakemake process that started it, stops it as Ctrl-C does.
 
     SIGTERM raises KeyboardInterrupt in the main thread, so ``finally`` blocks run and
@@ -132,7 +143,9 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     suffix = "".join(path.suffixes)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name.split('.')[0]}.", suffix=suffix, dir=path.parent)
+    fd, tmp = tempfile.mkstemp(
+        prefix=f".{path.name.split('.')[0]}.", suffix=suffix, dir=path.parent
+    )
     os.close(fd)
     tmp = Path(tmp)
     try:
@@ -148,7 +161,9 @@ def _new_file_mode() -> int:
     """0666 less the process's umask: the mode ``open`` gives a new file."""
     try:  # Linux: read it without changing it (os.umask sets it for every thread)
         status = Path("/proc/self/status").read_text()
-        mask = int(next(line.split()[1] for line in status.splitlines() if line.startswith("Umask:")), 8)
+        mask = int(
+            next(line.split()[1] for line in status.splitlines() if line.startswith("Umask:")), 8
+        )
     except (OSError, StopIteration, ValueError, IndexError):
         mask = os.umask(0o022)
         os.umask(mask)

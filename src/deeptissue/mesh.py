@@ -39,20 +39,31 @@ class TetMesh:
     """
 
     nodes_mm: np.ndarray  # (n_nodes, 3) world mm, corner and mid-edge nodes
-    tets: np.ndarray  # (n_tets, 10) node indices, gmsh Tetrahedron10 order; or (n_tets, 4) for order 1
-    facets: dict = field(default_factory=dict)  # name -> (n_facets, 6) gmsh Triangle6 order; or (n_facets, 3)
+    tets: (
+        np.ndarray
+    )  # (n_tets, 10) node indices, gmsh Tetrahedron10 order; or (n_tets, 4) for order 1
+    facets: dict = field(
+        default_factory=dict
+    )  # name -> (n_facets, 6) gmsh Triangle6 order; or (n_facets, 3)
 
     def __post_init__(self):
         if self.nodes_mm.ndim != 2 or self.nodes_mm.shape[1] != 3:
             raise ValueError(f"TetMesh.nodes_mm: expected (n, 3), got {self.nodes_mm.shape}")
         if self.tets.ndim != 2 or self.tets.shape[1] not in (4, 10):
-            raise ValueError(f"TetMesh.tets: expected (n, 10) (quadratic) or (n, 4) (linear), got {self.tets.shape}")
+            raise ValueError(
+                f"TetMesh.tets: expected (n, 10) (quadratic) or (n, 4) (linear), got {self.tets.shape}"
+            )
         nf = FACET_NODES[self.order]
         for name, f in self.facets.items():
             if f.ndim != 2 or f.shape[1] != nf:
-                raise ValueError(f"TetMesh.facets[{name!r}]: expected (n, {nf}) for {self.tets.shape[1]}-node tetrahedra, got {f.shape}")
+                raise ValueError(
+                    f"TetMesh.facets[{name!r}]: expected (n, {nf}) for {self.tets.shape[1]}-node tetrahedra, got {f.shape}"
+                )
         n = len(self.nodes_mm)
-        for name, arr in [("tets", self.tets), *((f"facets[{k!r}]", v) for k, v in self.facets.items())]:
+        for name, arr in [
+            ("tets", self.tets),
+            *((f"facets[{k!r}]", v) for k, v in self.facets.items()),
+        ]:
             if arr.size and (arr.min() < 0 or arr.max() >= n):
                 raise ValueError(f"TetMesh.{name}: node index out of range 0..{n - 1}")
 
@@ -68,7 +79,12 @@ class TetMesh:
     def volumes_mm3(self) -> np.ndarray:
         """Volumes of the straight-sided tetrahedra through the four corners (n_tets,) [mm^3]."""
         p = self.nodes_mm[self.tets[:, :4]]
-        return np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0]) / 6.0
+        return (
+            np.einsum(
+                "ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0]
+            )
+            / 6.0
+        )
 
 
 def edge_midpoints(tets, x) -> tuple[np.ndarray, np.ndarray]:
@@ -90,7 +106,9 @@ def locate_in_tets(mesh: TetMesh, points_mm, *, nearest: int = 8) -> tuple[np.nd
     P = np.asarray(points_mm, float).reshape(-1, 3)
     corners = mesh.nodes_mm[mesh.tets[:, :4]]  # (m, 4, 3)
     cen = corners.mean(axis=1)
-    Tinv = np.linalg.inv(np.transpose(corners[:, 1:] - corners[:, :1], (0, 2, 1)))  # columns: edges from corner 0
+    Tinv = np.linalg.inv(
+        np.transpose(corners[:, 1:] - corners[:, :1], (0, 2, 1))
+    )  # columns: edges from corner 0
 
     def barycentric(rows, elems):
         xi = np.einsum("nij,nj->ni", Tinv[elems], P[rows] - corners[elems, 0])
@@ -145,9 +163,11 @@ def extract_tetmesh(gmsh_module=None, *, order: int = 2) -> TetMesh:
     index[tags] = np.arange(len(tags))
 
     vol_groups = g.model.getPhysicalGroups(3)
-    vol_entities = [e for _, t in vol_groups for e in g.model.getEntitiesForPhysicalGroup(3, t)] if vol_groups else [
-        t for _, t in g.model.getEntities(3)
-    ]
+    vol_entities = (
+        [e for _, t in vol_groups for e in g.model.getEntitiesForPhysicalGroup(3, t)]
+        if vol_groups
+        else [t for _, t in g.model.getEntities(3)]
+    )
     tet_chunks = []
     for ent in vol_entities:
         _, nodes = g.model.mesh.getElementsByType(tet_type, ent)
@@ -169,7 +189,9 @@ def extract_tetmesh(gmsh_module=None, *, order: int = 2) -> TetMesh:
     used = np.unique(np.concatenate([tets.ravel(), *[f.ravel() for f in facets.values()]]))
     renum = np.full(len(coords), -1, dtype=np.int64)
     renum[used] = np.arange(len(used))
-    return TetMesh(nodes_mm=coords[used], tets=renum[tets], facets={k: renum[v] for k, v in facets.items()})
+    return TetMesh(
+        nodes_mm=coords[used], tets=renum[tets], facets={k: renum[v] for k, v in facets.items()}
+    )
 
 
 def extract_tet10(gmsh_module=None) -> TetMesh:
@@ -179,18 +201,27 @@ def extract_tet10(gmsh_module=None) -> TetMesh:
 
 
 def save_tetmesh(path: str | Path, mesh: TetMesh) -> None:
-    save_npz(path, nodes_mm=mesh.nodes_mm, tets=mesh.tets, **{f"facets__{k}": v for k, v in mesh.facets.items()})
+    save_npz(
+        path,
+        nodes_mm=mesh.nodes_mm,
+        tets=mesh.tets,
+        **{f"facets__{k}": v for k, v in mesh.facets.items()},
+    )
 
 
 def load_tetmesh(path: str | Path) -> TetMesh:
     try:
         with np.load(path) as d:
             nodes, tets = d["nodes_mm"], d["tets"]
-            facets = {k[len("facets__"):]: d[k] for k in d.files if k.startswith("facets__")}
+            facets = {k[len("facets__") :]: d[k] for k in d.files if k.startswith("facets__")}
     except (KeyError, OSError, ValueError) as exc:
         raise ValueError(f"{path}: not a tet mesh file ({exc})") from exc
     try:
-        return TetMesh(nodes_mm=nodes.astype(float), tets=tets.astype(np.int64), facets={k: v.astype(np.int64) for k, v in facets.items()})
+        return TetMesh(
+            nodes_mm=nodes.astype(float),
+            tets=tets.astype(np.int64),
+            facets={k: v.astype(np.int64) for k, v in facets.items()},
+        )
     except ValueError as exc:
         raise ValueError(f"{path}: {exc}") from exc
 
@@ -246,7 +277,9 @@ def _occ_loft(occ, rings: np.ndarray, n_spline: int, ruled: bool = False) -> int
     return vols[0]
 
 
-def sample_lofted_surface(rings: np.ndarray, *, spline_points: int = 100, n_cols: int | None = None, dz_mm: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
+def sample_lofted_surface(
+    rings: np.ndarray, *, spline_points: int = 100, n_cols: int | None = None, dz_mm: float = 0.25
+) -> tuple[np.ndarray, np.ndarray]:
     """Sample the lateral surface of the loft through a contour stack, exactly as :func:`mesh_limb` builds it.
 
     rings (n_slices, n_points, 3) CCW contours -> grid points (n_rows, n_cols, 3) and unit outward
@@ -268,15 +301,23 @@ def sample_lofted_surface(rings: np.ndarray, *, spline_points: int = 100, n_cols
         gmsh.model.add("loft_sample")
         vol = _occ_loft(gmsh.model.occ, rings, spline_points)
         gmsh.model.occ.synchronize()
-        lateral = [t for _, t in gmsh.model.getBoundary([(3, vol)], oriented=False) if (lambda b: b[5] - b[2])(gmsh.model.getBoundingBox(2, t)) > 1e-6]
+        lateral = [
+            t
+            for _, t in gmsh.model.getBoundary([(3, vol)], oriented=False)
+            if (lambda b: b[5] - b[2])(gmsh.model.getBoundingBox(2, t)) > 1e-6
+        ]
         if len(lateral) != 1:
             raise RuntimeError(f"loft has {len(lateral)} lateral faces (expected 1)")
         face = lateral[0]
         lo, hi = (np.asarray(b, float) for b in gmsh.model.getParametrizationBounds(2, face))
         # which parameter runs along the leg? the one that changes z
-        probe = np.asarray(gmsh.model.getValue(2, face, [lo[0], lo[1], lo[0], hi[1], hi[0], lo[1]]), float).reshape(3, 3)
+        probe = np.asarray(
+            gmsh.model.getValue(2, face, [lo[0], lo[1], lo[0], hi[1], hi[0], lo[1]]), float
+        ).reshape(3, 3)
         along_v = abs(probe[1, 2] - probe[0, 2]) > abs(probe[2, 2] - probe[0, 2])
-        a = lo[0] + (hi[0] - lo[0]) * np.arange(n_cols) / n_cols  # around (periodic: last column != first)
+        a = (
+            lo[0] + (hi[0] - lo[0]) * np.arange(n_cols) / n_cols
+        )  # around (periodic: last column != first)
         b = np.linspace(lo[1], hi[1], n_rows)  # along
         if not along_v:
             a = lo[1] + (hi[1] - lo[1]) * np.arange(n_cols) / n_cols
@@ -298,7 +339,9 @@ def sample_lofted_surface(rings: np.ndarray, *, spline_points: int = 100, n_cols
     if polygon_area_mm2(pts[0]) < 0:
         pts, nrm = pts[:, ::-1], nrm[:, ::-1]
     # outward: away from each row's centroid
-    out = np.einsum("rck,rck->", nrm[..., :2], pts[..., :2] - pts[..., :2].mean(axis=1, keepdims=True))
+    out = np.einsum(
+        "rck,rck->", nrm[..., :2], pts[..., :2] - pts[..., :2].mean(axis=1, keepdims=True)
+    )
     if out < 0:
         nrm = -nrm
     # start each row at the same place as the contours (nearest sample to the contour's first point)
@@ -346,20 +389,31 @@ def _corner_params(g, entities_dim_tag) -> dict:
     nodes, hence the match by coordinates afterwards)."""
     out = {}
     for dim, tag in entities_dim_tag:
-        ntags, xyz, npar = g.model.mesh.getNodes(dim, tag, includeBoundary=True, returnParametricCoord=True)
+        ntags, xyz, npar = g.model.mesh.getNodes(
+            dim, tag, includeBoundary=True, returnParametricCoord=True
+        )
         if len(npar) == len(ntags) * dim:
-            out[(dim, tag)] = (np.asarray(xyz, float).reshape(-1, 3), np.asarray(npar, float).reshape(-1, dim))
+            out[(dim, tag)] = (
+                np.asarray(xyz, float).reshape(-1, 3),
+                np.asarray(npar, float).reshape(-1, dim),
+            )
     return out
 
 
-def _curve_mid_nodes(g, entities_dim_tag, corner_params: dict, max_shift_ratio: float = 0.3) -> tuple[dict, int]:
+def _curve_mid_nodes(
+    g, entities_dim_tag, corner_params: dict, max_shift_ratio: float = 0.3
+) -> tuple[dict, int]:
     """New positions of mid-edge nodes on curves and surfaces, evaluated on the geometry at the
     parametric midpoint of the edge (fast: no projection). Returns {node tag: (xyz, param)} and the
     number of edges left straight because the evaluated point moved implausibly far."""
     moved = {}
     n_straight = 0
     for dim, tag in entities_dim_tag:
-        etype, k_pairs = (GMSH_LINE3, [(0, 1, 2)]) if dim == 1 else (GMSH_TRI6, [(0, 1, 3), (1, 2, 4), (2, 0, 5)])
+        etype, k_pairs = (
+            (GMSH_LINE3, [(0, 1, 2)])
+            if dim == 1
+            else (GMSH_TRI6, [(0, 1, 3), (1, 2, 4), (2, 0, 5)])
+        )
         _, enodes = g.model.mesh.getElementsByType(etype, tag)
         if len(enodes) == 0:
             continue
@@ -396,7 +450,9 @@ def _curve_mid_nodes(g, entities_dim_tag, corner_params: dict, max_shift_ratio: 
         # parametrisation, e.g. ruled strips; the projection does not depend on it)
         for _ in range(6):
             x = np.asarray(g.model.getValue(dim, tag, pm.ravel()), float).reshape(-1, 3)
-            J = np.asarray(g.model.getDerivative(dim, tag, pm.ravel()), float).reshape(-1, dim, 3)  # (m, dim, 3)
+            J = np.asarray(g.model.getDerivative(dim, tag, pm.ravel()), float).reshape(
+                -1, dim, 3
+            )  # (m, dim, 3)
             JtJ = np.einsum("mik,mjk->mij", J, J)
             rhs = np.einsum("mik,mk->mi", J, straight - x)
             try:
@@ -404,7 +460,9 @@ def _curve_mid_nodes(g, entities_dim_tag, corner_params: dict, max_shift_ratio: 
             except np.linalg.LinAlgError:
                 break
             pm = pm + step
-            if dim == 2:  # the along-leg parameter stays inside the face; the periodic one may wrap
+            if (
+                dim == 2
+            ):  # the along-leg parameter stays inside the face; the periodic one may wrap
                 pm = np.where(np.isfinite(pm), pm, 0.0)
             if np.max(np.abs(step)) < 1e-10:
                 break
@@ -420,7 +478,12 @@ def _curve_mid_nodes(g, entities_dim_tag, corner_params: dict, max_shift_ratio: 
 
 def _tet_dihedral_deg(p: np.ndarray) -> np.ndarray:
     """Dihedral angles (n, 6) [deg] of straight tetrahedra with corners p (n, 4, 3)."""
-    faces = [(1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1)]  # face opposite corner i, outward for positive tets
+    faces = [
+        (1, 2, 3),
+        (0, 3, 2),
+        (0, 1, 3),
+        (0, 2, 1),
+    ]  # face opposite corner i, outward for positive tets
     n = []
     for a, b, c in faces:
         v = np.cross(p[:, b] - p[:, a], p[:, c] - p[:, a])
@@ -451,8 +514,23 @@ def tet10_min_det_jacobian(mesh: TetMesh) -> np.ndarray:
     if mesh.order == 1:
         return mesh.volumes_mm3()
     ref = np.array(
-        [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0.5, 0, 0], [0.5, 0.5, 0], [0, 0.5, 0], [0, 0, 0.5], [0, 0.5, 0.5], [0.5, 0, 0.5],
-         [0.25, 0.25, 0.25], [1 / 3, 1 / 3, 0], [1 / 3, 0, 1 / 3], [0, 1 / 3, 1 / 3], [1 / 3, 1 / 3, 1 / 3]]
+        [
+            [0, 0, 0],
+            [1, 0, 0],
+            [0, 1, 0],
+            [0, 0, 1],
+            [0.5, 0, 0],
+            [0.5, 0.5, 0],
+            [0, 0.5, 0],
+            [0, 0, 0.5],
+            [0, 0.5, 0.5],
+            [0.5, 0, 0.5],
+            [0.25, 0.25, 0.25],
+            [1 / 3, 1 / 3, 0],
+            [1 / 3, 0, 1 / 3],
+            [0, 1 / 3, 1 / 3],
+            [1 / 3, 1 / 3, 1 / 3],
+        ]
     )
     from .strain import tet10_shape_gradients  # strain imports this module
 
@@ -554,7 +632,9 @@ def mesh_limb(
     if loft not in ("ruled", "smooth"):
         raise ValueError(f"animal {animal}: loft {loft!r}: expected 'ruled' or 'smooth'")
     if order not in TET_NODES:
-        raise ValueError(f"animal {animal}: element order {order!r}: expected 1 (4-node) or 2 (10-node tetrahedra)")
+        raise ValueError(
+            f"animal {animal}: element order {order!r}: expected 1 (4-node) or 2 (10-node tetrahedra)"
+        )
     curved = bool(curved) and order == 2
     stats: dict = {"element_order": int(order)}
     own_init = not gmsh.isInitialized()
@@ -571,14 +651,30 @@ def mesh_limb(
         stats["occ_volume_mm3"] = float(occ.getMass(3, vol))
         stats["occ_s"] = time.perf_counter() - t_start
         groups = _boundary_groups(gmsh, vol, skin, bone, animal=animal)
-        _mesh_size_field(gmsh, element_size_mm=element_size_mm, refine_size_mm=refine_size_mm,
-                         refine_radius_mm=refine_radius_mm, refine_transition_mm=refine_transition_mm,
-                         refine_segments=refine_segments, algorithm_3d=algorithm_3d, animal=animal,
-                         size_field=size_field)
-        q = _generate_and_curve(gmsh, vol, groups, order=order, curved=curved, min_curved_ratio=min_curved_ratio,
-                                stats=stats)
+        _mesh_size_field(
+            gmsh,
+            element_size_mm=element_size_mm,
+            refine_size_mm=refine_size_mm,
+            refine_radius_mm=refine_radius_mm,
+            refine_transition_mm=refine_transition_mm,
+            refine_segments=refine_segments,
+            algorithm_3d=algorithm_3d,
+            animal=animal,
+            size_field=size_field,
+        )
+        q = _generate_and_curve(
+            gmsh,
+            vol,
+            groups,
+            order=order,
+            curved=curved,
+            min_curved_ratio=min_curved_ratio,
+            stats=stats,
+        )
         if patches:
-            _tag_patches(gmsh, groups, bone, patches, patch_union=patch_union, order=order, animal=animal)
+            _tag_patches(
+                gmsh, groups, bone, patches, patch_union=patch_union, order=order, animal=animal
+            )
         mesh = extract_tetmesh(gmsh, order=order)
         if msh_path is not None:
             with atomic_path(msh_path) as tmp:
@@ -586,16 +682,26 @@ def mesh_limb(
     except (MeshQualityError, ValueError):
         raise
     except Exception as exc:  # OpenCASCADE / gmsh failures come as bare Exceptions
-        raise MeshQualityError(f"animal {animal}: gmsh could not build or mesh the limb: {exc}") from exc
+        raise MeshQualityError(
+            f"animal {animal}: gmsh could not build or mesh the limb: {exc}"
+        ) from exc
     finally:
         if own_init:
             gmsh.finalize()
         else:
             gmsh.model.remove()
 
-    _quality_gate(mesh, q, min_scaled_jacobian=min_scaled_jacobian, min_dihedral_deg=min_dihedral_deg,
-                  min_curved_ratio=min_curved_ratio, algorithm_3d=algorithm_3d, animal=animal, stats=stats,
-                  t_start=t_start)
+    _quality_gate(
+        mesh,
+        q,
+        min_scaled_jacobian=min_scaled_jacobian,
+        min_dihedral_deg=min_dihedral_deg,
+        min_curved_ratio=min_curved_ratio,
+        algorithm_3d=algorithm_3d,
+        animal=animal,
+        stats=stats,
+        t_start=t_start,
+    )
     return mesh, stats
 
 
@@ -634,9 +740,18 @@ def _boundary_groups(g, vol: int, skin: np.ndarray, bone: np.ndarray, *, animal:
     return groups
 
 
-def _mesh_size_field(g, *, element_size_mm: float, refine_size_mm: float, refine_radius_mm: float,
-                     refine_transition_mm: float, refine_segments, algorithm_3d: str, animal: str,
-                     size_field=None) -> None:
+def _mesh_size_field(
+    g,
+    *,
+    element_size_mm: float,
+    refine_size_mm: float,
+    refine_radius_mm: float,
+    refine_transition_mm: float,
+    refine_segments,
+    algorithm_3d: str,
+    animal: str,
+    size_field=None,
+) -> None:
     """Set the meshing options and the size field: ``element_size_mm`` everywhere, ``refine_size_mm``
     within ``refine_radius_mm`` of each refine segment, a linear ramp back over ``refine_transition_mm``;
     or, with ``size_field`` (:class:`deeptissue.adapt.SizeField`), that background size instead."""
@@ -647,7 +762,9 @@ def _mesh_size_field(g, *, element_size_mm: float, refine_size_mm: float, refine
     g.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
     g.option.setNumber("Mesh.Algorithm", 6)
     if algorithm_3d not in _ALGORITHMS_3D:
-        raise ValueError(f"animal {animal}: algorithm_3d {algorithm_3d!r}: expected one of {sorted(_ALGORITHMS_3D)}")
+        raise ValueError(
+            f"animal {animal}: algorithm_3d {algorithm_3d!r}: expected one of {sorted(_ALGORITHMS_3D)}"
+        )
     g.option.setNumber("Mesh.Algorithm3D", _ALGORITHMS_3D[algorithm_3d])
     g.option.setNumber("General.NumThreads", 1)
     g.option.setNumber("Mesh.OptimizeNetgen", 1)
@@ -680,8 +797,9 @@ def _mesh_size_field(g, *, element_size_mm: float, refine_size_mm: float, refine
         g.model.mesh.field.setAsBackgroundMesh(ft)
 
 
-def _generate_and_curve(g, vol: int, groups: dict, *, order: int, curved: bool, min_curved_ratio: float,
-                        stats: dict) -> np.ndarray:
+def _generate_and_curve(
+    g, vol: int, groups: dict, *, order: int, curved: bool, min_curved_ratio: float, stats: dict
+) -> np.ndarray:
     """Mesh the volume (first order, then ``order``) and, if ``curved``, move the boundary mid-edge
     nodes onto the geometry, straightening them again in elements whose Jacobian ratio (minSJ) falls
     below ``min_curved_ratio`` (at most five rounds). Records timings and node counts in ``stats``.
@@ -697,7 +815,9 @@ def _generate_and_curve(g, vol: int, groups: dict, *, order: int, curved: bool, 
     t0 = time.perf_counter()
     g.model.mesh.generate(3)
     stats["generate_s"] = time.perf_counter() - t0
-    ents = sorted(set((1, t) for d, t in g.model.getEntities(1))) + [(2, s) for e2 in groups.values() for s in e2]
+    ents = sorted(set((1, t) for d, t in g.model.getEntities(1))) + [
+        (2, s) for e2 in groups.values() for s in e2
+    ]
     corner_params = _corner_params(g, ents) if curved else {}
     if order == 2:
         g.model.mesh.setOrder(2)
@@ -723,7 +843,11 @@ def _generate_and_curve(g, vol: int, groups: dict, *, order: int, curved: bool, 
             bad = q < min_curved_ratio
             if not bad.any():
                 break
-            fix = [t for t in np.unique(tet_nodes[bad][:, 4:]) if int(t) in straight and int(t) in moved]
+            fix = [
+                t
+                for t in np.unique(tet_nodes[bad][:, 4:])
+                if int(t) in straight and int(t) in moved
+            ]
             if not fix:
                 break
             for t in fix:
@@ -732,13 +856,25 @@ def _generate_and_curve(g, vol: int, groups: dict, *, order: int, curved: bool, 
             n_straightened += len(fix)
     stats["mid_nodes_curved"] = n_curved - n_straightened
     stats["mid_nodes_straightened_for_quality"] = n_straightened
-    q = np.asarray(g.model.mesh.getElementQualities(tet_tags, "minSJ"), float) if order == 2 else np.ones(len(tet_tags))
+    q = (
+        np.asarray(g.model.mesh.getElementQualities(tet_tags, "minSJ"), float)
+        if order == 2
+        else np.ones(len(tet_tags))
+    )
     stats["curve_s"] = time.perf_counter() - t0
     return q
 
 
-def _tag_patches(g, groups: dict, bone: np.ndarray, patches: dict, *, patch_union: str | None, order: int,
-                 animal: str) -> None:
+def _tag_patches(
+    g,
+    groups: dict,
+    bone: np.ndarray,
+    patches: dict,
+    *,
+    patch_union: str | None,
+    order: int,
+    animal: str,
+) -> None:
     """Add each contact patch (name -> :class:`PatchSpec`), and their union as ``patch_union``, as a
     discrete surface holding copies of the selected skin triangles, with a physical group of its name.
 
@@ -763,29 +899,53 @@ def _tag_patches(g, groups: dict, bone: np.ndarray, patches: dict, *, patch_unio
     # make the normals point out of the limb: skin faces are outward if they point away from the bone axis
     bone_c = np.asarray(bone, float).mean(axis=1)
     zc = cen[:, 2]
-    bc = np.stack([np.interp(zc, bone_c[:, 2], bone_c[:, 0]), np.interp(zc, bone_c[:, 2], bone_c[:, 1])], axis=1)
+    bc = np.stack(
+        [np.interp(zc, bone_c[:, 2], bone_c[:, 0]), np.interp(zc, bone_c[:, 2], bone_c[:, 1])],
+        axis=1,
+    )
     outward = np.einsum("ij,ij->i", nrm[:, :2], cen[:, :2] - bc)
     if np.median(np.sign(outward)) < 0:
         nrm = -nrm
     next_el = int(g.model.mesh.getMaxElementTag()) + 1
     sels = {}
     for name, spec in patches.items():
-        sels[name] = select_patch(cen, nrm, point_mm=spec.point_mm, axis=spec.axis, radius_mm=spec.radius_mm,
-                                  half_length_mm=spec.half_length_mm, long_dir=spec.long_dir)
+        sels[name] = select_patch(
+            cen,
+            nrm,
+            point_mm=spec.point_mm,
+            axis=spec.axis,
+            radius_mm=spec.radius_mm,
+            half_length_mm=spec.half_length_mm,
+            long_dir=spec.long_dir,
+        )
         if not sels[name].any():
-            raise MeshQualityError(f"animal {animal}: patch {name!r} is empty: no skin facet within {spec.radius_mm} mm of the axis faces the indenter")
+            raise MeshQualityError(
+                f"animal {animal}: patch {name!r} is empty: no skin facet within {spec.radius_mm} mm of the axis faces the indenter"
+            )
     if patch_union and patch_union not in sels:
         sels[patch_union] = np.any(list(sels.values()), axis=0)
     for name, sel in sels.items():
         ent = g.model.addDiscreteEntity(2)
         tags = np.arange(next_el, next_el + int(sel.sum()))
         next_el += len(tags)
-        g.model.mesh.addElementsByType(ent, tri_type, tags.tolist(), sk_nodes[sel].ravel().tolist())
+        g.model.mesh.addElementsByType(
+            ent, tri_type, tags.tolist(), sk_nodes[sel].ravel().tolist()
+        )
         g.model.addPhysicalGroup(2, [ent], name=name)
 
 
-def _quality_gate(mesh: TetMesh, q: np.ndarray, *, min_scaled_jacobian: float, min_dihedral_deg: float,
-                  min_curved_ratio: float, algorithm_3d: str, animal: str, stats: dict, t_start: float) -> None:
+def _quality_gate(
+    mesh: TetMesh,
+    q: np.ndarray,
+    *,
+    min_scaled_jacobian: float,
+    min_dihedral_deg: float,
+    min_curved_ratio: float,
+    algorithm_3d: str,
+    animal: str,
+    stats: dict,
+    t_start: float,
+) -> None:
     """Check the extracted mesh with numpy (independently of gmsh) and record its quality in ``stats``.
 
     Raises :class:`MeshQualityError` naming every violated limit: a Jacobian determinant <= 0 in a
@@ -814,13 +974,21 @@ def _quality_gate(mesh: TetMesh, q: np.ndarray, *, min_scaled_jacobian: float, m
     )
     problems = []
     if detj.min() <= 0:
-        problems.append(f"{int(np.sum(detj <= 0))} inverted element(s) (min det J {detj.min():.3g} mm^3)")
+        problems.append(
+            f"{int(np.sum(detj <= 0))} inverted element(s) (min det J {detj.min():.3g} mm^3)"
+        )
     if sj.min() < min_scaled_jacobian:
-        problems.append(f"{int(np.sum(sj < min_scaled_jacobian))} element(s) with scaled Jacobian below {min_scaled_jacobian} (min {sj.min():.3g})")
+        problems.append(
+            f"{int(np.sum(sj < min_scaled_jacobian))} element(s) with scaled Jacobian below {min_scaled_jacobian} (min {sj.min():.3g})"
+        )
     if dih.min() < min_dihedral_deg:
-        problems.append(f"{int(np.sum(dih.min(axis=1) < min_dihedral_deg))} degenerate element(s) with a dihedral angle below {min_dihedral_deg} deg (min {dih.min():.3g})")
+        problems.append(
+            f"{int(np.sum(dih.min(axis=1) < min_dihedral_deg))} degenerate element(s) with a dihedral angle below {min_dihedral_deg} deg (min {dih.min():.3g})"
+        )
     if q.min() < min_curved_ratio:
-        problems.append(f"{int(np.sum(q < min_curved_ratio))} curved element(s) with a Jacobian ratio below {min_curved_ratio} (min {q.min():.3g})")
+        problems.append(
+            f"{int(np.sum(q < min_curved_ratio))} curved element(s) with a Jacobian ratio below {min_curved_ratio} (min {q.min():.3g})"
+        )
     if problems:
         raise MeshQualityError(f"animal {animal}: mesh refused: " + "; ".join(problems))
 
@@ -832,9 +1000,21 @@ def tet10_volume_mm3(mesh: TetMesh) -> float:
     if mesh.order == 1:
         return float(mesh.volumes_mm3().sum())
     # degree-3 exact rule on the reference tet (Keast, 5 points, one negative weight)
-    pts = np.array([[0.25, 0.25, 0.25], [1 / 6, 1 / 6, 1 / 6], [0.5, 1 / 6, 1 / 6], [1 / 6, 0.5, 1 / 6], [1 / 6, 1 / 6, 0.5]])
+    pts = np.array(
+        [
+            [0.25, 0.25, 0.25],
+            [1 / 6, 1 / 6, 1 / 6],
+            [0.5, 1 / 6, 1 / 6],
+            [1 / 6, 0.5, 1 / 6],
+            [1 / 6, 1 / 6, 0.5],
+        ]
+    )
     w = np.array([-4 / 5, 9 / 20, 9 / 20, 9 / 20, 9 / 20]) / 6.0
     from .strain import tet10_shape_gradients  # strain imports this module
 
     x = mesh.nodes_mm[mesh.tets]
-    return float(np.einsum("np,p->", np.linalg.det(np.einsum("nic,pij->npcj", x, tet10_shape_gradients(pts))), w))
+    return float(
+        np.einsum(
+            "np,p->", np.linalg.det(np.einsum("nic,pij->npcj", x, tet10_shape_gradients(pts))), w
+        )
+    )

@@ -19,12 +19,35 @@ import numpy as np
 from . import geometry as geo
 from .contours import Contours
 from .io import atomic_path, save_npz, write_json
-from .mesh import MeshQualityError, PatchSpec, RefineSegment, TetMesh, mesh_limb, sample_lofted_surface, save_tetmesh
+from .mesh import (
+    MeshQualityError,
+    PatchSpec,
+    RefineSegment,
+    TetMesh,
+    mesh_limb,
+    sample_lofted_surface,
+    save_tetmesh,
+)
 from .pose import Pose
 from .variants import parse_variant, variant_travel
 
-__all__ = ["SPHERE_RADIUS_MM", "AnimalModel", "Cast", "ModelSettings", "build_cast", "build_model", "cast_hole_boundary",
-           "load_cast", "plot_model_qc", "run_cast", "run_mesh", "save_cast", "variant_axes", "write_model", "write_vtu"]
+__all__ = [
+    "SPHERE_RADIUS_MM",
+    "AnimalModel",
+    "Cast",
+    "ModelSettings",
+    "build_cast",
+    "build_model",
+    "cast_hole_boundary",
+    "load_cast",
+    "plot_model_qc",
+    "run_cast",
+    "run_mesh",
+    "save_cast",
+    "variant_axes",
+    "write_model",
+    "write_vtu",
+]
 
 log = logging.getLogger(__name__)
 
@@ -48,7 +71,9 @@ class ModelSettings:
     hole_diameter_mm: float = 6.0
     hole_for_variants: bool = True
     patch_diameter_mm: float = 6.0
-    bar_length_mm: float = 10.0  # the FE core's default (fem.bar_length_mm is passed in by the rules)
+    bar_length_mm: float = (
+        10.0  # the FE core's default (fem.bar_length_mm is passed in by the rules)
+    )
     spline_points: int = 100
     loft: str = "ruled"
     curved: bool = True
@@ -61,7 +86,7 @@ class ModelSettings:
     mesh_groups: str = "animal"  # which variants share a mesh (deeptissue.variants.mesh_groups; used by the workflow)
 
     @classmethod
-    def from_dict(cls, d: dict | None) -> "ModelSettings":
+    def from_dict(cls, d: dict | None) -> ModelSettings:
         """Settings from the config section ``model`` (None: defaults); an unknown key is a ValueError."""
         d = dict(d or {})
         names = {f.name for f in dataclasses.fields(cls)}
@@ -102,11 +127,19 @@ class AnimalModel:
 def _equidistant(contours: Contours) -> Contours:
     """The contours with points equidistant in arc length (segmentation already delivers them so;
     this makes the model independent of how the points were spaced)."""
-    return Contours(skin=geo.resample_arclength(contours.skin), bone=geo.resample_arclength(contours.bone))
+    return Contours(
+        skin=geo.resample_arclength(contours.skin), bone=geo.resample_arclength(contours.bone)
+    )
 
 
-
-def build_cast(contours: Contours, pose: Pose, *, variants=("sphere",), settings: ModelSettings | dict | None = None, animal: str = "?") -> Cast:
+def build_cast(
+    contours: Contours,
+    pose: Pose,
+    *,
+    variants=("sphere",),
+    settings: ModelSettings | dict | None = None,
+    animal: str = "?",
+) -> Cast:
     """Rigid cast around the pre skin contours with the hole where the indenter axis passes.
 
     With ``settings.hole_for_variants`` the hole is the union of the variants' circles (each
@@ -144,10 +177,17 @@ def build_cast(contours: Contours, pose: Pose, *, variants=("sphere",), settings
         raise ValueError(f"animal {animal}: model.loft {s.loft!r}: expected 'ruled' or 'smooth'")
     # the cast is offset from the surface the mesh lies on: the ruled loft is rebuilt here exactly
     # (straight lines between the offset contours); the smooth one is sampled from OpenCASCADE
-    surface = sample_lofted_surface(contours.skin, spline_points=s.spline_points, dz_mm=s.cast_dz_mm) if s.loft == "smooth" else None
+    surface = (
+        sample_lofted_surface(contours.skin, spline_points=s.spline_points, dz_mm=s.cast_dz_mm)
+        if s.loft == "smooth"
+        else None
+    )
     footprints = None
     if s.hole_for_variants:
-        footprints = [(sp.point_mm, sp.axis, sp.half_length_mm, sp.long_dir) for sp in _patch_specs(pose, list(variants), s).values()]
+        footprints = [
+            (sp.point_mm, sp.axis, sp.half_length_mm, sp.long_dir)
+            for sp in _patch_specs(pose, list(variants), s).values()
+        ]
     v, t, msgs = geo.build_cast(
         contours.skin,
         axis=pose.indenter_axis,
@@ -169,26 +209,42 @@ def build_cast(contours: Contours, pose: Pose, *, variants=("sphere",), settings
 
 def save_cast(path: str | Path, cast: Cast) -> None:
     """Write ``cast`` as ``.npz`` (``vertices_mm``, ``triangles``, ``log``), atomically."""
-    save_npz(path, vertices_mm=cast.vertices_mm, triangles=cast.triangles, log=np.array(cast.log, dtype=str))
+    save_npz(
+        path,
+        vertices_mm=cast.vertices_mm,
+        triangles=cast.triangles,
+        log=np.array(cast.log, dtype=str),
+    )
 
 
 def load_cast(path: str | Path) -> Cast:
     """Read a file written by :func:`save_cast`; ValueError naming the file if it is not one."""
     try:
         with np.load(path) as d:
-            return Cast(vertices_mm=d["vertices_mm"].astype(float), triangles=d["triangles"].astype(np.int64), log=tuple(d["log"].tolist()) if "log" in d.files else ())
+            return Cast(
+                vertices_mm=d["vertices_mm"].astype(float),
+                triangles=d["triangles"].astype(np.int64),
+                log=tuple(d["log"].tolist()) if "log" in d.files else (),
+            )
     except (KeyError, OSError, ValueError) as exc:
         raise ValueError(f"{path}: not a cast file ({exc})") from exc
 
 
 def cast_hole_boundary(cast: Cast) -> np.ndarray:
     """Edges (E, 2) of the cast boundary that are not on its two open ends (the hole rim)."""
-    e = np.sort(np.concatenate([cast.triangles[:, [0, 1]], cast.triangles[:, [1, 2]], cast.triangles[:, [2, 0]]]), axis=1)
+    e = np.sort(
+        np.concatenate(
+            [cast.triangles[:, [0, 1]], cast.triangles[:, [1, 2]], cast.triangles[:, [2, 0]]]
+        ),
+        axis=1,
+    )
     u, c = np.unique(e, axis=0, return_counts=True)
     b = u[c == 1]
     z = cast.vertices_mm[:, 2]
     zlo, zhi = z.min(), z.max()
-    at_end = np.all(np.isclose(z[b], zlo, atol=1e-9), axis=1) | np.all(np.isclose(z[b], zhi, atol=1e-9), axis=1)
+    at_end = np.all(np.isclose(z[b], zlo, atol=1e-9), axis=1) | np.all(
+        np.isclose(z[b], zhi, atol=1e-9), axis=1
+    )
     return b[~at_end]
 
 
@@ -200,7 +256,9 @@ def variant_axes(pose: Pose, variants) -> dict:
     out = {}
     for name in variants:
         v = parse_variant(name)
-        axis, start, end = variant_travel(v, axis=pose.indenter_axis, tip_start_mm=pose.tip_start_mm, tip_end_mm=pose.tip_end_mm)
+        axis, start, end = variant_travel(
+            v, axis=pose.indenter_axis, tip_start_mm=pose.tip_start_mm, tip_end_mm=pose.tip_end_mm
+        )
         out[name] = (axis, start, end, v)
     return out
 
@@ -218,7 +276,13 @@ def _patch_specs(pose: Pose, variants, s: ModelSettings) -> dict:
     specs = {}
     for name, (axis, _, end, v) in variant_axes(pose, variants).items():
         half, long_dir = _bar_sweep(v, axis, s)
-        specs[f"patch_{name}"] = PatchSpec(point_mm=end, axis=axis, radius_mm=0.5 * s.patch_diameter_mm, half_length_mm=half, long_dir=long_dir)
+        specs[f"patch_{name}"] = PatchSpec(
+            point_mm=end,
+            axis=axis,
+            radius_mm=0.5 * s.patch_diameter_mm,
+            half_length_mm=half,
+            long_dir=long_dir,
+        )
     return specs
 
 
@@ -281,7 +345,9 @@ def build_model(
     variants = list(variants)
     if not variants:
         raise ValueError(f"animal {animal}: no variants given")
-    facts = geo.check_contours(contours.skin, contours.bone, animal=animal, min_gap_mm=s.min_gap_mm)
+    facts = geo.check_contours(
+        contours.skin, contours.bone, animal=animal, min_gap_mm=s.min_gap_mm
+    )
     contours = _equidistant(contours)
     msgs: list[str] = []
     if cast is None:
@@ -291,13 +357,17 @@ def build_model(
     for name, (axis, start, end, v) in axes.items():
         # the bar's travel is swept along the bar: its rounded ends concentrate strain too
         half, long_dir = _bar_sweep(v, axis, s)
-        for off in ([-half, 0.0, half] if half > 0 else [0.0]):
+        for off in [-half, 0.0, half] if half > 0 else [0.0]:
             shift = off * long_dir if off else 0.0
             key = tuple(np.round(np.concatenate([axis, start + shift]), 9))
             if key in seen:
                 continue
             seen.append(key)
-            segs.append(RefineSegment(start_mm=start + shift, end_mm=end + shift + s.refine_depth_mm * axis))
+            segs.append(
+                RefineSegment(
+                    start_mm=start + shift, end_mm=end + shift + s.refine_depth_mm * axis
+                )
+            )
     specs = _patch_specs(pose, variants, s)
     import tempfile
 
@@ -321,12 +391,16 @@ def build_model(
     with tempfile.TemporaryDirectory() as tmp:
         msh = Path(tmp) / "mesh.msh"
         try:
-            mesh, stats = mesh_limb(contours.skin, contours.bone, algorithm_3d=s.algorithm_3d, msh_path=msh, **kw)
+            mesh, stats = mesh_limb(
+                contours.skin, contours.bone, algorithm_3d=s.algorithm_3d, msh_path=msh, **kw
+            )
         except MeshQualityError as exc:
             other = "delaunay" if s.algorithm_3d == "hxt" else "hxt"
             msgs.append(f"mesh: {exc}; retried with the {other} 3D algorithm")
             log.warning("animal %s: %s", animal, msgs[-1])
-            mesh, stats = mesh_limb(contours.skin, contours.bone, algorithm_3d=other, msh_path=msh, **kw)
+            mesh, stats = mesh_limb(
+                contours.skin, contours.bone, algorithm_3d=other, msh_path=msh, **kw
+            )
         msh_bytes = msh.read_bytes()
 
     prism = geo.limb_volume_mm3(contours.skin, contours.bone)
@@ -335,10 +409,28 @@ def build_model(
     skin_nodes = np.unique(mesh.facets["skin"])
     xs = mesh.nodes_mm[skin_nodes]
     gap = geo.surface_distance_mm(xs, cast.vertices_mm, cast.triangles)
-    hole_fps = list(specs.values()) if s.hole_for_variants else [PatchSpec(point_mm=pose.tip_end_mm, axis=pose.indenter_axis, radius_mm=0.0)]
-    near_hole = np.min([geo.footprint_distance_mm(xs, point_mm=f.point_mm, axis=f.axis, half_length_mm=f.half_length_mm, long_dir=f.long_dir) for f in hole_fps], axis=0)
+    hole_fps = (
+        list(specs.values())
+        if s.hole_for_variants
+        else [PatchSpec(point_mm=pose.tip_end_mm, axis=pose.indenter_axis, radius_mm=0.0)]
+    )
+    near_hole = np.min(
+        [
+            geo.footprint_distance_mm(
+                xs,
+                point_mm=f.point_mm,
+                axis=f.axis,
+                half_length_mm=f.half_length_mm,
+                long_dir=f.long_dir,
+            )
+            for f in hole_fps
+        ],
+        axis=0,
+    )
     away = near_hole > 0.5 * s.hole_diameter_mm + 1.0
-    away |= (xs - pose.tip_end_mm) @ pose.indenter_axis > 2.0  # far side of the leg (the hole is on the near side)
+    away |= (
+        xs - pose.tip_end_mm
+    ) @ pose.indenter_axis > 2.0  # far side of the leg (the hole is on the near side)
     tags = {}
     for name in mesh.facets:
         c, a = _facet_geometry(mesh, name)
@@ -372,19 +464,35 @@ def build_model(
         "cast": {
             "n_vertices": int(len(cast.vertices_mm)),
             "n_triangles": int(len(cast.triangles)),
-            "skin_gap_mm": {"min": float(gap[away].min()), "mean": float(gap[away].mean()), "max": float(gap[away].max())},
+            "skin_gap_mm": {
+                "min": float(gap[away].min()),
+                "mean": float(gap[away].mean()),
+                "max": float(gap[away].max()),
+            },
             "log": list(cast.log),
         },
-        "contours": {"n_slices": int(contours.n_slices), "n_points": int(contours.skin.shape[1]), "min_skin_bone_gap_mm": float(facts["min_gap_mm"].min())},
+        "contours": {
+            "n_slices": int(contours.n_slices),
+            "n_points": int(contours.skin.shape[1]),
+            "min_skin_bone_gap_mm": float(facts["min_gap_mm"].min()),
+        },
         "refine_segments_mm": [[seg.start_mm, seg.end_mm] for seg in segs],
         "log": msgs,
         "wall_s": time.perf_counter() - t0,
     }
     log.info(
         "animal %s: %d tets, %d nodes, min scaled Jacobian %.3f, min dihedral %.1f deg, volume %.1f mm3 (prismatoid %+.2f %%)",
-        animal, stats["n_tets"], stats["n_nodes"], stats["min_scaled_jacobian"], stats["min_dihedral_deg"], vol, info["volumes"]["mesh_vs_prismatoid_percent"],
+        animal,
+        stats["n_tets"],
+        stats["n_nodes"],
+        stats["min_scaled_jacobian"],
+        stats["min_dihedral_deg"],
+        vol,
+        info["volumes"]["mesh_vs_prismatoid_percent"],
     )
-    return AnimalModel(animal=animal, mesh=mesh, cast=cast, info=info, msh_bytes=msh_bytes, log=tuple(msgs))
+    return AnimalModel(
+        animal=animal, mesh=mesh, cast=cast, info=info, msh_bytes=msh_bytes, log=tuple(msgs)
+    )
 
 
 # --------------------------------------------------------------------------- writers and QC
@@ -398,7 +506,9 @@ def write_vtu(path: str | Path, mesh: TetMesh) -> None:
 
     names = sorted(mesh.facets)
     if mesh.order == 2:
-        cells = [("tetra10", mesh.tets[:, [0, 1, 2, 3, 4, 5, 6, 7, 9, 8]])]  # VTK orders edges (1,3) before (2,3)
+        cells = [
+            ("tetra10", mesh.tets[:, [0, 1, 2, 3, 4, 5, 6, 7, 9, 8]])
+        ]  # VTK orders edges (1,3) before (2,3)
     else:
         cells = [("tetra", mesh.tets)]
     groups = [np.zeros(len(mesh.tets), np.int32)]
@@ -433,30 +543,63 @@ def plot_model_qc(path, model: AnimalModel, pose: Pose) -> None:
 
     mesh, cast = model.mesh, model.cast
     a = pose.indenter_axis
-    views = [("seen along the indenter axis", a), ("seen from the side", np.cross(a, [0.0, 0.0, 1.0]))]
+    views = [
+        ("seen along the indenter axis", a),
+        ("seen from the side", np.cross(a, [0.0, 0.0, 1.0])),
+    ]
     fig = plt.figure(figsize=(11, 5.5))
     rim = cast_hole_boundary(cast)
     v = cast.vertices_mm
     # cast: every 4th row of the lofted grid, as lines
-    ce = np.sort(np.concatenate([cast.triangles[:, [0, 1]], cast.triangles[:, [1, 2]], cast.triangles[:, [2, 0]]]), axis=1)
+    ce = np.sort(
+        np.concatenate(
+            [cast.triangles[:, [0, 1]], cast.triangles[:, [1, 2]], cast.triangles[:, [2, 0]]]
+        ),
+        axis=1,
+    )
     ce = np.unique(ce, axis=0)
     zrow = np.round(v[:, 2] / max(model.info["settings"]["cast_dz_mm"], 1e-6)).astype(int)
     ring = ce[(np.abs(v[ce[:, 0], 2] - v[ce[:, 1], 2]) < 1e-9) & (zrow[ce[:, 0]] % 4 == 0)]
     for k, (title, view) in enumerate(views):
         ax = fig.add_subplot(1, 2, k + 1, projection="3d")
         skin = mesh.nodes_mm[mesh.facets["skin"][:, :3]]
-        ax.add_collection3d(Poly3DCollection(skin, facecolor=(0.8, 0.8, 0.8, 0.35), edgecolor=(0.5, 0.5, 0.5, 0.15), linewidth=0.2))
-        ax.add_collection3d(Poly3DCollection(mesh.nodes_mm[mesh.facets["patch"][:, :3]], facecolor=(0.85, 0.1, 0.1, 0.8), edgecolor="none"))
-        ax.add_collection3d(Line3DCollection(v[ring], colors=[(0.1, 0.3, 0.9, 0.35)], linewidths=0.4))
+        ax.add_collection3d(
+            Poly3DCollection(
+                skin,
+                facecolor=(0.8, 0.8, 0.8, 0.35),
+                edgecolor=(0.5, 0.5, 0.5, 0.15),
+                linewidth=0.2,
+            )
+        )
+        ax.add_collection3d(
+            Poly3DCollection(
+                mesh.nodes_mm[mesh.facets["patch"][:, :3]],
+                facecolor=(0.85, 0.1, 0.1, 0.8),
+                edgecolor="none",
+            )
+        )
+        ax.add_collection3d(
+            Line3DCollection(v[ring], colors=[(0.1, 0.3, 0.9, 0.35)], linewidths=0.4)
+        )
         ax.add_collection3d(Line3DCollection(v[rim], colors="k", linewidths=1.5))
         p0, p1 = pose.tip_start_mm - 4 * a, pose.tip_end_mm + 2 * a
         ax.plot(*np.stack([p0, p1]).T, color="orange", lw=2)
         lo, hi = v.min(axis=0), v.max(axis=0)
         c, r = 0.5 * (lo + hi), 0.5 * np.max(hi - lo)
-        ax.set(xlim=(c[0] - r, c[0] + r), ylim=(c[1] - r, c[1] + r), zlim=(c[2] - r, c[2] + r), xlabel="x [mm]", ylabel="y [mm]", zlabel="z [mm]")
+        ax.set(
+            xlim=(c[0] - r, c[0] + r),
+            ylim=(c[1] - r, c[1] + r),
+            zlim=(c[2] - r, c[2] + r),
+            xlabel="x [mm]",
+            ylabel="y [mm]",
+            zlabel="z [mm]",
+        )
         vv = -np.asarray(view, float)
         vv /= np.linalg.norm(vv)
-        ax.view_init(elev=float(np.degrees(np.arcsin(np.clip(vv[2], -1, 1)))), azim=float(np.degrees(np.arctan2(vv[1], vv[0]))))
+        ax.view_init(
+            elev=float(np.degrees(np.arcsin(np.clip(vv[2], -1, 1)))),
+            azim=float(np.degrees(np.arctan2(vv[1], vv[0]))),
+        )
         ax.set_title(title, fontsize=9)
     st = model.info["mesh"]
     fig.suptitle(
@@ -472,7 +615,15 @@ def plot_model_qc(path, model: AnimalModel, pose: Pose) -> None:
 # --------------------------------------------------------------------------- rule entry points
 
 
-def run_cast(*, contours_npz, pose_json, cast_npz, variants=("sphere",), settings: dict | None = None, animal: str = "?") -> Cast:
+def run_cast(
+    *,
+    contours_npz,
+    pose_json,
+    cast_npz,
+    variants=("sphere",),
+    settings: dict | None = None,
+    animal: str = "?",
+) -> Cast:
     """Rule ``cast``: read the pre contours and the pose, write ``cast.npz``.
 
     Parameters
@@ -492,7 +643,13 @@ def run_cast(*, contours_npz, pose_json, cast_npz, variants=("sphere",), setting
     from .contours import load_contours
     from .pose import load_pose
 
-    cast = build_cast(load_contours(contours_npz), load_pose(pose_json), variants=variants, settings=settings, animal=animal)
+    cast = build_cast(
+        load_contours(contours_npz),
+        load_pose(pose_json),
+        variants=variants,
+        settings=settings,
+        animal=animal,
+    )
     save_cast(cast_npz, cast)
     return cast
 
@@ -535,7 +692,16 @@ def run_mesh(
     from .pose import load_pose
 
     pose = load_pose(pose_json)
-    model = build_model(load_contours(contours_npz), pose, variants=variants, settings=settings, animal=animal, cast=load_cast(cast_npz))
-    write_model(model, mesh_npz=mesh_npz, mesh_msh=mesh_msh, mesh_vtu=mesh_vtu, model_json=model_json)
+    model = build_model(
+        load_contours(contours_npz),
+        pose,
+        variants=variants,
+        settings=settings,
+        animal=animal,
+        cast=load_cast(cast_npz),
+    )
+    write_model(
+        model, mesh_npz=mesh_npz, mesh_msh=mesh_msh, mesh_vtu=mesh_vtu, model_json=model_json
+    )
     plot_model_qc(qc_png, model, pose)
     return model

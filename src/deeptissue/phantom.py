@@ -52,13 +52,11 @@ planes.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
-from pathlib import Path
 
 import numpy as np
 from scipy.optimize import brentq
 
 from .contours import Contours, polygon_area_centroid, resample_closed, save_contours
-from .io import atomic_path, write_json
 from .pose import Pose, save_pose
 from .rigid import rotation_matrix
 
@@ -81,10 +79,18 @@ class PhantomSpec:
     leg_ellipticity: float = 0.08
     skin_thickness_mm: float = 0.4
     tibia_centre_mm: tuple = (-0.9, -0.3)
-    tibia_inradius_mm: float = 0.78  # centre to each flat side of the triangular cross-section at z = 0
-    tibia_rounding_mm: float = 0.2  # corner rounding (1 / sharpness of the smooth maximum) at z = 0
-    tibia_rounding_slope: float = -0.008  # its change per mm of z (a sharper crest proximally, rounder distally)
-    tibia_crest_angle_deg: float = 100.0  # direction of the anterior crest (one corner) from +x at z = 0
+    tibia_inradius_mm: float = (
+        0.78  # centre to each flat side of the triangular cross-section at z = 0
+    )
+    tibia_rounding_mm: float = (
+        0.2  # corner rounding (1 / sharpness of the smooth maximum) at z = 0
+    )
+    tibia_rounding_slope: float = (
+        -0.008
+    )  # its change per mm of z (a sharper crest proximally, rounder distally)
+    tibia_crest_angle_deg: float = (
+        100.0  # direction of the anterior crest (one corner) from +x at z = 0
+    )
     tibia_twist: float = 1.0  # deg per mm: the crest turns slowly along z (torsion)
     tibia_taper: float = 0.012  # relative change of the size per mm of z (wider proximally, +z)
     tibia_flare: float = 0.0006  # relative quadratic term per mm² (the proximal flare)
@@ -92,9 +98,15 @@ class PhantomSpec:
     fibula: bool = True  # False: no fibula (the tibia alone)
     fibula_radius_mm: float = 0.42  # radius of its circular z-sections (seeded +-5 %)
     fibula_cortex_mm: float = 0.2
-    fibula_angle_deg: float = -20.0  # direction from the tibia centre, from +x (lateral-posterior; seeded +-5 deg)
-    fibula_offset_mm: float = 3.8  # proximal centre-to-centre distance from the tibia (seeded +-0.1 mm)
-    fibula_distal_offset_mm: float = 2.0  # distal centre-to-centre distance, where it runs beside the tibia before fusing
+    fibula_angle_deg: float = (
+        -20.0
+    )  # direction from the tibia centre, from +x (lateral-posterior; seeded +-5 deg)
+    fibula_offset_mm: float = (
+        3.8  # proximal centre-to-centre distance from the tibia (seeded +-0.1 mm)
+    )
+    fibula_distal_offset_mm: float = (
+        2.0  # distal centre-to-centre distance, where it runs beside the tibia before fusing
+    )
     fibula_converge_z_mm: float = -5.5  # z where it converges on the tibia fastest
     fibula_converge_mm: float = 1.25  # length scale of the convergence along z (tanh)
     # coil
@@ -119,7 +131,7 @@ class PhantomSpec:
     supersample: int = 8
 
     @classmethod
-    def from_config(cls, cfg: dict) -> "PhantomSpec":
+    def from_config(cls, cfg: dict) -> PhantomSpec:
         """Spec from a config ``phantom`` mapping (unknown keys are an error naming them)."""
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(cfg) - known)
@@ -141,7 +153,9 @@ class Phantom:
     truth_pre: Contours
     truth_during: Contours
     noise_sigma: float
-    dense: dict = field(default_factory=dict)  # (state, structure) -> list of (m, 3) exact boundary polylines per slice (structure: skin, bone, fibula)
+    dense: dict = field(
+        default_factory=dict
+    )  # (state, structure) -> list of (m, 3) exact boundary polylines per slice (structure: skin, bone, fibula)
 
     @property
     def z_mm(self) -> np.ndarray:
@@ -179,8 +193,12 @@ class _Anatomy:
     def leg_r(self, theta, z):
         s = self.s
         R = s.leg_radius_mm + s.leg_taper * np.asarray(z, float)
-        return R * (1 + s.leg_ellipticity * np.cos(2 * theta) + self.h3 * np.cos(3 * theta + self.p3)
-                    + self.h4 * np.cos(4 * theta + self.p4))
+        return R * (
+            1
+            + s.leg_ellipticity * np.cos(2 * theta)
+            + self.h3 * np.cos(3 * theta + self.p3)
+            + self.h4 * np.cos(4 * theta + self.p4)
+        )
 
     def phi_pre(self, x, y, z):
         """Radial distance (mm) outside the pre skin (negative inside)."""
@@ -238,20 +256,32 @@ class _Anatomy:
         cx, cy = self.tib_centre(z)
         u, v = np.cos(theta), np.sin(theta)
         # start outside: a corner of the sharp triangle is 2 inradii out, the rounding only pulls in
-        r = 3.0 * self.s.tibia_inradius_mm * np.maximum(self.tib_scale(z), 1.0) * max(self.tib_side.max(), 1.0)
+        r = (
+            3.0
+            * self.s.tibia_inradius_mm
+            * np.maximum(self.tib_scale(z), 1.0)
+            * max(self.tib_side.max(), 1.0)
+        )
         h = 1e-6
         for _ in range(60):
             f = self.bone_f(cx + r * u, cy + r * v, z, inset)
-            df = (self.bone_f(cx + (r + h) * u, cy + (r + h) * v, z, inset) - self.bone_f(cx + (r - h) * u, cy + (r - h) * v, z, inset)) / (2 * h)
+            df = (
+                self.bone_f(cx + (r + h) * u, cy + (r + h) * v, z, inset)
+                - self.bone_f(cx + (r - h) * u, cy + (r - h) * v, z, inset)
+            ) / (2 * h)
             step = f / df
             r = r - step
             if np.abs(step).max() < 1e-12:
                 break
         return r
 
-    def tib_radius_range(self, z_lo: float, z_hi: float, inset: float = 0.0) -> tuple[float, float]:
+    def tib_radius_range(
+        self, z_lo: float, z_hi: float, inset: float = 0.0
+    ) -> tuple[float, float]:
         """Smallest and largest radius (mm) of the tibia boundary (or the marrow's) for z in [z_lo, z_hi]."""
-        th, zz = np.meshgrid(np.linspace(0, 2 * np.pi, 360, endpoint=False), np.linspace(z_lo, z_hi, 21))
+        th, zz = np.meshgrid(
+            np.linspace(0, 2 * np.pi, 360, endpoint=False), np.linspace(z_lo, z_hi, 21)
+        )
         r = self.tib_r(th, zz, inset)
         return float(r.min()), float(r.max())
 
@@ -262,14 +292,22 @@ class _Anatomy:
         th = np.linspace(0, 2 * np.pi, 2048, endpoint=False)
         r = self.tib_r(th, z)
         area = np.pi * np.mean(r**2)
-        c = 2 * np.pi / 3 * np.array([np.mean(r**3 * np.cos(th)), np.mean(r**3 * np.sin(th))]) / area
+        c = (
+            2
+            * np.pi
+            / 3
+            * np.array([np.mean(r**3 * np.cos(th)), np.mean(r**3 * np.sin(th))])
+            / area
+        )
         return float(area), np.asarray(self.tib_centre(z), float) + c
 
     # fibula ---------------------------------------------------------------------------------
     def fib_offset_at(self, z):
         """Centre-to-centre distance (mm) of the fibula from the tibia centre along ``fib_u`` at z."""
         s = self.s
-        w = 0.5 * (1.0 + np.tanh((np.asarray(z, float) - s.fibula_converge_z_mm) / s.fibula_converge_mm))
+        w = 0.5 * (
+            1.0 + np.tanh((np.asarray(z, float) - s.fibula_converge_z_mm) / s.fibula_converge_mm)
+        )
         return s.fibula_distal_offset_mm + (self.fib_offset - s.fibula_distal_offset_mm) * w
 
     def fib_centre(self, z):
@@ -299,7 +337,9 @@ class _Anatomy:
         """(n, 2) points (mm) on the fibula's circular boundary at z."""
         th = np.linspace(0, 2 * np.pi, n, endpoint=False)
         cx, cy = self.fib_centre(z)
-        return np.column_stack([cx + self.fib_radius * np.cos(th), cy + self.fib_radius * np.sin(th)])
+        return np.column_stack(
+            [cx + self.fib_radius * np.cos(th), cy + self.fib_radius * np.sin(th)]
+        )
 
     def tib_boundary(self, z: float, n: int = 180) -> np.ndarray:
         """(n, 2) points (mm) on the outer tibia boundary at z."""
@@ -309,7 +349,9 @@ class _Anatomy:
         return np.column_stack([cx + r * np.cos(th), cy + r * np.sin(th)])
 
 
-def _indenter_entry(an: _Anatomy, spec: PhantomSpec, tilt_deg) -> tuple[np.ndarray, np.ndarray] | None:
+def _indenter_entry(
+    an: _Anatomy, spec: PhantomSpec, tilt_deg
+) -> tuple[np.ndarray, np.ndarray] | None:
     """Unit axis (3,) and skin point (3,) [mm] of the indenter aimed at the tibia centre at ``indenter_z_mm``
     (nominal -y, tilted about X then Z by ``tilt_deg``); None if the axis does not leave the leg within 30 mm."""
     z0 = spec.indenter_z_mm
@@ -370,24 +412,35 @@ def check_indenter(spec: PhantomSpec) -> None:
         return all(z_lo <= p[2] <= z_hi for p in (skin, tip))
 
     if spec.depth_mm <= 0:
-        raise ValueError(f"phantom: depth_mm {spec.depth_mm} mm images no indenter (its contrast fluid stays outside "
-                         "the leg); depth_mm must be > 0")
+        raise ValueError(
+            f"phantom: depth_mm {spec.depth_mm} mm images no indenter (its contrast fluid stays outside "
+            "the leg); depth_mm must be > 0"
+        )
     if not inside(spec.tilt_deg):
         tilt = [float(t) for t in spec.tilt_deg]
         span = _tilt_x_range(an, spec, inside)
-        works = ("no tilt about X works with this tilt about Z" if span is None
-                 else f"tilt about X works from {span[0]:.1f} to {span[1]:.1f} deg (with this tilt about Z and depth)")
-        raise ValueError(f"phantom: tilt_deg {tilt}: the indenter does not enter the leg with its skin point and tip "
-                         f"inside the imaged slab (z {z_lo:g} to {z_hi:g} mm); {works}")
+        works = (
+            "no tilt about X works with this tilt about Z"
+            if span is None
+            else f"tilt about X works from {span[0]:.1f} to {span[1]:.1f} deg (with this tilt about Z and depth)"
+        )
+        raise ValueError(
+            f"phantom: tilt_deg {tilt}: the indenter does not enter the leg with its skin point and tip "
+            f"inside the imaged slab (z {z_lo:g} to {z_hi:g} mm); {works}"
+        )
     axis, skin = _indenter_entry(an, spec, spec.tilt_deg)
     reach = _depth_reach(an, spec, axis, skin, np.linspace(z_lo, z_hi, 21))
     if spec.depth_mm >= reach:
         below = np.floor(reach * 100.0) / 100.0
-        raise ValueError(f"phantom: depth_mm {spec.depth_mm} mm: the indenter touches the tibia or fibula at a depth "
-                         f"of {reach:.2f} mm; depth_mm works from 0 to below {below:.2f} mm for this leg and tilt")
+        raise ValueError(
+            f"phantom: depth_mm {spec.depth_mm} mm: the indenter touches the tibia or fibula at a depth "
+            f"of {reach:.2f} mm; depth_mm works from 0 to below {below:.2f} mm for this leg and tilt"
+        )
 
 
-def _depth_reach(an: _Anatomy, spec: PhantomSpec, axis: np.ndarray, skin: np.ndarray, zs: np.ndarray) -> float:
+def _depth_reach(
+    an: _Anatomy, spec: PhantomSpec, axis: np.ndarray, skin: np.ndarray, zs: np.ndarray
+) -> float:
     """The depth [mm] at which the indenter (a cylinder of ``indenter_radius_mm`` ending in a hemisphere, its tip
     ``depth`` beyond ``skin`` along ``axis``) first touches the moved tibia or fibula, sampled on the bones'
     boundaries at ``zs``; inf if it never does.
@@ -405,7 +458,11 @@ def _depth_reach(an: _Anatomy, spec: PhantomSpec, axis: np.ndarray, skin: np.nda
     pts = np.vstack(pts)
     z_mid = 0.5 * (zs[0] + zs[-1])
     centre = np.array([*an.tib_centre(z_mid), z_mid], float)
-    pts = (pts - centre) @ rotation_matrix(spec.bone_rotation_deg).T + centre + np.asarray(spec.bone_translation_mm)
+    pts = (
+        (pts - centre) @ rotation_matrix(spec.bone_rotation_deg).T
+        + centre
+        + np.asarray(spec.bone_translation_mm)
+    )
     rel = pts - skin
     a = rel @ axis
     rho = np.linalg.norm(rel - a[:, None] * axis, axis=1)
@@ -438,16 +495,23 @@ class _Scene:
         z_lo, z_hi = self.z.min() - 2.0, self.z.max() + 2.0
         rounding = an.tib_rounding(np.array([z_lo, z_hi]))
         if rounding.min() < 0.05:
-            raise ValueError(f"phantom: tibia_rounding_mm / tibia_rounding_slope give a corner rounding of "
-                             f"{rounding.min():.3g} mm along the slab; keep it >= 0.05 mm")
+            raise ValueError(
+                f"phantom: tibia_rounding_mm / tibia_rounding_slope give a corner rounding of "
+                f"{rounding.min():.3g} mm along the slab; keep it >= 0.05 mm"
+            )
         # a marrow (the shape scaled by 1 - cortex / inradius) at least 0.15 mm to its sides over the
         # slab and the 1 mm beyond it that a slice of the moved bone can reach (3 deg over 10 mm)
         zs = np.linspace(self.z.min() - 1.0, self.z.max() + 1.0, 41)
-        marrow = spec.tibia_inradius_mm * an.tib_scale(zs) * an.tib_side.min() - spec.cortex_thickness_mm
+        marrow = (
+            spec.tibia_inradius_mm * an.tib_scale(zs) * an.tib_side.min()
+            - spec.cortex_thickness_mm
+        )
         if marrow.min() < 0.15:
-            raise ValueError(f"phantom: at z = {zs[np.argmin(marrow)]:.3g} mm the tibia is too thin to hold marrow "
-                             f"inside a {spec.cortex_thickness_mm} mm cortex; reduce tibia_taper or tibia_flare, "
-                             "or increase tibia_inradius_mm")
+            raise ValueError(
+                f"phantom: at z = {zs[np.argmin(marrow)]:.3g} mm the tibia is too thin to hold marrow "
+                f"inside a {spec.cortex_thickness_mm} mm cortex; reduce tibia_taper or tibia_flare, "
+                "or increase tibia_inradius_mm"
+            )
         self.tib_rmin, self.tib_rmax = an.tib_radius_range(z_lo, z_hi)
         if spec.fibula:
             self._check_fibula(np.linspace(z_lo, z_hi, 45))
@@ -455,14 +519,18 @@ class _Scene:
         ac = [an.tib_area_centroid(float(z)) for z in self.z]
         w = np.array([a for a, _ in ac])
         cxy = np.array([c for _, c in ac])
-        self.bone_com = np.array([np.sum(w * cxy[:, 0]), np.sum(w * cxy[:, 1]), np.sum(w * self.z)]) / w.sum()
+        self.bone_com = (
+            np.array([np.sum(w * cxy[:, 0]), np.sum(w * cxy[:, 1]), np.sum(w * self.z)]) / w.sum()
+        )
         self.R = rotation_matrix(spec.bone_rotation_deg)
         self.t = np.asarray(spec.bone_translation_mm, float)
         z0 = spec.indenter_z_mm
         entry = _indenter_entry(an, spec, spec.tilt_deg)
         if entry is None:
-            raise ValueError(f"phantom: tilt_deg {list(spec.tilt_deg)}: the indenter axis does not leave the leg within "
-                             "30 mm of the tibia centre (deeptissue.phantom.check_indenter says the range that works)")
+            raise ValueError(
+                f"phantom: tilt_deg {list(spec.tilt_deg)}: the indenter axis does not leave the leg within "
+                "30 mm of the tibia centre (deeptissue.phantom.check_indenter says the range that works)"
+            )
         self.axis, self.skin_point = entry
         self.tip_start = self.skin_point - 1.0 * self.axis
         self.tip_end = self.skin_point + spec.depth_mm * self.axis
@@ -480,7 +548,9 @@ class _Scene:
         if spec.depth_mm > 0:
             gap = self.bone_gap()
             if gap <= 0:
-                raise ValueError(f"phantom: the indenter (depth {spec.depth_mm} mm) reaches the tibia; reduce depth_mm")
+                raise ValueError(
+                    f"phantom: the indenter (depth {spec.depth_mm} mm) reaches the tibia; reduce depth_mm"
+                )
 
     def _check_fibula(self, zs: np.ndarray) -> None:
         """The fibula must hold marrow, stay clear of the tibia (two bones in every slice) and inside
@@ -489,8 +559,10 @@ class _Scene:
         if s.fibula_radius_mm <= 0 or s.fibula_converge_mm <= 0:
             raise ValueError("phantom: fibula_radius_mm and fibula_converge_mm must be > 0")
         if an.fib_radius - s.fibula_cortex_mm < 0.08:
-            raise ValueError(f"phantom: the fibula (radius {an.fib_radius:.3g} mm) is too thin to hold marrow inside a "
-                             f"{s.fibula_cortex_mm} mm cortex; reduce fibula_cortex_mm or increase fibula_radius_mm")
+            raise ValueError(
+                f"phantom: the fibula (radius {an.fib_radius:.3g} mm) is too thin to hold marrow inside a "
+                f"{s.fibula_cortex_mm} mm cortex; reduce fibula_cortex_mm or increase fibula_radius_mm"
+            )
         for z in zs:
             fx, fy = an.fib_centre(z)
             circ = an.fib_boundary(float(z), 180)
@@ -498,36 +570,56 @@ class _Scene:
             gap = float(np.min(np.linalg.norm(circ[:, None] - tb[None], axis=-1)))
             inside_tibia = an.bone_f(fx, fy, z) < 0
             if inside_tibia or gap < 0.3:
-                raise ValueError(f"phantom: at z = {z:.3g} mm the fibula comes within {gap:.3g} mm of the tibia "
-                                 "(>= 0.3 mm needed to tell the two bones apart); increase fibula_distal_offset_mm "
-                                 "or change fibula_angle_deg")
+                raise ValueError(
+                    f"phantom: at z = {z:.3g} mm the fibula comes within {gap:.3g} mm of the tibia "
+                    "(>= 0.3 mm needed to tell the two bones apart); increase fibula_distal_offset_mm "
+                    "or change fibula_angle_deg"
+                )
             depth = float(np.max(an.phi_pre(circ[:, 0], circ[:, 1], z)))
             if depth > -(s.skin_thickness_mm + 0.3):
-                raise ValueError(f"phantom: at z = {z:.3g} mm the fibula reaches within {-depth:.3g} mm of the skin "
-                                 f"(>= skin_thickness_mm + 0.3 mm needed); reduce fibula_offset_mm or change "
-                                 "fibula_angle_deg")
+                raise ValueError(
+                    f"phantom: at z = {z:.3g} mm the fibula reaches within {-depth:.3g} mm of the skin "
+                    f"(>= skin_thickness_mm + 0.3 mm needed); reduce fibula_offset_mm or change "
+                    "fibula_angle_deg"
+                )
 
     def _coil_raw(self, x, y, z):
         a = self.s.coil_radius_mm
         d = np.maximum(self.coil_y - y, 0.0)
-        return (a * a / (a * a + d * d)) ** 1.5 * np.exp(-((x - self.coil_x) ** 2 + z**2) / (2 * 20.0**2))
+        return (a * a / (a * a + d * d)) ** 1.5 * np.exp(
+            -((x - self.coil_x) ** 2 + z**2) / (2 * 20.0**2)
+        )
 
     def coil(self, x, y, z):
         return self.coil_norm * self._coil_raw(x, y, z)
 
     def indenter_sd(self, x, y, z):
         """Signed distance (mm) to the indenter (negative inside): ray from the head centre backwards."""
-        p = np.stack([x - self.head_centre[0], y - self.head_centre[1], np.broadcast_to(z - self.head_centre[2], np.shape(x))], -1)
+        p = np.stack(
+            [
+                x - self.head_centre[0],
+                y - self.head_centre[1],
+                np.broadcast_to(z - self.head_centre[2], np.shape(x)),
+            ],
+            -1,
+        )
         back = -self.axis
         t = np.maximum(p @ back, 0.0)
         q = p - t[..., None] * back
         return np.sqrt((q**2).sum(-1)) - self.s.indenter_radius_mm
 
     def dimple(self, x, y, z):
-        p = np.stack([x - self.skin_point[0], y - self.skin_point[1], np.broadcast_to(z - self.skin_point[2], np.shape(x))], -1)
+        p = np.stack(
+            [
+                x - self.skin_point[0],
+                y - self.skin_point[1],
+                np.broadcast_to(z - self.skin_point[2], np.shape(x)),
+            ],
+            -1,
+        )
         s_ax = p @ self.axis
         d2 = (p**2).sum(-1) - s_ax**2
-        w_ax = np.exp(-np.maximum(s_ax, 0.0) ** 2 / (2 * 2.5**2))
+        w_ax = np.exp(-(np.maximum(s_ax, 0.0) ** 2) / (2 * 2.5**2))
         return self.dimple_a * np.exp(-d2 / (2 * self.dimple_w**2)) * w_ax
 
     def phi(self, x, y, z, state):
@@ -585,7 +677,9 @@ class _Scene:
         bone = tissue & (fb < 0)
         val[bone] = s.cortex
         val[bone & (fm < 0)] = s.marrow
-        margin = np.minimum.reduce([np.abs(phi), np.abs(phi + s.skin_thickness_mm), np.abs(fb), np.abs(fm)])
+        margin = np.minimum.reduce(
+            [np.abs(phi), np.abs(phi + s.skin_thickness_mm), np.abs(fb), np.abs(fm)]
+        )
         if s.fibula:
             ff = self.fibula(X, Y, z, state)
             ffm = self.fibula(X, Y, z, state, inset=s.fibula_cortex_mm)
@@ -621,7 +715,9 @@ class _Scene:
         return img * self.coil(XC, YC, z)
 
     # truth contours --------------------------------------------------------------------------
-    def truth_polyline(self, k: int, state: str, structure: str, *, h_mm: float = 0.01) -> np.ndarray:
+    def truth_polyline(
+        self, k: int, state: str, structure: str, *, h_mm: float = 0.01
+    ) -> np.ndarray:
         """Exact boundary (m, 2) in slice k: marching squares of the level function on a fine grid."""
         from skimage.measure import find_contours
 
@@ -662,7 +758,9 @@ class _Scene:
         return np.column_stack([cx - half + c[:, 0] * h, cy - half + c[:, 1] * h])
 
 
-def make_phantom(spec: PhantomSpec, *, n_points: int = 100, start_angle_deg: float = 90.0) -> Phantom:
+def make_phantom(
+    spec: PhantomSpec, *, n_points: int = 100, start_angle_deg: float = 90.0
+) -> Phantom:
     """Render the pre and during volumes of ``spec`` and their exact truth.
 
     Parameters
@@ -698,7 +796,10 @@ def make_phantom(spec: PhantomSpec, *, n_points: int = 100, start_angle_deg: flo
         img = np.empty((spec.n_pixels, spec.n_pixels, spec.n_slices), np.float32)
         for k in range(spec.n_slices):
             clean = scene.render_slice(k, state)
-            noisy = np.hypot(clean + sigma * rng.standard_normal(clean.shape), sigma * rng.standard_normal(clean.shape))
+            noisy = np.hypot(
+                clean + sigma * rng.standard_normal(clean.shape),
+                sigma * rng.standard_normal(clean.shape),
+            )
             img[:, :, k] = noisy
         vols[state] = img
         out = {}
@@ -728,12 +829,30 @@ def make_phantom(spec: PhantomSpec, *, n_points: int = 100, start_angle_deg: flo
             "bone_indenter_gap_mm": scene.bone_gap() if spec.depth_mm > 0 else None,
         },
     )
-    return Phantom(spec=spec, pre=vols["pre"], during=vols["during"], affine=scene.affine, truth=truth,
-                   truth_pre=contours["pre"], truth_during=contours["during"], noise_sigma=sigma, dense=dense)
+    return Phantom(
+        spec=spec,
+        pre=vols["pre"],
+        during=vols["during"],
+        affine=scene.affine,
+        truth=truth,
+        truth_pre=contours["pre"],
+        truth_during=contours["during"],
+        noise_sigma=sigma,
+        dense=dense,
+    )
 
 
-def write_phantom(spec: PhantomSpec, *, pre_path, during_path, truth_path, truth_pre_path, truth_during_path,
-                  n_points: int = 100, start_angle_deg: float = 90.0) -> Phantom:
+def write_phantom(
+    spec: PhantomSpec,
+    *,
+    pre_path,
+    during_path,
+    truth_path,
+    truth_pre_path,
+    truth_during_path,
+    n_points: int = 100,
+    start_angle_deg: float = 90.0,
+) -> Phantom:
     """Make the phantom and write its files, each atomically.
 
     Parameters

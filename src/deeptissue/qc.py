@@ -11,8 +11,15 @@ from .io import atomic_path
 __all__ = ["plot_segmentation"]
 
 
-def plot_segmentation(vol: Volume, contours: Contours, path, *, truth: Contours | None = None,
-                      accuracy: list[dict] | None = None, title: str = "") -> None:
+def plot_segmentation(
+    vol: Volume,
+    contours: Contours,
+    path,
+    *,
+    truth: Contours | None = None,
+    accuracy: list[dict] | None = None,
+    title: str = "",
+) -> None:
     """Every slice of ``vol`` with the skin (red), tibia (green) and fibula (yellow, where found)
     contours; truth dashed (cyan). A slice whose tibia touches the indenter (``bone_hidden``) says that its tibia
     is the pre tibia moved rigidly.
@@ -38,8 +45,14 @@ def plot_segmentation(vol: Volume, contours: Contours, path, *, truth: Contours 
         if k >= n:
             continue
         img = vol.data[:, :, k]
-        ax.imshow(img.T, origin="lower", cmap="gray", vmin=0, vmax=float(np.percentile(vol.data, 99.5)),
-                  interpolation="nearest")
+        ax.imshow(
+            img.T,
+            origin="lower",
+            cmap="gray",
+            vmin=0,
+            vmax=float(np.percentile(vol.data, 99.5)),
+            interpolation="nearest",
+        )
         for name, col in (("skin", "r"), ("bone", "lime"), ("fibula", "yellow")):
             seg = getattr(contours, name)
             if seg is not None and np.isfinite(seg[k]).all():
@@ -55,16 +68,21 @@ def plot_segmentation(vol: Volume, contours: Contours, path, *, truth: Contours 
         ax.set_xlim(lo[0], hi[0])
         ax.set_ylim(lo[1], hi[1])
         hidden = contours.bone_hidden is not None and contours.bone_hidden[k]
-        ax.set_title(f"slice {k + vol.index_offset[2]}" + (" (tibia at the indenter: from pre)" if hidden else ""),
-                     fontsize=8)
+        ax.set_title(
+            f"slice {k + vol.index_offset[2]}"
+            + (" (tibia at the indenter: from pre)" if hidden else ""),
+            fontsize=8,
+        )
     sup = title
     if accuracy:
         parts = []
         for st in ("skin", "bone", "fibula"):
             rows = [r for r in accuracy if r["structure"] == st]
             if rows:
-                parts.append(f"{st}: mean {np.mean([r['mean_mm'] for r in rows]):.3f} mm, "
-                             f"max {np.max([r['max_mm'] for r in rows]):.3f} mm")
+                parts.append(
+                    f"{st}: mean {np.mean([r['mean_mm'] for r in rows]):.3f} mm, "
+                    f"max {np.max([r['max_mm'] for r in rows]):.3f} mm"
+                )
         sup += "  |  vs truth  " + "; ".join(parts)
     fig.suptitle(sup, fontsize=10)
     fig.tight_layout()

@@ -13,9 +13,9 @@ A grid point takes the γ of the (straight-sided, corner-node) tetrahedron that 
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Mapping, Sequence
 
 import numpy as np
 import pandas as pd
@@ -25,15 +25,32 @@ from .mesh import TetMesh, locate_in_tets
 from .strain import DEFAULT_BIN_EDGES, bin_labels
 from .summary import Summary
 
-__all__ = ["EXCLUDED_COLOUR", "EXCLUDED_HATCH", "MEASURE_LABELS", "Sections", "aggregate_study", "exclusions",
-           "figure_sections", "locate_points", "plot_bins", "plot_sections", "plot_voi", "plot_voi_change",
-           "sample_sections", "section_frame", "summary_tables", "voi_change_percent", "write_csv"]
+__all__ = [
+    "EXCLUDED_COLOUR",
+    "EXCLUDED_HATCH",
+    "MEASURE_LABELS",
+    "Sections",
+    "aggregate_study",
+    "exclusions",
+    "figure_sections",
+    "locate_points",
+    "plot_bins",
+    "plot_sections",
+    "plot_voi",
+    "plot_voi_change",
+    "sample_sections",
+    "section_frame",
+    "summary_tables",
+    "voi_change_percent",
+    "write_csv",
+]
 
 EXCLUDED_COLOUR = "0.75"  # grey of an excluded animal's bars
 EXCLUDED_HATCH = "///"
 
 
 # --- tables ----------------------------------------------------------------------------------------
+
 
 def exclusions(summaries: Sequence[Summary]) -> dict[str, str]:
     """animal -> exclusion reason, for every animal with a variant that did not converge
@@ -43,12 +60,21 @@ def exclusions(summaries: Sequence[Summary]) -> dict[str, str]:
     for s in summaries:
         if not s.converged:
             out.setdefault(s.animal, []).append((s.variant, str(s.reason)))
-    return {a: ("" if all(why.startswith("infeasible") for _, why in r) else "not converged: ")
-            + "; ".join(f"{v}: {why}" for v, why in r) for a, r in out.items()}
+    return {
+        a: ("" if all(why.startswith("infeasible") for _, why in r) else "not converged: ")
+        + "; ".join(f"{v}: {why}" for v, why in r)
+        for a, r in out.items()
+    }
 
 
-_DICT_FIELDS = ("bins_percent", "bins_err_pp", "bins_sampled_percent", "bins_centroid_percent", "voi_by_measure_mm3",
-                "peak_gamma_by_measure")
+_DICT_FIELDS = (
+    "bins_percent",
+    "bins_err_pp",
+    "bins_sampled_percent",
+    "bins_centroid_percent",
+    "voi_by_measure_mm3",
+    "peak_gamma_by_measure",
+)
 
 
 def _flatten(d: dict) -> dict:
@@ -64,8 +90,13 @@ def _flatten(d: dict) -> dict:
     return flat
 
 
-def summary_tables(summaries: Sequence[Summary], *, animals: Sequence[str], variants: Sequence[str],
-                   bin_edges: Sequence[float] | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:
+def summary_tables(
+    summaries: Sequence[Summary],
+    *,
+    animals: Sequence[str],
+    variants: Sequence[str],
+    bin_edges: Sequence[float] | None = None,
+) -> tuple[pd.DataFrame, pd.DataFrame]:
     """``voi`` (one row per animal × variant, every summary field, dicts flattened as ``key.sub``) and
     ``bins`` (long: animal, variant, bin, percent, excluded), in the configured order. Bin labels come
     from the summaries, or from ``bin_edges`` when no run converged.
@@ -81,15 +112,32 @@ def summary_tables(summaries: Sequence[Summary], *, animals: Sequence[str], vari
     for a in animals:
         for v in variants:
             s = by_key[(a, v)]
-            row = {"animal": a, "variant": v, "excluded": a in excl, "exclusion_reason": excl.get(a, "")}
+            row = {
+                "animal": a,
+                "variant": v,
+                "excluded": a in excl,
+                "exclusion_reason": excl.get(a, ""),
+            }
             d = s.to_dict()
             d.pop("animal"), d.pop("variant")
             row.update(_flatten(d))
             rows.append(row)
-            labels = list(s.bins_percent or {}) or _labels_from_any(summaries) or (bin_labels(bin_edges) if bin_edges else [])
+            labels = (
+                list(s.bins_percent or {})
+                or _labels_from_any(summaries)
+                or (bin_labels(bin_edges) if bin_edges else [])
+            )
             for label in labels:
                 pct = (s.bins_percent or {}).get(label, np.nan) if s.converged else np.nan
-                bins.append({"animal": a, "variant": v, "bin": label, "percent": pct, "excluded": a in excl})
+                bins.append(
+                    {
+                        "animal": a,
+                        "variant": v,
+                        "bin": label,
+                        "percent": pct,
+                        "excluded": a in excl,
+                    }
+                )
     voi = pd.DataFrame(rows)
     return voi, pd.DataFrame(bins, columns=["animal", "variant", "bin", "percent", "excluded"])
 
@@ -108,6 +156,7 @@ def write_csv(path: str | Path, df: pd.DataFrame) -> None:
 
 
 # --- bar figures -----------------------------------------------------------------------------------
+
 
 def _plt():
     import matplotlib
@@ -130,7 +179,15 @@ def _variant_colours(variants):
 
 
 def _mark_excluded(ax, x_centre, reason, y_top):
-    ax.text(x_centre, y_top, "excluded\n" + _wrap(reason, 28), ha="center", va="top", fontsize=6, color="0.3")
+    ax.text(
+        x_centre,
+        y_top,
+        "excluded\n" + _wrap(reason, 28),
+        ha="center",
+        va="top",
+        fontsize=6,
+        color="0.3",
+    )
 
 
 def _wrap(text, width):
@@ -139,7 +196,9 @@ def _wrap(text, width):
     return "\n".join(textwrap.wrap(text, width)[:4])
 
 
-def plot_voi(voi: pd.DataFrame, path: str | Path, *, measure_label: str = "γmax (Green–Lagrange)") -> None:
+def plot_voi(
+    voi: pd.DataFrame, path: str | Path, *, measure_label: str = "γmax (Green–Lagrange)"
+) -> None:
     """Fig. 7A style: VOI [mm³] per animal, one bar per variant; excluded animals greyed and hatched."""
     plt = _plt()
     animals = list(dict.fromkeys(voi["animal"]))
@@ -147,7 +206,10 @@ def plot_voi(voi: pd.DataFrame, path: str | Path, *, measure_label: str = "γmax
     colours = _variant_colours(variants)
     width = 0.8 / len(variants)
     fig, ax = plt.subplots(figsize=(max(6, 1.2 * len(animals) + 2), 4))
-    top = np.nanmax(pd.to_numeric(voi["voi_mm3"], errors="coerce").to_numpy(float), initial=0.0) or 1.0
+    top = (
+        np.nanmax(pd.to_numeric(voi["voi_mm3"], errors="coerce").to_numpy(float), initial=0.0)
+        or 1.0
+    )
     for i, a in enumerate(animals):
         sub = voi[voi["animal"] == a].set_index("variant")
         excluded = bool(sub["excluded"].iloc[0])
@@ -157,25 +219,53 @@ def plot_voi(voi: pd.DataFrame, path: str | Path, *, measure_label: str = "γmax
             if not bool(sub.loc[v, "converged"]) or val is None or not np.isfinite(float(val)):
                 ax.plot(x, 0, marker="x", color="k", ms=5)
                 continue
-            err = float(pd.to_numeric(pd.Series([sub.loc[v, "voi_err_mm3"]]), errors="coerce").iloc[0]) \
-                if "voi_err_mm3" in sub else np.nan
-            ax.bar(x, float(val), width, color=EXCLUDED_COLOUR if excluded else colours[v],
-                   hatch=EXCLUDED_HATCH if excluded else None, edgecolor="0.4" if excluded else "none",
-                   yerr=err if np.isfinite(err) else None, error_kw=dict(elinewidth=0.8, capsize=2, ecolor="k"))
+            err = (
+                float(
+                    pd.to_numeric(pd.Series([sub.loc[v, "voi_err_mm3"]]), errors="coerce").iloc[0]
+                )
+                if "voi_err_mm3" in sub
+                else np.nan
+            )
+            ax.bar(
+                x,
+                float(val),
+                width,
+                color=EXCLUDED_COLOUR if excluded else colours[v],
+                hatch=EXCLUDED_HATCH if excluded else None,
+                edgecolor="0.4" if excluded else "none",
+                yerr=err if np.isfinite(err) else None,
+                error_kw=dict(elinewidth=0.8, capsize=2, ecolor="k"),
+            )
         if excluded:
             _mark_excluded(ax, i, sub["exclusion_reason"].iloc[0], 1.25 * top)
     handles = [plt.Rectangle((0, 0), 1, 1, color=colours[v]) for v in variants]
-    handles.append(plt.Rectangle((0, 0), 1, 1, facecolor=EXCLUDED_COLOUR, hatch=EXCLUDED_HATCH, edgecolor="0.4"))
+    handles.append(
+        plt.Rectangle(
+            (0, 0), 1, 1, facecolor=EXCLUDED_COLOUR, hatch=EXCLUDED_HATCH, edgecolor="0.4"
+        )
+    )
     # beside the axes, so that it never hides an exclusion note
-    ax.legend(handles, variants + ["excluded animal"], fontsize=7, bbox_to_anchor=(1.01, 1), loc="upper left")
+    ax.legend(
+        handles,
+        variants + ["excluded animal"],
+        fontsize=7,
+        bbox_to_anchor=(1.01, 1),
+        loc="upper left",
+    )
     ax.set_xticks(range(len(animals)), animals)
     ax.set_ylim(0, 1.3 * top)
     ax.set_ylabel("VOI [mm³]")
     sampled = set(voi["gamma_sampling"].dropna()) if "gamma_sampling" in voi else set()
     where = {"points": "64 points per element", "centroid": "element centroids"}
-    at = f", sampled at {' / '.join(where.get(x, str(x)) for x in sorted(sampled))}" if sampled else ""
+    at = (
+        f", sampled at {' / '.join(where.get(x, str(x)) for x in sorted(sampled))}"
+        if sampled
+        else ""
+    )
     bars = ", error bar: estimated discretisation error" if "voi_err_mm3" in voi else ""
-    ax.set_title(f"Volume with {measure_label} above threshold{at} (x: not converged{bars})", fontsize=10)
+    ax.set_title(
+        f"Volume with {measure_label} above threshold{at} (x: not converged{bars})", fontsize=10
+    )
     _save(fig, path)
 
 
@@ -189,11 +279,15 @@ def plot_bins(bins: pd.DataFrame, path: str | Path, *, voi: pd.DataFrame | None 
     cmap = plt.get_cmap("viridis")
     colours = {b: cmap(k / max(1, len(labels) - 1)) for k, b in enumerate(labels)}
     worst_err = {}
-    err_cols = [c for c in (voi.columns if voi is not None else []) if c.startswith("bins_err_pp.")]
+    err_cols = [
+        c for c in (voi.columns if voi is not None else []) if c.startswith("bins_err_pp.")
+    ]
     if err_cols:
         errs = voi[err_cols].apply(pd.to_numeric, errors="coerce").to_numpy(float)
-        worst_err = {(a, v): float(np.nanmax(e)) if np.isfinite(e).any() else np.nan
-                     for a, v, e in zip(voi["animal"], voi["variant"], errs)}
+        worst_err = {
+            (a, v): float(np.nanmax(e)) if np.isfinite(e).any() else np.nan
+            for a, v, e in zip(voi["animal"], voi["variant"], errs)
+        }
     fig, ax = plt.subplots(figsize=(max(6, 0.35 * len(animals) * len(variants) + 2), 4))
     x, ticks, ticklabels = 0.0, [], []
     for a in animals:
@@ -204,8 +298,16 @@ def plot_bins(bins: pd.DataFrame, path: str | Path, *, voi: pd.DataFrame | None 
             for b in labels:
                 p = float(sub.loc[b, "percent"]) if b in sub.index else np.nan
                 if np.isfinite(p) and p > 0:
-                    ax.bar(x, p, 0.8, bottom=bottom, color=colours[b], hatch=EXCLUDED_HATCH if excluded else None,
-                           edgecolor="0.3" if excluded else "none", alpha=0.35 if excluded else 1.0)
+                    ax.bar(
+                        x,
+                        p,
+                        0.8,
+                        bottom=bottom,
+                        color=colours[b],
+                        hatch=EXCLUDED_HATCH if excluded else None,
+                        edgecolor="0.3" if excluded else "none",
+                        alpha=0.35 if excluded else 1.0,
+                    )
                     bottom += p
             err = worst_err.get((a, v), np.nan)
             if np.isfinite(err):  # the largest estimated bin error, above the bar
@@ -223,9 +325,13 @@ def plot_bins(bins: pd.DataFrame, path: str | Path, *, voi: pd.DataFrame | None 
     ax.set_ylim(0, 115 if worst_err else 105)
     ax.set_ylabel("% of VOI")
     handles = [plt.Rectangle((0, 0), 1, 1, color=colours[b]) for b in labels]
-    ax.legend(handles, labels, title="γmax bin", fontsize=7, bbox_to_anchor=(1.01, 1), loc="upper left")
-    ax.set_title("Distribution of the VOI over strain bins (hatched: excluded animal; n.c.: not converged;\n"
-                 "±: largest estimated bin error [pp])")
+    ax.legend(
+        handles, labels, title="γmax bin", fontsize=7, bbox_to_anchor=(1.01, 1), loc="upper left"
+    )
+    ax.set_title(
+        "Distribution of the VOI over strain bins (hatched: excluded animal; n.c.: not converged;\n"
+        "±: largest estimated bin error [pp])"
+    )
     _save(fig, path)
 
 
@@ -241,10 +347,23 @@ def voi_change_percent(voi: pd.DataFrame, *, reference: str = "sphere") -> pd.Da
             if v == reference:
                 continue
             val = pd.to_numeric(pd.Series([sub.loc[v, "voi_mm3"]]), errors="coerce").iloc[0]
-            change = 100.0 * (val / ref - 1.0) if (np.isfinite(ref) and ref > 0 and np.isfinite(val)) else np.nan
-            rows.append({"animal": a, "variant": v, "voi_change_percent": change, "excluded": bool(sub["excluded"].iloc[0]),
-                         "exclusion_reason": sub["exclusion_reason"].iloc[0]})
-    return pd.DataFrame(rows, columns=["animal", "variant", "voi_change_percent", "excluded", "exclusion_reason"])
+            change = (
+                100.0 * (val / ref - 1.0)
+                if (np.isfinite(ref) and ref > 0 and np.isfinite(val))
+                else np.nan
+            )
+            rows.append(
+                {
+                    "animal": a,
+                    "variant": v,
+                    "voi_change_percent": change,
+                    "excluded": bool(sub["excluded"].iloc[0]),
+                    "exclusion_reason": sub["exclusion_reason"].iloc[0],
+                }
+            )
+    return pd.DataFrame(
+        rows, columns=["animal", "variant", "voi_change_percent", "excluded", "exclusion_reason"]
+    )
 
 
 def plot_voi_change(voi: pd.DataFrame, path: str | Path, *, reference: str = "sphere") -> None:
@@ -272,8 +391,14 @@ def plot_voi_change(voi: pd.DataFrame, path: str | Path, *, reference: str = "sp
             if not np.isfinite(val):
                 ax.plot(x, 0, marker="x", color="k", ms=5)
                 continue
-            ax.bar(x, val, width, color=EXCLUDED_COLOUR if excluded else colours[v],
-                   hatch=EXCLUDED_HATCH if excluded else None, edgecolor="0.4" if excluded else "none")
+            ax.bar(
+                x,
+                val,
+                width,
+                color=EXCLUDED_COLOUR if excluded else colours[v],
+                hatch=EXCLUDED_HATCH if excluded else None,
+                edgecolor="0.4" if excluded else "none",
+            )
         if excluded:
             _mark_excluded(ax, i, sub["exclusion_reason"].iloc[0], 0.98 * hi)
     ax.axhline(0, color="k", lw=0.8)
@@ -282,11 +407,14 @@ def plot_voi_change(voi: pd.DataFrame, path: str | Path, *, reference: str = "sp
     ax.set_xticks(range(len(animals)), animals)
     ax.set_ylim(lo, hi)
     ax.set_ylabel(f"VOI change vs '{reference}' [%]")
-    ax.set_title(f"VOI of each orientation relative to the estimated one '{reference}' (x: undefined)")
+    ax.set_title(
+        f"VOI of each orientation relative to the estimated one '{reference}' (x: undefined)"
+    )
     _save(fig, path)
 
 
 # --- sections --------------------------------------------------------------------------------------
+
 
 def section_frame(axis, *, leg_axis=(0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Orthonormal (a, e, n): ``a`` the indenter axis, ``n`` the leg axis projected perpendicular to
@@ -339,14 +467,20 @@ def sample_sections(
     """
     g = np.asarray(gamma, float)
     if g.shape != (mesh.n_tets,):
-        raise ValueError(f"gamma: expected one value per element ({mesh.n_tets}), got shape {g.shape}")
+        raise ValueError(
+            f"gamma: expected one value per element ({mesh.n_tets}), got shape {g.shape}"
+        )
     a, e, n = section_frame(axis, leg_axis=leg_axis)
     tip = np.asarray(tip_mm, float)
     offsets = spacing_mm * (np.arange(n_sections) - (n_sections - 1) / 2)
     u = np.arange(-half_width_mm, half_width_mm + 0.5 * resolution_mm, resolution_mm)
     v = np.arange(v_range_mm[0], v_range_mm[1] + 0.5 * resolution_mm, resolution_mm)
-    pts = (tip + offsets[:, None, None, None] * n
-           + v[None, :, None, None] * a + u[None, None, :, None] * e)  # (s, nv, nu, 3)
+    pts = (
+        tip
+        + offsets[:, None, None, None] * n
+        + v[None, :, None, None] * a
+        + u[None, None, :, None] * e
+    )  # (s, nv, nu, 3)
     elem = locate_points(mesh, pts)
     vals = np.where(elem >= 0, g[np.clip(elem, 0, None)], np.nan)
     return Sections(values=vals, offsets_mm=offsets, u_mm=u, v_mm=v)
@@ -379,9 +513,19 @@ def plot_sections(
     first = next((s for s in sections.values() if isinstance(s, Sections)), None)
     n_total = first.values.shape[0] if first is not None else 7
     cols = list(range(n_total)) if columns is None else list(columns)
-    aspect = 1.0 if first is None else (first.v_mm[-1] - first.v_mm[0]) / (first.u_mm[-1] - first.u_mm[0])
-    fig, axes = plt.subplots(len(names), len(cols), figsize=(1.9 * len(cols) + 1.2, 1.9 * aspect * len(names) + 0.9),
-                             squeeze=False, sharex=True, sharey=True)
+    aspect = (
+        1.0
+        if first is None
+        else (first.v_mm[-1] - first.v_mm[0]) / (first.u_mm[-1] - first.u_mm[0])
+    )
+    fig, axes = plt.subplots(
+        len(names),
+        len(cols),
+        figsize=(1.9 * len(cols) + 1.2, 1.9 * aspect * len(names) + 0.9),
+        squeeze=False,
+        sharex=True,
+        sharey=True,
+    )
     norm = Normalize(0.0, vmax)
     im = None
     for r, name in enumerate(names):
@@ -391,16 +535,28 @@ def plot_sections(
             ax.set_aspect("equal")
             if isinstance(s, Sections):
                 ext = (s.u_mm[0], s.u_mm[-1], s.v_mm[-1], s.v_mm[0])
-                im = ax.imshow(s.values[k], extent=ext, cmap="inferno", norm=norm, interpolation="nearest")
+                im = ax.imshow(
+                    s.values[k], extent=ext, cmap="inferno", norm=norm, interpolation="nearest"
+                )
                 vals = np.ma.masked_invalid(s.values[k])
                 if vals.count() and vals.min() <= threshold < vals.max():
-                    ax.contour(s.u_mm, s.v_mm, vals, levels=[threshold], colors="c", linewidths=0.6)
+                    ax.contour(
+                        s.u_mm, s.v_mm, vals, levels=[threshold], colors="c", linewidths=0.6
+                    )
                 ax.plot(0, 0, marker="v", color="c", ms=4)
                 if r == 0:
                     ax.set_title(f"slice {k + 1}: {s.offsets_mm[k]:+.1f} mm", fontsize=7)
             else:
                 ax.set_facecolor(EXCLUDED_COLOUR)
-                ax.text(0.5, 0.5, _wrap(str(s), 20), transform=ax.transAxes, ha="center", va="center", fontsize=6)
+                ax.text(
+                    0.5,
+                    0.5,
+                    _wrap(str(s), 20),
+                    transform=ax.transAxes,
+                    ha="center",
+                    va="center",
+                    fontsize=6,
+                )
                 ax.set_xticks([]), ax.set_yticks([])
             if c == 0:
                 ax.set_ylabel(f"{name}\ndepth [mm]", fontsize=7)
@@ -445,8 +601,12 @@ def figure_sections(
         field = _CELL_FIELD[strain_measure]
         if field not in cells:
             raise ValueError(f"{vtu}: no cell data {field!r} (has {sorted(cells)})")
-        axis, start, _ = variant_travel(parse_variant(name), axis=pose.indenter_axis, tip_start_mm=pose.tip_start_mm,
-                                        tip_end_mm=pose.tip_end_mm)
+        axis, start, _ = variant_travel(
+            parse_variant(name),
+            axis=pose.indenter_axis,
+            tip_start_mm=pose.tip_start_mm,
+            tip_end_mm=pose.tip_end_mm,
+        )
         out[name] = sample_sections(mesh, cells[field], axis=axis, tip_mm=start, **sample_kw)
     return out
 
@@ -517,8 +677,19 @@ def aggregate_study(
     results = {v: (by_key[(figure_animal, v)], figure_results[v]) for v in figure_results}
     sections = figure_sections(results, pose, strain_measure=strain_measure)
     pair = {v: sections[v] for v in ("sphere", "bar") if v in sections}
-    plot_sections(pair, outputs["sections_png"], threshold=threshold, measure_label=label,
-                  title=f"{figure_animal}: {label} in seven planes 1 mm apart containing the indenter axis{note}")
+    plot_sections(
+        pair,
+        outputs["sections_png"],
+        threshold=threshold,
+        measure_label=label,
+        title=f"{figure_animal}: {label} in seven planes 1 mm apart containing the indenter axis{note}",
+    )
     spheres = {v: s for v, s in sections.items() if parse_variant(v).indenter == "sphere"}
-    plot_sections(spheres, outputs["orientations_png"], columns=[2, 3, 4], threshold=threshold, measure_label=label,
-                  title=f"{figure_animal}: slices 3-5 for every sphere orientation{note}")
+    plot_sections(
+        spheres,
+        outputs["orientations_png"],
+        columns=[2, 3, 4],
+        threshold=threshold,
+        measure_label=label,
+        title=f"{figure_animal}: slices 3-5 for every sphere orientation{note}",
+    )

@@ -34,7 +34,9 @@ def euler_xyz_deg(rotation_deg) -> np.ndarray:
     ``R = Rz(c) @ Ry(b) @ Rx(a)``; the FE load schedule applies a, then b, then c, so the bone
     reaches exactly ``R`` after the three rotation steps.
     """
-    return Rotation.from_rotvec(np.radians(np.asarray(rotation_deg, dtype=float))).as_euler("xyz", degrees=True)
+    return Rotation.from_rotvec(np.radians(np.asarray(rotation_deg, dtype=float))).as_euler(
+        "xyz", degrees=True
+    )
 
 
 @dataclass(frozen=True)
@@ -62,10 +64,16 @@ class BoneMotion:
         for name in ("rotation_deg", "centre_mm", "translation_mm"):
             v = np.asarray(getattr(self, name), dtype=float)
             if v.shape != (3,):
-                raise ValueError(f"BoneMotion.{name}: expected 3 numbers, got {getattr(self, name)!r}")
+                raise ValueError(
+                    f"BoneMotion.{name}: expected 3 numbers, got {getattr(self, name)!r}"
+                )
             object.__setattr__(self, name, tuple(float(x) for x in v))
 
     def apply(self, points_mm: np.ndarray) -> np.ndarray:
         """Points ``points_mm`` (..., 3) [mm] moved by this motion (:func:`apply_rigid`), same shape."""
-        return apply_rigid(points_mm, rotation_deg=self.rotation_deg, centre_mm=self.centre_mm,
-                           translation_mm=self.translation_mm)
+        return apply_rigid(
+            points_mm,
+            rotation_deg=self.rotation_deg,
+            centre_mm=self.centre_mm,
+            translation_mm=self.translation_mm,
+        )

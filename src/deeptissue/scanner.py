@@ -26,7 +26,15 @@ import numpy as np
 from .imaging import ImagingError, Volume, load_nifti, write_nifti
 from .io import atomic_path
 
-__all__ = ["SLICE_TOL_MM", "dicom_series", "read_bruker", "read_dicom", "read_scan", "scan_kind", "write_scan"]
+__all__ = [
+    "SLICE_TOL_MM",
+    "dicom_series",
+    "read_bruker",
+    "read_dicom",
+    "read_scan",
+    "scan_kind",
+    "write_scan",
+]
 
 #: slice positions must lie this close to an even grid along the slice normal [mm]: the geometry
 #: tolerance the converters are tested to (a missing slice is off by a whole spacing)
@@ -85,8 +93,14 @@ def dicom_series(folder: str | Path) -> list[dict]:
     rows = []
     for uid, files in table.items():
         ds = files[0][1]
-        rows.append({"series": int(getattr(ds, "SeriesNumber", 0) or 0), "description": str(getattr(ds, "SeriesDescription", "")),
-                     "n_files": len(files), "uid": uid})
+        rows.append(
+            {
+                "series": int(getattr(ds, "SeriesNumber", 0) or 0),
+                "description": str(getattr(ds, "SeriesDescription", "")),
+                "n_files": len(files),
+                "uid": uid,
+            }
+        )
     return sorted(rows, key=lambda r: (r["series"], r["uid"]))
 
 
@@ -94,16 +108,23 @@ def _pick_series(table: dict, series, where: str) -> list:
     rows = {uid: files[0][1] for uid, files in table.items()}
     listing = "; ".join(
         f"series {getattr(ds, 'SeriesNumber', '?')} {str(getattr(ds, 'SeriesDescription', ''))!r} ({len(table[uid])} files)"
-        for uid, ds in sorted(rows.items(), key=lambda t: int(getattr(t[1], "SeriesNumber", 0) or 0))
+        for uid, ds in sorted(
+            rows.items(), key=lambda t: int(getattr(t[1], "SeriesNumber", 0) or 0)
+        )
     )
     if series is None:
         if len(table) == 1:
             return next(iter(table.values()))
-        raise ImagingError(f"{where}: {len(table)} DICOM series ({listing}); pick one with "
-                           f"{{dicom: <folder>, series: <number or description>}}")
-    hits = [uid for uid, ds in rows.items()
-            if (isinstance(series, int) and int(getattr(ds, "SeriesNumber", -1) or -1) == series)
-            or (isinstance(series, str) and series in (str(getattr(ds, "SeriesDescription", "")), uid))]
+        raise ImagingError(
+            f"{where}: {len(table)} DICOM series ({listing}); pick one with "
+            f"{{dicom: <folder>, series: <number or description>}}"
+        )
+    hits = [
+        uid
+        for uid, ds in rows.items()
+        if (isinstance(series, int) and int(getattr(ds, "SeriesNumber", -1) or -1) == series)
+        or (isinstance(series, str) and series in (str(getattr(ds, "SeriesDescription", "")), uid))
+    ]
     if len(hits) != 1:
         what = "no" if not hits else f"{len(hits)}"
         raise ImagingError(f"{where}: {what} DICOM series match series {series!r} ({listing})")
@@ -112,6 +133,7 @@ def _pick_series(table: dict, series, where: str) -> list:
 
 def _volumes(files: list) -> list[list]:
     """The files of a series split into volumes: by echo number, then by repeated slice positions."""
+
     def num(ds, key):
         v = getattr(ds, key, None)
         return int(v) if v not in (None, "") else 0
@@ -125,7 +147,9 @@ def _volumes(files: list) -> list[list]:
         seen: Counter = Counter()
         split: dict[int, list] = defaultdict(list)
         for path, ds in members:
-            pos = tuple(np.round(np.asarray(getattr(ds, "ImagePositionPatient", [0, 0, 0]), float), 3))
+            pos = tuple(
+                np.round(np.asarray(getattr(ds, "ImagePositionPatient", [0, 0, 0]), float), 3)
+            )
             split[seen[pos]].append((path, ds))
             seen[pos] += 1
         volumes.extend(split[n] for n in sorted(split))
@@ -141,7 +165,12 @@ def _volume_label(files: list) -> str:
 def _frame_attr(frame, shared, seq: str, key: str):
     """``key`` of a multi-frame file's frame, from its own functional group ``seq`` or the shared one."""
     for group in (frame, shared):
-        if group is not None and seq in group and len(group[seq].value) and key in group[seq].value[0]:
+        if (
+            group is not None
+            and seq in group
+            and len(group[seq].value)
+            and key in group[seq].value[0]
+        ):
             return group[seq].value[0][key].value
     return None
 
@@ -150,13 +179,33 @@ def _planes(files: list) -> list:
     """(orientation, position) of every frame: one per classic file, one per frame of a multi-frame file."""
     out = []
     for _, ds in files:
-        if int(getattr(ds, "NumberOfFrames", 1) or 1) > 1 and "PerFrameFunctionalGroupsSequence" in ds:
-            shared = ds.SharedFunctionalGroupsSequence[0] if "SharedFunctionalGroupsSequence" in ds else None
+        if (
+            int(getattr(ds, "NumberOfFrames", 1) or 1) > 1
+            and "PerFrameFunctionalGroupsSequence" in ds
+        ):
+            shared = (
+                ds.SharedFunctionalGroupsSequence[0]
+                if "SharedFunctionalGroupsSequence" in ds
+                else None
+            )
             for frame in ds.PerFrameFunctionalGroupsSequence:
-                out.append((_frame_attr(frame, shared, "PlaneOrientationSequence", "ImageOrientationPatient"),
-                            _frame_attr(frame, shared, "PlanePositionSequence", "ImagePositionPatient")))
+                out.append(
+                    (
+                        _frame_attr(
+                            frame, shared, "PlaneOrientationSequence", "ImageOrientationPatient"
+                        ),
+                        _frame_attr(
+                            frame, shared, "PlanePositionSequence", "ImagePositionPatient"
+                        ),
+                    )
+                )
         else:
-            out.append((getattr(ds, "ImageOrientationPatient", None), getattr(ds, "ImagePositionPatient", None)))
+            out.append(
+                (
+                    getattr(ds, "ImageOrientationPatient", None),
+                    getattr(ds, "ImagePositionPatient", None),
+                )
+            )
     return out
 
 
@@ -191,17 +240,26 @@ def _check_slices(files: list, where: str) -> None:
     if off.max() > SLICE_TOL_MM:
         k = int(np.argmax(off))
         n_missing = int(round(gaps[k] / step)) - 1
-        what = f"{n_missing} slice(s) missing" if n_missing >= 1 and abs(gaps[k] - (n_missing + 1) * step) <= SLICE_TOL_MM \
+        what = (
+            f"{n_missing} slice(s) missing"
+            if n_missing >= 1 and abs(gaps[k] - (n_missing + 1) * step) <= SLICE_TOL_MM
             else "unevenly spaced slices"
-        raise ImagingError(f"{where}: {what}: slice gap {gaps[k]:.4f} mm after slice position {along[k]:.4f} mm "
-                           f"where the others are {step:.4f} mm")
+        )
+        raise ImagingError(
+            f"{where}: {what}: slice gap {gaps[k]:.4f} mm after slice position {along[k]:.4f} mm "
+            f"where the others are {step:.4f} mm"
+        )
     inplane = pos - np.outer(along - along[0], normal) - pos[0]
     if np.abs(inplane).max() > SLICE_TOL_MM:
-        raise ImagingError(f"{where}: slices shifted in-plane from one to the next (a tilted stack), by up to "
-                           f"{np.abs(inplane).max():.4f} mm")
+        raise ImagingError(
+            f"{where}: slices shifted in-plane from one to the next (a tilted stack), by up to "
+            f"{np.abs(inplane).max():.4f} mm"
+        )
 
 
-def _dcm2niix(files: list, workdir: Path, where: str, volume: int | None) -> tuple[Path, int | None]:
+def _dcm2niix(
+    files: list, workdir: Path, where: str, volume: int | None
+) -> tuple[Path, int | None]:
     """Convert ``files`` with dcm2niix; return its NIfTI and the volume still to pick inside it.
 
     dcm2niix writes one file per echo of a multi-frame series (``volume_e1``, ``volume_e2``, ...):
@@ -214,22 +272,35 @@ def _dcm2niix(files: list, workdir: Path, where: str, volume: int | None) -> tup
     out.mkdir()
     for n, (path, _) in enumerate(files):
         (src / f"{n:05d}.dcm").symlink_to(Path(path).resolve())
-    proc = subprocess.run([dcm2niix.bin, "-z", "n", "-b", "y", "-ba", "y", "-f", "volume", "-o", str(out), str(src)],
-                          capture_output=True, text=True)
-    made = sorted(out.glob("*.nii"), key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)])
+    proc = subprocess.run(
+        [dcm2niix.bin, "-z", "n", "-b", "y", "-ba", "y", "-f", "volume", "-o", str(out), str(src)],
+        capture_output=True,
+        text=True,
+    )
+    made = sorted(
+        out.glob("*.nii"),
+        key=lambda p: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)],
+    )
     if proc.returncode != 0 or not made:
         tail = (proc.stdout + proc.stderr).strip().splitlines()[-3:]
-        raise ImagingError(f"{where}: dcm2niix made no NIfTI file (exit {proc.returncode}: {' | '.join(tail)})")
+        raise ImagingError(
+            f"{where}: dcm2niix made no NIfTI file (exit {proc.returncode}: {' | '.join(tail)})"
+        )
     if len(made) == 1:
         return made[0], volume
     if volume is None or not 1 <= volume <= len(made):
-        raise ImagingError(f"{where}: dcm2niix splits the series into {len(made)} volumes "
-                           f"({', '.join(p.stem for p in made)}: echoes or other frame groups); pick one with "
-                           f"{{dicom: <folder>, volume: <number>}}" + ("" if volume is None else f" (volume {volume} does not exist)"))
+        raise ImagingError(
+            f"{where}: dcm2niix splits the series into {len(made)} volumes "
+            f"({', '.join(p.stem for p in made)}: echoes or other frame groups); pick one with "
+            f"{{dicom: <folder>, volume: <number>}}"
+            + ("" if volume is None else f" (volume {volume} does not exist)")
+        )
     return made[volume - 1], None
 
 
-def _select_volume(img_path: Path, volume: int | None, workdir: Path, where: str, *, key: str) -> tuple[Path, int]:
+def _select_volume(
+    img_path: Path, volume: int | None, workdir: Path, where: str, *, key: str
+) -> tuple[Path, int]:
     """A 3D NIfTI: the file itself, or volume ``volume`` (1-based) of a 4D file; refuse 4D without a choice."""
     img = nib.load(str(img_path))
     n = img.shape[3] if len(img.shape) == 4 else 1
@@ -238,8 +309,11 @@ def _select_volume(img_path: Path, volume: int | None, workdir: Path, where: str
             raise ImagingError(f"{where}: volume {volume} asked for, but it holds 1 volume")
         return img_path, 1
     if volume is None or not 1 <= volume <= n:
-        raise ImagingError(f"{where}: {n} volumes (echoes, repetitions or frames) of shape {tuple(img.shape[:3])}; "
-                           f"pick one with {key}" + ("" if volume is None else f" (volume {volume} does not exist)"))
+        raise ImagingError(
+            f"{where}: {n} volumes (echoes, repetitions or frames) of shape {tuple(img.shape[:3])}; "
+            f"pick one with {key}"
+            + ("" if volume is None else f" (volume {volume} does not exist)")
+        )
     sub = nib.Nifti1Image(np.asarray(img.dataobj[..., volume - 1], np.float32), img.affine)
     path = workdir / "picked.nii"
     nib.save(sub, str(path))
@@ -254,8 +328,13 @@ def _num(ds, key, scale=1.0):
         return None
 
 
-def read_dicom(folder: str | Path, *, series: int | str | None = None, volume: int | None = None,
-               animal: str = "") -> tuple[Volume, dict]:
+def read_dicom(
+    folder: str | Path,
+    *,
+    series: int | str | None = None,
+    volume: int | None = None,
+    animal: str = "",
+) -> tuple[Volume, dict]:
     """Read one volume of one DICOM series into a :class:`Volume` (RAS mm) and its scanner metadata.
 
     Parameters
@@ -293,8 +372,11 @@ def read_dicom(folder: str | Path, *, series: int | str | None = None, volume: i
     if len(vols) > 1:
         if volume is None or not 1 <= volume <= len(vols):
             listing = "; ".join(f"volume {n}: {_volume_label(v)}" for n, v in enumerate(vols, 1))
-            raise ImagingError(f"{where}: the series holds {len(vols)} volumes ({listing}); pick one with "
-                               f"{{dicom: <folder>, volume: <number>}}" + ("" if volume is None else f" (volume {volume} does not exist)"))
+            raise ImagingError(
+                f"{where}: the series holds {len(vols)} volumes ({listing}); pick one with "
+                f"{{dicom: <folder>, volume: <number>}}"
+                + ("" if volume is None else f" (volume {volume} does not exist)")
+            )
         files, nifti_volume = vols[volume - 1], None
     else:
         files, nifti_volume = vols[0], volume
@@ -303,7 +385,9 @@ def read_dicom(folder: str | Path, *, series: int | str | None = None, volume: i
     with tempfile.TemporaryDirectory(prefix="deeptissue_dicom_") as tmp:
         tmp = Path(tmp)
         path, nifti_volume = _dcm2niix(files, tmp, where, nifti_volume)
-        path, _ = _select_volume(path, nifti_volume, tmp, where, key="{dicom: <folder>, volume: <number>}")
+        path, _ = _select_volume(
+            path, nifti_volume, tmp, where, key="{dicom: <folder>, volume: <number>}"
+        )
         vol = load_nifti(path, animal=animal)
     vol = _oriented(Volume(data=vol.data, affine=vol.affine, path=str(folder), animal=animal))
     meta = {
@@ -318,7 +402,9 @@ def read_dicom(folder: str | Path, *, series: int | str | None = None, volume: i
         "header_reader": f"pydicom {pydicom.__version__}",
         "manufacturer": str(getattr(ds, "Manufacturer", "")),
         "field_strength_t": _num(ds, "MagneticFieldStrength"),
-        "sequence": " ".join(str(getattr(ds, k, "")) for k in ("SequenceName", "ScanningSequence")).strip(),
+        "sequence": " ".join(
+            str(getattr(ds, k, "")) for k in ("SequenceName", "ScanningSequence")
+        ).strip(),
         "protocol": str(getattr(ds, "ProtocolName", "")),
         "echo_time_ms": _num(ds, "EchoTime"),
         "repetition_time_ms": _num(ds, "RepetitionTime"),
@@ -348,8 +434,9 @@ def _scalar(v):
         return None
 
 
-def read_bruker(study: str | Path, *, scan: int, reco: int = 1, volume: int | None = None,
-                animal: str = "") -> tuple[Volume, dict]:
+def read_bruker(
+    study: str | Path, *, scan: int, reco: int = 1, volume: int | None = None, animal: str = ""
+) -> tuple[Volume, dict]:
     """Read one reconstruction of one ParaVision scan into a :class:`Volume` (subject RAS mm) and its metadata.
 
     Parameters
@@ -388,19 +475,25 @@ def read_bruker(study: str | Path, *, scan: int, reco: int = 1, volume: int | No
         raise ImagingError(f"{where}: not a readable ParaVision study ({exc})") from exc
     avail = loader.avail
     if scan not in avail:
-        listing = "; ".join(f"scan {sid} {_scan_label(s)!r} (recos {sorted(s.avail)})" for sid, s in avail.items())
+        listing = "; ".join(
+            f"scan {sid} {_scan_label(s)!r} (recos {sorted(s.avail)})" for sid, s in avail.items()
+        )
         raise ImagingError(f"{where}: no scan {scan}; the study holds: {listing or 'no scans'}")
     sc = avail[scan]
     if reco not in sc.avail:
-        raise ImagingError(f"{where}, scan {scan}: no reco {reco}; the scan has recos {sorted(sc.avail)}")
+        raise ImagingError(
+            f"{where}, scan {scan}: no reco {reco}; the scan has recos {sorted(sc.avail)}"
+        )
     where = f"{where}, scan {scan}, reco {reco}"
     visu = _param(sc.avail[reco], "visu_pars")
     for key in ("VisuCoreDataSlope", "VisuCoreDataOffs"):
         values = np.ravel(np.asarray(_param(visu, key) if visu is not None else 0.0, float))
         if values.size > 1 and np.ptp(values) > 1e-9 * np.abs(values).max():
-            raise ImagingError(f"{where}: {key} differs between frames ({values.min():g} to {values.max():g}); brkraw "
-                               f"{brkraw.__version__} scales all frames by the first, so reconstruct with one scaling "
-                               f"or export the scan as DICOM")
+            raise ImagingError(
+                f"{where}: {key} differs between frames ({values.min():g} to {values.max():g}); brkraw "
+                f"{brkraw.__version__} scales all frames by the first, so reconstruct with one scaling "
+                f"or export the scan as DICOM"
+            )
     try:
         # patient coordinates as ParaVision writes them (and exports to DICOM): a quadruped's anatomical
         # frame would turn the bore axis, along which the leg's slices are stacked, into y
@@ -409,15 +502,27 @@ def read_bruker(study: str | Path, *, scan: int, reco: int = 1, volume: int | No
         raise ImagingError(f"{where}: brkraw cannot convert the scan ({exc})") from exc
     if isinstance(img, tuple):
         if len(img) != 1:
-            raise ImagingError(f"{where}: {len(img)} slice packs; export the one with the leg as its own scan")
+            raise ImagingError(
+                f"{where}: {len(img)} slice packs; export the one with the leg as its own scan"
+            )
         img = img[0]
     with tempfile.TemporaryDirectory(prefix="deeptissue_bruker_") as tmp:
         tmp = Path(tmp)
         raw = tmp / "scan.nii"
         if img.ndim > 4:
-            img = nib.Nifti1Image(np.asarray(img.dataobj).reshape(*img.shape[:3], -1), img.affine, img.header)
-        nib.save(img, str(raw))  # saved and read back: nibabel applies the header's slope and offset
-        path, picked = _select_volume(raw, volume, tmp, where, key="{bruker: <study>, scan: <n>, reco: <m>, volume: <number>}")
+            img = nib.Nifti1Image(
+                np.asarray(img.dataobj).reshape(*img.shape[:3], -1), img.affine, img.header
+            )
+        nib.save(
+            img, str(raw)
+        )  # saved and read back: nibabel applies the header's slope and offset
+        path, picked = _select_volume(
+            raw,
+            volume,
+            tmp,
+            where,
+            key="{bruker: <study>, scan: <n>, reco: <m>, volume: <number>}",
+        )
         vol = load_nifti(path, animal=animal)
     vol = _oriented(Volume(data=vol.data, affine=vol.affine, path=str(study), animal=animal))
     method = _param(sc, "method")
@@ -433,11 +538,15 @@ def read_bruker(study: str | Path, *, scan: int, reco: int = 1, volume: int | No
         "converter_version": brkraw.__version__,
         "paravision_version": loader.sw_version,
         "subject": f"{_param(visu, 'VisuSubjectType')} {_param(visu, 'VisuSubjectPosition')}",
-        "field_strength_t": None if bf1 is None else round(bf1 / 42.577478, 3),  # 1H Larmor frequency [MHz] / gamma-bar
+        "field_strength_t": None
+        if bf1 is None
+        else round(bf1 / 42.577478, 3),  # 1H Larmor frequency [MHz] / gamma-bar
         "sequence": str(_param(method, "Method") or "") if method is not None else "",
         "protocol": _scan_label(sc),
         "echo_time_ms": _echo_time_ms(visu, method, picked),
-        "repetition_time_ms": _scalar(_param(method, "PVM_RepetitionTime")) if method is not None else None,
+        "repetition_time_ms": _scalar(_param(method, "PVM_RepetitionTime"))
+        if method is not None
+        else None,
     }
     return vol, {**meta, **_geometry(vol)}
 
@@ -452,7 +561,11 @@ def _echo_time_ms(visu, method, volume: int) -> float | None:
 
 
 def _scan_label(sc) -> str:
-    for name, key in (("acqp", "ACQ_protocol_name"), ("acqp", "ACQ_scan_name"), ("method", "Method")):
+    for name, key in (
+        ("acqp", "ACQ_protocol_name"),
+        ("acqp", "ACQ_scan_name"),
+        ("method", "Method"),
+    ):
         try:
             v = getattr(sc, name)[key]
         except Exception:
@@ -495,7 +608,9 @@ def _geometry(vol: Volume) -> dict:
     }
 
 
-def read_scan(spec: str | dict, *, base_dir: str | Path = ".", animal: str = "") -> tuple[Volume, dict]:
+def read_scan(
+    spec: str | dict, *, base_dir: str | Path = ".", animal: str = ""
+) -> tuple[Volume, dict]:
     """Read an animal's ``pre`` or ``during`` entry, whatever its kind, into a :class:`Volume` and metadata.
 
     Parameters
@@ -521,15 +636,30 @@ def read_scan(spec: str | dict, *, base_dir: str | Path = ".", animal: str = "")
     base = Path(base_dir)
     kind = scan_kind(spec, base_dir=base)
     if kind == "bruker":
-        return read_bruker(base / spec["bruker"], scan=int(spec["scan"]), reco=int(spec.get("reco", 1)),
-                           volume=spec.get("volume"), animal=animal)
+        return read_bruker(
+            base / spec["bruker"],
+            scan=int(spec["scan"]),
+            reco=int(spec.get("reco", 1)),
+            volume=spec.get("volume"),
+            animal=animal,
+        )
     if kind == "dicom":
         folder = spec["dicom"] if isinstance(spec, dict) else spec
         opts = spec if isinstance(spec, dict) else {}
-        return read_dicom(base / folder, series=opts.get("series"), volume=opts.get("volume"), animal=animal)
+        return read_dicom(
+            base / folder, series=opts.get("series"), volume=opts.get("volume"), animal=animal
+        )
     vol = load_nifti(base / spec, animal=animal)
-    meta = {"kind": "nifti", "source": str(spec), "converter": "nibabel", "converter_version": nib.__version__,
-            "field_strength_t": None, "sequence": "", "echo_time_ms": None, "repetition_time_ms": None}
+    meta = {
+        "kind": "nifti",
+        "source": str(spec),
+        "converter": "nibabel",
+        "converter_version": nib.__version__,
+        "field_strength_t": None,
+        "sequence": "",
+        "echo_time_ms": None,
+        "repetition_time_ms": None,
+    }
     return vol, {**meta, **_geometry(vol)}
 
 

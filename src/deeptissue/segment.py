@@ -59,11 +59,26 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from .contours import Contours, point_to_polygon_distance, points_in_polygon, polygon_area_centroid, resample_closed
+from .contours import (
+    Contours,
+    point_to_polygon_distance,
+    points_in_polygon,
+    polygon_area_centroid,
+    resample_closed,
+)
 from .imaging import ImagingError, Volume
 
-__all__ = ["STRUCTURES", "SegmentationError", "SegmentationSettings", "contour_accuracy", "find_indenter",
-           "load_overrides", "segment_files", "segment_volume", "write_accuracy"]
+__all__ = [
+    "STRUCTURES",
+    "SegmentationError",
+    "SegmentationSettings",
+    "contour_accuracy",
+    "find_indenter",
+    "load_overrides",
+    "segment_files",
+    "segment_volume",
+    "write_accuracy",
+]
 
 STRUCTURES = ("skin", "bone", "fibula")
 # the skin plateau is read in a 1-pixel band starting this many blur widths (+ pixels) inside the edge
@@ -102,7 +117,7 @@ class SegmentationSettings:
     indenter_guard_mm: float = 0.15
 
     @classmethod
-    def from_config(cls, *dicts: dict | None) -> "SegmentationSettings":
+    def from_config(cls, *dicts: dict | None) -> SegmentationSettings:
         """Merge config mappings (later ones win, a null included: null levels mean automatic)."""
         known = {f.name for f in fields(cls)}
         kw: dict = {}
@@ -135,10 +150,14 @@ def load_overrides(path: str | Path) -> dict:
             for k, pts in (slices or {}).items():
                 a = np.asarray(pts, float)
                 if a.ndim != 2 or a.shape[1] < 2 or len(a) < 4:
-                    raise ValueError(f"{path}: {state}.{structure}.{k}: expected at least 4 points [x, y]")
+                    raise ValueError(
+                        f"{path}: {state}.{structure}.{k}: expected at least 4 points [x, y]"
+                    )
                 per_slice = out.setdefault(state, {}).setdefault(structure, {})
                 if int(k) in per_slice:  # 9 and '09': one slice written twice
-                    raise ValueError(f"{path}: {state}.{structure}: slice {int(k)} is given twice (key {k!r})")
+                    raise ValueError(
+                        f"{path}: {state}.{structure}: slice {int(k)} is given twice (key {k!r})"
+                    )
                 per_slice[int(k)] = a[:, :2]
     return out
 
@@ -174,7 +193,9 @@ def _bias_field(img_minus_bg, mask, fit_mask, degree):
             break
         keep = new
     lo_i, hi_i, lo_j, hi_j = ii[keep].min(), ii[keep].max(), jj[keep].min(), jj[keep].max()
-    I, J = np.meshgrid(np.clip(np.arange(ni), lo_i, hi_i), np.clip(np.arange(nj), lo_j, hi_j), indexing="ij")
+    I, J = np.meshgrid(
+        np.clip(np.arange(ni), lo_i, hi_i), np.clip(np.arange(nj), lo_j, hi_j), indexing="ij"
+    )
     return np.exp(_poly_terms((I - ci) / sc, (J - cj) / sc, degree) @ coef)
 
 
@@ -189,7 +210,11 @@ def _contour_mean(img, c):
     """Mean of ``img`` over the pixels whose centres lie inside the closed (i, j) contour ``c``."""
     i0, j0 = np.floor(c.min(0)).astype(int)
     i1, j1 = np.ceil(c.max(0)).astype(int)
-    I, J = np.meshgrid(np.arange(max(i0, 0), min(i1 + 1, img.shape[0])), np.arange(max(j0, 0), min(j1 + 1, img.shape[1])), indexing="ij")
+    I, J = np.meshgrid(
+        np.arange(max(i0, 0), min(i1 + 1, img.shape[0])),
+        np.arange(max(j0, 0), min(j1 + 1, img.shape[1])),
+        indexing="ij",
+    )
     P = np.column_stack([I.ravel(), J.ravel()])
     inside = points_in_polygon(P, c)
     if not inside.any():
@@ -231,15 +256,21 @@ class _SliceResult:
     skin_level: float
     bone_level: float
     fibula_ij: np.ndarray | None = None
-    bone_touch_mm: float | None = None  # the tibia contour's smallest distance from the indenter (None: no indenter)
+    bone_touch_mm: float | None = (
+        None  # the tibia contour's smallest distance from the indenter (None: no indenter)
+    )
     # the tibia's candidates: (area [px], (i, j) contour) of the closed dark regions inside the skin; None when the
     # bones were not traced or the tibia is hidden against the indenter
     bone_candidates: list | None = None
     # the fibula's candidates, (area [px], (i, j) contour), once the tibia is set (finish); None: not searched
     fibula_candidates: list | None = None
-    trace: dict | None = None  # what _finish_bones needs: the image the bones were traced on, dark contours, sd
+    trace: dict | None = (
+        None  # what _finish_bones needs: the image the bones were traced on, dark contours, sd
+    )
 
-    def finish(self, choice: int | None, *, px_mm: float, settings: SegmentationSettings) -> "_SliceResult":
+    def finish(
+        self, choice: int | None, *, px_mm: float, settings: SegmentationSettings
+    ) -> _SliceResult:
         """Set the tibia to candidate ``choice`` (None: the per-slice rule of ``bone_select``), then the fibula's
         candidates (chosen in 3D by :func:`_choose_fibula`) and the tibia's distance from the indenter."""
         if not self.bone_candidates:
@@ -251,10 +282,20 @@ class _SliceResult:
         t = self.trace
         self.bone_ij = bone
         if s.fibula:
-            self.fibula_candidates = _fibula_candidates(t["Nb"], t["dark"], self.skin_ij, bone, bone_a,
-                                                        self.bone_level, px_mm=px_mm, settings=s)
+            self.fibula_candidates = _fibula_candidates(
+                t["Nb"],
+                t["dark"],
+                self.skin_ij,
+                bone,
+                bone_a,
+                self.bone_level,
+                px_mm=px_mm,
+                settings=s,
+            )
         if t["sd"] is not None:
-            self.bone_touch_mm = float(ndimage.map_coordinates(t["sd"], bone.T, order=1, mode="nearest").min())
+            self.bone_touch_mm = float(
+                ndimage.map_coordinates(t["sd"], bone.T, order=1, mode="nearest").min()
+            )
         return self
 
 
@@ -267,8 +308,17 @@ def _pick_per_slice(cands: list, select: str) -> int:
     return max(range(len(cands)), key=lambda i: cands[i][0])
 
 
-def _segment_slice(img, *, bg, noise, px_mm, settings: SegmentationSettings, where: str, need_bone: bool = True,
-                   indenter_sd=None):
+def _segment_slice(
+    img,
+    *,
+    bg,
+    noise,
+    px_mm,
+    settings: SegmentationSettings,
+    where: str,
+    need_bone: bool = True,
+    indenter_sd=None,
+):
     """Skin, tibia and fibula of one slice (steps in the module docstring). ``indenter_sd`` (same shape as
     ``img``, mm): distance from the indenter's outer surface, negative inside; pixels closer than
     ``indenter_guard_mm`` are set to muscle before the bones are traced, so the indenter's dark wall cannot
@@ -279,7 +329,9 @@ def _segment_slice(img, *, bg, noise, px_mm, settings: SegmentationSettings, whe
     rough = ndimage.binary_fill_holes(rough)
     lab, n = ndimage.label(rough)
     if n == 0:
-        raise SegmentationError(f"{where}: no closed skin contour (no tissue above the background noise)")
+        raise SegmentationError(
+            f"{where}: no closed skin contour (no tissue above the background noise)"
+        )
     sizes = ndimage.sum(rough, lab, index=np.arange(1, n + 1))
     rough = lab == (1 + int(np.argmax(sizes)))
     erode_px = max(1, int(round(s.bias_erode_mm / px_mm)))
@@ -298,14 +350,24 @@ def _segment_slice(img, *, bg, noise, px_mm, settings: SegmentationSettings, whe
             Ns = N.copy()
             Ns[fluid] = 0.0
     if indenter_sd is not None:
-        Ns = _cut_at_indenter(Ns, indenter_sd, level=0.5 * muscle, fill=muscle, guard_mm=s.indenter_guard_mm,
-                              px_mm=px_mm, min_area_px=s.bone_min_area_mm2 / px_mm**2)
+        Ns = _cut_at_indenter(
+            Ns,
+            indenter_sd,
+            level=0.5 * muscle,
+            fill=muscle,
+            guard_mm=s.indenter_guard_mm,
+            px_mm=px_mm,
+            min_area_px=s.bone_min_area_mm2 / px_mm**2,
+        )
+
     def trace(level):
         # tissue (above the level) is 8-connected, background only 4-connected: single-pixel gaps
         # that touch the outside only diagonally do not cut channels into the skin
         cs = _closed_contours(Ns, level, fully_connected="high")
         if not cs:
-            raise SegmentationError(f"{where}: no closed skin contour at level {level:.3g} (does the leg touch the image/crop border?)")
+            raise SegmentationError(
+                f"{where}: no closed skin contour at level {level:.3g} (does the leg touch the image/crop border?)"
+            )
         return max(cs, key=lambda c: abs(polygon_area_centroid(c)[0]))
 
     def plateau(inside, d1):
@@ -357,10 +419,20 @@ def _segment_slice(img, *, bg, noise, px_mm, settings: SegmentationSettings, whe
             if len(near) and points_in_polygon(near, skin).any():
                 return _SliceResult(skin, None, skin_level, bone_level, None, -np.inf)
         if not cands:
-            raise SegmentationError(f"{where}: no closed bone contour inside the skin at level {bone_level:.3g}")
+            raise SegmentationError(
+                f"{where}: no closed bone contour inside the skin at level {bone_level:.3g}"
+            )
         # the tibia is chosen among the candidates in 3D (_choose_tibia), then _SliceResult.finish
-        return _SliceResult(skin, None, skin_level, bone_level, None, None, bone_candidates=cands,
-                            trace={"Nb": Nb, "dark": dark, "sd": indenter_sd})
+        return _SliceResult(
+            skin,
+            None,
+            skin_level,
+            bone_level,
+            None,
+            None,
+            bone_candidates=cands,
+            trace={"Nb": Nb, "dark": dark, "sd": indenter_sd},
+        )
     return _SliceResult(skin, bone, skin_level, bone_level, fibula, touch)
 
 
@@ -377,7 +449,11 @@ def _track(candidates: list, *, overlap: bool = False) -> tuple[list[dict], dict
     ``{(slice, index): (area, centroid)}``.
     """
     ks = [k for k, c in enumerate(candidates) if c is not None]
-    geom = {(k, i): (a, polygon_area_centroid(c)[1]) for k in ks for i, (a, c) in enumerate(candidates[k])}
+    geom = {
+        (k, i): (a, polygon_area_centroid(c)[1])
+        for k in ks
+        for i, (a, c) in enumerate(candidates[k])
+    }
     tracks: list[dict] = []
     for k in ks:
         pairs = []
@@ -393,7 +469,10 @@ def _track(candidates: list, *, overlap: bool = False) -> tuple[list[dict], dict
                 if overlap:
                     linked = d < np.sqrt(a / np.pi) + np.sqrt(al / np.pi)
                 else:
-                    linked = points_in_polygon(cen[None], poly_l)[0] or points_in_polygon(cl[None], c)[0]
+                    linked = (
+                        points_in_polygon(cen[None], poly_l)[0]
+                        or points_in_polygon(cl[None], c)[0]
+                    )
                 if linked:
                     pairs.append((d, t, i))
         used_t, used_i = set(), set()
@@ -435,7 +514,8 @@ def _choose_tibia(candidates: list, *, select: str, vol: Volume, flip_j: bool) -
         raise SegmentationError(
             f"{vol.where()}: no dark structure runs through half of the {n} traced slices (the longest is on "
             f"{len(best)}: slices {_slice_list(sorted(best), off)}), so none is taken for the tibia; check "
-            "segmentation.bone_level and crop_mm, or draw the tibia in an overrides file")
+            "segmentation.bone_level and crop_mm, or draw the tibia in an overrides file"
+        )
     area = [float(np.median([geom[(k, i)][0] for k, i in t.items()])) for t in long]
     if select == "anterior":
         big = [j for j in range(len(long)) if area[j] >= 0.5 * max(area)]
@@ -454,7 +534,8 @@ def _choose_tibia(candidates: list, *, select: str, vol: Volume, flip_j: bool) -
             f"structure along the leg, near x {x:.1f} mm, y {y:.1f} mm) is not a closed dark region inside the skin "
             f"on slice(s) {_slice_list(missing, off)} of {n}: its dark region opens into another there (on a masked "
             "scan, the cortex into the fat) and another structure would be taken for it; draw the tibia on those "
-            "slices in an overrides file, or crop them away")
+            "slices in an overrides file, or crop them away"
+        )
     for k, i in tibia.items():
         out[k] = i
     return out
@@ -465,7 +546,9 @@ def _slice_list(ks, off: int) -> str:
     return ", ".join(str(int(k) + off) for k in ks)
 
 
-def _fibula_candidates(N, contours, skin, bone, bone_area_px, level, *, px_mm, settings: SegmentationSettings) -> list:
+def _fibula_candidates(
+    N, contours, skin, bone, bone_area_px, level, *, px_mm, settings: SegmentationSettings
+) -> list:
     """The fibula's candidates in one slice, ``(area [px], (i, j) contour)``: of the closed ``contours`` at ``level``,
     the dark ones inside the skin and outside the tibia (``bone``), round (:data:`_FIBULA_MIN_ROUNDNESS`), with an
     area from ``fibula_min_area_mm2`` to ``fibula_max_area_ratio`` x the tibia's (``bone_area_px``, pixels)."""
@@ -479,7 +562,11 @@ def _fibula_candidates(N, contours, skin, bone, bone_area_px, level, *, px_mm, s
         perimeter = float(np.linalg.norm(np.diff(c, axis=0), axis=1).sum())
         if 4 * np.pi * area / max(perimeter, 1e-12) ** 2 < _FIBULA_MIN_ROUNDNESS:
             continue  # a thin or ragged dark gap (fascia, vessel), not a round bone
-        if not points_in_polygon(c, skin).all() or points_in_polygon(c, bone).any() or points_in_polygon(bone, c).any():
+        if (
+            not points_in_polygon(c, skin).all()
+            or points_in_polygon(c, bone).any()
+            or points_in_polygon(bone, c).any()
+        ):
             continue  # outside the skin, the tibia itself, or a region inside / around it
         if _contour_mean(N, c) >= level:
             continue  # a bright island
@@ -500,7 +587,9 @@ def _choose_fibula(candidates: list, *, min_slices: int) -> tuple[list, list]:
     tracks, geom = _track(candidates, overlap=True)
     if not tracks:
         return out, []
-    fibula = max(tracks, key=lambda t: (len(t), float(np.median([geom[(k, i)][0] for k, i in t.items()]))))
+    fibula = max(
+        tracks, key=lambda t: (len(t), float(np.median([geom[(k, i)][0] for k, i in t.items()])))
+    )
     if len(fibula) < min_slices:
         return out, sorted(fibula)
     for k, i in fibula.items():
@@ -508,9 +597,16 @@ def _choose_fibula(candidates: list, *, min_slices: int) -> tuple[list, list]:
     return out, []
 
 
-def segment_volume(vol: Volume, *, settings: SegmentationSettings = SegmentationSettings(), state: str = "pre",
-                   overrides: dict | None = None, indenter=None, pre: Contours | None = None,
-                   _skin_only: bool = False) -> tuple[Contours, dict]:
+def segment_volume(
+    vol: Volume,
+    *,
+    settings: SegmentationSettings = SegmentationSettings(),
+    state: str = "pre",
+    overrides: dict | None = None,
+    indenter=None,
+    pre: Contours | None = None,
+    _skin_only: bool = False,
+) -> tuple[Contours, dict]:
     """Skin, tibia and (where found) fibula contours on every slice of ``vol`` (steps in the module docstring).
 
     Parameters
@@ -557,13 +653,17 @@ def segment_volume(vol: Volume, *, settings: SegmentationSettings = Segmentation
     """
     s = settings
     if s.bone_select not in ("largest", "anterior"):
-        raise ValueError(f"segmentation.bone_select: {s.bone_select!r} is not 'largest' or 'anterior'")
+        raise ValueError(
+            f"segmentation.bone_select: {s.bone_select!r} is not 'largest' or 'anterior'"
+        )
     px = vol.pixel_mm
     px_mm = float(np.sqrt(px[0] * px[1]))
     data = vol.data.astype(float)
     sig = (s.smooth_mm / px[0], s.smooth_mm / px[1], 0.0)
     sm = ndimage.gaussian_filter(data, sig, mode="nearest") if s.smooth_mm > 0 else data
-    frame = np.concatenate([sm[:3].ravel(), sm[-3:].ravel(), sm[:, :3].ravel(), sm[:, -3:].ravel()])
+    frame = np.concatenate(
+        [sm[:3].ravel(), sm[-3:].ravel(), sm[:, :3].ravel(), sm[:, -3:].ravel()]
+    )
     bg = float(np.median(frame))
     noise = float(1.4826 * np.median(np.abs(frame - bg)))
     ov = (overrides or {}).get(state, {})
@@ -587,29 +687,49 @@ def segment_volume(vol: Volume, *, settings: SegmentationSettings = Segmentation
         need_auto = manual["skin"] is None or manual["bone"] is None or auto_fibula
         sd = None
         if indenter is not None and not _skin_only:
-            sd = indenter.signed_distance_mm(vol.world(np.stack([ii, jj, np.full(ii.shape, k)], axis=-1)))
+            sd = indenter.signed_distance_mm(
+                vol.world(np.stack([ii, jj, np.full(ii.shape, k)], axis=-1))
+            )
             sd = sd[:, ::-1] if flip_j else sd
         res = None
         if need_auto:
             try:
-                res = _segment_slice(img, bg=bg, noise=noise, px_mm=px_mm, settings=s, where=where,
-                                     need_bone=(manual["bone"] is None or auto_fibula) and not _skin_only,
-                                     indenter_sd=sd)
+                res = _segment_slice(
+                    img,
+                    bg=bg,
+                    noise=noise,
+                    px_mm=px_mm,
+                    settings=s,
+                    where=where,
+                    need_bone=(manual["bone"] is None or auto_fibula) and not _skin_only,
+                    indenter_sd=sd,
+                )
             except SegmentationError:
                 if manual["bone"] is None or manual["skin"] is None:
                     raise
                 res = None  # skin and tibia drawn by hand: no automatic fibula on this slice
         traced.append((manual, res))
     # the tibia in 3D: the one dark structure that runs through every slice whose tibia is traced
-    choice = _choose_tibia([res.bone_candidates if res is not None and manual["bone"] is None else None
-                            for manual, res in traced], select=s.bone_select, vol=vol, flip_j=flip_j)
+    choice = _choose_tibia(
+        [
+            res.bone_candidates if res is not None and manual["bone"] is None else None
+            for manual, res in traced
+        ],
+        select=s.bone_select,
+        vol=vol,
+        flip_j=flip_j,
+    )
     for k, (manual, res) in enumerate(traced):
         if res is not None:
             res.finish(choice[k], px_mm=px_mm, settings=s)
     # the fibula in 3D: the longest dark structure along the leg among the other round dark regions
     fib_choice, fib_short = _choose_fibula(
-        [res.fibula_candidates if res is not None and manual["fibula"] is None else None for manual, res in traced],
-        min_slices=s.fibula_min_slices)
+        [
+            res.fibula_candidates if res is not None and manual["fibula"] is None else None
+            for manual, res in traced
+        ],
+        min_slices=s.fibula_min_slices,
+    )
     for k, (manual, res) in enumerate(traced):
         where = vol.where(k)
         kf = k + off
@@ -637,7 +757,9 @@ def segment_volume(vol: Volume, *, settings: SegmentationSettings = Segmentation
             try:
                 r = resample_closed(xy, n_points=s.n_points, start_angle_deg=s.start_angle_deg)
             except ValueError as exc:
-                if st == "fibula" and manual[st] is None:  # an automatic candidate that is not a bone's outline
+                if (
+                    st == "fibula" and manual[st] is None
+                ):  # an automatic candidate that is not a bone's outline
                     out[st] = None
                     continue
                 raise SegmentationError(f"{where}: {st} contour: {exc}") from exc
@@ -647,20 +769,26 @@ def segment_volume(vol: Volume, *, settings: SegmentationSettings = Segmentation
                 continue
             inside = points_in_polygon(out[st][:, :2], out["skin"][:, :2])
             if not inside.all():
-                raise SegmentationError(f"{where}: {st} contour outside the skin ({int((~inside).sum())} of {len(inside)} points)")
+                raise SegmentationError(
+                    f"{where}: {st} contour outside the skin ({int((~inside).sum())} of {len(inside)} points)"
+                )
         skins.append(out["skin"])
         bones.append(out["bone"])
         fibulas.append(out["fibula"])
-        info_slices.append({
-            "slice": kf,
-            "z_mm": z_c,
-            "skin_level": None if res is None else res.skin_level,
-            "bone_level": None if res is None else res.bone_level,
-            "skin_source": "manual" if manual["skin"] is not None else "auto",
-            "bone_source": "manual" if manual["bone"] is not None else "auto",
-            "fibula_source": "manual" if manual["fibula"] is not None else ("auto" if out["fibula"] is not None else "none"),
-            "bone_touch_mm": touch,
-        })
+        info_slices.append(
+            {
+                "slice": kf,
+                "z_mm": z_c,
+                "skin_level": None if res is None else res.skin_level,
+                "bone_level": None if res is None else res.bone_level,
+                "skin_source": "manual" if manual["skin"] is not None else "auto",
+                "bone_source": "manual" if manual["bone"] is not None else "auto",
+                "fibula_source": "manual"
+                if manual["fibula"] is not None
+                else ("auto" if out["fibula"] is not None else "none"),
+                "bone_touch_mm": touch,
+            }
+        )
         if hidden[k]:
             info_slices[-1]["bone_source"] = "hidden"
     if _skin_only:
@@ -672,14 +800,30 @@ def segment_volume(vol: Volume, *, settings: SegmentationSettings = Segmentation
     found = [f is not None for f in fibulas]
     fibula = None
     if any(found):
-        fibula = np.stack([f if f is not None else np.full((s.n_points, 3), np.nan) for f in fibulas])
-    info = {"background": bg, "noise": noise, "slices": info_slices, "settings": s.__dict__,
-            "fibula_slices": int(sum(found)), "bone_hidden": [int(k + off) for k in np.nonzero(hidden)[0]]}
-    return Contours(skin=np.stack(skins), bone=np.stack(bones), fibula=fibula, bone_hidden=hidden), info
+        fibula = np.stack(
+            [f if f is not None else np.full((s.n_points, 3), np.nan) for f in fibulas]
+        )
+    info = {
+        "background": bg,
+        "noise": noise,
+        "slices": info_slices,
+        "settings": s.__dict__,
+        "fibula_slices": int(sum(found)),
+        "bone_hidden": [int(k + off) for k in np.nonzero(hidden)[0]],
+    }
+    return Contours(
+        skin=np.stack(skins), bone=np.stack(bones), fibula=fibula, bone_hidden=hidden
+    ), info
 
 
-def _fill_hidden(vol: Volume, bones: list, fibulas: list, hidden: np.ndarray, pre: Contours | None,
-                 s: SegmentationSettings) -> list:
+def _fill_hidden(
+    vol: Volume,
+    bones: list,
+    fibulas: list,
+    hidden: np.ndarray,
+    pre: Contours | None,
+    s: SegmentationSettings,
+) -> list:
     """The tibia contours with those of the ``hidden`` slices replaced by the pre tibia moved by the rigid fit
     of the other slices (see :func:`segment_volume`)."""
     from .pose.bone import fit_bone_motion, moved_section, resolve_bone_dof
@@ -688,12 +832,16 @@ def _fill_hidden(vol: Volume, bones: list, fibulas: list, hidden: np.ndarray, pr
     names = ", ".join(str(int(k + off)) for k in np.nonzero(hidden)[0])
     n = len(bones)
     if hidden.sum() > n // 2:
-        raise SegmentationError(f"{vol.where()}: the tibia touches the indenter on {int(hidden.sum())} of {n} slices "
-                                f"({names}); too few slices show it to fit its motion")
+        raise SegmentationError(
+            f"{vol.where()}: the tibia touches the indenter on {int(hidden.sum())} of {n} slices "
+            f"({names}); too few slices show it to fit its motion"
+        )
     if pre is None or pre.n_slices != n:
         if any(b is None for b in bones):
-            raise SegmentationError(f"{vol.where()}: the tibia cannot be traced beside the indenter on slice(s) {names} "
-                                    "and no pre contours on the same slices are given to fill them")
+            raise SegmentationError(
+                f"{vol.where()}: the tibia cannot be traced beside the indenter on slice(s) {names} "
+                "and no pre contours on the same slices are given to fill them"
+            )
         return bones
     seen = ~hidden
     dur = np.stack([pre.bone[k] if b is None else b for k, b in enumerate(bones)])
@@ -702,19 +850,35 @@ def _fill_hidden(vol: Volume, bones: list, fibulas: list, hidden: np.ndarray, pr
         fib = np.stack([np.full((s.n_points, 3), np.nan) if f is None else f for f in fibulas])
     during = Contours(skin=dur, bone=dur, fibula=fib)
     dof, _ = resolve_bone_dof("auto", pre, during)
-    fit = fit_bone_motion(pre.bone, dur, fibula_pre_mm=pre.fibula, fibula_during_mm=fib, dof=dof,
-                          during_slices=seen, animal=vol.animal)
+    fit = fit_bone_motion(
+        pre.bone,
+        dur,
+        fibula_pre_mm=pre.fibula,
+        fibula_during_mm=fib,
+        dof=dof,
+        during_slices=seen,
+        animal=vol.animal,
+    )
     out = list(bones)
     for k in np.nonzero(hidden)[0]:
         try:
-            out[k] = moved_section(pre.bone, fit.motion, float(dur[k, :, 2].mean()), n_points=s.n_points,
-                                   start_angle_deg=s.start_angle_deg)
+            out[k] = moved_section(
+                pre.bone,
+                fit.motion,
+                float(dur[k, :, 2].mean()),
+                n_points=s.n_points,
+                start_angle_deg=s.start_angle_deg,
+            )
         except ValueError as exc:
-            raise SegmentationError(f"{vol.where(k)}: tibia hidden by the indenter: {exc}") from exc
+            raise SegmentationError(
+                f"{vol.where(k)}: tibia hidden by the indenter: {exc}"
+            ) from exc
     return out
 
 
-def find_indenter(vol: Volume, skin_mm: np.ndarray, *, radius_mm: float = 1.5, pose_options: dict | None = None):
+def find_indenter(
+    vol: Volume, skin_mm: np.ndarray, *, radius_mm: float = 1.5, pose_options: dict | None = None
+):
     """The indenter of a during scan from its contrast fluid, or None when the scan has no fluid column.
 
     The fluid and its axis are found as by the pose stage (:func:`deeptissue.pose.find_fluid_component`
@@ -725,24 +889,49 @@ def find_indenter(vol: Volume, skin_mm: np.ndarray, *, radius_mm: float = 1.5, p
     import logging
 
     from .pose.estimate import PoseOptions
-    from .pose.indenter import (find_fluid_component, fluid_threshold, indenter_shape, inside_skin_mask,
-                                orient_axis)
+    from .pose.indenter import (
+        find_fluid_component,
+        fluid_threshold,
+        indenter_shape,
+        inside_skin_mask,
+        orient_axis,
+    )
     from .pose.result import PoseError
 
     opts = PoseOptions.from_config(pose_options)
     data = np.asarray(vol.data, float)
     mask = inside_skin_mask(data.shape, vol.affine, skin_mm)
     try:
-        thr = opts.fluid_threshold if opts.fluid_threshold is not None else fluid_threshold(
-            data, mask, ratio=opts.fluid_threshold_ratio)
-        fluid = find_fluid_component(data, vol.affine, threshold=thr, exclude_mask=mask,
-                                     min_volume_mm3=opts.min_component_mm3, ambiguity_ratio=opts.ambiguity_ratio,
-                                     animal=vol.animal)
-        axis = orient_axis(fluid.axis, from_mm=fluid.com_mm, toward_mm=np.asarray(skin_mm).reshape(-1, 3).mean(0))
-        return indenter_shape(data, vol.affine, fluid, axis=axis, radius_mm=radius_mm, exclude_mask=mask,
-                              animal=vol.animal)
+        thr = (
+            opts.fluid_threshold
+            if opts.fluid_threshold is not None
+            else fluid_threshold(data, mask, ratio=opts.fluid_threshold_ratio)
+        )
+        fluid = find_fluid_component(
+            data,
+            vol.affine,
+            threshold=thr,
+            exclude_mask=mask,
+            min_volume_mm3=opts.min_component_mm3,
+            ambiguity_ratio=opts.ambiguity_ratio,
+            animal=vol.animal,
+        )
+        axis = orient_axis(
+            fluid.axis, from_mm=fluid.com_mm, toward_mm=np.asarray(skin_mm).reshape(-1, 3).mean(0)
+        )
+        return indenter_shape(
+            data,
+            vol.affine,
+            fluid,
+            axis=axis,
+            radius_mm=radius_mm,
+            exclude_mask=mask,
+            animal=vol.animal,
+        )
     except PoseError as exc:
-        logging.getLogger(__name__).info("%s: bones traced without an indenter mask (%s)", vol.where(), exc)
+        logging.getLogger(__name__).info(
+            "%s: bones traced without an indenter mask (%s)", vol.where(), exc
+        )
         return None
 
 
@@ -774,13 +963,28 @@ def contour_accuracy(seg: Contours, truth: Contours | dict) -> list[dict]:
             if not np.isfinite(segs[k]).all() or not np.isfinite(t).all():
                 continue  # fibula absent from this slice in the segmentation or the truth
             d = point_to_polygon_distance(segs[k, :, :2], t[:, :2])
-            rows.append({"slice": k, "structure": st, "mean_mm": float(d.mean()), "max_mm": float(d.max())})
+            rows.append(
+                {"slice": k, "structure": st, "mean_mm": float(d.mean()), "max_mm": float(d.max())}
+            )
     return rows
 
 
-def segment_files(image, *, contours_out, qc_out, animal: str, state: str, settings: dict | SegmentationSettings,
-                  crop_mm=None, leg_point_mm=None, reference=None, overrides=None, truth=None, pre_contours=None,
-                  pose_options: dict | None = None) -> Contours:
+def segment_files(
+    image,
+    *,
+    contours_out,
+    qc_out,
+    animal: str,
+    state: str,
+    settings: dict | SegmentationSettings,
+    crop_mm=None,
+    leg_point_mm=None,
+    reference=None,
+    overrides=None,
+    truth=None,
+    pre_contours=None,
+    pose_options: dict | None = None,
+) -> Contours:
     """The rule ``segment``: load and check the image, segment, write contours and the QC figure.
 
     Parameters
@@ -836,33 +1040,73 @@ def segment_files(image, *, contours_out, qc_out, animal: str, state: str, setti
     if leg_point_mm is not None:
         from .imaging import body_mask
 
-        log.info("%s %s: the leg at leg_point_mm %s is segmented: %d of the body's %d voxels", animal, state,
-                 list(leg_point_mm), int(body_mask(leg).sum()), int(body_mask(vol).sum()))
+        log.info(
+            "%s %s: the leg at leg_point_mm %s is segmented: %d of the body's %d voxels",
+            animal,
+            state,
+            list(leg_point_mm),
+            int(body_mask(leg).sum()),
+            int(body_mask(vol).sum()),
+        )
     indenter = pre = None
     if state == "during" and settings.indenter_mask:
-        skins, _ = segment_volume(leg, settings=settings, state=state, overrides=ov, _skin_only=True)
-        indenter = find_indenter(vol, skins.skin, radius_mm=float((pose_options or {}).get("head_radius_mm", 1.5)),
-                                 pose_options=pose_options)
+        skins, _ = segment_volume(
+            leg, settings=settings, state=state, overrides=ov, _skin_only=True
+        )
+        indenter = find_indenter(
+            vol,
+            skins.skin,
+            radius_mm=float((pose_options or {}).get("head_radius_mm", 1.5)),
+            pose_options=pose_options,
+        )
         if indenter is not None:
-            log.info("%s %s: indenter masked: head centre %s mm, axis %s, fluid radius %.3f mm, wall %.3f mm",
-                     animal, state, np.round(indenter.head_centre_mm, 3), np.round(indenter.axis, 4),
-                     indenter.fluid_radius_mm, indenter.wall_mm)
+            log.info(
+                "%s %s: indenter masked: head centre %s mm, axis %s, fluid radius %.3f mm, wall %.3f mm",
+                animal,
+                state,
+                np.round(indenter.head_centre_mm, 3),
+                np.round(indenter.axis, 4),
+                indenter.fluid_radius_mm,
+                indenter.wall_mm,
+            )
         pre = load_contours(pre_contours) if pre_contours else None
-    contours, info = segment_volume(leg, settings=settings, state=state, overrides=ov, indenter=indenter, pre=pre)
+    contours, info = segment_volume(
+        leg, settings=settings, state=state, overrides=ov, indenter=indenter, pre=pre
+    )
     if info["bone_hidden"]:
-        log.info("%s %s: the tibia touches the indenter on slice(s) %s: their contour is the pre tibia moved by "
-                 "the rigid fit of the other slices", animal, state, info["bone_hidden"])
-    log.info("%s %s: background %.4g, noise %.4g", animal, state, info["background"], info["noise"])
+        log.info(
+            "%s %s: the tibia touches the indenter on slice(s) %s: their contour is the pre tibia moved by "
+            "the rigid fit of the other slices",
+            animal,
+            state,
+            info["bone_hidden"],
+        )
+    log.info(
+        "%s %s: background %.4g, noise %.4g", animal, state, info["background"], info["noise"]
+    )
     for row in info["slices"]:
-        log.info("slice %(slice)d z %(z_mm).2f mm: skin %(skin_source)s (level %(skin_level)s), "
-                 "bone %(bone_source)s (level %(bone_level)s, from the indenter %(bone_touch_mm)s mm), "
-                 "fibula %(fibula_source)s", row)
+        log.info(
+            "slice %(slice)d z %(z_mm).2f mm: skin %(skin_source)s (level %(skin_level)s), "
+            "bone %(bone_source)s (level %(bone_level)s, from the indenter %(bone_touch_mm)s mm), "
+            "fibula %(fibula_source)s",
+            row,
+        )
     if not settings.fibula:
         log.info("%s %s: fibula not segmented (segmentation.fibula is false)", animal, state)
     elif info["fibula_slices"] == 0:
-        log.info("%s %s: no fibula found on any slice; the contour file has no 'fibula' array", animal, state)
+        log.info(
+            "%s %s: no fibula found on any slice; the contour file has no 'fibula' array",
+            animal,
+            state,
+        )
     else:
-        log.info("%s %s: fibula on %d of %d slices", animal, state, info["fibula_slices"], len(info["slices"]))
+        log.info(
+            "%s %s: fibula on %d of %d slices",
+            animal,
+            state,
+            info["fibula_slices"],
+            len(info["slices"]),
+        )
     true = load_contours(truth) if truth else None
     rows = contour_accuracy(contours, true) if true is not None else None
     save_contours(contours_out, contours)

@@ -26,22 +26,49 @@ Strain measures (per element, at the centroid of the reference element):
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 
 from .mesh import GMSH_TET10_EDGES, TetMesh
 
-__all__ = ["DEFAULT_BIN_EDGES", "STRAIN_MEASURES", "ElementStrain", "StrainError", "VoiStatistics",
-           "bin_labels", "deformation_gradient_at_centroids", "element_strain", "element_volumes_mm3", "gamma_at_points",
-           "green_lagrange", "max_shear", "principal_log_stretches", "principal_values", "tet10_shape_functions",
-           "tet10_shape_gradients", "tet_quadrature", "tet_shape_gradients", "tet_subdivision", "voi_statistics"]
+__all__ = [
+    "DEFAULT_BIN_EDGES",
+    "STRAIN_MEASURES",
+    "ElementStrain",
+    "StrainError",
+    "VoiStatistics",
+    "bin_labels",
+    "deformation_gradient_at_centroids",
+    "element_strain",
+    "element_volumes_mm3",
+    "gamma_at_points",
+    "green_lagrange",
+    "max_shear",
+    "principal_log_stretches",
+    "principal_values",
+    "tet10_shape_functions",
+    "tet10_shape_gradients",
+    "tet_quadrature",
+    "tet_shape_gradients",
+    "tet_subdivision",
+    "voi_statistics",
+]
 
 log = logging.getLogger(__name__)
 
 STRAIN_MEASURES = ("green_lagrange", "log")
-DEFAULT_BIN_EDGES = (0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)  # γmax bins from the threshold 0.3 up, last '>1.0'
+DEFAULT_BIN_EDGES = (
+    0.3,
+    0.4,
+    0.5,
+    0.6,
+    0.7,
+    0.8,
+    0.9,
+    1.0,
+)  # γmax bins from the threshold 0.3 up, last '>1.0'
 
 # gradients of the barycentric coordinates L0..L3 with respect to (ξ, η, ζ): (4, 3)
 _DL = np.array([[-1.0, -1.0, -1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
@@ -116,8 +143,16 @@ def tet_subdivision(levels: int = 2) -> tuple[np.ndarray, np.ndarray]:
         v0, v1, v2, v3 = (tets[:, i] for i in range(4))
         m01, m02, m03 = (v0 + v1) / 2, (v0 + v2) / 2, (v0 + v3) / 2
         m12, m13, m23 = (v1 + v2) / 2, (v1 + v3) / 2, (v2 + v3) / 2
-        children = [(v0, m01, m02, m03), (m01, v1, m12, m13), (m02, m12, v2, m23), (m03, m13, m23, v3),
-                    (m01, m02, m03, m13), (m01, m02, m12, m13), (m02, m03, m13, m23), (m02, m12, m13, m23)]
+        children = [
+            (v0, m01, m02, m03),
+            (m01, v1, m12, m13),
+            (m02, m12, v2, m23),
+            (m03, m13, m23, v3),
+            (m01, m02, m03, m13),
+            (m01, m02, m12, m13),
+            (m02, m03, m13, m23),
+            (m02, m12, m13, m23),
+        ]
         tets = np.concatenate([np.stack(c, axis=1) for c in children])
     n = len(tets)
     return tets.mean(axis=1), np.full(n, 1.0 / 6.0 / n)
@@ -126,7 +161,9 @@ def tet_subdivision(levels: int = 2) -> tuple[np.ndarray, np.ndarray]:
 def _check_mesh_and_u(mesh: TetMesh, displacement_mm) -> np.ndarray:
     u = np.asarray(displacement_mm, float)
     if u.shape != mesh.nodes_mm.shape:
-        raise StrainError(f"displacement: expected shape {mesh.nodes_mm.shape} (one 3-vector per node), got {u.shape}")
+        raise StrainError(
+            f"displacement: expected shape {mesh.nodes_mm.shape} (one 3-vector per node), got {u.shape}"
+        )
     if not np.all(np.isfinite(u)):
         raise StrainError("displacement: non-finite values")
     return u
@@ -158,7 +195,9 @@ def deformation_gradient_at_centroids(mesh: TetMesh, displacement_mm) -> np.ndar
     det = np.linalg.det(J)
     if np.any(det <= 0):
         bad = np.flatnonzero(det <= 0)
-        raise StrainError(f"mesh: {len(bad)} element(s) with non-positive Jacobian in the reference configuration, first {bad[0]}")
+        raise StrainError(
+            f"mesh: {len(bad)} element(s) with non-positive Jacobian in the reference configuration, first {bad[0]}"
+        )
     dN_dX = dN[None] @ np.linalg.inv(J)  # (m, 10, 3): dN_a/dX_i
     grad_u = np.swapaxes(u[mesh.tets], 1, 2) @ dN_dX  # (m, 3, 3): du_k/dX_i
     return np.eye(3) + grad_u
@@ -188,7 +227,9 @@ def principal_log_stretches(F) -> np.ndarray:
     det = np.linalg.det(F)
     if np.any(det <= 0):
         bad = np.flatnonzero(np.ravel(det) <= 0)
-        raise StrainError(f"deformation gradient: {len(bad)} inverted element(s) (det F <= 0), first {bad[0]}")
+        raise StrainError(
+            f"deformation gradient: {len(bad)} inverted element(s) (det F <= 0), first {bad[0]}"
+        )
     C = np.einsum("...ki,...kj->...ij", F, F)
     return 0.5 * np.log(principal_values(C))
 
@@ -251,8 +292,14 @@ def element_strain(mesh: TetMesh, displacement_mm) -> ElementStrain:
     )
 
 
-def gamma_at_points(mesh: TetMesh, displacement_mm, *, levels: int = 2, strain_measures: Sequence[str] = ("green_lagrange",),
-                    chunk: int = 8000) -> tuple[dict, np.ndarray, int]:
+def gamma_at_points(
+    mesh: TetMesh,
+    displacement_mm,
+    *,
+    levels: int = 2,
+    strain_measures: Sequence[str] = ("green_lagrange",),
+    chunk: int = 8000,
+) -> tuple[dict, np.ndarray, int]:
     """γmax sampled at ``q`` points inside every element, with the volume each point stands for.
 
     The points are the centroids of :func:`tet_subdivision` (``levels=2``: 64 equal sub-tetrahedra per
@@ -301,29 +348,40 @@ def gamma_at_points(mesh: TetMesh, displacement_mm, *, levels: int = 2, strain_m
     vol = np.empty((mesh.n_tets, len(pts)))
     n_centroid = 0
     for lo in range(0, mesh.n_tets, chunk):
-        tets = mesh.tets[lo:lo + chunk]
+        tets = mesh.tets[lo : lo + chunk]
         X, U = np.swapaxes(mesh.nodes_mm[tets], 1, 2)[:, None], np.swapaxes(u[tets], 1, 2)[:, None]
         J = X @ dN[None]  # (m, q, 3, 3): dX_i/dξ_j
         det = np.linalg.det(J)
-        F = np.eye(3) + (U @ dN[None]) @ np.linalg.inv(np.where((det > 0)[..., None, None], J, np.eye(3)))
+        F = np.eye(3) + (U @ dN[None]) @ np.linalg.inv(
+            np.where((det > 0)[..., None, None], J, np.eye(3))
+        )
         only_c = np.any(det <= 0, axis=1) | np.any(np.linalg.det(F) <= 0, axis=1)
         if only_c.any():  # the centroid's F at every point, equal shares of the element's volume
             n_centroid += int(only_c.sum())
             sub = TetMesh(nodes_mm=mesh.nodes_mm, tets=tets[only_c])
-            Fc = deformation_gradient_at_centroids(sub, u)  # raises for a centroid folded in the reference
+            Fc = deformation_gradient_at_centroids(
+                sub, u
+            )  # raises for a centroid folded in the reference
             if np.any(np.linalg.det(Fc) <= 0):
                 bad = lo + np.flatnonzero(only_c)[np.linalg.det(Fc) <= 0]
-                raise StrainError(f"{len(bad)} element(s) inverted at the centroid, first {bad[0]}")
+                raise StrainError(
+                    f"{len(bad)} element(s) inverted at the centroid, first {bad[0]}"
+                )
             F[only_c] = Fc[:, None]
             vol_c = element_volumes_mm3(sub)
             det[only_c] = (vol_c / w.sum())[:, None]  # det * w then sums to the element's volume
         c = np.linalg.eigvalsh(np.swapaxes(F, -1, -2) @ F)  # λ² ascending: E_i = (λ² − 1)/2
         for m in strain_measures:
-            gam[m][lo:lo + chunk] = 0.25 * ((c[..., 2] - c[..., 0]) if m == "green_lagrange" else np.log(c[..., 2] / c[..., 0]))
-        vol[lo:lo + chunk] = det * w
+            gam[m][lo : lo + chunk] = 0.25 * (
+                (c[..., 2] - c[..., 0]) if m == "green_lagrange" else np.log(c[..., 2] / c[..., 0])
+            )
+        vol[lo : lo + chunk] = det * w
     if n_centroid:
-        log.info("γ sampling: %d of %d element(s) folded or inverted at a sample point: sampled at their centroid",
-                 n_centroid, mesh.n_tets)
+        log.info(
+            "γ sampling: %d of %d element(s) folded or inverted at a sample point: sampled at their centroid",
+            n_centroid,
+            mesh.n_tets,
+        )
     return gam, vol, n_centroid
 
 
@@ -400,11 +458,15 @@ def voi_statistics(
     if not (np.all(np.isfinite(g)) and np.all(np.isfinite(v))):
         raise ValueError("voi_statistics: non-finite gamma or volume")
     if np.any(v <= 0):
-        raise ValueError(f"voi_statistics: {np.count_nonzero(v <= 0)} element(s) with non-positive volume")
+        raise ValueError(
+            f"voi_statistics: {np.count_nonzero(v <= 0)} element(s) with non-positive volume"
+        )
     if edges.size < 1 or np.any(np.diff(edges) <= 0):
         raise ValueError(f"bin_edges {list(edges)}: expected strictly increasing numbers")
     if not np.isclose(edges[0], threshold, rtol=0, atol=1e-12):
-        raise ValueError(f"bin_edges start at {edges[0]} but threshold is {threshold}: the first edge must be the threshold")
+        raise ValueError(
+            f"bin_edges start at {edges[0]} but threshold is {threshold}: the first edge must be the threshold"
+        )
     in_voi = g > threshold
     voi = float(v[in_voi].sum())
     total = float(v.sum())

@@ -20,13 +20,32 @@ from .contours import load_contours
 from .fem.cast import Cast
 from .fem.indenters import Indenter
 from .fem.material import Ogden, ogden_energy
-from .fem.solver import (BoneState, EndState, FacetSets, SolverSettings, end_state, load_bone_state, load_end_state,
-                         save_bone_state, save_end_state, solve_bone_rotation, solve_from, solver_settings_from_config)
+from .fem.solver import (
+    BoneState,
+    EndState,
+    FacetSets,
+    SolverSettings,
+    end_state,
+    load_bone_state,
+    load_end_state,
+    save_bone_state,
+    save_end_state,
+    solve_bone_rotation,
+    solve_from,
+    solver_settings_from_config,
+)
 from .io import save_npz
 from .mesh import TetMesh, load_tetmesh
 from .pose import Pose, load_pose
 from .strain import DEFAULT_BIN_EDGES, StrainError, element_strain
-from .summary import Summary, failed_summary, qc_warnings_of, summarize_solution, write_result_vtu, write_summary
+from .summary import (
+    Summary,
+    failed_summary,
+    qc_warnings_of,
+    summarize_solution,
+    write_result_vtu,
+    write_summary,
+)
 from .variants import parse_variant, variant_travel
 
 log = logging.getLogger(__name__)
@@ -44,15 +63,20 @@ class StudySettings:
     gamma_sampling: str = "points"  # 'points' (64 per element) or 'centroid' (the paper's), see summary.GAMMA_SAMPLINGS
 
     @classmethod
-    def from_config(cls, study_cfg: dict | None) -> "StudySettings":
+    def from_config(cls, study_cfg: dict | None) -> StudySettings:
         """From the config section ``study`` (defaults for missing keys)."""
         d = dict(study_cfg or {})
-        return cls(threshold=float(d.get("threshold", 0.3)), bin_edges=tuple(d.get("bin_edges", DEFAULT_BIN_EDGES)),
-                   strain_measure=d.get("strain_measure", "green_lagrange"),
-                   gamma_sampling=d.get("gamma_sampling", "points"))
+        return cls(
+            threshold=float(d.get("threshold", 0.3)),
+            bin_edges=tuple(d.get("bin_edges", DEFAULT_BIN_EDGES)),
+            strain_measure=d.get("strain_measure", "green_lagrange"),
+            gamma_sampling=d.get("gamma_sampling", "points"),
+        )
 
 
-def variant_indenter(pose: Pose, variant_name: str, *, radius_mm: float = 1.5, bar_length_mm: float = 10.0) -> Indenter:
+def variant_indenter(
+    pose: Pose, variant_name: str, *, radius_mm: float = 1.5, bar_length_mm: float = 10.0
+) -> Indenter:
     """The rigid indenter of a variant: shape from the name, axis turned about the final tip.
 
     Parameters
@@ -72,9 +96,17 @@ def variant_indenter(pose: Pose, variant_name: str, *, radius_mm: float = 1.5, b
         Tip travelling from the variant's start to its end tip [mm].
     """
     v = parse_variant(variant_name)
-    axis, start, end = variant_travel(v, axis=pose.indenter_axis, tip_start_mm=pose.tip_start_mm, tip_end_mm=pose.tip_end_mm)
-    return Indenter(kind=v.indenter, axis=tuple(axis), start_mm=tuple(start), end_mm=tuple(end),
-                    radius_mm=radius_mm, bar_length_mm=bar_length_mm)
+    axis, start, end = variant_travel(
+        v, axis=pose.indenter_axis, tip_start_mm=pose.tip_start_mm, tip_end_mm=pose.tip_end_mm
+    )
+    return Indenter(
+        kind=v.indenter,
+        axis=tuple(axis),
+        start_mm=tuple(start),
+        end_mm=tuple(end),
+        radius_mm=radius_mm,
+        bar_length_mm=bar_length_mm,
+    )
 
 
 def solve_variant(
@@ -148,19 +180,37 @@ def solve_variant(
     indenter = variant_indenter(pose, variant, bar_length_mm=bar_length_mm)
     set_name = f"patch_{variant}" if f"patch_{variant}" in mesh.facets else "patch"
     sets = FacetSets(indenter=set_name)
-    result = solve_from(mesh, material=material, indenter=indenter, bone_motion=pose.bone_motion, base=base,
-                        start=start, cast=cast, settings=settings, sets=sets)
+    result = solve_from(
+        mesh,
+        material=material,
+        indenter=indenter,
+        bone_motion=pose.bone_motion,
+        base=base,
+        start=start,
+        cast=cast,
+        settings=settings,
+        sets=sets,
+    )
     turned = base_variant if result.extra.get("turned") else None
     info = dict(
-        indenter_force_N=result.indenter_force_N, n_dofs=result.n_dofs, increments=result.increments,
-        newton_iterations=result.newton_iterations, wall_s=time.perf_counter() - t0,
-        solver_wall_s=result.wall_s, assembly_s=result.assembly_s, linear_solve_s=result.linear_solve_s,
-        contact_s=result.contact_s, max_penetration_mm=result.max_penetration_mm,
+        indenter_force_N=result.indenter_force_N,
+        n_dofs=result.n_dofs,
+        increments=result.increments,
+        newton_iterations=result.newton_iterations,
+        wall_s=time.perf_counter() - t0,
+        solver_wall_s=result.wall_s,
+        assembly_s=result.assembly_s,
+        linear_solve_s=result.linear_solve_s,
+        contact_s=result.contact_s,
+        max_penetration_mm=result.max_penetration_mm,
         max_penetration_rel=result.max_penetration_rel,
-        load_reached=result.load_reached, contact_set=set_name,
-        active_set_changes=result.extra.get("active_set_changes"), bone_clearance_mm=result.extra.get("bone_clearance_mm"),
+        load_reached=result.load_reached,
+        contact_set=set_name,
+        active_set_changes=result.extra.get("active_set_changes"),
+        bone_clearance_mm=result.extra.get("bone_clearance_mm"),
         started_from_bone_state=result.extra.get("started_from_bone_state", False),
-        turned_from=turned, turn_failed=result.extra.get("turn_failed"),
+        turned_from=turned,
+        turn_failed=result.extra.get("turn_failed"),
     )
     if not result.converged:
         log.warning("%s/%s did not converge: %s", animal, variant, result.reason)
@@ -173,25 +223,44 @@ def solve_variant(
             u = np.zeros_like(mesh.nodes_mm)
             strain = element_strain(mesh, u)
             reason = f"{reason}; its last state has no strain ({exc}): result.vtu shows the undeformed mesh"
-        summary = failed_summary(animal=animal, variant=variant, reason=reason,
-                                 strain_measure=study.strain_measure, threshold=study.threshold,
-                                 gamma_sampling=study.gamma_sampling,
-                                 n_elements=int(mesh.n_tets), **info)
+        summary = failed_summary(
+            animal=animal,
+            variant=variant,
+            reason=reason,
+            strain_measure=study.strain_measure,
+            threshold=study.threshold,
+            gamma_sampling=study.gamma_sampling,
+            n_elements=int(mesh.n_tets),
+            **info,
+        )
         return summary, u, strain
     if end_state_path is not None:
-        save_end_state(end_state_path, end_state(result, mesh, indenter=indenter, bone_motion=pose.bone_motion,
-                                                 settings=settings))
+        save_end_state(
+            end_state_path,
+            end_state(
+                result, mesh, indenter=indenter, bone_motion=pose.bone_motion, settings=settings
+            ),
+        )
     energy = ogden_energy(result.deformation_gradient, material)
     summary, strain = summarize_solution(
-        mesh, result.displacement_mm, animal=animal, variant=variant, strain_measure=study.strain_measure,
-        threshold=study.threshold, bin_edges=study.bin_edges, gamma_sampling=study.gamma_sampling,
+        mesh,
+        result.displacement_mm,
+        animal=animal,
+        variant=variant,
+        strain_measure=study.strain_measure,
+        threshold=study.threshold,
+        bin_edges=study.bin_edges,
+        gamma_sampling=study.gamma_sampling,
         energy_density_mpa=energy,
-        skin_contours_mm=skin_contours_mm, **info,
+        skin_contours_mm=skin_contours_mm,
+        **info,
     )
     return summary, result.displacement_mm, strain
 
 
-def run_bone_state(*, mesh_path, cast_path, pose_path, state_path, fem_cfg: dict) -> BoneState | None:
+def run_bone_state(
+    *, mesh_path, cast_path, pose_path, state_path, fem_cfg: dict
+) -> BoneState | None:
     """Rule ``bone_state``: the bone-rotation steps of one mesh, solved once for all its variants.
 
     The steps are :func:`deeptissue.fem.solver.solve_bone_rotation`. If they do not converge (or the
@@ -218,18 +287,32 @@ def run_bone_state(*, mesh_path, cast_path, pose_path, state_path, fem_cfg: dict
         pose = load_pose(pose_path)
         cast = Cast.load(cast_path) if cast_path else None
         settings = solver_settings_from_config(fem_cfg.get("solver"))
-        r, state = solve_bone_rotation(mesh, material=Ogden(**fem_cfg.get("material", {})), bone_motion=pose.bone_motion,
-                                       cast=cast, settings=settings)
+        r, state = solve_bone_rotation(
+            mesh,
+            material=Ogden(**fem_cfg.get("material", {})),
+            bone_motion=pose.bone_motion,
+            cast=cast,
+            settings=settings,
+        )
         why = r.reason
     except Exception as exc:  # the variants then solve the rotation themselves
         log.error("bone state of %s failed:\n%s", mesh_path, traceback.format_exc())
         why = f"{type(exc).__name__}: {exc}"
     if state is None:
-        log.warning("%s: bone rotation not solved once for all variants (%s): each variant solves it", mesh_path, why)
+        log.warning(
+            "%s: bone rotation not solved once for all variants (%s): each variant solves it",
+            mesh_path,
+            why,
+        )
         save_npz(state_path, failed=np.array(why or "not converged"))
         return None
-    log.info("bone rotation of %s: %d increments, %d Newton iterations, %.1f s", mesh_path, len(state.history),
-             state.newton_iterations, state.wall_s)
+    log.info(
+        "bone rotation of %s: %d increments, %d Newton iterations, %.1f s",
+        mesh_path,
+        len(state.history),
+        state.newton_iterations,
+        state.wall_s,
+    )
     save_bone_state(state_path, state)
     return state
 
@@ -246,7 +329,9 @@ def _failed_marker(path, what: str) -> str | None:
 def _load_start(path) -> BoneState | None:
     """The shared bone state of ``path``, None if that solve failed (its file says why)."""
     if (failed := _failed_marker(path, "a bone-state")) is not None:
-        log.warning("%s: the shared bone rotation failed (%s): solving it for this variant", path, failed)
+        log.warning(
+            "%s: the shared bone rotation failed (%s): solving it for this variant", path, failed
+        )
         return None
     return load_bone_state(path)
 
@@ -254,14 +339,33 @@ def _load_start(path) -> BoneState | None:
 def _load_base(path, base_variant) -> EndState | None:
     """The end state of the base variant in ``path``, None if that solve did not converge (its file says why)."""
     if (failed := _failed_marker(path, "an end-state")) is not None:
-        log.warning("%s: %s did not converge (%s): solving this variant from the start", path, base_variant, failed)
+        log.warning(
+            "%s: %s did not converge (%s): solving this variant from the start",
+            path,
+            base_variant,
+            failed,
+        )
         return None
     return load_end_state(path)
 
 
-def run_solve(*, animal: str, variant: str, mesh_path, cast_path, pose_path, during_contours_path,
-              summary_path, vtu_path, fem_cfg: dict, study_cfg: dict, bone_state_path=None,
-              end_state_path=None, base_state_path=None, base_variant: str | None = None) -> Summary:
+def run_solve(
+    *,
+    animal: str,
+    variant: str,
+    mesh_path,
+    cast_path,
+    pose_path,
+    during_contours_path,
+    summary_path,
+    vtu_path,
+    fem_cfg: dict,
+    study_cfg: dict,
+    bone_state_path=None,
+    end_state_path=None,
+    base_state_path=None,
+    base_variant: str | None = None,
+) -> Summary:
     """Rule ``solve``: read the model files, solve, write ``summary.json`` and ``result.vtu``.
 
     Once the mesh is read, both files are always written: a failure (set-up error or no convergence)
@@ -313,21 +417,42 @@ def run_solve(*, animal: str, variant: str, mesh_path, cast_path, pose_path, dur
         start = _load_start(bone_state_path) if bone_state_path else None
         base = _load_base(base_state_path, base_variant) if base_state_path else None
         summary, u, strain = solve_variant(
-            animal=animal, variant=variant, mesh=mesh, pose=pose, cast=cast, material=material,
-            settings=settings, study=study, skin_contours_mm=skin,
-            bar_length_mm=float(fem_cfg.get("bar_length_mm", 10.0)), start=start, base=base,
-            base_variant=base_variant, end_state_path=end_state_path,
+            animal=animal,
+            variant=variant,
+            mesh=mesh,
+            pose=pose,
+            cast=cast,
+            material=material,
+            settings=settings,
+            study=study,
+            skin_contours_mm=skin,
+            bar_length_mm=float(fem_cfg.get("bar_length_mm", 10.0)),
+            start=start,
+            base=base,
+            base_variant=base_variant,
+            end_state_path=end_state_path,
         )
     except Exception as exc:  # recorded, never lost: the study goes on without this variant
         log.error("%s/%s failed:\n%s", animal, variant, traceback.format_exc())
-        summary = failed_summary(animal=animal, variant=variant, reason=f"{type(exc).__name__}: {exc}",
-                                 strain_measure=study.strain_measure, threshold=study.threshold,
-                                 gamma_sampling=study.gamma_sampling,
-                                 n_elements=int(mesh.n_tets))
+        summary = failed_summary(
+            animal=animal,
+            variant=variant,
+            reason=f"{type(exc).__name__}: {exc}",
+            strain_measure=study.strain_measure,
+            threshold=study.threshold,
+            gamma_sampling=study.gamma_sampling,
+            n_elements=int(mesh.n_tets),
+        )
         strain = element_strain(mesh, u)
     if end_state_path is not None and not Path(end_state_path).exists():
         save_npz(end_state_path, failed=np.array(summary.reason or "not converged"))
-    write_result_vtu(vtu_path, mesh, u, strain, cell_data={"converged": np.full(mesh.n_tets, int(summary.converged))})
+    write_result_vtu(
+        vtu_path,
+        mesh,
+        u,
+        strain,
+        cell_data={"converged": np.full(mesh.n_tets, int(summary.converged))},
+    )
     try:  # the animal's QC warnings travel with every variant's numbers
         summary = replace(summary, qc_warnings=qc_warnings_of(pose_path))
     except (OSError, ValueError) as exc:

@@ -13,21 +13,42 @@ candidate search; reported as mean and 95th percentile [mm].
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
 from .errorest import voi_error_estimate
 from .geometry import point_triangle_distance, surface_distance_mm  # noqa: F401 (part of this module's API)
-from .io import atomic_path, read_json, write_json
+from .io import read_json, write_json
 from .mesh import TetMesh
-from .strain import DEFAULT_BIN_EDGES, STRAIN_MEASURES, ElementStrain, element_strain, gamma_at_points, voi_statistics
+from .strain import (
+    DEFAULT_BIN_EDGES,
+    STRAIN_MEASURES,
+    ElementStrain,
+    element_strain,
+    gamma_at_points,
+    voi_statistics,
+)
 
-__all__ = ["GAMMA_SAMPLINGS", "SAMPLING_LEVELS", "Summary", "deformed_surface", "failed_summary", "point_triangle_distance",
-           "qc_warnings_of", "read_result_vtu", "read_summary", "skin_agreement_mm", "summarize_solution", "surface_distance_mm",
-           "tri6_to_tri3", "write_result_vtu", "write_summary"]
+__all__ = [
+    "GAMMA_SAMPLINGS",
+    "SAMPLING_LEVELS",
+    "Summary",
+    "deformed_surface",
+    "failed_summary",
+    "point_triangle_distance",
+    "qc_warnings_of",
+    "read_result_vtu",
+    "read_summary",
+    "skin_agreement_mm",
+    "summarize_solution",
+    "surface_distance_mm",
+    "tri6_to_tri3",
+    "write_result_vtu",
+    "write_summary",
+]
 
 # How γmax is sampled for the VOI and its bins (config study.gamma_sampling):
 # 'points': at the centroids of 64 equal sub-tetrahedra of every element (strain.tet_subdivision(2)),
@@ -47,41 +68,67 @@ class Summary:
     converged: bool
     reason: str | None = None  # why not converged / failed (None when converged)
     strain_measure: str = "green_lagrange"  # which γmax the VOI numbers use
-    gamma_sampling: str = "points"  # where γmax is sampled for voi_mm3 / bins_percent (GAMMA_SAMPLINGS)
+    gamma_sampling: str = (
+        "points"  # where γmax is sampled for voi_mm3 / bins_percent (GAMMA_SAMPLINGS)
+    )
     threshold: float = 0.3  # γmax threshold of the VOI [-]
     voi_mm3: float | None = None  # reference volume with γmax > threshold (gamma_sampling) [mm^3]
     bins_percent: dict | None = None  # bin label -> % of the VOI volume
-    voi_err_mm3: float | None = None  # estimated discretisation error of voi_mm3 (deeptissue.errorest) [mm^3]
-    bins_err_pp: dict | None = None  # bin label -> estimated error of that bin's % [percentage points]
-    below_threshold_percent: float | None = None  # % of the whole model volume with γmax <= threshold
+    voi_err_mm3: float | None = (
+        None  # estimated discretisation error of voi_mm3 (deeptissue.errorest) [mm^3]
+    )
+    bins_err_pp: dict | None = (
+        None  # bin label -> estimated error of that bin's % [percentage points]
+    )
+    below_threshold_percent: float | None = (
+        None  # % of the whole model volume with γmax <= threshold
+    )
     peak_gamma: float | None = None  # max centroid γmax over elements [-]
     strain_energy_mJ: float | None = None  # strain energy in the VOI [mJ]
-    indenter_force_N: float | None = None  # indenter reaction force along its axis at full depth [N]
+    indenter_force_N: float | None = (
+        None  # indenter reaction force along its axis at full depth [N]
+    )
     n_elements: int | None = None
     n_dofs: int | None = None
     increments: int | None = None  # load increments used
     newton_iterations: int | None = None  # Newton iterations summed over increments
     wall_s: float | None = None  # wall-clock time of the solve [s]
-    skin_mean_mm: float | None = None  # mean distance during-scan skin contours -> deformed FE skin [mm]
+    skin_mean_mm: float | None = (
+        None  # mean distance during-scan skin contours -> deformed FE skin [mm]
+    )
     skin_p95_mm: float | None = None  # 95th percentile of that distance [mm]
-    voi_sampled_mm3: float | None = None  # the VOI with γmax sampled at 64 points per element [mm^3]
+    voi_sampled_mm3: float | None = (
+        None  # the VOI with γmax sampled at 64 points per element [mm^3]
+    )
     bins_sampled_percent: dict | None = None  # bin label -> % of that VOI
     voi_centroid_mm3: float | None = None  # the VOI with one centroid γmax per element [mm^3]
     bins_centroid_percent: dict | None = None  # bin label -> % of that VOI
-    voi_by_measure_mm3: dict | None = None  # {"green_lagrange": .., "log": ..} VOI with each measure [mm^3]
+    voi_by_measure_mm3: dict | None = (
+        None  # {"green_lagrange": .., "log": ..} VOI with each measure [mm^3]
+    )
     peak_gamma_by_measure: dict | None = None  # {"green_lagrange": .., "log": ..}
-    qc_warnings: str | None = None  # the animal's QC warnings from pose.json ("check value > limit; ..."), None: none
+    qc_warnings: str | None = (
+        None  # the animal's QC warnings from pose.json ("check value > limit; ..."), None: none
+    )
     extra: dict = field(default_factory=dict)  # further solver diagnostics, kept and tabulated
 
     def __post_init__(self):
         if self.gamma_sampling not in GAMMA_SAMPLINGS:
-            raise ValueError(f"summary {self.animal}/{self.variant}: gamma_sampling {self.gamma_sampling!r} not in {GAMMA_SAMPLINGS}")
+            raise ValueError(
+                f"summary {self.animal}/{self.variant}: gamma_sampling {self.gamma_sampling!r} not in {GAMMA_SAMPLINGS}"
+            )
         if self.strain_measure not in STRAIN_MEASURES:
-            raise ValueError(f"summary {self.animal}/{self.variant}: strain_measure {self.strain_measure!r} not in {STRAIN_MEASURES}")
+            raise ValueError(
+                f"summary {self.animal}/{self.variant}: strain_measure {self.strain_measure!r} not in {STRAIN_MEASURES}"
+            )
         if not isinstance(self.converged, bool):
-            raise ValueError(f"summary {self.animal}/{self.variant}: converged must be true or false, got {self.converged!r}")
+            raise ValueError(
+                f"summary {self.animal}/{self.variant}: converged must be true or false, got {self.converged!r}"
+            )
         if not self.converged and not self.reason:
-            raise ValueError(f"summary {self.animal}/{self.variant}: a run that did not converge needs a reason")
+            raise ValueError(
+                f"summary {self.animal}/{self.variant}: a run that did not converge needs a reason"
+            )
 
     def to_dict(self) -> dict:
         """The fields as a flat dict (the ``extra`` entries merged in at the top level), as in summary.json."""
@@ -91,7 +138,7 @@ class Summary:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict, *, source: str = "summary") -> "Summary":
+    def from_dict(cls, d: dict, *, source: str = "summary") -> Summary:
         """Inverse of :meth:`to_dict`: unknown keys go to ``extra``; ValueError naming ``source`` if invalid."""
         names = {f.name for f in fields(cls)} - {"extra"}
         missing = [k for k in ("animal", "variant", "converged") if k not in d]
@@ -151,8 +198,16 @@ def read_summary(path: str | Path) -> Summary:
     return Summary.from_dict(d, source=str(path))
 
 
-def failed_summary(*, animal: str, variant: str, reason: str, strain_measure: str = "green_lagrange",
-                   threshold: float = 0.3, gamma_sampling: str = "points", **known) -> Summary:
+def failed_summary(
+    *,
+    animal: str,
+    variant: str,
+    reason: str,
+    strain_measure: str = "green_lagrange",
+    threshold: float = 0.3,
+    gamma_sampling: str = "points",
+    **known,
+) -> Summary:
     """Summary of a run that did not converge or failed: ``converged`` false, the reason, and any
     numbers that are still known (``n_elements``, ``n_dofs``, ``increments``, ``wall_s``, ...).
 
@@ -178,8 +233,16 @@ def failed_summary(*, animal: str, variant: str, reason: str, strain_measure: st
     extra = {k: v for k, v in known.items() if k not in names}
     known = {k: v for k, v in known.items() if k in names}
     known["extra"] = {**known.get("extra", {}), **extra}
-    return Summary(animal=animal, variant=variant, converged=False, reason=str(reason),
-                   strain_measure=strain_measure, threshold=threshold, gamma_sampling=gamma_sampling, **known)
+    return Summary(
+        animal=animal,
+        variant=variant,
+        converged=False,
+        reason=str(reason),
+        strain_measure=strain_measure,
+        threshold=threshold,
+        gamma_sampling=gamma_sampling,
+        **known,
+    )
 
 
 def summarize_solution(
@@ -238,26 +301,48 @@ def summarize_solution(
     if gamma_sampling not in GAMMA_SAMPLINGS:
         raise ValueError(f"gamma_sampling {gamma_sampling!r}: expected one of {GAMMA_SAMPLINGS}")
     s = element_strain(mesh, displacement_mm)
-    g_pts, v_pts, n_centroid = gamma_at_points(mesh, displacement_mm, levels=SAMPLING_LEVELS, strain_measures=STRAIN_MEASURES)
+    g_pts, v_pts, n_centroid = gamma_at_points(
+        mesh, displacement_mm, levels=SAMPLING_LEVELS, strain_measures=STRAIN_MEASURES
+    )
     w = None if energy_density_mpa is None else np.asarray(energy_density_mpa, float).ravel()
     if w is not None and w.shape != (mesh.n_tets,):
         raise ValueError(f"energy_density_mpa has {w.size} values for {mesh.n_tets} elements")
 
     def stats(measure, sampling, energy=None):
         if sampling == "centroid":
-            return voi_statistics(s.gamma(measure), s.volume_mm3, threshold=threshold, bin_edges=bin_edges,
-                                  energy_density_mpa=energy)
-        return voi_statistics(g_pts[measure].ravel(), v_pts.ravel(), threshold=threshold, bin_edges=bin_edges,
-                              energy_density_mpa=None if energy is None else np.repeat(energy, v_pts.shape[1]))
+            return voi_statistics(
+                s.gamma(measure),
+                s.volume_mm3,
+                threshold=threshold,
+                bin_edges=bin_edges,
+                energy_density_mpa=energy,
+            )
+        return voi_statistics(
+            g_pts[measure].ravel(),
+            v_pts.ravel(),
+            threshold=threshold,
+            bin_edges=bin_edges,
+            energy_density_mpa=None if energy is None else np.repeat(energy, v_pts.shape[1]),
+        )
 
     centroid, sampled = stats(strain_measure, "centroid", w), stats(strain_measure, "points", w)
     st = sampled if gamma_sampling == "points" else centroid
     by = {m: (st if m == strain_measure else stats(m, gamma_sampling)) for m in STRAIN_MEASURES}
     # the error estimate of the reported numbers: γh at the same points as voi_mm3 against the recovered γ*
-    at = ((g_pts[strain_measure], v_pts) if gamma_sampling == "points"
-          else (s.gamma(strain_measure)[:, None], s.volume_mm3[:, None]))
-    est = voi_error_estimate(mesh, displacement_mm, threshold=threshold, bin_edges=bin_edges, strain_measure=strain_measure,
-                             levels=SAMPLING_LEVELS if gamma_sampling == "points" else 0, sampled=at)
+    at = (
+        (g_pts[strain_measure], v_pts)
+        if gamma_sampling == "points"
+        else (s.gamma(strain_measure)[:, None], s.volume_mm3[:, None])
+    )
+    est = voi_error_estimate(
+        mesh,
+        displacement_mm,
+        threshold=threshold,
+        bin_edges=bin_edges,
+        strain_measure=strain_measure,
+        levels=SAMPLING_LEVELS if gamma_sampling == "points" else 0,
+        sampled=at,
+    )
     skin = {}
     if skin_contours_mm is not None:
         verts, tris = deformed_surface(mesh, displacement_mm, facet="skin")
@@ -265,26 +350,50 @@ def summarize_solution(
         skin = {"skin_mean_mm": mean, "skin_p95_mm": p95}
     names = {f.name for f in fields(Summary)}
     extra = {k: v for k, v in solver_info.items() if k not in names}
-    extra["sampling_centroid_elements"] = n_centroid  # folded or inverted at a sample point: counted at the centroid
+    extra["sampling_centroid_elements"] = (
+        n_centroid  # folded or inverted at a sample point: counted at the centroid
+    )
     solver = {k: v for k, v in solver_info.items() if k in names}
     summary = Summary(
-        animal=animal, variant=variant, converged=True, reason=None, strain_measure=strain_measure,
-        threshold=float(threshold), voi_mm3=st.voi_mm3, bins_percent=st.bins_percent,
-        voi_err_mm3=est.voi_err_mm3, bins_err_pp=est.bins_err_pp,
-        below_threshold_percent=st.below_threshold_percent, peak_gamma=centroid.peak_gamma,
-        strain_energy_mJ=st.strain_energy_mJ, n_elements=int(mesh.n_tets), gamma_sampling=gamma_sampling,
-        voi_sampled_mm3=sampled.voi_mm3, bins_sampled_percent=sampled.bins_percent,
-        voi_centroid_mm3=centroid.voi_mm3, bins_centroid_percent=centroid.bins_percent,
+        animal=animal,
+        variant=variant,
+        converged=True,
+        reason=None,
+        strain_measure=strain_measure,
+        threshold=float(threshold),
+        voi_mm3=st.voi_mm3,
+        bins_percent=st.bins_percent,
+        voi_err_mm3=est.voi_err_mm3,
+        bins_err_pp=est.bins_err_pp,
+        below_threshold_percent=st.below_threshold_percent,
+        peak_gamma=centroid.peak_gamma,
+        strain_energy_mJ=st.strain_energy_mJ,
+        n_elements=int(mesh.n_tets),
+        gamma_sampling=gamma_sampling,
+        voi_sampled_mm3=sampled.voi_mm3,
+        bins_sampled_percent=sampled.bins_percent,
+        voi_centroid_mm3=centroid.voi_mm3,
+        bins_centroid_percent=centroid.bins_percent,
         voi_by_measure_mm3={m: b.voi_mm3 for m, b in by.items()},
         peak_gamma_by_measure={m: float(s.gamma(m).max()) for m in STRAIN_MEASURES},
-        **skin, **solver, extra=extra,
+        **skin,
+        **solver,
+        extra=extra,
     )
     return summary, s
 
 
 # --- result.vtu ------------------------------------------------------------------------------------
 
-def write_result_vtu(path: str | Path, mesh: TetMesh, displacement_mm, strain: ElementStrain, *, cell_data: dict | None = None) -> None:
+
+def write_result_vtu(
+    path: str | Path,
+    mesh: TetMesh,
+    displacement_mm,
+    strain: ElementStrain,
+    *,
+    cell_data: dict | None = None,
+) -> None:
     """Write ``result.vtu`` for ParaView, atomically.
 
     Parameters
@@ -302,10 +411,19 @@ def write_result_vtu(path: str | Path, mesh: TetMesh, displacement_mm, strain: E
     """
     from .fem.output import write_tet_vtu
 
-    cd = {"gamma_gl": strain.gamma_gl, "gamma_log": strain.gamma_log, "volume_mm3": strain.volume_mm3,
-          "principal_gl": strain.principal_gl, **(cell_data or {})}
-    write_tet_vtu(path, mesh, point_data={"displacement_mm": np.asarray(displacement_mm, float)},
-                  cell_data={k: np.asarray(v, float) for k, v in cd.items()})
+    cd = {
+        "gamma_gl": strain.gamma_gl,
+        "gamma_log": strain.gamma_log,
+        "volume_mm3": strain.volume_mm3,
+        "principal_gl": strain.principal_gl,
+        **(cell_data or {}),
+    }
+    write_tet_vtu(
+        path,
+        mesh,
+        point_data={"displacement_mm": np.asarray(displacement_mm, float)},
+        cell_data={k: np.asarray(v, float) for k, v in cd.items()},
+    )
 
 
 def read_result_vtu(path: str | Path) -> tuple[TetMesh, np.ndarray, dict]:
@@ -350,6 +468,7 @@ def read_result_vtu(path: str | Path) -> tuple[TetMesh, np.ndarray, dict]:
 
 # --- skin agreement --------------------------------------------------------------------------------
 
+
 def tri6_to_tri3(facets: np.ndarray) -> np.ndarray:
     """Split 6-node triangles (gmsh order: corners 0-2, mid-edges (0,1), (1,2), (2,0)) into four flat
     triangles each, same orientation: (n, 6) -> (4n, 3) node indices."""
@@ -358,16 +477,22 @@ def tri6_to_tri3(facets: np.ndarray) -> np.ndarray:
     return f[:, sub].reshape(-1, 3)
 
 
-def deformed_surface(mesh: TetMesh, displacement_mm, *, facet: str = "skin") -> tuple[np.ndarray, np.ndarray]:
+def deformed_surface(
+    mesh: TetMesh, displacement_mm, *, facet: str = "skin"
+) -> tuple[np.ndarray, np.ndarray]:
     """Deformed positions of a named facet set: vertices (n_nodes, 3) [mm] and flat triangles (T, 3)
     (6-node facets split in four; 3-node facets of a linear mesh as they are)."""
     if facet not in mesh.facets:
         raise ValueError(f"mesh has no facet set {facet!r} (has {sorted(mesh.facets)})")
     f = mesh.facets[facet]
-    return mesh.nodes_mm + np.asarray(displacement_mm, float), (tri6_to_tri3(f) if mesh.order == 2 else np.asarray(f))
+    return mesh.nodes_mm + np.asarray(displacement_mm, float), (
+        tri6_to_tri3(f) if mesh.order == 2 else np.asarray(f)
+    )
 
 
-def skin_agreement_mm(contour_points_mm, vertices_mm, triangles, *, clip_to_surface_z: bool = True) -> tuple[float, float]:
+def skin_agreement_mm(
+    contour_points_mm, vertices_mm, triangles, *, clip_to_surface_z: bool = True
+) -> tuple[float, float]:
     """(mean, 95th percentile) distance [mm] from skin contour points (..., 3) to the surface.
 
     With ``clip_to_surface_z`` only contour points whose z (leg axis) lies within the z range of the

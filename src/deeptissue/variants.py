@@ -13,8 +13,16 @@ import numpy as np
 
 from .rigid import rotation_matrix
 
-__all__ = ["MESH_GROUPINGS", "Variant", "mesh_group_of", "mesh_groups", "parse_variant", "solve_priority",
-           "turn_base", "variant_travel"]
+__all__ = [
+    "MESH_GROUPINGS",
+    "Variant",
+    "mesh_group_of",
+    "mesh_groups",
+    "parse_variant",
+    "solve_priority",
+    "turn_base",
+    "variant_travel",
+]
 
 _NAME = re.compile(r"^(?P<shape>sphere|bar)(?:_r(?P<axis>[xyz])(?P<angle>[+-]\d+(?:\.\d+)?))?$")
 
@@ -62,7 +70,9 @@ def parse_variant(name: str) -> Variant:
             f"variant {name!r}: expected 'sphere' or 'bar', optionally followed by _rx/_ry/_rz and a signed angle in degrees, e.g. 'sphere_rx+15'"
         )
     angle = float(m["angle"]) if m["angle"] else 0.0
-    return Variant(name=name, indenter=m["shape"], turn_axis=m["axis"] if m["angle"] else None, turn_deg=angle)
+    return Variant(
+        name=name, indenter=m["shape"], turn_axis=m["axis"] if m["angle"] else None, turn_deg=angle
+    )
 
 
 def variant_travel(variant: Variant, *, axis, tip_start_mm, tip_end_mm):
@@ -130,7 +140,9 @@ def mesh_groups(variants, by: str = "animal") -> dict:
     if by == "animal":
         return {"all": [v.name for v in parsed]}
     if by != "indenter":
-        raise ValueError(f"config key model.mesh_groups: {by!r}, expected one of {list(MESH_GROUPINGS)}")
+        raise ValueError(
+            f"config key model.mesh_groups: {by!r}, expected one of {list(MESH_GROUPINGS)}"
+        )
     groups: dict = {}
     for v in parsed:
         groups.setdefault(v.indenter, []).append(v.name)

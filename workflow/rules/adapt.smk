@@ -7,7 +7,8 @@
 
 rule adapt_variant:
     """One animal x variant on adaptive meshes: every pass meshes the limb with the variant's patch,
-    solves the bone rotation and the indentation with the cast, and estimates the errors."""
+    solves the bone rotation and the indentation with the cast, and estimates the errors.
+    """
     input:
         contours="results/{animal}/contours/pre.npz",
         pose="results/{animal}/pose.json",
@@ -21,15 +22,18 @@ rule adapt_variant:
         "results/{animal}/logs/adapt_{variant}.log",
     benchmark:
         "results/{animal}/benchmarks/adapt_{variant}.tsv"
-    params:
-        model=dict(config["model"], bar_length_mm=float(config.get("fem", {}).get("bar_length_mm", 10.0))),
-        fem=config["fem"],
-        study=STUDY,
     priority: solve_job_priority  # the longest first, as the study's solves
+    conda:
+        "../envs/deeptissue.yaml"
     resources:
         mem_mb=8000,  # 6.9 GB for the demo's rat02 bar (175 248 DOFs at its last pass)
         runtime=120,  # AdaptSettings.max_wall_s (an hour) and one more pass
-    conda:
-        "../envs/deeptissue.yaml"
+    params:
+        model=dict(
+            config["model"],
+            bar_length_mm=float(config.get("fem", {}).get("bar_length_mm", 10.0)),
+        ),
+        fem=config["fem"],
+        study=STUDY,
     script:
         "../scripts/adapt_variant.py"

@@ -69,7 +69,9 @@ def solve_job_priority(wildcards):
     """Longest solves first (bars, then deeper phantoms): deeptissue.variants.solve_priority; a variant that
     others are turned from before all (they wait for it)."""
     depth = animal_cfg(wildcards.animal).get("phantom", {}).get("depth_mm")
-    return solve_priority(wildcards.variant, depth) + (50.0 if wildcards.variant in TURN_BASES else 0.0)
+    return solve_priority(wildcards.variant, depth) + (
+        50.0 if wildcards.variant in TURN_BASES else 0.0
+    )
 
 
 def variant_output(animal, variant, name):

@@ -31,6 +31,12 @@ rule convergence_run:
         "results/convergence/logs/{animal}_{conv_variant}_{setting}.log",
     benchmark:
         "results/convergence/benchmarks/{animal}/{conv_variant}_{setting}.tsv"
+    conda:
+        "../envs/deeptissue.yaml"
+    threads: 2  # one run at a time on a 2-core machine, so the timings do not compete
+    resources:
+        mem_mb=CONV["mem_mb"],
+        runtime=CONV["runtime_min"],
     params:
         setting=lambda wc: CONV_LADDER.by_name(wc.setting).to_dict(),
         is_default=lambda wc: wc.setting == CONV_LADDER.default_name,
@@ -39,12 +45,6 @@ rule convergence_run:
         study=config["study"],
         mesh_variants=CONV["mesh_variants"],  # null: the variant's study mesh (model.mesh_groups)
         linear_reference=CONV["linear_reference"],
-    threads: 2  # one run at a time on a 2-core machine, so the timings do not compete
-    resources:
-        mem_mb=CONV["mem_mb"],
-        runtime=CONV["runtime_min"],
-    conda:
-        "../envs/deeptissue.yaml"
     script:
         "../scripts/convergence_run.py"
 
@@ -86,19 +86,19 @@ rule convergence_aggregate:
             subcategory="Ladder",
         ),
         md="results/convergence/summary.md",
+    log:
+        "results/convergence/logs/aggregate.log",
+    conda:
+        "../envs/deeptissue.yaml"
+    resources:
+        mem_mb=2000,
+        runtime=15,
     params:
         default_name=CONV_LADDER.default_name,
         notes=list(CONV_LADDER.notes),
         goal=CONV["goal"],
         max_cost_ratio=CONV["max_cost_ratio"],
         size_measure=CONV["size_measure"],
-    log:
-        "results/convergence/logs/aggregate.log",
-    resources:
-        mem_mb=2000,
-        runtime=15,
-    conda:
-        "../envs/deeptissue.yaml"
     script:
         "../scripts/convergence_aggregate.py"
 

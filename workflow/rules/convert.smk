@@ -19,15 +19,15 @@ rule convert:
             category="Stage 0: scanner data",
             subcategory="{animal}",
         ),
-    params:
-        spec=lambda wc: animal_cfg(wc.animal)[wc.state],
-    wildcard_constraints:
-        animal="|".join(sorted({a for a, _ in CONVERTED})) or "NO_ANIMAL",
     log:
         "results/{animal}/logs/convert_{state}.log",
+    wildcard_constraints:
+        animal="|".join(sorted({a for a, _ in CONVERTED})) or "NO_ANIMAL",
     priority: MODEL_PRIORITY
     conda:
         "../envs/deeptissue.yaml"
+    params:
+        spec=lambda wc: animal_cfg(wc.animal)[wc.state],
     script:
         "../scripts/convert.py"
 

@@ -5,12 +5,12 @@
 rule verify_hertz:
     output:
         hertz="results/verification/hertz.csv",
-    params:
-        material=config["fem"]["material"],
     log:
         "results/logs/verify_hertz.log",
     conda:
         "../envs/deeptissue.yaml"
+    params:
+        material=config["fem"]["material"],
     script:
         "../scripts/verify_fem_hertz.py"
 
@@ -26,12 +26,12 @@ rule verify_hertz_curve:
             category="Verification",
             subcategory="solver",
         ),
-    params:
-        material=config["fem"]["material"],
     log:
         "results/logs/verify_hertz_curve.log",
     conda:
         "../envs/deeptissue.yaml"
+    params:
+        material=config["fem"]["material"],
     script:
         "../scripts/verify_fem_hertz_curve.py"
 
@@ -40,12 +40,12 @@ rule verify_fem_cases:
     output:
         checks="results/verification/fem_checks.csv",
         hard="results/verification/hard_cases.csv",
-    params:
-        material=config["fem"]["material"],
     log:
         "results/logs/verify_fem_cases.log",
     conda:
         "../envs/deeptissue.yaml"
+    params:
+        material=config["fem"]["material"],
     script:
         "../scripts/verify_fem_cases.py"
 
@@ -53,13 +53,13 @@ rule verify_fem_cases:
 rule verify_fem_benchmark:
     output:
         benchmark="results/verification/benchmark.csv",
-    params:
-        material=config["fem"]["material"],
     log:
         "results/logs/verify_fem_benchmark.log",
-    threads: 2
     conda:
         "../envs/deeptissue.yaml"
+    threads: 2
+    params:
+        material=config["fem"]["material"],
     script:
         "../scripts/verify_fem_benchmark.py"
 
@@ -67,12 +67,12 @@ rule verify_fem_benchmark:
 rule verify_locking:
     output:
         locking="results/verification/locking.csv",
-    params:
-        material=config["fem"]["material"],
     log:
         "results/logs/verify_locking.log",
     conda:
         "../envs/deeptissue.yaml"
+    params:
+        material=config["fem"]["material"],
     script:
         "../scripts/verify_fem_locking.py"
 
@@ -81,12 +81,12 @@ rule verify_cylinder:
     output:
         curve="results/verification/cylinder_curve.csv",
         voi="results/verification/cylinder_voi.csv",
-    params:
-        material=config["fem"]["material"],
     log:
         "results/logs/verify_cylinder.log",
     conda:
         "../envs/deeptissue.yaml"
+    params:
+        material=config["fem"]["material"],
     script:
         "../scripts/verify_fem_cylinder.py"
 
@@ -99,12 +99,12 @@ rule verify_cylinder_adaptive:
     output:
         table="results/verification/cylinder_adaptive.csv",
         figure="results/verification/cylinder_adaptive.png",
-    params:
-        material=config["fem"]["material"],
     log:
         "results/logs/verify_cylinder_adaptive.log",
     conda:
         "../envs/deeptissue.yaml"
+    params:
+        material=config["fem"]["material"],
     script:
         "../scripts/verify_fem_cylinder_adaptive.py"
 

@@ -11,22 +11,23 @@ rule phantom:
         truth="results/{animal}/mri/truth.json",
         truth_pre="results/{animal}/mri/truth_pre.npz",
         truth_during="results/{animal}/mri/truth_during.npz",
-    params:
-        phantom=lambda wc: animal_cfg(wc.animal)["phantom"],
-        n_points=config["segmentation"]["n_points"],
-        start_angle_deg=config["segmentation"]["start_angle_deg"],
     log:
         "results/{animal}/logs/phantom.log",
     priority: MODEL_PRIORITY
     conda:
         "../envs/deeptissue.yaml"
+    params:
+        phantom=lambda wc: animal_cfg(wc.animal)["phantom"],
+        n_points=config["segmentation"]["n_points"],
+        start_angle_deg=config["segmentation"]["start_angle_deg"],
     script:
         "../scripts/phantom.py"
 
 
 rule segment:
     """Skin, tibia and (where found) fibula contours of every slice of one state, and a QC figure; a during scan
-    after the pre one, whose tibia fills the slices where the bone touches the indenter."""
+    after the pre one, whose tibia fills the slices where the bone touches the indenter.
+    """
     input:
         unpack(segment_inputs),
     output:
@@ -37,18 +38,21 @@ rule segment:
             category="Stage 1: segmentation",
             subcategory="{animal}",
         ),
-    params:
-        settings=lambda wc: {**config["segmentation"], **animal_cfg(wc.animal).get("segmentation", {})},
-        crop_mm=lambda wc: animal_cfg(wc.animal).get("crop_mm"),
-        # a point inside the leg to segment, where the legs touch (none: the whole body inside crop_mm)
-        leg_point_mm=lambda wc: animal_cfg(wc.animal).get("leg_point_mm"),
-        # how the contrast fluid is found and the indenter's radius, for the during scan's indenter mask
-        pose_options=config["pose"],
     log:
         "results/{animal}/logs/segment_{state}.log",
     priority: MODEL_PRIORITY
     conda:
         "../envs/deeptissue.yaml"
+    params:
+        settings=lambda wc: {
+            **config["segmentation"],
+            **animal_cfg(wc.animal).get("segmentation", {}),
+        },
+        crop_mm=lambda wc: animal_cfg(wc.animal).get("crop_mm"),
+        # a point inside the leg to segment, where the legs touch (none: the whole body inside crop_mm)
+        leg_point_mm=lambda wc: animal_cfg(wc.animal).get("leg_point_mm"),
+        # how the contrast fluid is found and the indenter's radius, for the during scan's indenter mask
+        pose_options=config["pose"],
     script:
         "../scripts/segment.py"
 
@@ -71,9 +75,19 @@ rule segmentation_accuracy:
 FINAL_OUTPUTS.extend(expand("results/{animal}/mri/truth.json", animal=PHANTOMS))
 for _a in ANIMALS:
     FINAL_OUTPUTS.extend(
-        expand("results/{animal}/qc/segmentation_{state}.png", animal=_a, state=animal_states(_a))
+        expand(
+            "results/{animal}/qc/segmentation_{state}.png",
+            animal=_a,
+            state=animal_states(_a),
+        )
     )
-    FINAL_OUTPUTS.extend(expand("results/{animal}/contours/{state}.npz", animal=_a, state=animal_states(_a)))
+    FINAL_OUTPUTS.extend(
+        expand("results/{animal}/contours/{state}.npz", animal=_a, state=animal_states(_a))
+    )
 FINAL_OUTPUTS.extend(
-    expand("results/{animal}/qc/segmentation_accuracy_{state}.csv", animal=PHANTOMS, state=STATES)
+    expand(
+        "results/{animal}/qc/segmentation_accuracy_{state}.csv",
+        animal=PHANTOMS,
+        state=STATES,
+    )
 )

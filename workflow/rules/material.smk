@@ -12,11 +12,11 @@ rule verify_material:
             subcategory="material",
         ),
         speed="results/verification/material_speed.csv",
-    params:
-        material=config["fem"]["material"],
     log:
         "results/logs/verify_material.log",
     conda:
         "../envs/deeptissue.yaml"
+    params:
+        material=config["fem"]["material"],
     script:
         "../scripts/verify_material.py"

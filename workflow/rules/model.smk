@@ -18,15 +18,18 @@ rule cast:
         cast="results/{animal}/model/cast.npz",
     log:
         "results/{animal}/logs/cast.log",
+    priority: MODEL_PRIORITY
+    conda:
+        "../envs/deeptissue.yaml"
     resources:
         mem_mb=2000,
         runtime=10,
     params:
-        settings=dict(config["model"], bar_length_mm=float(config.get("fem", {}).get("bar_length_mm", 10.0))),
+        settings=dict(
+            config["model"],
+            bar_length_mm=float(config.get("fem", {}).get("bar_length_mm", 10.0)),
+        ),
         variants=config["study"]["variants"],
-    priority: MODEL_PRIORITY
-    conda:
-        "../envs/deeptissue.yaml"
     script:
         "../scripts/cast.py"
 
@@ -51,15 +54,18 @@ rule mesh:
         "results/{animal}/logs/mesh_{group}.log",
     benchmark:
         "results/{animal}/benchmarks/mesh_{group}.tsv"
+    priority: MODEL_PRIORITY
+    conda:
+        "../envs/deeptissue.yaml"
     resources:
         mem_mb=2000,
         runtime=15,
     params:
-        settings=dict(config["model"], bar_length_mm=float(config.get("fem", {}).get("bar_length_mm", 10.0))),
+        settings=dict(
+            config["model"],
+            bar_length_mm=float(config.get("fem", {}).get("bar_length_mm", 10.0)),
+        ),
         variants=lambda wc: MESH_GROUPS[wc.group],
-    priority: MODEL_PRIORITY
-    conda:
-        "../envs/deeptissue.yaml"
     script:
         "../scripts/mesh.py"
 
@@ -74,4 +80,6 @@ if {"segment", "pose"} <= {r.name for r in workflow.rules}:
         for g in MESH_GROUPS
         for f in ("mesh.npz", "mesh.msh", "mesh.vtu", "model.json")
     )
-    FINAL_OUTPUTS.extend(f"results/{a}/qc/model_{g}.png" for a in ANIMALS if has_during(a) for g in MESH_GROUPS)
+    FINAL_OUTPUTS.extend(
+        f"results/{a}/qc/model_{g}.png" for a in ANIMALS if has_during(a) for g in MESH_GROUPS
+    )

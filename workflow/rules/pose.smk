@@ -37,12 +37,12 @@ rule pose:
         ),
     log:
         "results/{animal}/logs/pose.log",
-    params:
-        options=config["pose"],
-        override=lambda wildcards: animal_cfg(wildcards.animal).get("pose_override", {}),
     priority: MODEL_PRIORITY
     conda:
         "../envs/deeptissue.yaml"
+    params:
+        options=config["pose"],
+        override=lambda wildcards: animal_cfg(wildcards.animal).get("pose_override", {}),
     script:
         "../scripts/pose.py"
 

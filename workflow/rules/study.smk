@@ -36,16 +36,28 @@ rule aggregate:
         pose=f"results/{FIGURE_ANIMAL}/pose.json",
     output:
         voi_csv=report(
-            f"{SUMMARY}/voi.csv", caption="../report/study_voi_csv.rst", category="Study", subcategory="Tables"
+            f"{SUMMARY}/voi.csv",
+            caption="../report/study_voi_csv.rst",
+            category="Study",
+            subcategory="Tables",
         ),
         bins_csv=report(
-            f"{SUMMARY}/bins.csv", caption="../report/study_bins_csv.rst", category="Study", subcategory="Tables"
+            f"{SUMMARY}/bins.csv",
+            caption="../report/study_bins_csv.rst",
+            category="Study",
+            subcategory="Tables",
         ),
         voi_png=report(
-            f"{SUMMARY}/voi.png", caption="../report/study_voi.rst", category="Study", subcategory="All animals"
+            f"{SUMMARY}/voi.png",
+            caption="../report/study_voi.rst",
+            category="Study",
+            subcategory="All animals",
         ),
         bins_png=report(
-            f"{SUMMARY}/bins.png", caption="../report/study_bins.rst", category="Study", subcategory="All animals"
+            f"{SUMMARY}/bins.png",
+            caption="../report/study_bins.rst",
+            category="Study",
+            subcategory="All animals",
         ),
         voi_change_png=report(
             f"{SUMMARY}/voi_change.png",
@@ -65,6 +77,13 @@ rule aggregate:
             category="Study",
             subcategory="Sections",
         ),
+    log:
+        f"{SUMMARY}/aggregate.log",
+    conda:
+        "../envs/deeptissue.yaml"
+    resources:
+        mem_mb=4000,
+        runtime=30,
     params:
         animals=STUDY_ANIMALS,
         variants=VARIANTS,
@@ -73,13 +92,6 @@ rule aggregate:
         strain_measure=STUDY["strain_measure"],
         threshold=STUDY["threshold"],
         bin_edges=STUDY["bin_edges"],
-    log:
-        f"{SUMMARY}/aggregate.log",
-    resources:
-        mem_mb=4000,
-        runtime=30,
-    conda:
-        "../envs/deeptissue.yaml"
     script:
         "../scripts/aggregate.py"
 
@@ -90,7 +102,8 @@ wildcard_constraints:
 
 rule bone_state:
     """The bone-rotation steps of one mesh (t 0 -> 3, before the indenter moves), solved once: every
-    variant on the mesh starts from this state instead of solving them again (Stage 4)."""
+    variant on the mesh starts from this state instead of solving them again (Stage 4).
+    """
     input:
         mesh="results/{animal}/model/{group}/mesh.npz",
         cast="results/{animal}/model/cast.npz",
@@ -101,14 +114,14 @@ rule bone_state:
         "results/{animal}/logs/bone_state_{group}.log",
     benchmark:
         "results/{animal}/benchmarks/bone_state_{group}.tsv"
-    params:
-        fem=config["fem"],
     priority: MODEL_PRIORITY
+    conda:
+        "../envs/deeptissue.yaml"
     resources:
         mem_mb=4000,
         runtime=30,
-    conda:
-        "../envs/deeptissue.yaml"
+    params:
+        fem=config["fem"],
     script:
         "../scripts/bone_state.py"
 
@@ -134,16 +147,16 @@ rule solve:
         "results/{animal}/logs/solve_{variant}.log",
     benchmark:
         "results/{animal}/benchmarks/solve_{variant}.tsv"
+    priority: solve_job_priority  # the longest solves first, so none runs alone at the end
+    conda:
+        "../envs/deeptissue.yaml"
+    resources:
+        mem_mb=4000,
+        runtime=120,
     params:
         fem=config["fem"],
         study=STUDY,
         base_variant=lambda wc: turn_base_of(wc.variant),
-    priority: solve_job_priority  # the longest solves first, so none runs alone at the end
-    resources:
-        mem_mb=4000,
-        runtime=120,
-    conda:
-        "../envs/deeptissue.yaml"
     script:
         "../scripts/solve.py"
 

@@ -5,4 +5,6 @@ from deeptissue.fem.verification import write_benchmark
 from deeptissue.io import script_log
 
 with script_log(snakemake.log[0], "verify_fem_benchmark"):
-    write_benchmark(Ogden.from_config(snakemake.params.material), benchmark_csv=snakemake.output.benchmark)
+    write_benchmark(
+        Ogden.from_config(snakemake.params.material), benchmark_csv=snakemake.output.benchmark
+    )

@@ -5,5 +5,8 @@ from deeptissue.fem.verification import write_case_verification
 from deeptissue.io import script_log
 
 with script_log(snakemake.log[0], "verify_fem_cases"):
-    write_case_verification(Ogden.from_config(snakemake.params.material), checks_csv=snakemake.output.checks,
-                            hard_csv=snakemake.output.hard)
+    write_case_verification(
+        Ogden.from_config(snakemake.params.material),
+        checks_csv=snakemake.output.checks,
+        hard_csv=snakemake.output.hard,
+    )

@@ -5,5 +5,8 @@ from deeptissue.fem.verification import write_cylinder_verification
 from deeptissue.io import script_log
 
 with script_log(snakemake.log[0], "verify_cylinder"):  # noqa: F821
-    write_cylinder_verification(Ogden.from_config(snakemake.params.material),  # noqa: F821
-                                curve_csv=snakemake.output.curve, voi_csv=snakemake.output.voi)  # noqa: F821
+    write_cylinder_verification(
+        Ogden.from_config(snakemake.params.material),  # noqa: F821
+        curve_csv=snakemake.output.curve,
+        voi_csv=snakemake.output.voi,
+    )  # noqa: F821

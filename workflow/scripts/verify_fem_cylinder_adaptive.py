@@ -5,6 +5,10 @@ from deeptissue.fem.material import Ogden
 from deeptissue.io import script_log
 
 with script_log(snakemake.log[0], "verify_cylinder_adaptive"):  # noqa: F821
-    write_adaptive_cylinder(Ogden.from_config(snakemake.params.material),  # noqa: F821
-                            voi_csv=snakemake.input.voi, curve_csv=snakemake.input.curve,  # noqa: F821
-                            out_csv=snakemake.output.table, figure_png=snakemake.output.figure)  # noqa: F821
+    write_adaptive_cylinder(
+        Ogden.from_config(snakemake.params.material),  # noqa: F821
+        voi_csv=snakemake.input.voi,
+        curve_csv=snakemake.input.curve,  # noqa: F821
+        out_csv=snakemake.output.table,
+        figure_png=snakemake.output.figure,
+    )  # noqa: F821

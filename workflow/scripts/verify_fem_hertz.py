@@ -5,4 +5,6 @@ from deeptissue.fem.verification import write_hertz_verification
 from deeptissue.io import script_log
 
 with script_log(snakemake.log[0], "verify_fem_hertz"):
-    write_hertz_verification(Ogden.from_config(snakemake.params.material), hertz_csv=snakemake.output.hertz)
+    write_hertz_verification(
+        Ogden.from_config(snakemake.params.material), hertz_csv=snakemake.output.hertz
+    )

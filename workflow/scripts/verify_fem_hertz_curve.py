@@ -5,5 +5,9 @@ from deeptissue.fem.verification import write_hertz_curve
 from deeptissue.io import script_log
 
 with script_log(snakemake.log[0], "verify_fem_hertz_curve"):
-    write_hertz_curve(Ogden.from_config(snakemake.params.material), hertz_csv=snakemake.input.hertz,
-                      curve_csv=snakemake.output.curve, figure_png=snakemake.output.figure)
+    write_hertz_curve(
+        Ogden.from_config(snakemake.params.material),
+        hertz_csv=snakemake.input.hertz,
+        curve_csv=snakemake.output.curve,
+        figure_png=snakemake.output.figure,
+    )

@@ -5,4 +5,6 @@ from deeptissue.fem.verification import write_locking_check
 from deeptissue.io import script_log
 
 with script_log(snakemake.log[0], "verify_fem_locking"):
-    write_locking_check(Ogden.from_config(snakemake.params.material), locking_csv=snakemake.output.locking)
+    write_locking_check(
+        Ogden.from_config(snakemake.params.material), locking_csv=snakemake.output.locking
+    )

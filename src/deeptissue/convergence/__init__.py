@@ -27,18 +27,57 @@ from .analysis import (
     setting_table,
     size_measure,
 )
-from .ladder import SUPPORTED_ELEMENT_ORDERS, AccuracyGoal, Discretisation, Ladder, default_ladder, setting_name
-from .report import aggregate_convergence, plot_error_vs_time, read_benchmark, summary_markdown, write_summary_md
+from .ladder import (
+    SUPPORTED_ELEMENT_ORDERS,
+    AccuracyGoal,
+    Discretisation,
+    Ladder,
+    default_ladder,
+    setting_name,
+)
+from .report import (
+    aggregate_convergence,
+    plot_error_vs_time,
+    read_benchmark,
+    summary_markdown,
+    write_summary_md,
+)
 from .runs import ROW_COLUMNS, linear_reference_solve, run_convergence_job, run_discretisation
 
 __all__ = [
     # ladder
-    "SUPPORTED_ELEMENT_ORDERS", "AccuracyGoal", "Discretisation", "Ladder", "default_ladder", "setting_name",
+    "SUPPORTED_ELEMENT_ORDERS",
+    "AccuracyGoal",
+    "Discretisation",
+    "Ladder",
+    "default_ladder",
+    "setting_name",
     # runs
-    "ROW_COLUMNS", "linear_reference_solve", "run_convergence_job", "run_discretisation",
+    "ROW_COLUMNS",
+    "linear_reference_solve",
+    "run_convergence_job",
+    "run_discretisation",
     # analysis
-    "ADAPTIVE_FAMILY", "ESTIMATES", "Richardson", "ScalingFit", "adaptive_pass_errors", "adaptive_rows", "convergence_table", "goal_error", "pareto_mask", "reference_rows",
-    "richardson_by_family", "richardson_extrapolation", "scaling_fit", "scaling_fits", "setting_table", "size_measure",
+    "ADAPTIVE_FAMILY",
+    "ESTIMATES",
+    "Richardson",
+    "ScalingFit",
+    "adaptive_pass_errors",
+    "adaptive_rows",
+    "convergence_table",
+    "goal_error",
+    "pareto_mask",
+    "reference_rows",
+    "richardson_by_family",
+    "richardson_extrapolation",
+    "scaling_fit",
+    "scaling_fits",
+    "setting_table",
+    "size_measure",
     # report
-    "aggregate_convergence", "plot_error_vs_time", "read_benchmark", "summary_markdown", "write_summary_md",
+    "aggregate_convergence",
+    "plot_error_vs_time",
+    "read_benchmark",
+    "summary_markdown",
+    "write_summary_md",
 ]

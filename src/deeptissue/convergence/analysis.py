@@ -64,7 +64,12 @@ def richardson_extrapolation(h, f, *, p_bounds=(0.1, 10.0)) -> Richardson | None
         return None
     p = brentq(g, lo, hi, xtol=1e-13, rtol=1e-13)
     k = d23 / (h[1] ** p - h[2] ** p)
-    return Richardson(order_p=float(p), extrapolated=float(f[2] - k * h[2] ** p), k=float(k), sizes=tuple(h.tolist()))
+    return Richardson(
+        order_p=float(p),
+        extrapolated=float(f[2] - k * h[2] ** p),
+        k=float(k),
+        sizes=tuple(h.tolist()),
+    )
 
 
 def size_measure(row: dict, *, measure: str = "dofs") -> float:
@@ -82,7 +87,9 @@ def _ok(r: dict) -> bool:
     return bool(r.get("converged")) and r.get("voi_mm3") is not None
 
 
-ADAPTIVE_FAMILY = "adaptive"  # the family of runs on adaptive meshes: compared with the reference, never one
+ADAPTIVE_FAMILY = (
+    "adaptive"  # the family of runs on adaptive meshes: compared with the reference, never one
+)
 
 
 def _run(r: dict) -> tuple:
@@ -98,7 +105,11 @@ def reference_rows(rows) -> dict:
     for r in rows:
         if not _ok(r) or r.get("family") == ADAPTIVE_FAMILY:
             continue
-        key = (r.get("n_dofs") or 0, -float(r.get("rtol") or 1.0), -float(r.get("gap_tol_rel") or 1.0))
+        key = (
+            r.get("n_dofs") or 0,
+            -float(r.get("rtol") or 1.0),
+            -float(r.get("gap_tol_rel") or 1.0),
+        )
         cur = ref.get(_run(r))
         if cur is None or key > cur[0]:
             ref[_run(r)] = (key, r)
@@ -113,8 +124,12 @@ def richardson_by_family(rows, *, measure: str = "dofs") -> list[dict]:
     groups: dict = {}
     for r in rows:
         if _ok(r) and r.get("family") != ADAPTIVE_FAMILY:
-            groups.setdefault((r.get("animal"), r["variant"], r["family"], r.get("tolerance")), []).append(r)
-    for (animal, variant, family, tol), rs in sorted(groups.items(), key=lambda kv: tuple(str(x) for x in kv[0])):
+            groups.setdefault(
+                (r.get("animal"), r["variant"], r["family"], r.get("tolerance")), []
+            ).append(r)
+    for (animal, variant, family, tol), rs in sorted(
+        groups.items(), key=lambda kv: tuple(str(x) for x in kv[0])
+    ):
         if len({r["mesh_key"] for r in rs}) < 3:
             continue
         for q in ("voi_mm3", "voi_sampled_mm3", "voi_centroid_mm3", "indenter_force_N"):
@@ -124,11 +139,20 @@ def richardson_by_family(rows, *, measure: str = "dofs") -> list[dict]:
             f = [float(r[q]) if r.get(q) is not None else np.nan for r in rs]
             res = richardson_extrapolation(h, f)
             finest = sorted(rs, key=lambda r: -size_measure(r, measure=measure))[-3:]
-            out.append(dict(animal=animal, variant=variant, family=family, tolerance=tol, quantity=q,
-                            order_p=None if res is None else res.order_p,
-                            extrapolated=None if res is None else res.extrapolated,
-                            sizes=None if res is None else list(res.sizes),
-                            settings=[r["setting"] for r in finest], n_sizes=len(rs)))
+            out.append(
+                dict(
+                    animal=animal,
+                    variant=variant,
+                    family=family,
+                    tolerance=tol,
+                    quantity=q,
+                    order_p=None if res is None else res.order_p,
+                    extrapolated=None if res is None else res.extrapolated,
+                    sizes=None if res is None else list(res.sizes),
+                    settings=[r["setting"] for r in finest],
+                    n_sizes=len(rs),
+                )
+            )
     return out
 
 
@@ -161,10 +185,18 @@ def pareto_mask(cost, error) -> np.ndarray:
     return mask
 
 
-def goal_error(voi_rel: float, bin_pp: float, force_rel: float, goal: AccuracyGoal = AccuracyGoal()) -> float:
+def goal_error(
+    voi_rel: float, bin_pp: float, force_rel: float, goal: AccuracyGoal = AccuracyGoal()
+) -> float:
     """The largest error as a multiple of its goal: <= 1 means the goal is met (NaN if any is unknown)."""
-    v = [voi_rel / goal.voi_rel_error, bin_pp / goal.bin_error_pp, force_rel / goal.force_rel_error]
-    return float("nan") if any(not np.isfinite(x) and not np.isinf(x) for x in v) else float(max(v))
+    v = [
+        voi_rel / goal.voi_rel_error,
+        bin_pp / goal.bin_error_pp,
+        force_rel / goal.force_rel_error,
+    ]
+    return (
+        float("nan") if any(not np.isfinite(x) and not np.isinf(x) for x in v) else float(max(v))
+    )
 
 
 def convergence_table(rows, *, goal: AccuracyGoal = AccuracyGoal(), measure: str = "dofs"):
@@ -200,16 +232,22 @@ def convergence_table(rows, *, goal: AccuracyGoal = AccuracyGoal(), measure: str
     rich = richardson_by_family(rows, measure=measure)
     rich_ref: dict = {}
     for run, ref in refs.items():
-        cands = [x for x in rich if (x["animal"], x["variant"]) == run and x["extrapolated"] is not None]
+        cands = [
+            x for x in rich if (x["animal"], x["variant"]) == run and x["extrapolated"] is not None
+        ]
         for q in ("voi_mm3", "voi_sampled_mm3", "voi_centroid_mm3", "indenter_force_N"):
             qc = [x for x in cands if x["quantity"] == q]
-            same = [x for x in qc if x["family"] == ref["family"] and x["tolerance"] == ref.get("tolerance")]
+            same = [
+                x
+                for x in qc
+                if x["family"] == ref["family"] and x["tolerance"] == ref.get("tolerance")
+            ]
             pick = same[0] if same else (max(qc, key=lambda x: x["n_sizes"]) if qc else None)
             if pick is not None:
                 rich_ref[(*run, q)] = pick
     labels = []
     for r in rows:
-        for k in (r.get("bins_percent") or {}):
+        for k in r.get("bins_percent") or {}:
             if k not in labels:
                 labels.append(k)
     for r in rows:
@@ -218,16 +256,35 @@ def convergence_table(rows, *, goal: AccuracyGoal = AccuracyGoal(), measure: str
         r["reference_setting"] = ref["setting"] if ref is not None else None
         r["is_reference"] = ref is not None and r["setting"] == ref["setting"]
         r["voi_rel_error"] = _rel(r["voi_mm3"], ref["voi_mm3"]) if ok else float("nan")
-        r["bin_max_error_pp"] = _bin_error(r.get("bins_percent"), ref.get("bins_percent")) if ok else float("nan")
-        r["force_rel_error"] = _rel(r["indenter_force_N"], ref["indenter_force_N"]) if ok else float("nan")
-        r["goal_error"] = goal_error(r["voi_rel_error"], r["bin_max_error_pp"], r["force_rel_error"], goal) if ok else float("nan")
+        r["bin_max_error_pp"] = (
+            _bin_error(r.get("bins_percent"), ref.get("bins_percent")) if ok else float("nan")
+        )
+        r["force_rel_error"] = (
+            _rel(r["indenter_force_N"], ref["indenter_force_N"]) if ok else float("nan")
+        )
+        r["goal_error"] = (
+            goal_error(r["voi_rel_error"], r["bin_max_error_pp"], r["force_rel_error"], goal)
+            if ok
+            else float("nan")
+        )
         r["meets_goal"] = bool(ok and r["goal_error"] <= 1.0)
         rv, rf = rich_ref.get((*_run(r), "voi_mm3")), rich_ref.get((*_run(r), "indenter_force_N"))
-        r["voi_rel_error_richardson"] = _rel(r["voi_mm3"], rv["extrapolated"]) if (ok and rv) else float("nan")
-        r["force_rel_error_richardson"] = _rel(r["indenter_force_N"], rf["extrapolated"]) if (ok and rf) else float("nan")
+        r["voi_rel_error_richardson"] = (
+            _rel(r["voi_mm3"], rv["extrapolated"]) if (ok and rv) else float("nan")
+        )
+        r["force_rel_error_richardson"] = (
+            _rel(r["indenter_force_N"], rf["extrapolated"]) if (ok and rf) else float("nan")
+        )
         if ok and rv and rf:
-            r["meets_goal_richardson"] = bool(goal_error(r["voi_rel_error_richardson"], r["bin_max_error_pp"],
-                                                         r["force_rel_error_richardson"], goal) <= 1.0)
+            r["meets_goal_richardson"] = bool(
+                goal_error(
+                    r["voi_rel_error_richardson"],
+                    r["bin_max_error_pp"],
+                    r["force_rel_error_richardson"],
+                    goal,
+                )
+                <= 1.0
+            )
         else:
             r["meets_goal_richardson"] = None
         for k in labels:
@@ -238,28 +295,53 @@ def convergence_table(rows, *, goal: AccuracyGoal = AccuracyGoal(), measure: str
         r["bin_err_max_pp"] = max(est_bins) if est_bins else float("nan")
         voi_err = r.get("voi_err_mm3")
         voi_abs = abs(r["voi_mm3"] - ref["voi_mm3"]) if ok else float("nan")
-        r["voi_effectivity"] = voi_err / voi_abs if (ok and voi_err is not None and voi_abs > 0) else float("nan")
-        r["bin_effectivity"] = (r["bin_err_max_pp"] / r["bin_max_error_pp"]
-                                if ok and r["bin_max_error_pp"] > 0 else float("nan"))
+        r["voi_effectivity"] = (
+            voi_err / voi_abs if (ok and voi_err is not None and voi_abs > 0) else float("nan")
+        )
+        r["bin_effectivity"] = (
+            r["bin_err_max_pp"] / r["bin_max_error_pp"]
+            if ok and r["bin_max_error_pp"] > 0
+            else float("nan")
+        )
         for est in ESTIMATES:  # the errors of both γ samplings, whichever voi_mm3 is
             voi, bins = f"voi_{est}_mm3", f"bins_{est}_percent"
             ok_e = ok and r.get(voi) is not None and ref.get(voi) is not None
             r[f"voi_{est}_rel_error"] = _rel(r.get(voi), ref[voi]) if ok_e else float("nan")
-            r[f"bin_{est}_max_error_pp"] = _bin_error(r.get(bins), ref.get(bins)) if ok_e else float("nan")
-            r[f"goal_error_{est}"] = (goal_error(r[f"voi_{est}_rel_error"], r[f"bin_{est}_max_error_pp"],
-                                                 r["force_rel_error"], goal) if ok_e else float("nan"))
+            r[f"bin_{est}_max_error_pp"] = (
+                _bin_error(r.get(bins), ref.get(bins)) if ok_e else float("nan")
+            )
+            r[f"goal_error_{est}"] = (
+                goal_error(
+                    r[f"voi_{est}_rel_error"],
+                    r[f"bin_{est}_max_error_pp"],
+                    r["force_rel_error"],
+                    goal,
+                )
+                if ok_e
+                else float("nan")
+            )
             r[f"meets_goal_{est}"] = bool(ok_e and r[f"goal_error_{est}"] <= 1.0)
             rs = rich_ref.get((*_run(r), voi))
-            r[f"voi_{est}_rel_error_richardson"] = _rel(r.get(voi), rs["extrapolated"]) if (ok_e and rs) else float("nan")
+            r[f"voi_{est}_rel_error_richardson"] = (
+                _rel(r.get(voi), rs["extrapolated"]) if (ok_e and rs) else float("nan")
+            )
             for k in labels:
                 r[f"bin_{est}_{k}"] = (r.get(bins) or {}).get(k)
     df = pd.DataFrame(rows)
-    df = df.drop(columns=[c for c in ("bins_percent", "bins_err_pp", *(f"bins_{e}_percent" for e in ESTIMATES)) if c in df])
+    df = df.drop(
+        columns=[
+            c
+            for c in ("bins_percent", "bins_err_pp", *(f"bins_{e}_percent" for e in ESTIMATES))
+            if c in df
+        ]
+    )
     df["pareto"] = False
     for _, idx in df.groupby(["animal", "variant"], dropna=False).groups.items():
         sub = df.loc[idx]
         conv = sub["converged"].astype(bool).to_numpy()
-        m = pareto_mask(np.where(conv, sub["wall_s"].astype(float), np.nan), sub["goal_error"].astype(float))
+        m = pareto_mask(
+            np.where(conv, sub["wall_s"].astype(float), np.nan), sub["goal_error"].astype(float)
+        )
         df.loc[idx, "pareto"] = m
     return df
 
@@ -274,16 +356,29 @@ def setting_table(df, *, goal: AccuracyGoal = AccuracyGoal()):
     out = []
     for name, g in df.groupby("setting", sort=False):
         conv = bool(g["converged"].astype(bool).all()) and len(g) == n_var
-        out.append(dict(
-            setting=name, family=g["family"].iloc[0], is_default=bool(g["is_default"].astype(bool).any()),
-            is_reference=bool(g["is_reference"].astype(bool).any()), converged=conv,
-            n_dofs=g["n_dofs"].max(), wall_s=float(g["wall_s"].astype(float).sum()),
-            solve_s=float(g["solve_s"].astype(float).sum()),
-            goal_error=float(g["goal_error"].astype(float).max()) if conv else float("nan"),
-            **{f"goal_error_{e}": (float(g[f"goal_error_{e}"].astype(float).max())
-                                   if conv and f"goal_error_{e}" in g else float("nan")) for e in ESTIMATES},
-            cost_ratio=float(g["cost_ratio"].astype(float).max()), peak_rss_mb=float(g["peak_rss_mb"].astype(float).max()),
-        ))
+        out.append(
+            dict(
+                setting=name,
+                family=g["family"].iloc[0],
+                is_default=bool(g["is_default"].astype(bool).any()),
+                is_reference=bool(g["is_reference"].astype(bool).any()),
+                converged=conv,
+                n_dofs=g["n_dofs"].max(),
+                wall_s=float(g["wall_s"].astype(float).sum()),
+                solve_s=float(g["solve_s"].astype(float).sum()),
+                goal_error=float(g["goal_error"].astype(float).max()) if conv else float("nan"),
+                **{
+                    f"goal_error_{e}": (
+                        float(g[f"goal_error_{e}"].astype(float).max())
+                        if conv and f"goal_error_{e}" in g
+                        else float("nan")
+                    )
+                    for e in ESTIMATES
+                },
+                cost_ratio=float(g["cost_ratio"].astype(float).max()),
+                peak_rss_mb=float(g["peak_rss_mb"].astype(float).max()),
+            )
+        )
     st = pd.DataFrame(out)
     st["meets_goal"] = st["converged"] & (st["goal_error"] <= 1.0)
     for e in ESTIMATES:
@@ -318,7 +413,13 @@ def scaling_fit(n_dofs, values, *, quantity: str = "") -> ScalingFit | None:
     res = y - A @ coef
     tot = np.sum((y - y.mean()) ** 2)
     r2 = 1.0 - float(np.sum(res**2) / tot) if tot > 0 else 1.0
-    return ScalingFit(quantity=quantity, exponent=float(coef[1]), prefactor=float(np.exp(coef[0])), r2=r2, n_points=int(len(n)))
+    return ScalingFit(
+        quantity=quantity,
+        exponent=float(coef[1]),
+        prefactor=float(np.exp(coef[0])),
+        r2=r2,
+        n_points=int(len(n)),
+    )
 
 
 def scaling_fits(df) -> list:
@@ -330,7 +431,11 @@ def scaling_fits(df) -> list:
         scaling_fit(n, sel["solve_s"].astype(float), quantity="solve_s"),
         scaling_fit(n, sel["linear_wall_s"].astype(float), quantity="linear_wall_s"),
         scaling_fit(n, sel["wall_s"].astype(float), quantity="wall_s"),
-        scaling_fit(n, sel["peak_rss_mb"].astype(float) - sel["start_rss_mb"].astype(float), quantity="rss_above_start_mb"),
+        scaling_fit(
+            n,
+            sel["peak_rss_mb"].astype(float) - sel["start_rss_mb"].astype(float),
+            quantity="rss_above_start_mb",
+        ),
         scaling_fit(n, sel["peak_rss_mb"].astype(float), quantity="peak_rss_mb"),
     ]
     return [f for f in fits if f is not None]
@@ -338,8 +443,11 @@ def scaling_fits(df) -> list:
 
 def _bins_of(row) -> dict:
     """{bin label: %} from the ``bins_percent.<label>`` columns of a passes.csv row."""
-    return {k[len("bins_percent."):]: float(v) for k, v in row.items()
-            if k.startswith("bins_percent.") and v is not None and np.isfinite(float(v))}
+    return {
+        k[len("bins_percent.") :]: float(v)
+        for k, v in row.items()
+        if k.startswith("bins_percent.") and v is not None and np.isfinite(float(v))
+    }
 
 
 def adaptive_rows(passes) -> list[dict]:
@@ -357,20 +465,38 @@ def adaptive_rows(passes) -> list[dict]:
         g = g.sort_values("index")
         done = g[g["converged"].astype(bool)]
         stop = str(g["stop_reason"].iloc[-1]) if "stop_reason" in g else ""
-        row = dict(animal=animal, variant=variant, setting="adaptive", family=ADAPTIVE_FAMILY, element_order=2,
-                   tolerance="default", mesh_key=f"adaptive_{animal}_{variant}", is_default=False,
-                   converged=len(done) > 0, reason=f"adaptive loop stopped: {stop}",
-                   wall_s=float(g["wall_s"].astype(float).max()), solve_s=float(g["solve_s"].astype(float).sum()),
-                   adapt_passes=len(g), adapt_stop_reason=stop, adapt_goal_met=bool(len(done) and done["goal_met"].iloc[-1]))
+        row = dict(
+            animal=animal,
+            variant=variant,
+            setting="adaptive",
+            family=ADAPTIVE_FAMILY,
+            element_order=2,
+            tolerance="default",
+            mesh_key=f"adaptive_{animal}_{variant}",
+            is_default=False,
+            converged=len(done) > 0,
+            reason=f"adaptive loop stopped: {stop}",
+            wall_s=float(g["wall_s"].astype(float).max()),
+            solve_s=float(g["solve_s"].astype(float).sum()),
+            adapt_passes=len(g),
+            adapt_stop_reason=stop,
+            adapt_goal_met=bool(len(done) and done["goal_met"].iloc[-1]),
+        )
         if len(done):
             last = done.iloc[-1].to_dict()
             voi = float(last["voi_mm3"])
-            row.update(n_dofs=int(last["n_dofs"]), n_elements=int(last["n_tets"]), voi_mm3=voi,
-                       bins_percent=_bins_of(last), indenter_force_N=float(last["force_N"]),
-                       voi_err_mm3=voi * float(last["voi_err_percent"]) / 100.0,
-                       bins_err_pp={"largest": float(last["bins_err_pp"])},
-                       est_voi_percent=float(last["voi_err_percent"]), est_bins_pp=float(last["bins_err_pp"]),
-                       est_force_percent=float(last["force_err_percent"]))
+            row.update(
+                n_dofs=int(last["n_dofs"]),
+                n_elements=int(last["n_tets"]),
+                voi_mm3=voi,
+                bins_percent=_bins_of(last),
+                indenter_force_N=float(last["force_N"]),
+                voi_err_mm3=voi * float(last["voi_err_percent"]) / 100.0,
+                bins_err_pp={"largest": float(last["bins_err_pp"])},
+                est_voi_percent=float(last["voi_err_percent"]),
+                est_bins_pp=float(last["bins_err_pp"]),
+                est_force_percent=float(last["force_err_percent"]),
+            )
         rows.append(row)
     return rows
 
@@ -385,8 +511,12 @@ def adaptive_pass_errors(passes, refs: dict):
         ref = refs.get((r["animal"], r["variant"]))
         ok = ref is not None and bool(r["converged"])
         cols["voi_rel_error"].append(_rel(r["voi_mm3"], ref["voi_mm3"]) if ok else float("nan"))
-        cols["bin_max_error_pp"].append(_bin_error(_bins_of(r), ref.get("bins_percent")) if ok else float("nan"))
-        cols["force_rel_error"].append(_rel(r["force_N"], ref["indenter_force_N"]) if ok else float("nan"))
+        cols["bin_max_error_pp"].append(
+            _bin_error(_bins_of(r), ref.get("bins_percent")) if ok else float("nan")
+        )
+        cols["force_rel_error"].append(
+            _rel(r["force_N"], ref["indenter_force_N"]) if ok else float("nan")
+        )
     for k, v in cols.items():
         out[k] = v
     return out

@@ -51,8 +51,12 @@ class Discretisation:
 
     def __post_init__(self):
         if self.element_order not in (1, 2):
-            raise ValueError(f"setting {self.name}: element_order must be 1 or 2, got {self.element_order}")
-        if not self.element_size_mm > 0 or (self.refine_size_mm is not None and not self.refine_size_mm > 0):
+            raise ValueError(
+                f"setting {self.name}: element_order must be 1 or 2, got {self.element_order}"
+            )
+        if not self.element_size_mm > 0 or (
+            self.refine_size_mm is not None and not self.refine_size_mm > 0
+        ):
             raise ValueError(f"setting {self.name}: element sizes must be > 0")
         if not (self.rtol > 0 and self.gap_tol_rel > 0):
             raise ValueError(f"setting {self.name}: tolerances must be > 0")
@@ -69,7 +73,9 @@ class Discretisation:
         d = dict(model_cfg or {})
         d["element_order"] = int(self.element_order)
         d["element_size_mm"] = float(self.element_size_mm)
-        d["refine_size_mm"] = float(self.element_size_mm if self.refine_size_mm is None else self.refine_size_mm)
+        d["refine_size_mm"] = float(
+            self.element_size_mm if self.refine_size_mm is None else self.refine_size_mm
+        )
         return d
 
     def solver_config(self, solver_cfg: dict | None = None) -> dict:
@@ -83,12 +89,17 @@ class Discretisation:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Discretisation":
+    def from_dict(cls, d: dict) -> Discretisation:
         return cls(**d)
 
 
-def setting_name(*, element_size_mm: float, refine_size_mm: float | None, element_order: int = 2,
-                 tolerance: str = "default") -> str:
+def setting_name(
+    *,
+    element_size_mm: float,
+    refine_size_mm: float | None,
+    element_order: int = 2,
+    tolerance: str = "default",
+) -> str:
     """Wildcard-safe name, e.g. ``p2_h1.2`` (uniform), ``p2_h1_r0.5`` (refined), ``p2_h1_r0.5_tight``."""
     name = f"p{element_order}_h{element_size_mm:g}"
     if refine_size_mm is not None:
@@ -110,15 +121,18 @@ class Ladder:
         for s in self.settings:
             if s.name == name:
                 return s
-        raise KeyError(f"convergence: no setting named {name!r}; known: {[s.name for s in self.settings]}")
+        raise KeyError(
+            f"convergence: no setting named {name!r}; known: {[s.name for s in self.settings]}"
+        )
 
     @property
     def names(self) -> list:
         return [s.name for s in self.settings]
 
 
-def default_ladder(conv_cfg: dict | None = None, *, model_cfg: dict | None = None,
-                   solver_cfg: dict | None = None) -> Ladder:
+def default_ladder(
+    conv_cfg: dict | None = None, *, model_cfg: dict | None = None, solver_cfg: dict | None = None
+) -> Ladder:
     """The ladder of config ``convergence`` around the configured default (``model``, ``fem.solver``).
 
     Families, each at every supported order of ``element_orders``: ``P<o> uniform``
@@ -168,19 +182,33 @@ def default_ladder(conv_cfg: dict | None = None, *, model_cfg: dict | None = Non
         if o in SUPPORTED_ELEMENT_ORDERS:
             orders.append(int(o))
         else:
-            notes.append(f"element order {o} left out: the mesh/FE code supports orders {list(SUPPORTED_ELEMENT_ORDERS)} only")
+            notes.append(
+                f"element order {o} left out: the mesh/FE code supports orders {list(SUPPORTED_ELEMENT_ORDERS)} only"
+            )
             log.info("convergence: %s", notes[-1])
     if not orders:
-        raise ValueError(f"config key convergence.element_orders: none of {c.get('element_orders')} is supported "
-                         f"(supported: {list(SUPPORTED_ELEMENT_ORDERS)})")
+        raise ValueError(
+            f"config key convergence.element_orders: none of {c.get('element_orders')} is supported "
+            f"(supported: {list(SUPPORTED_ELEMENT_ORDERS)})"
+        )
     out: dict = {}
 
     def add(family, h, r, order, tol):
         rt, pt = tols[tol]
-        name = setting_name(element_size_mm=h, refine_size_mm=r, element_order=order, tolerance=tol)
+        name = setting_name(
+            element_size_mm=h, refine_size_mm=r, element_order=order, tolerance=tol
+        )
         if name not in out:
-            out[name] = Discretisation(name=name, family=family, element_size_mm=float(h), refine_size_mm=r,
-                                       element_order=order, rtol=rt, gap_tol_rel=pt, tolerance=tol)
+            out[name] = Discretisation(
+                name=name,
+                family=family,
+                element_size_mm=float(h),
+                refine_size_mm=r,
+                element_order=order,
+                rtol=rt,
+                gap_tol_rel=pt,
+                tolerance=tol,
+            )
         return name
 
     for o in orders:

@@ -12,8 +12,18 @@ from pathlib import Path
 
 import numpy as np
 
-from .analysis import (ADAPTIVE_FAMILY, ESTIMATES, adaptive_pass_errors, adaptive_rows, convergence_table, goal_error,
-                       reference_rows, richardson_by_family, scaling_fits, setting_table)
+from .analysis import (
+    ADAPTIVE_FAMILY,
+    ESTIMATES,
+    adaptive_pass_errors,
+    adaptive_rows,
+    convergence_table,
+    goal_error,
+    reference_rows,
+    richardson_by_family,
+    scaling_fits,
+    setting_table,
+)
 from .ladder import AccuracyGoal
 
 log = logging.getLogger(__name__)
@@ -29,8 +39,16 @@ def _fmt(x, spec=".3g", pct=False) -> str:
     return f"{100 * x:{spec}} %" if pct else f"{x:{spec}}"
 
 
-def summary_markdown(df, *, default_name: str | None, goal: AccuracyGoal = AccuracyGoal(), notes=(),
-                     max_cost_ratio: float = 15.0, measure: str = "dofs", cylinder=None) -> str:
+def summary_markdown(
+    df,
+    *,
+    default_name: str | None,
+    goal: AccuracyGoal = AccuracyGoal(),
+    notes=(),
+    max_cost_ratio: float = 15.0,
+    measure: str = "dofs",
+    cylinder=None,
+) -> str:
     """The text of ``summary.md``: cheapest setting meeting the goal in every animal and variant, the
     Pareto front, the verdict on the default, the adaptive runs against the reference (true error
     beside the estimate) and the cylinder scene (``cylinder``, rule ``verify_cylinder_adaptive``'s
@@ -38,62 +56,94 @@ def summary_markdown(df, *, default_name: str | None, goal: AccuracyGoal = Accur
     st = setting_table(df, goal=goal)
     rows = df.to_dict("records")
     lines = ["# Speed against error", ""]
-    lines.append(f"Animals {', '.join(dict.fromkeys(df['animal'].astype(str)))}; variants "
-                 f"{', '.join(sorted(df['variant'].astype(str).unique()))}; {st.shape[0]} settings, {len(df)} runs "
-                 f"({int(df['converged'].astype(bool).sum())} converged).")
-    lines.append(f"Goal: VOI within {100 * goal.voi_rel_error:g} %, every bin within {goal.bin_error_pp:g} pp, "
-                 f"force within {100 * goal.force_rel_error:g} % of the reference (the finest converged run of each "
-                 "animal and variant), in every animal and variant.")
+    lines.append(
+        f"Animals {', '.join(dict.fromkeys(df['animal'].astype(str)))}; variants "
+        f"{', '.join(sorted(df['variant'].astype(str).unique()))}; {st.shape[0]} settings, {len(df)} runs "
+        f"({int(df['converged'].astype(bool).sum())} converged)."
+    )
+    lines.append(
+        f"Goal: VOI within {100 * goal.voi_rel_error:g} %, every bin within {goal.bin_error_pp:g} pp, "
+        f"force within {100 * goal.force_rel_error:g} % of the reference (the finest converged run of each "
+        "animal and variant), in every animal and variant."
+    )
     lines.append("")
     refs = df[df["is_reference"].astype(bool)]
     for _, r in refs.iterrows():
-        lines.append(f"- reference for {r['animal']} `{r['variant']}`: `{r['setting']}` ({int(r['n_dofs'])} DOFs, VOI "
-                     f"{_fmt(r['voi_mm3'], '.4g')} mm³, force {_fmt(r['indenter_force_N'], '.4g')} N)")
+        lines.append(
+            f"- reference for {r['animal']} `{r['variant']}`: `{r['setting']}` ({int(r['n_dofs'])} DOFs, VOI "
+            f"{_fmt(r['voi_mm3'], '.4g')} mm³, force {_fmt(r['indenter_force_N'], '.4g')} N)"
+        )
     lines.append("")
     cand = st[st["meets_goal"] & ~st["is_reference"]]
     if len(cand):
         c = cand.iloc[0]
-        lines.append(f"**Cheapest setting meeting the goal: `{c['setting']}`** ({c['family']}; {_fmt(c['wall_s'], '.1f')} s "
-                     f"for all variants, largest error {_fmt(c['goal_error'], '.2f')} × goal, largest cost ratio {_fmt(c['cost_ratio'], '.1f')}).")
+        lines.append(
+            f"**Cheapest setting meeting the goal: `{c['setting']}`** ({c['family']}; {_fmt(c['wall_s'], '.1f')} s "
+            f"for all variants, largest error {_fmt(c['goal_error'], '.2f')} × goal, largest cost ratio {_fmt(c['cost_ratio'], '.1f')})."
+        )
     else:
-        lines.append("**No setting other than the reference meets the goal in every animal and variant.**")
+        lines.append(
+            "**No setting other than the reference meets the goal in every animal and variant.**"
+        )
     lines.append("")
-    sampling = ", ".join(sorted(df["gamma_sampling"].dropna().astype(str).unique())) if "gamma_sampling" in df else ""
+    sampling = (
+        ", ".join(sorted(df["gamma_sampling"].dropna().astype(str).unique()))
+        if "gamma_sampling" in df
+        else ""
+    )
     each = []
     for e, what in ESTIMATES.items():
         if st[f"goal_error_{e}"].notna().any():
             cand = st[st[f"meets_goal_{e}"] & ~st["is_reference"]]
-            best = (f"cheapest setting meeting the goal `{cand.iloc[0]['setting']}` ({_fmt(cand.iloc[0]['wall_s'], '.1f')} s, "
-                    f"largest error {_fmt(cand.iloc[0][f'goal_error_{e}'], '.2f')} × goal)" if len(cand)
-                    else "no setting other than the reference meets the goal")
+            best = (
+                f"cheapest setting meeting the goal `{cand.iloc[0]['setting']}` ({_fmt(cand.iloc[0]['wall_s'], '.1f')} s, "
+                f"largest error {_fmt(cand.iloc[0][f'goal_error_{e}'], '.2f')} × goal)"
+                if len(cand)
+                else "no setting other than the reference meets the goal"
+            )
             each.append(f"- {what} (`voi_{e}_mm3`): {best}")
     if sampling and each:
-        lines += [f"The errors above are those of the configured γ sampling (`study.gamma_sampling`: {sampling}). "
-                  "Each sampling:", "", *each, ""]
-    lines.append("Pareto front (total wall time of all variants against the largest error as a multiple of its goal):")
+        lines += [
+            f"The errors above are those of the configured γ sampling (`study.gamma_sampling`: {sampling}). "
+            "Each sampling:",
+            "",
+            *each,
+            "",
+        ]
+    lines.append(
+        "Pareto front (total wall time of all variants against the largest error as a multiple of its goal):"
+    )
     lines.append("")
-    lines.append("| setting | family | wall [s] | error / goal | meets goal | error / goal: points, centroid | cost ratio | peak RSS [MB] |")
+    lines.append(
+        "| setting | family | wall [s] | error / goal | meets goal | error / goal: points, centroid | cost ratio | peak RSS [MB] |"
+    )
     lines.append("| --- | --- | --- | --- | --- | --- | --- | --- |")
     for _, r in st[st["pareto"]].iterrows():
-        lines.append(f"| `{r['setting']}`{' (default)' if r['is_default'] else ''}{' (reference)' if r['is_reference'] else ''} "
-                     f"| {r['family']} | {_fmt(r['wall_s'], '.1f')} | {_fmt(r['goal_error'], '.2f')} | "
-                     f"{'yes' if r['meets_goal'] else 'no'} | {_fmt(r['goal_error_sampled'], '.2f')}, "
-                     f"{_fmt(r['goal_error_centroid'], '.2f')} | "
-                     f"{_fmt(r['cost_ratio'], '.1f')} | {_fmt(r['peak_rss_mb'], '.0f')} |")
+        lines.append(
+            f"| `{r['setting']}`{' (default)' if r['is_default'] else ''}{' (reference)' if r['is_reference'] else ''} "
+            f"| {r['family']} | {_fmt(r['wall_s'], '.1f')} | {_fmt(r['goal_error'], '.2f')} | "
+            f"{'yes' if r['meets_goal'] else 'no'} | {_fmt(r['goal_error_sampled'], '.2f')}, "
+            f"{_fmt(r['goal_error_centroid'], '.2f')} | "
+            f"{_fmt(r['cost_ratio'], '.1f')} | {_fmt(r['peak_rss_mb'], '.0f')} |"
+        )
     lines.append("")
     lines.append("Configured default:")
     d = st[st["setting"] == default_name] if default_name else st.iloc[0:0]
     if len(d) and bool(d.iloc[0]["is_reference"]):
         d = d.iloc[0]
-        lines.append(f"`{default_name}` is the reference itself (the finest converged run): its error is not measured; "
-                     f"add finer settings to the ladder. Its cost ratio is {_fmt(d['cost_ratio'], '.1f')}.")
+        lines.append(
+            f"`{default_name}` is the reference itself (the finest converged run): its error is not measured; "
+            f"add finer settings to the ladder. Its cost ratio is {_fmt(d['cost_ratio'], '.1f')}."
+        )
     elif len(d):
         d = d.iloc[0]
         ratio_ok = np.isfinite(d["cost_ratio"]) and d["cost_ratio"] <= max_cost_ratio
-        lines.append(f"`{default_name}` {'meets' if d['meets_goal'] else 'does NOT meet'} the goal "
-                     f"(error {_fmt(d['goal_error'], '.2f')} × goal), {'sits' if d['pareto'] else 'does NOT sit'} on the "
-                     f"Pareto front, and its cost ratio (solve / one linear-elastic solve) is {_fmt(d['cost_ratio'], '.1f')} "
-                     f"({'within' if ratio_ok else 'above'} the {max_cost_ratio:g} × goal).")
+        lines.append(
+            f"`{default_name}` {'meets' if d['meets_goal'] else 'does NOT meet'} the goal "
+            f"(error {_fmt(d['goal_error'], '.2f')} × goal), {'sits' if d['pareto'] else 'does NOT sit'} on the "
+            f"Pareto front, and its cost ratio (solve / one linear-elastic solve) is {_fmt(d['cost_ratio'], '.1f')} "
+            f"({'within' if ratio_ok else 'above'} the {max_cost_ratio:g} × goal)."
+        )
     else:
         lines.append(f"`{default_name}` was not run.")
     lines.append("")
@@ -102,20 +152,30 @@ def summary_markdown(df, *, default_name: str | None, goal: AccuracyGoal = Accur
     lines += _cylinder_lines(cylinder, goal)
     rich = richardson_by_family(rows, measure=measure)
     if rich:
-        lines.append(f"Richardson extrapolation (three finest sizes of a family, h = {'n_dofs^(-1/3)' if measure == 'dofs' else 'element size'}):")
+        lines.append(
+            f"Richardson extrapolation (three finest sizes of a family, h = {'n_dofs^(-1/3)' if measure == 'dofs' else 'element size'}):"
+        )
         lines.append("")
-        lines.append("| animal | variant | family | quantity | order p | extrapolated | settings |")
+        lines.append(
+            "| animal | variant | family | quantity | order p | extrapolated | settings |"
+        )
         lines.append("| --- | --- | --- | --- | --- | --- | --- |")
         for x in rich:
-            lines.append(f"| {x['animal']} | {x['variant']} | {x['family']} | {x['quantity']} | {_fmt(x['order_p'], '.2f')} | "
-                         f"{_fmt(x['extrapolated'], '.4g')} | {', '.join(x['settings'])} |")
+            lines.append(
+                f"| {x['animal']} | {x['variant']} | {x['family']} | {x['quantity']} | {_fmt(x['order_p'], '.2f')} | "
+                f"{_fmt(x['extrapolated'], '.4g')} | {', '.join(x['settings'])} |"
+            )
         lines.append("")
     fits = scaling_fits(df)
     if fits:
-        lines.append("Growth with n_dofs (log–log least squares over the converged runs at the default tolerance):")
+        lines.append(
+            "Growth with n_dofs (log–log least squares over the converged runs at the default tolerance):"
+        )
         lines.append("")
         for f in fits:
-            lines.append(f"- `{f.quantity}` ∝ n_dofs^{f.exponent:.2f} (R² {f.r2:.2f}, {f.n_points} runs)")
+            lines.append(
+                f"- `{f.quantity}` ∝ n_dofs^{f.exponent:.2f} (R² {f.r2:.2f}, {f.n_points} runs)"
+            )
         lines.append("")
     failed = df[~df["converged"].astype(bool)]
     if len(failed):
@@ -147,10 +207,20 @@ def _effectivity_lines(df) -> list:
         e = df[col].astype(float)
         e = e[np.isfinite(e)]
         if len(e):
-            lines.append(f"- {what}: effectivity (own estimate / true error) {e.min():.2g}–{e.max():.2g} over {len(e)} runs; "
-                         f"the true error is within twice the estimate in {int((e >= 0.5).sum())} of them")
-    return (["Each run's own error estimate (`voi_err_mm3`, `bins_err_pp`) against its error from the reference:", "",
-             *lines, ""] if lines else [])
+            lines.append(
+                f"- {what}: effectivity (own estimate / true error) {e.min():.2g}–{e.max():.2g} over {len(e)} runs; "
+                f"the true error is within twice the estimate in {int((e >= 0.5).sum())} of them"
+            )
+    return (
+        [
+            "Each run's own error estimate (`voi_err_mm3`, `bins_err_pp`) against its error from the reference:",
+            "",
+            *lines,
+            "",
+        ]
+        if lines
+        else []
+    )
 
 
 def _adaptive_lines(df, goal: AccuracyGoal) -> list:
@@ -161,17 +231,28 @@ def _adaptive_lines(df, goal: AccuracyGoal) -> list:
         return []
     st = setting_table(df[df["family"] != ADAPTIVE_FAMILY], goal=goal)
     fixed = st[st["meets_goal"] & ~st["is_reference"]]
-    lines = ["Adaptive meshes (rule `adapt_variant`, refined until their own estimate meets the goal) against the "
-             "reference; true error / own estimate, and whether the true error is within twice the estimate "
-             "(VOI, bins, force):", "",
-             "| animal | variant | passes, stop | DOFs (reference) | wall [s] | VOI [%] | largest bin [pp] | force [%] | "
-             "within 2 × estimate | reference's own estimate: VOI [%], bins [pp] |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    lines = [
+        "Adaptive meshes (rule `adapt_variant`, refined until their own estimate meets the goal) against the "
+        "reference; true error / own estimate, and whether the true error is within twice the estimate "
+        "(VOI, bins, force):",
+        "",
+        "| animal | variant | passes, stop | DOFs (reference) | wall [s] | VOI [%] | largest bin [pp] | force [%] | "
+        "within 2 × estimate | reference's own estimate: VOI [%], bins [pp] |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
     for _, r in runs.iterrows():
-        ref = df[(df["animal"] == r["animal"]) & (df["variant"] == r["variant"]) & df["is_reference"].astype(bool)]
+        ref = df[
+            (df["animal"] == r["animal"])
+            & (df["variant"] == r["variant"])
+            & df["is_reference"].astype(bool)
+        ]
         ref_dofs = f"{int(ref['n_dofs'].iloc[0])}" if len(ref) else "–"
-        ref_est = (f"{_fmt(100 * float(ref['voi_err_mm3'].iloc[0]) / float(ref['voi_mm3'].iloc[0]), '.2f')}, "
-                   f"{_fmt(ref['bin_err_max_pp'].iloc[0], '.2f')}" if len(ref) and "voi_err_mm3" in ref else "–")
+        ref_est = (
+            f"{_fmt(100 * float(ref['voi_err_mm3'].iloc[0]) / float(ref['voi_mm3'].iloc[0]), '.2f')}, "
+            f"{_fmt(ref['bin_err_max_pp'].iloc[0], '.2f')}"
+            if len(ref) and "voi_err_mm3" in ref
+            else "–"
+        )
         dofs = f"{int(r['n_dofs'])}" if np.isfinite(float(r.get("n_dofs") or np.nan)) else "–"
         lines.append(
             f"| {r['animal']} | {r['variant']} | {int(r['adapt_passes'])}, {r['adapt_stop_reason']} | {dofs} ({ref_dofs}) | "
@@ -179,16 +260,23 @@ def _adaptive_lines(df, goal: AccuracyGoal) -> list:
             f"{_fmt(r['bin_max_error_pp'], '.2f')} / {_fmt(r['est_bins_pp'], '.2f')} | "
             f"{_fmt(100 * float(r['force_rel_error']), '.2f')} / {_fmt(r['est_force_percent'], '.2f')} | "
             f"{_within(100 * float(r['voi_rel_error']), r['est_voi_percent'])}, {_within(r['bin_max_error_pp'], r['est_bins_pp'])}, "
-            f"{_within(100 * float(r['force_rel_error']), r['est_force_percent'])} | {ref_est} |")
+            f"{_within(100 * float(r['force_rel_error']), r['est_force_percent'])} | {ref_est} |"
+        )
     lines.append("")
     total = float(runs["wall_s"].astype(float).sum())
     met = int(runs["adapt_goal_met"].astype(bool).sum())
-    lines.append(f"The adaptive runs take {total:.0f} s together and meet the goal by their own estimate in {met} of "
-                 f"{len(runs)} runs; " + (f"the cheapest fixed setting that meets it in every run, `{fixed.iloc[0]['setting']}`, "
-                                          f"takes {fixed.iloc[0]['wall_s']:.0f} s" if len(fixed)
-                                          else "no fixed setting cheaper than the reference meets it in every run") +
-                 ". Where the reference's own estimate is not well below the adaptive run's, the difference measures the "
-                 "reference as much as the run.")
+    lines.append(
+        f"The adaptive runs take {total:.0f} s together and meet the goal by their own estimate in {met} of "
+        f"{len(runs)} runs; "
+        + (
+            f"the cheapest fixed setting that meets it in every run, `{fixed.iloc[0]['setting']}`, "
+            f"takes {fixed.iloc[0]['wall_s']:.0f} s"
+            if len(fixed)
+            else "no fixed setting cheaper than the reference meets it in every run"
+        )
+        + ". Where the reference's own estimate is not well below the adaptive run's, the difference measures the "
+        "reference as much as the run."
+    )
     lines.append("")
     return lines
 
@@ -198,10 +286,13 @@ def _cylinder_lines(cylinder, goal: AccuracyGoal) -> list:
     finest fixed mesh, true error / own estimate."""
     if cylinder is None or not len(cylinder):
         return []
-    lines = ["Cylinder scene of `verify` (rule `verify_cylinder_adaptive`; reference: its finest fixed mesh), true error / "
-             "own estimate:", "",
-             "| depth [mm] | mesh | DOFs | wall [s] | VOI [%] | largest bin [pp] | force [%] | meets goal (true) |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    lines = [
+        "Cylinder scene of `verify` (rule `verify_cylinder_adaptive`; reference: its finest fixed mesh), true error / "
+        "own estimate:",
+        "",
+        "| depth [mm] | mesh | DOFs | wall [s] | VOI [%] | largest bin [pp] | force [%] | meets goal (true) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
     for d in sorted(cylinder["depth_mm"].unique()):
         at = cylinder[cylinder["depth_mm"] == d]
         picks = [r for _, r in at[at["kind"] == "fixed"].iterrows()]
@@ -209,30 +300,63 @@ def _cylinder_lines(cylinder, goal: AccuracyGoal) -> list:
         if len(a):
             picks.append(a.iloc[-1])
         for r in picks:
-            tv, tb, tf = abs(float(r["true_voi_percent"])), float(r["true_bins_pp"]), float(r["true_force_percent"])
-            known = np.isfinite(tv)  # a depth without a VOI row (0.5, 1, 2.5 mm) is judged on its force
-            met = goal_error(tv / 100.0 if known else 0.0, tb if known else 0.0, tf / 100.0, goal) <= 1.0
-            name = r["mesh"] if r["kind"] == "fixed" else f"adaptive, {int(r['pass_index']) + 1} passes"
-            lines.append(f"| {d:g} | {name} | {int(r['n_dofs'])} | {_fmt(r['wall_s'], '.1f')} | {_fmt(tv, '.2f')} / "
-                         f"{_fmt(r['est_voi_percent'], '.2f')} | {_fmt(tb, '.2f')} / {_fmt(r['est_bins_pp'], '.2f')} | "
-                         f"{_fmt(tf, '.2f')} / {_fmt(r.get('est_force_percent'), '.2f')} | {'yes' if met else 'no'} |")
+            tv, tb, tf = (
+                abs(float(r["true_voi_percent"])),
+                float(r["true_bins_pp"]),
+                float(r["true_force_percent"]),
+            )
+            known = np.isfinite(
+                tv
+            )  # a depth without a VOI row (0.5, 1, 2.5 mm) is judged on its force
+            met = (
+                goal_error(tv / 100.0 if known else 0.0, tb if known else 0.0, tf / 100.0, goal)
+                <= 1.0
+            )
+            name = (
+                r["mesh"]
+                if r["kind"] == "fixed"
+                else f"adaptive, {int(r['pass_index']) + 1} passes"
+            )
+            lines.append(
+                f"| {d:g} | {name} | {int(r['n_dofs'])} | {_fmt(r['wall_s'], '.1f')} | {_fmt(tv, '.2f')} / "
+                f"{_fmt(r['est_voi_percent'], '.2f')} | {_fmt(tb, '.2f')} / {_fmt(r['est_bins_pp'], '.2f')} | "
+                f"{_fmt(tf, '.2f')} / {_fmt(r.get('est_force_percent'), '.2f')} | {'yes' if met else 'no'} |"
+            )
     lines.append("")
     return lines
 
 
-def write_summary_md(path, df, *, default_name: str | None, goal: AccuracyGoal = AccuracyGoal(), notes=(),
-                     max_cost_ratio: float = 15.0, measure: str = "dofs", cylinder=None) -> str:
+def write_summary_md(
+    path,
+    df,
+    *,
+    default_name: str | None,
+    goal: AccuracyGoal = AccuracyGoal(),
+    notes=(),
+    max_cost_ratio: float = 15.0,
+    measure: str = "dofs",
+    cylinder=None,
+) -> str:
     """Write :func:`summary_markdown` to ``path`` (atomically); returns the text."""
     from ..io import atomic_path
 
-    text = summary_markdown(df, default_name=default_name, goal=goal, notes=notes, max_cost_ratio=max_cost_ratio,
-                            measure=measure, cylinder=cylinder)
+    text = summary_markdown(
+        df,
+        default_name=default_name,
+        goal=goal,
+        notes=notes,
+        max_cost_ratio=max_cost_ratio,
+        measure=measure,
+        cylinder=cylinder,
+    )
     with atomic_path(path) as tmp:
         Path(tmp).write_text(text)
     return text
 
 
-def plot_error_vs_time(path, df, *, goal: AccuracyGoal = AccuracyGoal(), passes=None, cylinder=None) -> None:
+def plot_error_vs_time(
+    path, df, *, goal: AccuracyGoal = AccuracyGoal(), passes=None, cylinder=None
+) -> None:
     """Log–log error against wall time, three panels per row (VOI, largest bin error, force), one row per
     animal and one for the cylinder scene. A limb row has one line per ladder family and variant and,
     with ``passes`` (:func:`adaptive_pass_errors`), each adaptive run's passes (black, the wall time of
@@ -248,9 +372,11 @@ def plot_error_vs_time(path, df, *, goal: AccuracyGoal = AccuracyGoal(), passes=
 
     from ..io import atomic_path
 
-    panels = [("voi_rel_error", "VOI error [%]", 100.0, 100 * goal.voi_rel_error),
-              ("bin_max_error_pp", "largest bin error [pp]", 1.0, goal.bin_error_pp),
-              ("force_rel_error", "force error [%]", 100.0, 100 * goal.force_rel_error)]
+    panels = [
+        ("voi_rel_error", "VOI error [%]", 100.0, 100 * goal.voi_rel_error),
+        ("bin_max_error_pp", "largest bin error [pp]", 1.0, goal.bin_error_pp),
+        ("force_rel_error", "force error [%]", 100.0, 100 * goal.force_rel_error),
+    ]
     animals = list(dict.fromkeys(df["animal"]))
     n_rows = len(animals) + (cylinder is not None and len(cylinder) > 0)
     fig, axes = plt.subplots(n_rows, 3, figsize=(14, 3.9 * n_rows + 0.9), squeeze=False)
@@ -274,35 +400,97 @@ def plot_error_vs_time(path, df, *, goal: AccuracyGoal = AccuracyGoal(), passes=
             for i, fam in enumerate(families):
                 mk = set(mine.loc[mine["family"] == fam, "mesh_key"])
                 for j, var in enumerate(variants):
-                    sel = mine[(mine["variant"] == var) & ((mine["family"] == fam) | (mine["mesh_key"].isin(mk) & fam.endswith("tolerance")))]
+                    sel = mine[
+                        (mine["variant"] == var)
+                        & (
+                            (mine["family"] == fam)
+                            | (mine["mesh_key"].isin(mk) & fam.endswith("tolerance"))
+                        )
+                    ]
                     sel = sel.sort_values("wall_s")
-                    line(ax, sel["wall_s"], sel[col].astype(float) * scale, f"{fam}, {var}",
-                         marker=markers[j % len(markers)], color=colours[i % len(colours)], ls="-" if j == 0 else "--")
+                    line(
+                        ax,
+                        sel["wall_s"],
+                        sel[col].astype(float) * scale,
+                        f"{fam}, {var}",
+                        marker=markers[j % len(markers)],
+                        color=colours[i % len(colours)],
+                        ls="-" if j == 0 else "--",
+                    )
                     default = sel[sel["is_default"].astype(bool)]
-                    line(ax, default["wall_s"], default[col].astype(float) * scale, "configured default",
-                         marker="*", ms=16, mfc="none", mec="k", ls="none")
+                    line(
+                        ax,
+                        default["wall_s"],
+                        default[col].astype(float) * scale,
+                        "configured default",
+                        marker="*",
+                        ms=16,
+                        mfc="none",
+                        mec="k",
+                        ls="none",
+                    )
             if passes is not None and len(passes):
                 for j, var in enumerate(variants):
-                    a = passes[(passes["animal"] == animal) & (passes["variant"] == var)].sort_values("wall_s")
-                    line(ax, a["wall_s"], a[col].astype(float) * scale, f"adaptive, {var}",
-                         marker=markers[j % len(markers)], color="k", ls="-" if j == 0 else "--", mfc="none")
+                    a = passes[
+                        (passes["animal"] == animal) & (passes["variant"] == var)
+                    ].sort_values("wall_s")
+                    line(
+                        ax,
+                        a["wall_s"],
+                        a[col].astype(float) * scale,
+                        f"adaptive, {var}",
+                        marker=markers[j % len(markers)],
+                        color="k",
+                        ls="-" if j == 0 else "--",
+                        mfc="none",
+                    )
                     done = a[a["converged"].astype(bool)]
-                    if len(done) and a["wall_s"].max() > done["wall_s"].iloc[-1]:  # passes spent after the answer
+                    if (
+                        len(done) and a["wall_s"].max() > done["wall_s"].iloc[-1]
+                    ):  # passes spent after the answer
                         y = float(done[col].iloc[-1]) * scale
-                        line(ax, [done["wall_s"].iloc[-1], a["wall_s"].max()], [y, y], "adaptive: a pass that did not converge",
-                             color="k", ls=":", marker="x", markevery=[1])
+                        line(
+                            ax,
+                            [done["wall_s"].iloc[-1], a["wall_s"].max()],
+                            [y, y],
+                            "adaptive: a pass that did not converge",
+                            color="k",
+                            ls=":",
+                            marker="x",
+                            markevery=[1],
+                        )
             ax.set_title(f"{animal}: {label}", fontsize=9)
     if n_rows > len(animals):
         cyl = cylinder
-        true = {"voi_rel_error": "true_voi_percent", "bin_max_error_pp": "true_bins_pp", "force_rel_error": "true_force_percent"}
+        true = {
+            "voi_rel_error": "true_voi_percent",
+            "bin_max_error_pp": "true_bins_pp",
+            "force_rel_error": "true_force_percent",
+        }
         for ax, (col, label, _, g) in zip(axes[-1], panels):
             for j, d in enumerate(sorted(cyl["depth_mm"].unique())):
                 at = cyl[cyl["depth_mm"] == d].sort_values("wall_s")
                 f, a = at[at["kind"] == "fixed"], at[at["kind"] == "adaptive"]
-                line(ax, f["wall_s"], f[true[col]].astype(float).abs(), f"cylinder {d:g} mm, fixed mesh",
-                     marker="s", ms=8, mfc="none", color=colours[(j + 3) % len(colours)], ls="none")
-                line(ax, a["wall_s"], a[true[col]].astype(float).abs(), f"cylinder {d:g} mm, adaptive",
-                     marker="o", color=colours[(j + 3) % len(colours)], ls="-")
+                line(
+                    ax,
+                    f["wall_s"],
+                    f[true[col]].astype(float).abs(),
+                    f"cylinder {d:g} mm, fixed mesh",
+                    marker="s",
+                    ms=8,
+                    mfc="none",
+                    color=colours[(j + 3) % len(colours)],
+                    ls="none",
+                )
+                line(
+                    ax,
+                    a["wall_s"],
+                    a[true[col]].astype(float).abs(),
+                    f"cylinder {d:g} mm, adaptive",
+                    marker="o",
+                    color=colours[(j + 3) % len(colours)],
+                    ls="-",
+                )
             ax.set_title(f"cylinder scene: {label}", fontsize=9)
     for ax, (_, label, _, g) in zip(axes.ravel(), panels * n_rows):
         ax.axhline(g, color="k", ls=":", lw=1)
@@ -314,8 +502,18 @@ def plot_error_vs_time(path, df, *, goal: AccuracyGoal = AccuracyGoal(), passes=
         ax.set_ylabel(label)
         ax.grid(True, which="both", alpha=0.3)
     if handles:
-        fig.legend(list(handles.values()), list(handles), loc="lower center", ncol=4, fontsize=8, frameon=False)
-    fig.suptitle("Error against the finest converged run vs wall time (dotted: goal; star: configured default)", fontsize=10)
+        fig.legend(
+            list(handles.values()),
+            list(handles),
+            loc="lower center",
+            ncol=4,
+            fontsize=8,
+            frameon=False,
+        )
+    fig.suptitle(
+        "Error against the finest converged run vs wall time (dotted: goal; star: configured default)",
+        fontsize=10,
+    )
     legend_rows = (len(handles) + 3) // 4
     fig.tight_layout(rect=(0, min(0.35, 0.025 * legend_rows * 4 / n_rows), 1, 0.97))
     with atomic_path(path) as tmp:
@@ -340,9 +538,21 @@ def read_benchmark(path) -> dict:
     return out
 
 
-def aggregate_convergence(*, row_paths, benchmark_paths=(), adaptive_paths=(), cylinder_path=None, csv_path, png_path,
-                          md_path, default_name: str | None, goal: dict | None = None, notes=(),
-                          max_cost_ratio: float = 15.0, measure: str = "dofs"):
+def aggregate_convergence(
+    *,
+    row_paths,
+    benchmark_paths=(),
+    adaptive_paths=(),
+    cylinder_path=None,
+    csv_path,
+    png_path,
+    md_path,
+    default_name: str | None,
+    goal: dict | None = None,
+    notes=(),
+    max_cost_ratio: float = 15.0,
+    measure: str = "dofs",
+):
     """Rule ``convergence_aggregate``: the rows and Snakemake's benchmarks -> the table, figure and summary.
 
     Parameters
@@ -393,7 +603,11 @@ def aggregate_convergence(*, row_paths, benchmark_paths=(), adaptive_paths=(), c
         r = read_json(p)
         r.update(bench.get(f"{r['animal']}/{r['variant']}_{r['setting']}", {}))
         rows.append(r)
-    passes = pd.concat([pd.read_csv(p) for p in adaptive_paths], ignore_index=True) if adaptive_paths else None
+    passes = (
+        pd.concat([pd.read_csv(p) for p in adaptive_paths], ignore_index=True)
+        if adaptive_paths
+        else None
+    )
     if passes is not None:
         rows += adaptive_rows(passes)
         passes = adaptive_pass_errors(passes, reference_rows(rows))
@@ -402,6 +616,14 @@ def aggregate_convergence(*, row_paths, benchmark_paths=(), adaptive_paths=(), c
     with atomic_path(csv_path) as tmp:
         df.to_csv(tmp, index=False)
     plot_error_vs_time(png_path, df, goal=g, passes=passes, cylinder=cylinder)
-    write_summary_md(md_path, df, default_name=default_name, goal=g, notes=notes, max_cost_ratio=max_cost_ratio,
-                     measure=measure, cylinder=cylinder)
+    write_summary_md(
+        md_path,
+        df,
+        default_name=default_name,
+        goal=g,
+        notes=notes,
+        max_cost_ratio=max_cost_ratio,
+        measure=measure,
+        cylinder=cylinder,
+    )
     return df

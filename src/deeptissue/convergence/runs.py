@@ -21,14 +21,50 @@ log = logging.getLogger(__name__)
 
 # keys of a row of run_discretisation, the columns of convergence.csv before the errors
 ROW_COLUMNS = (
-    "animal", "variant", "setting", "family", "element_order", "element_size_mm", "refine_size_mm",
-    "tolerance", "rtol", "gap_tol_rel", "mesh_key", "is_default", "converged", "reason",
-    "n_elements", "n_dofs", "increments", "newton_iterations", "gamma_sampling", "voi_mm3", "bins_percent",
-    "voi_sampled_mm3", "bins_sampled_percent", "voi_centroid_mm3", "bins_centroid_percent", "voi_err_mm3",
-    "bins_err_pp", "peak_gamma",
-    "indenter_force_N", "mesh_s", "assembly_s", "linear_solve_s", "contact_s", "solver_other_s",
-    "post_s", "solve_s", "wall_s", "linear_setup_s", "linear_assembly_s", "linear_factor_solve_s",
-    "linear_wall_s", "cost_ratio", "start_rss_mb", "peak_rss_mb",
+    "animal",
+    "variant",
+    "setting",
+    "family",
+    "element_order",
+    "element_size_mm",
+    "refine_size_mm",
+    "tolerance",
+    "rtol",
+    "gap_tol_rel",
+    "mesh_key",
+    "is_default",
+    "converged",
+    "reason",
+    "n_elements",
+    "n_dofs",
+    "increments",
+    "newton_iterations",
+    "gamma_sampling",
+    "voi_mm3",
+    "bins_percent",
+    "voi_sampled_mm3",
+    "bins_sampled_percent",
+    "voi_centroid_mm3",
+    "bins_centroid_percent",
+    "voi_err_mm3",
+    "bins_err_pp",
+    "peak_gamma",
+    "indenter_force_N",
+    "mesh_s",
+    "assembly_s",
+    "linear_solve_s",
+    "contact_s",
+    "solver_other_s",
+    "post_s",
+    "solve_s",
+    "wall_s",
+    "linear_setup_s",
+    "linear_assembly_s",
+    "linear_factor_solve_s",
+    "linear_wall_s",
+    "cost_ratio",
+    "start_rss_mb",
+    "peak_rss_mb",
 )
 
 
@@ -37,8 +73,9 @@ def _rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def linear_reference_solve(mesh, *, material, solver_settings, load_set: str = "patch",
-                           direction=(0.0, 0.0, -1.0)) -> dict:
+def linear_reference_solve(
+    mesh, *, material, solver_settings, load_set: str = "patch", direction=(0.0, 0.0, -1.0)
+) -> dict:
     """One linear-elastic solve on ``mesh``: the tangent at u = 0 assembled once, factorised once.
 
     The bone facets are fixed; a total force of 1 N along
@@ -58,7 +95,9 @@ def linear_reference_solve(mesh, *, material, solver_settings, load_set: str = "
     constrained = np.zeros(3 * n, bool)
     bone = np.unique(mesh.facets["bone"])
     constrained[(3 * bone[:, None] + np.arange(3)).ravel()] = True
-    asm = Assembler(mesh, as_material_law(material), constrained=constrained, intorder=s.quadrature_order)
+    asm = Assembler(
+        mesh, as_material_law(material), constrained=constrained, intorder=s.quadrature_order
+    )
     t1 = time.perf_counter()
     _, _, data, _ = asm.tangent(np.zeros(3 * n))
     t2 = time.perf_counter()
@@ -67,20 +106,39 @@ def linear_reference_solve(mesh, *, material, solver_settings, load_set: str = "
     d = np.asarray(direction, float)
     d = d / np.linalg.norm(d)
     rhs = np.zeros(3 * n)
-    rhs[(3 * loaded[:, None] + np.arange(3)).ravel()] = np.tile(d / max(len(loaded), 1), len(loaded))
+    rhs[(3 * loaded[:, None] + np.arange(3)).ravel()] = np.tile(
+        d / max(len(loaded), 1), len(loaded)
+    )
     solver = PardisoSymmetric("mixed")
     try:
         x = solver.solve(asm.csr(data), rhs[asm.free])
     finally:
         solver.close()
     t3 = time.perf_counter()
-    return dict(linear_setup_s=t1 - t0, linear_assembly_s=t2 - t1, linear_factor_solve_s=t3 - t2,
-                linear_wall_s=t3 - t0, linear_max_displacement_mm=float(np.max(np.abs(x))) if len(x) else 0.0)
+    return dict(
+        linear_setup_s=t1 - t0,
+        linear_assembly_s=t2 - t1,
+        linear_factor_solve_s=t3 - t2,
+        linear_wall_s=t3 - t0,
+        linear_max_displacement_mm=float(np.max(np.abs(x))) if len(x) else 0.0,
+    )
 
 
-def run_discretisation(*, animal: str, variant: str, setting: Discretisation, contours, pose, cast=None,
-                       model_cfg: dict | None = None, fem_cfg: dict | None = None, study_cfg: dict | None = None,
-                       mesh_variants=None, linear_reference: bool = True, is_default: bool = False) -> dict:
+def run_discretisation(
+    *,
+    animal: str,
+    variant: str,
+    setting: Discretisation,
+    contours,
+    pose,
+    cast=None,
+    model_cfg: dict | None = None,
+    fem_cfg: dict | None = None,
+    study_cfg: dict | None = None,
+    mesh_variants=None,
+    linear_reference: bool = True,
+    is_default: bool = False,
+) -> dict:
     """Mesh, solve and summarise one animal x variant at one setting, timing each part.
 
     Parameters
@@ -130,36 +188,59 @@ def run_discretisation(*, animal: str, variant: str, setting: Discretisation, co
     from ..variants import mesh_groups
 
     if setting.element_order not in SUPPORTED_ELEMENT_ORDERS:
-        raise ValueError(f"setting {setting.name}: element order {setting.element_order} is not supported by the mesh/FE "
-                         f"code (supported: {list(SUPPORTED_ELEMENT_ORDERS)})")
+        raise ValueError(
+            f"setting {setting.name}: element order {setting.element_order} is not supported by the mesh/FE "
+            f"code (supported: {list(SUPPORTED_ELEMENT_ORDERS)})"
+        )
     fem_cfg = dict(fem_cfg or {})
     study_cfg = dict(study_cfg or {})
     start_rss = _rss_mb()
     row: dict = {k: None for k in ROW_COLUMNS}
-    row.update(animal=animal, variant=variant, setting=setting.name, family=setting.family,
-               element_order=setting.element_order, element_size_mm=setting.element_size_mm,
-               refine_size_mm=setting.refine_size_mm, tolerance=setting.tolerance, rtol=setting.rtol,
-               gap_tol_rel=setting.gap_tol_rel, mesh_key=setting.mesh_key, is_default=bool(is_default),
-               converged=False, start_rss_mb=start_rss)
+    row.update(
+        animal=animal,
+        variant=variant,
+        setting=setting.name,
+        family=setting.family,
+        element_order=setting.element_order,
+        element_size_mm=setting.element_size_mm,
+        refine_size_mm=setting.refine_size_mm,
+        tolerance=setting.tolerance,
+        rtol=setting.rtol,
+        gap_tol_rel=setting.gap_tol_rel,
+        mesh_key=setting.mesh_key,
+        is_default=bool(is_default),
+        converged=False,
+        start_rss_mb=start_rss,
+    )
     if mesh_variants:
         variants = list(mesh_variants)
     else:  # the variants of the variant's study mesh
-        groups = mesh_groups(study_cfg.get("variants") or [variant], by=(model_cfg or {}).get("mesh_groups", ModelSettings.mesh_groups))
+        groups = mesh_groups(
+            study_cfg.get("variants") or [variant],
+            by=(model_cfg or {}).get("mesh_groups", ModelSettings.mesh_groups),
+        )
         variants = next((list(m) for m in groups.values() if variant in m), [])
     if variant not in variants:
         variants.append(variant)
     msettings = setting.model_settings(model_cfg)
     msettings.setdefault("bar_length_mm", float(fem_cfg.get("bar_length_mm", 10.0)))
     use_cast = cast is not False
-    if cast is None or cast is False:  # the cast does not depend on the element size: built untimed
+    if (
+        cast is None or cast is False
+    ):  # the cast does not depend on the element size: built untimed
         cast = build_cast(contours, pose, variants=variants, settings=msettings, animal=animal)
     t0 = time.perf_counter()
     try:
-        model = build_model(contours, pose, variants=variants, settings=msettings, animal=animal, cast=cast)
+        model = build_model(
+            contours, pose, variants=variants, settings=msettings, animal=animal, cast=cast
+        )
     except Exception as exc:  # a mesh that fails the quality gate is a result of this setting
         log.error("%s/%s/%s: meshing failed: %s", animal, variant, setting.name, exc)
-        row.update(reason=f"meshing failed: {type(exc).__name__}: {exc}", mesh_s=time.perf_counter() - t0,
-                   peak_rss_mb=_rss_mb())
+        row.update(
+            reason=f"meshing failed: {type(exc).__name__}: {exc}",
+            mesh_s=time.perf_counter() - t0,
+            peak_rss_mb=_rss_mb(),
+        )
         return row
     mesh = model.mesh
     row["mesh_s"] = time.perf_counter() - t0
@@ -171,8 +252,17 @@ def run_discretisation(*, animal: str, variant: str, setting: Discretisation, co
     bar = float(fem_cfg.get("bar_length_mm", 10.0))
     t1 = time.perf_counter()
     try:
-        summary, _, _ = solve_variant(animal=animal, variant=variant, mesh=mesh, pose=pose, cast=fem_cast,
-                                      material=material, settings=settings, study=study, bar_length_mm=bar)
+        summary, _, _ = solve_variant(
+            animal=animal,
+            variant=variant,
+            mesh=mesh,
+            pose=pose,
+            cast=fem_cast,
+            material=material,
+            settings=settings,
+            study=study,
+            bar_length_mm=bar,
+        )
     except Exception as exc:  # set-up errors of the solver: recorded, the ladder goes on
         log.exception("%s/%s/%s: solve failed", animal, variant, setting.name)
         row.update(reason=f"{type(exc).__name__}: {exc}", peak_rss_mb=_rss_mb())
@@ -182,37 +272,74 @@ def run_discretisation(*, animal: str, variant: str, setting: Discretisation, co
     solve_s = float(d.get("solver_wall_s") or 0.0)
     parts = {k: float(d.get(k) or 0.0) for k in ("assembly_s", "linear_solve_s", "contact_s")}
     row.update(
-        converged=bool(summary.converged), reason=summary.reason, n_dofs=d.get("n_dofs"),
-        increments=d.get("increments"), newton_iterations=d.get("newton_iterations"), voi_mm3=summary.voi_mm3,
-        bins_percent=summary.bins_percent, gamma_sampling=summary.gamma_sampling,
-        voi_sampled_mm3=summary.voi_sampled_mm3, bins_sampled_percent=summary.bins_sampled_percent,
-        voi_centroid_mm3=summary.voi_centroid_mm3, bins_centroid_percent=summary.bins_centroid_percent,
-        voi_err_mm3=summary.voi_err_mm3, bins_err_pp=summary.bins_err_pp, peak_gamma=summary.peak_gamma,
+        converged=bool(summary.converged),
+        reason=summary.reason,
+        n_dofs=d.get("n_dofs"),
+        increments=d.get("increments"),
+        newton_iterations=d.get("newton_iterations"),
+        voi_mm3=summary.voi_mm3,
+        bins_percent=summary.bins_percent,
+        gamma_sampling=summary.gamma_sampling,
+        voi_sampled_mm3=summary.voi_sampled_mm3,
+        bins_sampled_percent=summary.bins_sampled_percent,
+        voi_centroid_mm3=summary.voi_centroid_mm3,
+        bins_centroid_percent=summary.bins_centroid_percent,
+        voi_err_mm3=summary.voi_err_mm3,
+        bins_err_pp=summary.bins_err_pp,
+        peak_gamma=summary.peak_gamma,
         indenter_force_N=summary.indenter_force_N,
-        solve_s=solve_s, solver_other_s=max(solve_s - sum(parts.values()), 0.0),
-        post_s=max(run_s - solve_s, 0.0), **parts,
+        solve_s=solve_s,
+        solver_other_s=max(solve_s - sum(parts.values()), 0.0),
+        post_s=max(run_s - solve_s, 0.0),
+        **parts,
     )
     row["wall_s"] = row["mesh_s"] + run_s
     if linear_reference:
         axis = variant_indenter(pose, variant, bar_length_mm=bar).axis
         patch = f"patch_{variant}" if f"patch_{variant}" in mesh.facets else "patch"
         try:
-            lin = linear_reference_solve(mesh, material=material, solver_settings=settings, load_set=patch, direction=axis)
+            lin = linear_reference_solve(
+                mesh, material=material, solver_settings=settings, load_set=patch, direction=axis
+            )
             row.update({k: v for k, v in lin.items() if k in ROW_COLUMNS})
-            row["cost_ratio"] = solve_s / lin["linear_wall_s"] if lin["linear_wall_s"] > 0 else None
+            row["cost_ratio"] = (
+                solve_s / lin["linear_wall_s"] if lin["linear_wall_s"] > 0 else None
+            )
         except Exception as exc:
             log.exception("%s/%s/%s: linear reference solve failed", animal, variant, setting.name)
             row["linear_error"] = f"{type(exc).__name__}: {exc}"
     row["peak_rss_mb"] = _rss_mb()
-    log.info("%s/%s/%s: converged %s, %s tets, %s dofs, solve %.1f s, linear %.2f s, peak %.0f MB",
-             animal, variant, setting.name, row["converged"], row["n_elements"], row["n_dofs"], solve_s,
-             row["linear_wall_s"] or float("nan"), row["peak_rss_mb"])
+    log.info(
+        "%s/%s/%s: converged %s, %s tets, %s dofs, solve %.1f s, linear %.2f s, peak %.0f MB",
+        animal,
+        variant,
+        setting.name,
+        row["converged"],
+        row["n_elements"],
+        row["n_dofs"],
+        solve_s,
+        row["linear_wall_s"] or float("nan"),
+        row["peak_rss_mb"],
+    )
     return row
 
 
-def run_convergence_job(*, animal: str, variant: str, setting: dict, contours_path, pose_path, cast_path,
-                        row_path, model_cfg: dict, fem_cfg: dict, study_cfg: dict, mesh_variants=None,
-                        is_default: bool = False, linear_reference: bool = True) -> dict:
+def run_convergence_job(
+    *,
+    animal: str,
+    variant: str,
+    setting: dict,
+    contours_path,
+    pose_path,
+    cast_path,
+    row_path,
+    model_cfg: dict,
+    fem_cfg: dict,
+    study_cfg: dict,
+    mesh_variants=None,
+    is_default: bool = False,
+    linear_reference: bool = True,
+) -> dict:
     """Rule ``convergence_run``: read the animal's pre contours, pose and cast, run
     :func:`run_discretisation` with ``setting`` (a :meth:`Discretisation.to_dict`) and write the row
     to ``row_path`` as JSON; returns the row."""
@@ -222,10 +349,18 @@ def run_convergence_job(*, animal: str, variant: str, setting: dict, contours_pa
     from ..pose import load_pose
 
     row = run_discretisation(
-        animal=animal, variant=variant, setting=Discretisation.from_dict(setting),
-        contours=load_contours(contours_path), pose=load_pose(pose_path),
-        cast=load_cast(cast_path) if cast_path else None, model_cfg=model_cfg, fem_cfg=fem_cfg,
-        study_cfg=study_cfg, mesh_variants=mesh_variants, is_default=is_default, linear_reference=linear_reference,
+        animal=animal,
+        variant=variant,
+        setting=Discretisation.from_dict(setting),
+        contours=load_contours(contours_path),
+        pose=load_pose(pose_path),
+        cast=load_cast(cast_path) if cast_path else None,
+        model_cfg=model_cfg,
+        fem_cfg=fem_cfg,
+        study_cfg=study_cfg,
+        mesh_variants=mesh_variants,
+        is_default=is_default,
+        linear_reference=linear_reference,
     )
     write_json(row_path, row)
     return row

@@ -50,7 +50,10 @@ def principal_energy(l1: float, l2: float, l3: float, material) -> float:
     if J <= 0:
         return math.inf
     s = J ** (-1.0 / 3.0)
-    return 2.0 * mu / al**2 * ((s * l1) ** al + (s * l2) ** al + (s * l3) ** al - 3.0) + (J - 1.0) ** 2 / D
+    return (
+        2.0 * mu / al**2 * ((s * l1) ** al + (s * l2) ** al + (s * l3) ** al - 3.0)
+        + (J - 1.0) ** 2 / D
+    )
 
 
 def principal_kirchhoff(l1: float, l2: float, l3: float, material) -> tuple[float, float, float]:

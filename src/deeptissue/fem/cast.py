@@ -32,8 +32,16 @@ class Cast:
     def __init__(self, vertices_mm: np.ndarray, triangles: np.ndarray, *, k_nearest: int = 8):
         self.v = np.asarray(vertices_mm, float)
         self.t = np.asarray(triangles, np.int64)
-        if self.v.ndim != 2 or self.v.shape[1] != 3 or self.t.ndim != 2 or self.t.shape[1] != 3 or len(self.t) == 0:
-            raise ValueError(f"cast: expected vertices (V, 3) and triangles (T, 3), got {self.v.shape} and {self.t.shape}")
+        if (
+            self.v.ndim != 2
+            or self.v.shape[1] != 3
+            or self.t.ndim != 2
+            or self.t.shape[1] != 3
+            or len(self.t) == 0
+        ):
+            raise ValueError(
+                f"cast: expected vertices (V, 3) and triangles (T, 3), got {self.v.shape} and {self.t.shape}"
+            )
         if self.t.min() < 0 or self.t.max() >= len(self.v):
             raise ValueError("cast: triangle vertex index out of range")
         a, b, c = (self.v[self.t[:, i]] for i in range(3))
@@ -46,14 +54,20 @@ class Cast:
         for i in range(3):
             np.add.at(vn, self.t[:, i], nrm)  # area-weighted
         self.vertex_normal = vn / np.linalg.norm(vn, axis=1, keepdims=True)
-        edges = np.concatenate([self.v[self.t[:, i]] - self.v[self.t[:, (i + 1) % 3]] for i in range(3)])
-        self.radius_mm = 1.2 * float(np.linalg.norm(edges, axis=1).max())  # support of the vertex weights
+        edges = np.concatenate(
+            [self.v[self.t[:, i]] - self.v[self.t[:, (i + 1) % 3]] for i in range(3)]
+        )
+        self.radius_mm = 1.2 * float(
+            np.linalg.norm(edges, axis=1).max()
+        )  # support of the vertex weights
         self.vtree = cKDTree(self.v)
         self.centroid = (a + b + c) / 3.0
         self.tree = cKDTree(self.centroid)
         self.k = min(k_nearest, len(self.t))
         # boundary edges (used by one triangle): region codes 1..3 of a triangle that are free
-        e = np.stack([self.t[:, [0, 1]], self.t[:, [1, 2]], self.t[:, [2, 0]]], axis=1)  # (T, 3, 2)
+        e = np.stack(
+            [self.t[:, [0, 1]], self.t[:, [1, 2]], self.t[:, [2, 0]]], axis=1
+        )  # (T, 3, 2)
         es = np.sort(e, axis=2).reshape(-1, 2)
         keys = es[:, 0] * len(self.v) + es[:, 1]
         _, inv, cnt = np.unique(keys, return_inverse=True, return_counts=True)
@@ -63,7 +77,7 @@ class Cast:
         self.free_vertex = vfree[self.t]  # (T, 3)
 
     @classmethod
-    def load(cls, path: str | Path, **kwargs) -> "Cast":
+    def load(cls, path: str | Path, **kwargs) -> Cast:
         """Read cast.npz (arrays vertices_mm, triangles); kwargs go to the constructor."""
         try:
             with np.load(path) as d:
@@ -111,7 +125,11 @@ class Cast:
         side = np.where(np.einsum("ij,ij->i", r, ntri) >= 0, 1.0, -1.0)
         d = np.linalg.norm(r, axis=1)
         g = np.where(reg == 0, np.einsum("ij,ij->i", r, ntri), side * d)
-        nrm = np.where((reg == 0)[:, None] | (d[:, None] <= 1e-12), ntri, side[:, None] * r / np.maximum(d, 1e-300)[:, None])
+        nrm = np.where(
+            (reg == 0)[:, None] | (d[:, None] <= 1e-12),
+            ntri,
+            side[:, None] * r / np.maximum(d, 1e-300)[:, None],
+        )
         # the moving-least-squares gap and its exact gradient where vertices are within the support
         rr = self.radius_mm
         # the vertices within the support: 16 per point, more (doubled) only for the points whose 16th is inside
@@ -126,15 +144,17 @@ class Cast:
             idx = np.pad(idx, ((0, 0), (0, kv - idx.shape[1])), constant_values=len(self.v))
             dist[more], idx[more] = d_m.reshape(len(more), -1), i_m.reshape(len(more), -1)
             more = more[np.isfinite(dist[more, -1])]
-        width = max(int(np.isfinite(dist).sum(axis=1).max(initial=1)), 1)  # nearest first: the rest are outside
+        width = max(
+            int(np.isfinite(dist).sum(axis=1).max(initial=1)), 1
+        )  # nearest first: the rest are outside
         dist, idx = dist[:, :width], idx[:, :width]
         ok = np.isfinite(dist)
         vi = np.where(ok, idx, 0)
         dv = x[:, None, :] - self.v[vi]  # (n, k, 3)
         nv = self.vertex_normal[vi]
-        s_ = np.where(ok, dist ** 2 / rr ** 2, 1.0)
+        s_ = np.where(ok, dist**2 / rr**2, 1.0)
         w = np.where(ok, (1.0 - s_) ** 4, 0.0)
-        c1 = np.where(ok, -8.0 * (1.0 - s_) ** 3 / rr ** 2, 0.0)
+        c1 = np.where(ok, -8.0 * (1.0 - s_) ** 3 / rr**2, 0.0)
         dw = c1[:, :, None] * dv  # grad w_v = c1 dv, its Hessian c2 dv dv^T + c1 I
         W = w.sum(axis=1)
         smooth = W > 1e-6
@@ -148,11 +168,14 @@ class Cast:
         nrm = np.where(smooth[:, None], grad, nrm)
         H = None
         if hessian:  # zero where the facets' distance is used (flat faces)
-            c2 = np.where(ok, 48.0 * (1.0 - s_) ** 2 / rr ** 4, 0.0)
+            c2 = np.where(ok, 48.0 * (1.0 - s_) ** 2 / rr**4, 0.0)
             dvT = dv.transpose(0, 2, 1)
-            dA = (np.matmul(nv.transpose(0, 2, 1), dw) + np.matmul(dvT * (c2 * e_)[:, None, :], dv)
-                  + (c1 * e_).sum(axis=1)[:, None, None] * np.eye(3)
-                  + np.matmul(dw.transpose(0, 2, 1), nv - grad[:, None, :]))
+            dA = (
+                np.matmul(nv.transpose(0, 2, 1), dw)
+                + np.matmul(dvT * (c2 * e_)[:, None, :], dv)
+                + (c1 * e_).sum(axis=1)[:, None, None] * np.eye(3)
+                + np.matmul(dw.transpose(0, 2, 1), nv - grad[:, None, :])
+            )
             dW = dw.sum(axis=1)
             H = (dA - A[:, :, None] * dW[:, None, :] / Ws[:, None, None]) / Ws[:, None, None]
             H = np.where(smooth[:, None, None], H, 0.0)

@@ -35,7 +35,17 @@ __all__ = ["ContactSurface", "WeightedContact", "tri3_shape", "tri6_shape"]
 def tri6_shape(xi: np.ndarray, eta: np.ndarray):
     """Shape functions N (Q, 6) and derivatives dN (Q, 6, 2) of gmsh's Triangle6 at (xi, eta)."""
     l0 = 1.0 - xi - eta
-    N = np.stack([l0 * (2 * l0 - 1), xi * (2 * xi - 1), eta * (2 * eta - 1), 4 * l0 * xi, 4 * xi * eta, 4 * eta * l0], -1)
+    N = np.stack(
+        [
+            l0 * (2 * l0 - 1),
+            xi * (2 * xi - 1),
+            eta * (2 * eta - 1),
+            4 * l0 * xi,
+            4 * xi * eta,
+            4 * eta * l0,
+        ],
+        -1,
+    )
     dxi = np.stack([-(4 * l0 - 1), 4 * xi - 1, 0 * xi, 4 * (l0 - xi), 4 * eta, -4 * eta], -1)
     deta = np.stack([-(4 * l0 - 1), 0 * xi, 4 * eta - 1, -4 * xi, 4 * xi, 4 * (l0 - eta)], -1)
     return N, np.stack([dxi, deta], -1)
@@ -107,7 +117,16 @@ class WeightedContact:
             # local entry index of each facet node (-1: excluded node, no constraint)
             ent = np.full(len(X), -1, np.int64)
             ent[nd] = np.arange(len(nd)) + sum(len(n) for n in nodes)
-            self.sets.append(dict(facets=facets, N=N, psi=psi, X=np.einsum("qa,kai->kqi", N, Xf), A=A, entry=ent[facets]))
+            self.sets.append(
+                dict(
+                    facets=facets,
+                    N=N,
+                    psi=psi,
+                    X=np.einsum("qa,kai->kqi", N, Xf),
+                    A=A,
+                    entry=ent[facets],
+                )
+            )
             nodes.append(nd)
             obst.append(np.full(len(nd), k))
             h.append(hn[nd])
@@ -139,7 +158,9 @@ class WeightedContact:
 
     def ncp(self, lam, g):
         """min(lam, c g) per entry [N] (0 at a solution; 0 outside the candidates)."""
-        return np.where(np.isfinite(g), np.minimum(lam, self.c * np.where(np.isfinite(g), g, 0.0)), 0.0)
+        return np.where(
+            np.isfinite(g), np.minimum(lam, self.c * np.where(np.isfinite(g), g, 0.0)), 0.0
+        )
 
     def weighted(self, u, which, lam=None, curvature=True):
         """Weighted gaps of the entries ``which`` at u.
@@ -158,7 +179,13 @@ class WeightedContact:
             fsel = self.facets_with(k, which)
             if not len(fsel):
                 continue
-            fac, A, en, N, psi = st["facets"][fsel], st["A"][fsel], st["entry"][fsel], st["N"], st["psi"]
+            fac, A, en, N, psi = (
+                st["facets"][fsel],
+                st["A"][fsel],
+                st["entry"][fsel],
+                st["N"],
+                st["psi"],
+            )
             x = st["X"][fsel] + np.einsum("qa,fai->fqi", N, u3[fac])
             F, Q = A.shape
             g, n, H = self.gapfns[k](x.reshape(-1, 3), hessian=lam is not None and curvature)
@@ -167,7 +194,9 @@ class WeightedContact:
             Aq = np.where(fin, A, 0.0)
             valid = en >= 0
             np.add.at(m, en[valid], np.einsum("fq,qj->fj", Aq, psi)[valid])
-            np.add.at(num, en[valid], np.einsum("fq,qj->fj", Aq * np.where(fin, g, 0.0), psi)[valid])
+            np.add.at(
+                num, en[valid], np.einsum("fq,qj->fj", Aq * np.where(fin, g, 0.0), psi)[valid]
+            )
             B = np.einsum("fq,qj,qa,fqi->fjai", Aq, psi, N, np.where(fin[..., None], n, 0.0))
             Hq = None if H is None else np.where(fin[..., None, None], H.reshape(F, Q, 3, 3), 0.0)
             parts.append((fac, Aq, en, valid, B, Hq, N, psi))
@@ -195,8 +224,11 @@ class WeightedContact:
                     blk = -np.einsum("fq,qa,qb,fqij->faibj", Aq * p, N, N, Hq)
                     nd = dof.shape[1] * 3
                     geo.append((dof.reshape(len(fac), nd), blk.reshape(len(fac), nd, nd)))
-        G = (np.concatenate(rows) if rows else np.zeros(0, np.int64), np.concatenate(cols) if cols else np.zeros(0, np.int64),
-             np.concatenate(vals) if vals else np.zeros(0))
+        G = (
+            np.concatenate(rows) if rows else np.zeros(0, np.int64),
+            np.concatenate(cols) if cols else np.zeros(0, np.int64),
+            np.concatenate(vals) if vals else np.zeros(0),
+        )
         if lam is None:
             return gw, G
         return gw, G, geo, force
@@ -217,7 +249,9 @@ class ContactSurface:
         if len(facets6) == 0:
             raise ValueError("contact surface: empty facet set")
         if facets6.ndim != 2 or facets6.shape[1] not in (3, 6):
-            raise ValueError(f"contact surface: facets must be (K, 6) or (K, 3), got {facets6.shape}")
+            raise ValueError(
+                f"contact surface: facets must be (K, 6) or (K, 3), got {facets6.shape}"
+            )
         q, w = get_quadrature(RefTri, order)
         self.N, dN = (tri6_shape if facets6.shape[1] == 6 else tri3_shape)(q[0], q[1])
         Xf = nodes_mm[facets6]  # (K, 6, 3)
@@ -226,7 +260,9 @@ class ContactSurface:
         self.dA0 = np.linalg.norm(np.cross(a1, a2), axis=-1) * w
         self.X = np.einsum("qa,kai->kqi", self.N, Xf)
         self.facets6 = facets6
-        self.dofs = (3 * facets6[:, :, None] + np.arange(3)).reshape(len(facets6), 3 * facets6.shape[1])
+        self.dofs = (3 * facets6[:, :, None] + np.arange(3)).reshape(
+            len(facets6), 3 * facets6.shape[1]
+        )
         self.h_mm = np.sqrt(2.0 * self.dA0.sum(axis=1))
         self.n_facets, self.n_qp = self.dA0.shape
 

@@ -11,9 +11,9 @@ discretisation error of the study's numbers and its estimate (:mod:`deeptissue.e
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import pandas as pd
@@ -24,9 +24,24 @@ from .indenters import Indenter
 from .solver import SolverSettings, solve_from, solve_indentation
 from .transfer import mapped_end_state
 
-__all__ = ["ADAPTIVE_START", "CURVE_DEPTHS_MM", "CylinderMesh", "ESTIMATES", "REFERENCE_MESH", "VOI_DEPTHS_MM",
-           "adaptive_comparison", "adaptive_cylinder", "contact_tets", "cylinder_estimate", "cylinder_mesh",
-           "cylinder_scene", "effectivity_table", "mesh_convergence", "plot_adaptive", "write_adaptive_cylinder"]
+__all__ = [
+    "ADAPTIVE_START",
+    "CURVE_DEPTHS_MM",
+    "CylinderMesh",
+    "ESTIMATES",
+    "REFERENCE_MESH",
+    "VOI_DEPTHS_MM",
+    "adaptive_comparison",
+    "adaptive_cylinder",
+    "contact_tets",
+    "cylinder_estimate",
+    "cylinder_mesh",
+    "cylinder_scene",
+    "effectivity_table",
+    "mesh_convergence",
+    "plot_adaptive",
+    "write_adaptive_cylinder",
+]
 
 CURVE_DEPTHS_MM = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)  # depths of the force-depth curve [mm]
 VOI_DEPTHS_MM = (1.5, 2.0, 3.0)  # depths at which the VOI and bins are computed [mm]
@@ -53,12 +68,23 @@ class CylinderMesh:
 
 # the finest mesh of the verification case: 0.4 mm within 2.5 mm of the contact, 1.2 mm elsewhere (70 503
 # DOFs); 0.3 mm (126 600 DOFs) takes over 20 minutes for one 3 mm solve on a shared core
-REFERENCE_MESH = CylinderMesh(element_size_mm=1.2, refine_size_mm=0.4, refine_radius_mm=2.5, refine_transition_mm=2.0,
-                              refine_depth_mm=4.0)
+REFERENCE_MESH = CylinderMesh(
+    element_size_mm=1.2,
+    refine_size_mm=0.4,
+    refine_radius_mm=2.5,
+    refine_transition_mm=2.0,
+    refine_depth_mm=4.0,
+)
 
 
-def cylinder_mesh(sizes: CylinderMesh = CylinderMesh(), *, radius_mm: float = 8.0, height_mm: float = 8.0,
-                  order: int = 2, size_field=None) -> TetMesh:
+def cylinder_mesh(
+    sizes: CylinderMesh = CylinderMesh(),
+    *,
+    radius_mm: float = 8.0,
+    height_mm: float = 8.0,
+    order: int = 2,
+    size_field=None,
+) -> TetMesh:
     """The tissue cylinder ``x² + y² <= radius², 0 <= z <= height`` meshed with gmsh.
 
     Facet sets: ``bone`` (bottom face z = 0, fixed), ``patch`` (top face, the indenter's contact
@@ -69,7 +95,9 @@ def cylinder_mesh(sizes: CylinderMesh = CylinderMesh(), *, radius_mm: float = 8.
     from .shapes import _finish, _start
 
     if sizes.refine_size_mm > sizes.element_size_mm:
-        raise ValueError(f"refine_size_mm {sizes.refine_size_mm} > element_size_mm {sizes.element_size_mm}")
+        raise ValueError(
+            f"refine_size_mm {sizes.refine_size_mm} > element_size_mm {sizes.element_size_mm}"
+        )
     gmsh = _start("cylinder")
     try:
         gmsh.model.occ.addCylinder(0, 0, 0, 0, 0, height_mm, radius_mm)
@@ -78,7 +106,9 @@ def cylinder_mesh(sizes: CylinderMesh = CylinderMesh(), *, radius_mm: float = 8.
         groups = {"bone": [], "patch": [], "side": []}
         for _, t in gmsh.model.getEntities(2):
             z = gmsh.model.occ.getCenterOfMass(2, t)[2]
-            groups["bone" if abs(z) < 1e-6 else "patch" if abs(z - height_mm) < 1e-6 else "side"].append(t)
+            groups[
+                "bone" if abs(z) < 1e-6 else "patch" if abs(z - height_mm) < 1e-6 else "side"
+            ].append(t)
         for name, tags in groups.items():
             gmsh.model.addPhysicalGroup(2, tags, name=name)
         gmsh.model.addPhysicalGroup(2, groups["patch"] + groups["side"], name="skin")
@@ -101,8 +131,13 @@ def cylinder_mesh(sizes: CylinderMesh = CylinderMesh(), *, radius_mm: float = 8.
             fd = gmsh.model.mesh.field.add("Distance")
             gmsh.model.mesh.field.setNumbers(fd, "PointsList", pts)
             ft = gmsh.model.mesh.field.add("Threshold")
-            for k, v in dict(InField=fd, SizeMin=hr, SizeMax=h, DistMin=sizes.refine_radius_mm,
-                             DistMax=sizes.refine_radius_mm + sizes.refine_transition_mm).items():
+            for k, v in dict(
+                InField=fd,
+                SizeMin=hr,
+                SizeMax=h,
+                DistMin=sizes.refine_radius_mm,
+                DistMax=sizes.refine_radius_mm + sizes.refine_transition_mm,
+            ).items():
                 gmsh.model.mesh.field.setNumber(ft, k, v)
             gmsh.model.mesh.field.setAsBackgroundMesh(ft)
         return _finish(gmsh, order)
@@ -111,8 +146,13 @@ def cylinder_mesh(sizes: CylinderMesh = CylinderMesh(), *, radius_mm: float = 8.
 
 
 def _indenter(depth_mm: float, height_mm: float, radius_mm: float = 1.5) -> Indenter:
-    return Indenter("sphere", axis=(0.0, 0.0, -1.0), start_mm=(0.0, 0.0, height_mm + 1e-3),
-                    end_mm=(0.0, 0.0, height_mm - depth_mm), radius_mm=radius_mm)
+    return Indenter(
+        "sphere",
+        axis=(0.0, 0.0, -1.0),
+        start_mm=(0.0, 0.0, height_mm + 1e-3),
+        end_mm=(0.0, 0.0, height_mm - depth_mm),
+        radius_mm=radius_mm,
+    )
 
 
 def _other_estimates(mesh, u, summary, threshold, edges) -> dict:
@@ -124,18 +164,36 @@ def _other_estimates(mesh, u, summary, threshold, edges) -> dict:
     out = {}
     for rec in ("patch", "average"):
         e = voi_error_estimate(mesh, u, threshold=threshold, bin_edges=edges, recovery=rec)
-        out.update({f"est_{rec}_diff_voi_mm3": abs(e.voi_diff_mm3), f"est_{rec}_diff_bins_pp": max(e.bins_err_pp.values()),
-                    f"est_{rec}_moved_voi_mm3": e.voi_err_mm3, f"est_{rec}_moved_bins_pp": max(e.bins_moved_pp.values())})
-    d_voi, d_bins = sampling_difference(summary.voi_sampled_mm3, summary.bins_sampled_percent, summary.voi_centroid_mm3,
-                                        summary.bins_centroid_percent)
+        out.update(
+            {
+                f"est_{rec}_diff_voi_mm3": abs(e.voi_diff_mm3),
+                f"est_{rec}_diff_bins_pp": max(e.bins_err_pp.values()),
+                f"est_{rec}_moved_voi_mm3": e.voi_err_mm3,
+                f"est_{rec}_moved_bins_pp": max(e.bins_moved_pp.values()),
+            }
+        )
+    d_voi, d_bins = sampling_difference(
+        summary.voi_sampled_mm3,
+        summary.bins_sampled_percent,
+        summary.voi_centroid_mm3,
+        summary.bins_centroid_percent,
+    )
     out.update(est_sampling_voi_mm3=d_voi, est_sampling_bins_pp=max(d_bins.values()))
     return out
 
 
-def cylinder_scene(material, sizes: CylinderMesh = CylinderMesh(), *, curve_depths_mm: Sequence[float] = CURVE_DEPTHS_MM,
-                   voi_depths_mm: Sequence[float] = VOI_DEPTHS_MM, height_mm: float = 8.0, threshold: float = 0.3,
-                   bin_edges=None, settings: SolverSettings | None = None, mesh: TetMesh | None = None
-                   ) -> tuple[pd.DataFrame, pd.DataFrame]:
+def cylinder_scene(
+    material,
+    sizes: CylinderMesh = CylinderMesh(),
+    *,
+    curve_depths_mm: Sequence[float] = CURVE_DEPTHS_MM,
+    voi_depths_mm: Sequence[float] = VOI_DEPTHS_MM,
+    height_mm: float = 8.0,
+    threshold: float = 0.3,
+    bin_edges=None,
+    settings: SolverSettings | None = None,
+    mesh: TetMesh | None = None,
+) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Solve the cylinder scene on one mesh: a force-depth curve and the VOI at each of ``voi_depths_mm``.
 
     Each depth is its own solve to that depth with the solver's defaults (no cast, zero bone motion),
@@ -160,31 +218,63 @@ def cylinder_scene(material, sizes: CylinderMesh = CylinderMesh(), *, curve_dept
     rows, vois = [], []
     for d in sorted(set(map(float, curve_depths_mm)) | set(map(float, voi_depths_mm))):
         t0 = time.perf_counter()
-        r = solve_indentation(m, material=material, indenter=_indenter(d, height_mm), bone_motion=BoneMotion(), settings=st)
-        rows.append(dict(depth_mm=d, force_N=r.indenter_force_N if r.converged else np.nan, converged=r.converged,
-                         increments=r.increments, newton_iterations=r.newton_iterations,
-                         wall_s=time.perf_counter() - t0))
+        r = solve_indentation(
+            m,
+            material=material,
+            indenter=_indenter(d, height_mm),
+            bone_motion=BoneMotion(),
+            settings=st,
+        )
+        rows.append(
+            dict(
+                depth_mm=d,
+                force_N=r.indenter_force_N if r.converged else np.nan,
+                converged=r.converged,
+                increments=r.increments,
+                newton_iterations=r.newton_iterations,
+                wall_s=time.perf_counter() - t0,
+            )
+        )
         if d in voi_depths_mm and r.converged:
-            s, _ = summarize_solution(m, r.displacement_mm, animal="cylinder", variant=f"{d:g}mm", threshold=threshold,
-                                      bin_edges=edges)
-            vois.append(dict(depth_mm=d, voi_mm3=s.voi_mm3, voi_err_mm3=s.voi_err_mm3, voi_centroid_mm3=s.voi_centroid_mm3,
-                             **{f"bins_percent.{b}": p for b, p in s.bins_percent.items()},
-                             **{f"bins_err_pp.{b}": p for b, p in s.bins_err_pp.items()},
-                             **_other_estimates(m, r.displacement_mm, s, threshold, edges)))
+            s, _ = summarize_solution(
+                m,
+                r.displacement_mm,
+                animal="cylinder",
+                variant=f"{d:g}mm",
+                threshold=threshold,
+                bin_edges=edges,
+            )
+            vois.append(
+                dict(
+                    depth_mm=d,
+                    voi_mm3=s.voi_mm3,
+                    voi_err_mm3=s.voi_err_mm3,
+                    voi_centroid_mm3=s.voi_centroid_mm3,
+                    **{f"bins_percent.{b}": p for b, p in s.bins_percent.items()},
+                    **{f"bins_err_pp.{b}": p for b, p in s.bins_err_pp.items()},
+                    **_other_estimates(m, r.displacement_mm, s, threshold, edges),
+                )
+            )
     curve = pd.DataFrame(rows)
     curve.attrs.update(n_dofs=3 * len(m.nodes_mm), n_tets=int(m.n_tets), mesh=sizes.label)
     return curve, pd.DataFrame(vois)
 
 
-def mesh_convergence(material, meshes: Sequence[CylinderMesh], **kw) -> tuple[pd.DataFrame, pd.DataFrame]:
+def mesh_convergence(
+    material, meshes: Sequence[CylinderMesh], **kw
+) -> tuple[pd.DataFrame, pd.DataFrame]:
     """:func:`cylinder_scene` on each of ``meshes`` (the last is the reference): the curves and VOI
     tables stacked, with columns mesh (label), n_dofs, n_tets and mesh_wall_s (all solves of the mesh)."""
     curves, vois = [], []
     for sizes in meshes:
         t0 = time.perf_counter()
         c, v = cylinder_scene(material, sizes, **kw)
-        info = dict(mesh=sizes.label, n_dofs=c.attrs["n_dofs"], n_tets=c.attrs["n_tets"],
-                    mesh_wall_s=time.perf_counter() - t0)
+        info = dict(
+            mesh=sizes.label,
+            n_dofs=c.attrs["n_dofs"],
+            n_tets=c.attrs["n_tets"],
+            mesh_wall_s=time.perf_counter() - t0,
+        )
         curves.append(c.assign(**info))
         vois.append(v.assign(**info))
     return pd.concat(curves, ignore_index=True), pd.concat(vois, ignore_index=True)
@@ -215,18 +305,29 @@ def effectivity_table(voi: pd.DataFrame) -> pd.DataFrame:
         f = ref.loc[r["depth_mm"]]
         true_voi = r["voi_mm3"] - f["voi_mm3"]
         true_bins = max(abs(r[b] - f[b]) for b in bins)
-        row = dict(mesh=r["mesh"], depth_mm=r["depth_mm"], true_voi_mm3=true_voi, true_voi_percent=100 * true_voi / f["voi_mm3"],
-                   true_bins_pp=true_bins)
+        row = dict(
+            mesh=r["mesh"],
+            depth_mm=r["depth_mm"],
+            true_voi_mm3=true_voi,
+            true_voi_percent=100 * true_voi / f["voi_mm3"],
+            true_bins_pp=true_bins,
+        )
         for name, (cv, cb) in ESTIMATES.items():
             if cv in r:
                 row[f"{name}: voi"] = r[cv] / abs(true_voi) if true_voi else np.inf
-            est_b = max(r[c] for c in voi.columns if c.startswith("bins_err_pp.")) if cb is None else r.get(cb, np.nan)
+            est_b = (
+                max(r[c] for c in voi.columns if c.startswith("bins_err_pp."))
+                if cb is None
+                else r.get(cb, np.nan)
+            )
             row[f"{name}: bins"] = est_b / true_bins if true_bins else np.inf
         rows.append(row)
     return pd.DataFrame(rows)
 
 
-def contact_tets(mesh: TetMesh, displacement_mm, indenter: Indenter, *, tol_mm: float = 0.02) -> np.ndarray:
+def contact_tets(
+    mesh: TetMesh, displacement_mm, indenter: Indenter, *, tol_mm: float = 0.02
+) -> np.ndarray:
     """The elements (n_tets,) bool with a node of the ``patch`` facets that ends within ``tol_mm`` of the
     sphere's surface or inside it: the contact zone that decides the indenter's force."""
     if indenter.kind != "sphere":
@@ -239,7 +340,9 @@ def contact_tets(mesh: TetMesh, displacement_mm, indenter: Indenter, *, tol_mm: 
     return touching[mesh.tets].any(axis=1)
 
 
-def cylinder_estimate(mesh: TetMesh, solution, indenter: Indenter, *, threshold: float = 0.3, bin_edges=None):
+def cylinder_estimate(
+    mesh: TetMesh, solution, indenter: Indenter, *, threshold: float = 0.3, bin_edges=None
+):
     """The estimate of one cylinder solve for :func:`deeptissue.adapt.adapt`: the VOI, its estimated error
     and the largest bin's, as the study's summary computes them (γh at 64 points per element against
     the patch-recovered γ*, :func:`deeptissue.errorest.voi_error_estimate`), its per-element indicator,
@@ -254,20 +357,37 @@ def cylinder_estimate(mesh: TetMesh, solution, indenter: Indenter, *, threshold:
     g, v, _ = gamma_at_points(mesh, u, levels=SAMPLING_LEVELS, strain_measures=("green_lagrange",))
     g = g["green_lagrange"]
     s = voi_statistics(g.ravel(), v.ravel(), threshold=threshold, bin_edges=edges)
-    e = voi_error_estimate(mesh, u, threshold=threshold, bin_edges=edges, levels=SAMPLING_LEVELS, sampled=(g, v))
-    return PassEstimate(voi_mm3=s.voi_mm3, voi_err_mm3=e.voi_err_mm3, bins_err_pp=max(e.bins_err_pp.values()),
-                        force_N=solution.indenter_force_N, indicator_mm3=e.indicator_mm3,
-                        contact_tets=contact_tets(mesh, u, indenter), bins_percent=dict(s.bins_percent),
-                        voi_indicator_mm3=e.threshold_indicator_mm3)
+    e = voi_error_estimate(
+        mesh, u, threshold=threshold, bin_edges=edges, levels=SAMPLING_LEVELS, sampled=(g, v)
+    )
+    return PassEstimate(
+        voi_mm3=s.voi_mm3,
+        voi_err_mm3=e.voi_err_mm3,
+        bins_err_pp=max(e.bins_err_pp.values()),
+        force_N=solution.indenter_force_N,
+        indicator_mm3=e.indicator_mm3,
+        contact_tets=contact_tets(mesh, u, indenter),
+        bins_percent=dict(s.bins_percent),
+        voi_indicator_mm3=e.threshold_indicator_mm3,
+    )
 
 
 # the first mesh of the adaptive runs: the study's element size everywhere, no refinement around the axis
 ADAPTIVE_START = CylinderMesh(element_size_mm=1.6, refine_size_mm=1.6)
 
 
-def adaptive_cylinder(material, depth_mm: float, settings=None, *, start: CylinderMesh = ADAPTIVE_START,
-                      height_mm: float = 8.0, threshold: float = 0.3, bin_edges=None,
-                      solver_settings: SolverSettings | None = None, log=None):
+def adaptive_cylinder(
+    material,
+    depth_mm: float,
+    settings=None,
+    *,
+    start: CylinderMesh = ADAPTIVE_START,
+    height_mm: float = 8.0,
+    threshold: float = 0.3,
+    bin_edges=None,
+    solver_settings: SolverSettings | None = None,
+    log=None,
+):
     """The cylinder scene at one depth on adaptive meshes (:func:`deeptissue.adapt.adapt`): the first
     pass on ``start`` (uniform 1.6 mm: 10 809 DOFs, a quarter of the default mesh's solve), each next one remeshed from the previous solution's
     estimate (:func:`cylinder_estimate`) until it meets the goal of ``settings``
@@ -278,16 +398,34 @@ def adaptive_cylinder(material, depth_mm: float, settings=None, *, start: Cylind
     st = SolverSettings() if solver_settings is None else solver_settings
 
     def solve(m, previous):  # from the previous pass's solution carried to this mesh
-        base = None if previous is None else mapped_end_state(previous[0], previous[1].displacement_mm, m, indenter=ind,
-                                                              bone_motion=BoneMotion(), settings=st)
-        return solve_from(m, material=material, indenter=ind, bone_motion=BoneMotion(), base=base, settings=st)
+        base = (
+            None
+            if previous is None
+            else mapped_end_state(
+                previous[0],
+                previous[1].displacement_mm,
+                m,
+                indenter=ind,
+                bone_motion=BoneMotion(),
+                settings=st,
+            )
+        )
+        return solve_from(
+            m, material=material, indenter=ind, bone_motion=BoneMotion(), base=base, settings=st
+        )
 
-    return adapt(lambda field: cylinder_mesh(start, height_mm=height_mm, size_field=field), solve,
-                 lambda m, r: cylinder_estimate(m, r, ind, threshold=threshold, bin_edges=bin_edges),
-                 AdaptSettings() if settings is None else settings, log=log)
+    return adapt(
+        lambda field: cylinder_mesh(start, height_mm=height_mm, size_field=field),
+        solve,
+        lambda m, r: cylinder_estimate(m, r, ind, threshold=threshold, bin_edges=bin_edges),
+        AdaptSettings() if settings is None else settings,
+        log=log,
+    )
 
 
-def adaptive_comparison(passes: pd.DataFrame, voi: pd.DataFrame, curve: pd.DataFrame) -> pd.DataFrame:
+def adaptive_comparison(
+    passes: pd.DataFrame, voi: pd.DataFrame, curve: pd.DataFrame
+) -> pd.DataFrame:
     """The adaptive passes against the fixed meshes of the verification (cylinder_voi.csv and
     cylinder_curve.csv, whose finest mesh is the reference), one row per pass and per fixed mesh and depth.
     A pass at a depth of the force-depth curve without a VOI row (0.5, 1 and 2.5 mm) has the force's true
@@ -307,22 +445,47 @@ def adaptive_comparison(passes: pd.DataFrame, voi: pd.DataFrame, curve: pd.DataF
     for _, r in voi[voi["mesh"] != ref_mesh].iterrows():
         d = r["depth_mm"]
         c = curve[(curve["mesh"] == r["mesh"]) & (curve["depth_mm"] == d)].iloc[0]
-        rows.append(dict(kind="fixed", mesh=r["mesh"], depth_mm=d, n_dofs=r["n_dofs"], wall_s=c["wall_s"],
-                         est_voi_percent=100 * r["voi_err_mm3"] / r["voi_mm3"],
-                         est_bins_pp=max(r[c2] for c2 in voi.columns if c2.startswith("bins_err_pp.")),
-                         true_voi_percent=100 * (r["voi_mm3"] / ref.loc[d, "voi_mm3"] - 1),
-                         true_bins_pp=max(abs(r[b] - ref.loc[d, b]) for b in bins),
-                         true_force_percent=100 * (c["force_N"] / ref_force.loc[d] - 1)))
+        rows.append(
+            dict(
+                kind="fixed",
+                mesh=r["mesh"],
+                depth_mm=d,
+                n_dofs=r["n_dofs"],
+                wall_s=c["wall_s"],
+                est_voi_percent=100 * r["voi_err_mm3"] / r["voi_mm3"],
+                est_bins_pp=max(r[c2] for c2 in voi.columns if c2.startswith("bins_err_pp.")),
+                true_voi_percent=100 * (r["voi_mm3"] / ref.loc[d, "voi_mm3"] - 1),
+                true_bins_pp=max(abs(r[b] - ref.loc[d, b]) for b in bins),
+                true_force_percent=100 * (c["force_N"] / ref_force.loc[d] - 1),
+            )
+        )
     for _, p in passes.iterrows():
         d = p["depth_mm"]
         has_voi = d in ref.index  # the reference's VOI and bins are known at the VOI depths only
-        true_bins = max((abs(p[b] - ref.loc[d, b]) for b in bins if b in p), default=np.nan) if has_voi else np.nan
-        rows.append(dict(kind="adaptive", mesh="adaptive", depth_mm=d, pass_index=p["index"], n_dofs=p["n_dofs"],
-                         wall_s=p["wall_s"], est_voi_percent=p["voi_err_percent"], est_bins_pp=p["bins_err_pp"],
-                         est_force_percent=p["force_err_percent"],
-                         true_voi_percent=100 * (p["voi_mm3"] / ref.loc[d, "voi_mm3"] - 1) if has_voi else np.nan,
-                         true_bins_pp=true_bins, true_force_percent=100 * (p["force_N"] / ref_force.loc[d] - 1),
-                         goal_met=p["goal_met"]))
+        true_bins = (
+            max((abs(p[b] - ref.loc[d, b]) for b in bins if b in p), default=np.nan)
+            if has_voi
+            else np.nan
+        )
+        rows.append(
+            dict(
+                kind="adaptive",
+                mesh="adaptive",
+                depth_mm=d,
+                pass_index=p["index"],
+                n_dofs=p["n_dofs"],
+                wall_s=p["wall_s"],
+                est_voi_percent=p["voi_err_percent"],
+                est_bins_pp=p["bins_err_pp"],
+                est_force_percent=p["force_err_percent"],
+                true_voi_percent=100 * (p["voi_mm3"] / ref.loc[d, "voi_mm3"] - 1)
+                if has_voi
+                else np.nan,
+                true_bins_pp=true_bins,
+                true_force_percent=100 * (p["force_N"] / ref_force.loc[d] - 1),
+                goal_met=p["goal_met"],
+            )
+        )
     return pd.DataFrame(rows)
 
 
@@ -351,8 +514,15 @@ def plot_adaptive(table: pd.DataFrame, path) -> None:
             ax.plot(a["wall_s"][met], a[col].abs()[met], "o", color=colour)
             ax.plot(a["wall_s"][~met], a[col].abs()[~met], "o", color=colour, mfc="none")
             ax.plot(f["wall_s"], f[col].abs(), "s", color=colour, mfc="none", ms=8)
-    for ax, goal, label in zip(axes, (2.0, 1.0, 0.5), ("|VOI error| against the reference [%]", "largest bin error [pp]",
-                                                       "|force error| against the reference [%]")):
+    for ax, goal, label in zip(
+        axes,
+        (2.0, 1.0, 0.5),
+        (
+            "|VOI error| against the reference [%]",
+            "largest bin error [pp]",
+            "|force error| against the reference [%]",
+        ),
+    ):
         ax.axhline(goal, ls=":", color="k", lw=1)
         ax.set_xscale("log")
         ax.set_xlabel("wall time [s] (adaptive: all passes so far)")
@@ -367,8 +537,16 @@ def plot_adaptive(table: pd.DataFrame, path) -> None:
     plt.close(fig)
 
 
-def write_adaptive_cylinder(material, *, voi_csv, curve_csv, out_csv, figure_png,
-                            depths_mm: Sequence[float] = CURVE_DEPTHS_MM, settings=None) -> pd.DataFrame:
+def write_adaptive_cylinder(
+    material,
+    *,
+    voi_csv,
+    curve_csv,
+    out_csv,
+    figure_png,
+    depths_mm: Sequence[float] = CURVE_DEPTHS_MM,
+    settings=None,
+) -> pd.DataFrame:
     """:func:`adaptive_cylinder` at each of ``depths_mm`` against the fixed meshes of the verification
     (``voi_csv``, ``curve_csv``: cylinder_voi.csv and cylinder_curve.csv, whose finest mesh is the
     reference): the table of :func:`adaptive_comparison` with a stop_reason column (out_csv) and
@@ -380,12 +558,17 @@ def write_adaptive_cylinder(material, *, voi_csv, curve_csv, out_csv, figure_png
     logger = logging.getLogger(__name__)
     runs = []
     for d in depths_mm:
-        r = adaptive_cylinder(material, float(d), settings, log=lambda line, d=d: logger.info("%g mm: %s", d, line))
+        r = adaptive_cylinder(
+            material, float(d), settings, log=lambda line, d=d: logger.info("%g mm: %s", d, line)
+        )
         runs.append(r.table().assign(depth_mm=float(d), stop_reason=r.stop_reason))
     passes = pd.concat(runs, ignore_index=True)
     table = adaptive_comparison(passes, pd.read_csv(voi_csv), pd.read_csv(curve_csv))
-    table["stop_reason"] = table["depth_mm"].map(passes.groupby("depth_mm")["stop_reason"].first()).where(
-        table["kind"] == "adaptive")
+    table["stop_reason"] = (
+        table["depth_mm"]
+        .map(passes.groupby("depth_mm")["stop_reason"].first())
+        .where(table["kind"] == "adaptive")
+    )
     Path(out_csv).parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(out_csv) as tmp:
         table.to_csv(tmp, index=False)
@@ -393,7 +576,9 @@ def write_adaptive_cylinder(material, *, voi_csv, curve_csv, out_csv, figure_png
     return table
 
 
-if __name__ == "__main__":  # python -m deeptissue.fem.cylinder results/verification/cylinder_voi.csv [more.csv ...]
+if (
+    __name__ == "__main__"
+):  # python -m deeptissue.fem.cylinder results/verification/cylinder_voi.csv [more.csv ...]
     import sys
 
     pd.set_option("display.width", 250)

@@ -50,7 +50,9 @@ class Indenter:
         if self.radius_mm <= 0:
             raise ValueError(f"Indenter.radius_mm must be > 0, got {self.radius_mm}")
         if self.kind == "bar" and self.bar_length_mm < 2 * self.radius_mm:
-            raise ValueError(f"Indenter.bar_length_mm must be >= 2 * radius_mm, got {self.bar_length_mm}")
+            raise ValueError(
+                f"Indenter.bar_length_mm must be >= 2 * radius_mm, got {self.bar_length_mm}"
+            )
 
     @property
     def unit_axis(self) -> np.ndarray:

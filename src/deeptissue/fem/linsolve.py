@@ -62,9 +62,24 @@ def _mkl_rt():
 def _mkl_pardiso():
     """MKL's ``pardiso`` entry point."""
     f = _mkl_rt().pardiso
-    f.argtypes = [_P(ctypes.c_int64), _P(_I32), _P(_I32), _P(_I32), _P(_I32), _P(_I32), ctypes.c_void_p,
-                  _P(_I32), _P(_I32), _P(_I32), _P(_I32), _P(_I32), _P(_I32), ctypes.c_void_p, ctypes.c_void_p,
-                  _P(_I32)]
+    f.argtypes = [
+        _P(ctypes.c_int64),
+        _P(_I32),
+        _P(_I32),
+        _P(_I32),
+        _P(_I32),
+        _P(_I32),
+        ctypes.c_void_p,
+        _P(_I32),
+        _P(_I32),
+        _P(_I32),
+        _P(_I32),
+        _P(_I32),
+        _P(_I32),
+        ctypes.c_void_p,
+        ctypes.c_void_p,
+        _P(_I32),
+    ]
     f.restype = None
     return f
 
@@ -82,10 +97,14 @@ def pin_reproducible() -> None:
     lib.MKL_CBWR_Set.argtypes = lib.MKL_Set_Dynamic.argtypes = [ctypes.c_int]
     status = lib.MKL_CBWR_Set(_MKL_CBWR_COMPATIBLE)
     if status != 0:
-        raise RuntimeError(f"MKL refused the reproducible mode (MKL_CBWR_Set status {status}): it must be "
-                           "set before the first MKL computation of the process")
+        raise RuntimeError(
+            f"MKL refused the reproducible mode (MKL_CBWR_Set status {status}): it must be "
+            "set before the first MKL computation of the process"
+        )
     lib.MKL_Set_Dynamic(0)
-    _log.info("MKL in reproducible mode: code branch COMPATIBLE, %d threads", lib.MKL_Get_Max_Threads())
+    _log.info(
+        "MKL in reproducible mode: code branch COMPATIBLE, %d threads", lib.MKL_Get_Max_Threads()
+    )
 
 
 def _pattern_key(U: sp.csr_matrix) -> tuple:
@@ -120,13 +139,28 @@ class _Factor:
     def _pardiso(self, phase: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         x = np.zeros_like(b)
         err = _I32(0)
-        self._call(self.pt.ctypes.data_as(_P(ctypes.c_int64)), ctypes.byref(_I32(1)), ctypes.byref(_I32(1)),
-                   ctypes.byref(_I32(self.mtype)), ctypes.byref(_I32(phase)), ctypes.byref(_I32(self.n)), a.ctypes.data,
-                   self.ia.ctypes.data_as(_P(_I32)), self.ja.ctypes.data_as(_P(_I32)), np.zeros(1, np.int32).ctypes.data_as(_P(_I32)),
-                   ctypes.byref(_I32(1)), self.iparm.ctypes.data_as(_P(_I32)), ctypes.byref(_I32(0)), b.ctypes.data,
-                   x.ctypes.data, ctypes.byref(err))
+        self._call(
+            self.pt.ctypes.data_as(_P(ctypes.c_int64)),
+            ctypes.byref(_I32(1)),
+            ctypes.byref(_I32(1)),
+            ctypes.byref(_I32(self.mtype)),
+            ctypes.byref(_I32(phase)),
+            ctypes.byref(_I32(self.n)),
+            a.ctypes.data,
+            self.ia.ctypes.data_as(_P(_I32)),
+            self.ja.ctypes.data_as(_P(_I32)),
+            np.zeros(1, np.int32).ctypes.data_as(_P(_I32)),
+            ctypes.byref(_I32(1)),
+            self.iparm.ctypes.data_as(_P(_I32)),
+            ctypes.byref(_I32(0)),
+            b.ctypes.data,
+            x.ctypes.data,
+            ctypes.byref(err),
+        )
         if err.value != 0:
-            raise np.linalg.LinAlgError(f"PARDISO error {err.value} (phase {phase}, mtype {self.mtype})")
+            raise np.linalg.LinAlgError(
+                f"PARDISO error {err.value} (phase {phase}, mtype {self.mtype})"
+            )
         return x
 
     def factor(self, U: sp.csr_matrix) -> bool:
@@ -141,7 +175,9 @@ class _Factor:
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """x (n,) float64 from the current factor (phase 33)."""
-        return self._pardiso(33, self.a, np.ascontiguousarray(b, dtype=self.dtype)).astype(np.float64)
+        return self._pardiso(33, self.a, np.ascontiguousarray(b, dtype=self.dtype)).astype(
+            np.float64
+        )
 
     def free(self):
         """Release PARDISO's memory of this handle (phase -1)."""
@@ -156,11 +192,19 @@ class PardisoSymmetric:
     its augmented matrix). Counters: factorisations, double_fallbacks (a single-precision factor whose
     refinement was too slow, factorised again in double), refinements (solve steps after the first)."""
 
-    def __init__(self, precision: str = "mixed", *, refine_eta: float = 1e-14, max_refinements: int = 8):
+    def __init__(
+        self, precision: str = "mixed", *, refine_eta: float = 1e-14, max_refinements: int = 8
+    ):
         if precision not in PRECISIONS:
-            raise ValueError(f"linear solver precision {precision!r}: expected one of {PRECISIONS}")
+            raise ValueError(
+                f"linear solver precision {precision!r}: expected one of {PRECISIONS}"
+            )
         self._call = _mkl_pardiso()
-        self.precision, self.refine_eta, self.max_refinements = precision, refine_eta, max_refinements
+        self.precision, self.refine_eta, self.max_refinements = (
+            precision,
+            refine_eta,
+            max_refinements,
+        )
         self._factors: dict = {}
         self.last_mode = None
         self.factorisations = self.double_fallbacks = self.refinements = 0
@@ -170,7 +214,9 @@ class PardisoSymmetric:
         """The counters of the class docstring, by name."""
         return {k: getattr(self, k) for k in ("factorisations", "double_fallbacks", "refinements")}
 
-    def _factor(self, name: str, U: sp.csr_matrix, mtype: int, single: bool, key: tuple) -> _Factor:
+    def _factor(
+        self, name: str, U: sp.csr_matrix, mtype: int, single: bool, key: tuple
+    ) -> _Factor:
         """The handle of this name, analysed again (and the old one freed) if U's pattern (key) changed."""
         f = self._factors.get(name)
         if f is None or f.key != key:
@@ -233,8 +279,18 @@ class PardisoSymmetric:
             raise NotPositiveDefinite("PARDISO: the matrix is not positive definite")
         raise np.linalg.LinAlgError("PARDISO failed in SPD and symmetric-indefinite mode")
 
-    def solve_constrained(self, A: sp.csr_matrix, G: sp.csr_matrix, rho: np.ndarray, r: np.ndarray, s: np.ndarray,
-                          *, rtol: float = 1e-12, accept_rtol: float = 1e-8, max_corrections: int = 40):
+    def solve_constrained(
+        self,
+        A: sp.csr_matrix,
+        G: sp.csr_matrix,
+        rho: np.ndarray,
+        r: np.ndarray,
+        s: np.ndarray,
+        *,
+        rtol: float = 1e-12,
+        accept_rtol: float = 1e-8,
+        max_corrections: int = 40,
+    ):
         """Solve the saddle-point system ``K x - G^T lam = r``, ``G x = s`` for (x (n,), lam (m,)).
 
         A: the upper triangle (CSR, sorted, full diagonal) of the augmented matrix ``K + G^T diag(rho) G``;
@@ -292,7 +348,9 @@ class PardisoSymmetric:
                 self.last_mode = mtype
                 return x, lam
             x, lam = np.zeros(A.shape[0]), np.zeros(G.shape[0])
-        raise np.linalg.LinAlgError(f"PARDISO: the constrained system is not solved (best relative residual {best:.1e})")
+        raise np.linalg.LinAlgError(
+            f"PARDISO: the constrained system is not solved (best relative residual {best:.1e})"
+        )
 
     def close(self):
         """Free every factor."""

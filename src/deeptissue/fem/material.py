@@ -69,7 +69,9 @@ class Ogden:
     def __post_init__(self):
         for name in ("mu_kpa", "alpha", "d_mm2_per_n"):
             value = getattr(self, name)
-            if not isinstance(value, (int, float, np.floating, np.integer)) or not math.isfinite(value):
+            if not isinstance(value, (int, float, np.floating, np.integer)) or not math.isfinite(
+                value
+            ):
                 raise ValueError(f"Ogden material: {name} must be a finite number, got {value!r}")
         if self.mu_kpa <= 0:
             raise ValueError(f"Ogden material: mu_kpa must be > 0, got {self.mu_kpa}")
@@ -89,7 +91,7 @@ class Ogden:
         return 2.0 / self.d_mm2_per_n
 
     @classmethod
-    def from_config(cls, material_cfg: dict) -> "Ogden":
+    def from_config(cls, material_cfg: dict) -> Ogden:
         """From the validated ``fem.material`` config block (keys mu_kpa, alpha, d_mm2_per_n)."""
         return cls(
             mu_kpa=float(material_cfg["mu_kpa"]),
@@ -129,7 +131,9 @@ def _jacobi(a00, a11, a22, a01, a02, a12, *, vectors: bool):
         d = aqq - app
         den = np.abs(d) + np.hypot(d, 2.0 * apq)
         den[den == 0.0] = 1.0  # apq = 0 and d = 0: no rotation (t = 0)
-        t = np.copysign(2.0, d) * apq / den  # tangent of the rotation angle, |t| <= 1 (stable root)
+        t = (
+            np.copysign(2.0, d) * apq / den
+        )  # tangent of the rotation angle, |t| <= 1 (stable root)
         c = 1.0 / np.sqrt(1.0 + t * t)
         return t, c, t * c
 
@@ -178,7 +182,9 @@ def sym_eig3(C: np.ndarray, *, vectors: bool = True):
     Eigenvalues are not sorted. ``vectors=False`` returns only c.
     """
     C = np.asarray(C, dtype=float)
-    c, v, bad = _jacobi(C[:, 0, 0], C[:, 1, 1], C[:, 2, 2], C[:, 0, 1], C[:, 0, 2], C[:, 1, 2], vectors=vectors)
+    c, v, bad = _jacobi(
+        C[:, 0, 0], C[:, 1, 1], C[:, 2, 2], C[:, 0, 1], C[:, 0, 2], C[:, 1, 2], vectors=vectors
+    )
     c = np.stack(c, axis=1)
     V = np.stack(v, axis=1).reshape(-1, 3, 3) if vectors else None
     if bad is not None and bad.any():
@@ -204,8 +210,13 @@ class _Chunk:
         if not self.ok.all():  # compute inadmissible points at F = I, flag them afterwards
             Fs = np.where(self.ok, Fs, np.eye(3)[:, :, None])
             J = np.where(self.ok, J, 1.0)
-        Cs = [[(Fs[0, i] * Fs[0, j] + Fs[1, i] * Fs[1, j] + Fs[2, i] * Fs[2, j]) for j in range(3)] for i in range(3)]
-        c, v, bad = _jacobi(Cs[0][0], Cs[1][1], Cs[2][2], Cs[0][1], Cs[0][2], Cs[1][2], vectors=vectors)
+        Cs = [
+            [(Fs[0, i] * Fs[0, j] + Fs[1, i] * Fs[1, j] + Fs[2, i] * Fs[2, j]) for j in range(3)]
+            for i in range(3)
+        ]
+        c, v, bad = _jacobi(
+            Cs[0][0], Cs[1][1], Cs[2][2], Cs[0][1], Cs[0][2], Cs[1][2], vectors=vectors
+        )
         if bad is not None and bad.any():  # never seen; LAPACK for safety
             Cb = np.array([[Cs[i][j][bad] for j in range(3)] for i in range(3)]).transpose(2, 0, 1)
             cb, Vb = np.linalg.eigh(Cb)
@@ -218,8 +229,12 @@ class _Chunk:
         k = 2.0 * material.mu_mpa / al**2
         self.al, self.D, self.k, self.J, self.m = al, D, k, J, m
         self.logJ = np.log(J)
-        self.log_lb = np.log(np.stack(c)) * 0.5 - self.logJ / 3.0  # (3, m) ln of isochoric stretches
-        self.W = k * np.expm1(al * self.log_lb).sum(axis=0) + (J - 1.0) ** 2 / D  # expm1: no cancellation at F = I
+        self.log_lb = (
+            np.log(np.stack(c)) * 0.5 - self.logJ / 3.0
+        )  # (3, m) ln of isochoric stretches
+        self.W = (
+            k * np.expm1(al * self.log_lb).sum(axis=0) + (J - 1.0) ** 2 / D
+        )  # expm1: no cancellation at F = I
         if not vectors:
             return
         self.lam = np.sqrt(np.stack(c))  # (3, m)
@@ -261,7 +276,11 @@ class _Chunk:
             s = 2.0 * (np.minimum(la, lb) - lmax)  # ln(x_min / x_max) <= 0
             small = np.abs(s) < _SMALL_LOG_RATIO
             s_safe = np.where(small, -1.0, s)
-            phi = np.where(small, beta * (1.0 + 0.5 * (beta - 1.0) * s), np.expm1(beta * s_safe) / np.expm1(s_safe))
+            phi = np.where(
+                small,
+                beta * (1.0 + 0.5 * (beta - 1.0) * s),
+                np.expm1(beta * s_safe) / np.expm1(s_safe),
+            )
             g1[a, b] = pre * np.exp((al - 2.0) * lmax) * phi
             g2[a, b] = g1[a, b] - (Wa[a] + Wa[b]) / (lam[a] + lam[b])
         # A_iJkL = sum_ab n_ia n_kb Z[a, J, b, L] with the material part

@@ -35,9 +35,26 @@ from ..io import atomic_path
 from . import analytic
 from .material import Ogden, ogden_energy, ogden_stress, ogden_stress_tangent
 
-__all__ = ["FD_STEP_SECOND", "FD_STEP_STRESS", "TOL_CONTINUITY", "TOL_EXACT", "TOL_FD", "TOL_FD_SECOND", "TOL_HOMOGENEOUS",
-           "deformation_cases", "fd_gradient", "fd_hessian", "fd_steps", "homogeneous_responses", "material_point_checks",
-           "plot_homogeneous", "random_rotations", "run_material_verification", "small_strain_tangent", "time_material"]
+__all__ = [
+    "FD_STEP_SECOND",
+    "FD_STEP_STRESS",
+    "TOL_CONTINUITY",
+    "TOL_EXACT",
+    "TOL_FD",
+    "TOL_FD_SECOND",
+    "TOL_HOMOGENEOUS",
+    "deformation_cases",
+    "fd_gradient",
+    "fd_hessian",
+    "fd_steps",
+    "homogeneous_responses",
+    "material_point_checks",
+    "plot_homogeneous",
+    "random_rotations",
+    "run_material_verification",
+    "small_strain_tangent",
+    "time_material",
+]
 
 log = logging.getLogger(__name__)
 
@@ -67,7 +84,9 @@ def random_rotations(n: int, rng: np.random.Generator) -> np.ndarray:
     return q
 
 
-def deformation_cases(rng: np.random.Generator | None = None, *, n_random: int = 8) -> dict[str, np.ndarray]:
+def deformation_cases(
+    rng: np.random.Generator | None = None, *, n_random: int = 8
+) -> dict[str, np.ndarray]:
     """Named sets of deformation gradients (k, 3, 3): general, equal and nearly equal stretches."""
     rng = np.random.default_rng(20261122) if rng is None else rng
 
@@ -97,7 +116,9 @@ def fd_gradient(fun, F: np.ndarray, h: float) -> np.ndarray:
     """d fun / dF by fourth-order central differences. F (n, 3, 3); fun values (n, *s) -> (n, *s, 3, 3)."""
     n = F.shape[0]
     E = np.eye(9).reshape(9, 3, 3)
-    Fp = F[:, None, None] + h * _OFFSETS[None, None, :, None, None] * E[None, :, None]  # (n, 9, 4, 3, 3)
+    Fp = (
+        F[:, None, None] + h * _OFFSETS[None, None, :, None, None] * E[None, :, None]
+    )  # (n, 9, 4, 3, 3)
     vals = np.asarray(fun(Fp.reshape(-1, 3, 3)))
     vals = vals.reshape((n, 9, 4) + vals.shape[1:])
     d = np.einsum("nkm...,m->n...k", vals, _WEIGHTS) / h  # (n, *s, 9)
@@ -109,14 +130,24 @@ def fd_hessian(energy, F: np.ndarray, h: float) -> np.ndarray:
     n = F.shape[0]
     E = np.eye(9).reshape(9, 3, 3)
     shift = h * _OFFSETS[:, None, None, None] * E[None]  # (4, 9, 3, 3): offset m along direction p
-    Fp = F[:, None, None, None, None] + shift[None, :, :, None, None] + shift[None, None, None, :, :]
+    Fp = (
+        F[:, None, None, None, None]
+        + shift[None, :, :, None, None]
+        + shift[None, None, None, :, :]
+    )
     W = energy(Fp.reshape(-1, 3, 3)).reshape(n, 4, 9, 4, 9)
     H = np.einsum("napbq,a,b->npq", W, _WEIGHTS, _WEIGHTS) / h**2
     return H.reshape(n, 3, 3, 3, 3)
 
 
 def _row(case, quantity, err, tol):
-    return {"case": case, "quantity": quantity, "max_error": float(err), "tolerance": float(tol), "pass": bool(err <= tol)}
+    return {
+        "case": case,
+        "quantity": quantity,
+        "max_error": float(err),
+        "tolerance": float(tol),
+        "pass": bool(err <= tol),
+    }
 
 
 def _rel(a, b, scale):
@@ -128,10 +159,14 @@ def small_strain_tangent(material: Ogden) -> np.ndarray:
     d = np.eye(3)
     K, mu = material.bulk_mpa, material.mu_mpa
     dd = np.einsum("ij,kl->ijkl", d, d)
-    return K * dd + mu * (np.einsum("ik,jl->ijkl", d, d) + np.einsum("il,jk->ijkl", d, d) - 2.0 / 3.0 * dd)
+    return K * dd + mu * (
+        np.einsum("ik,jl->ijkl", d, d) + np.einsum("il,jk->ijkl", d, d) - 2.0 / 3.0 * dd
+    )
 
 
-def material_point_checks(material: Ogden, *, rng: np.random.Generator | None = None) -> pd.DataFrame:
+def material_point_checks(
+    material: Ogden, *, rng: np.random.Generator | None = None
+) -> pd.DataFrame:
     """All material-point checks as rows: case, quantity, max_error, tolerance, pass."""
     rng = np.random.default_rng(7) if rng is None else rng
     rows = []
@@ -146,28 +181,73 @@ def material_point_checks(material: Ogden, *, rng: np.random.Generator | None = 
     rows.append(_row("reference F=I", "|W| / mu", abs(W0) / mu, TOL_EXACT))
     rows.append(_row("reference F=I", "|P| / mu", np.max(np.abs(P0)) / mu, TOL_EXACT))
     C0 = small_strain_tangent(material)
-    rows.append(_row("reference F=I", "A vs small-strain elasticity (mu, K=2/D)", _rel(A0, C0, np.max(np.abs(C0))), TOL_EXACT))
+    rows.append(
+        _row(
+            "reference F=I",
+            "A vs small-strain elasticity (mu, K=2/D)",
+            _rel(A0, C0, np.max(np.abs(C0))),
+            TOL_EXACT,
+        )
+    )
     Wr, Pr, _ = ogden_stress_tangent(sets["rigid rotation"], material)
-    rows.append(_row("rigid rotation", "|W|, |P| / mu", max(np.max(np.abs(Wr)), np.max(np.abs(Pr))) / mu, TOL_EXACT))
+    rows.append(
+        _row(
+            "rigid rotation",
+            "|W|, |P| / mu",
+            max(np.max(np.abs(Wr)), np.max(np.abs(Pr))) / mu,
+            TOL_EXACT,
+        )
+    )
 
     # energy against the independent principal-stretch form (singular values by SVD)
     allF = np.concatenate(list(sets.values()))
     sv = np.linalg.svd(allF, compute_uv=False)
     W_ref = np.array([analytic.principal_energy(*s, material) for s in sv])
-    rows.append(_row("all", "W vs principal-stretch energy (analytic)", _rel(energy(allF), W_ref, mu), TOL_EXACT))
+    rows.append(
+        _row(
+            "all",
+            "W vs principal-stretch energy (analytic)",
+            _rel(energy(allF), W_ref, mu),
+            TOL_EXACT,
+        )
+    )
 
     # finite differences, per case
     for case, F in sets.items():
         W, P, A = ogden_stress_tangent(F, material)
         p_scale = max(np.max(np.abs(P)), mu)
         a_scale = np.max(np.abs(A))
-        rows.append(_row(case, "P vs FD of W", _rel(P, fd_gradient(energy, F, h1), p_scale), TOL_FD))
-        rows.append(_row(case, "A vs FD of P", _rel(A, fd_gradient(stress, F, h1), a_scale), TOL_FD))
-        rows.append(_row(case, "A vs second FD of W", _rel(A, fd_hessian(energy, F, h2), a_scale), TOL_FD_SECOND))
-        rows.append(_row(case, "A major symmetry A[iJkL] - A[kLiJ]", _rel(A, A.transpose(0, 3, 4, 1, 2), a_scale), TOL_EXACT))
+        rows.append(
+            _row(case, "P vs FD of W", _rel(P, fd_gradient(energy, F, h1), p_scale), TOL_FD)
+        )
+        rows.append(
+            _row(case, "A vs FD of P", _rel(A, fd_gradient(stress, F, h1), a_scale), TOL_FD)
+        )
+        rows.append(
+            _row(
+                case,
+                "A vs second FD of W",
+                _rel(A, fd_hessian(energy, F, h2), a_scale),
+                TOL_FD_SECOND,
+            )
+        )
+        rows.append(
+            _row(
+                case,
+                "A major symmetry A[iJkL] - A[kLiJ]",
+                _rel(A, A.transpose(0, 3, 4, 1, 2), a_scale),
+                TOL_EXACT,
+            )
+        )
         # W and P(F) agree with the combined call
-        rows.append(_row(case, "ogden_energy/ogden_stress vs ogden_stress_tangent",
-                         max(_rel(energy(F), W, mu), _rel(stress(F), P, p_scale)), TOL_EXACT))
+        rows.append(
+            _row(
+                case,
+                "ogden_energy/ogden_stress vs ogden_stress_tangent",
+                max(_rel(energy(F), W, mu), _rel(stress(F), P, p_scale)),
+                TOL_EXACT,
+            )
+        )
 
     # continuity across coalescence: nearly equal stretches vs exactly equal
     F_eq = sets["two equal stretches"]
@@ -180,7 +260,14 @@ def material_point_checks(material: Ogden, *, rng: np.random.Generator | None = 
     _, P_eq, A_eq = ogden_stress_tangent(F_eq, material)
     _, P_ne, A_ne = ogden_stress_tangent(F_near, material)
     # A changes to first order by ~ (|alpha| + 2) 1e-9 / lam relative: tolerance 2e-8 at alpha = 5 (a naive divided difference is off by ~1e-7)
-    rows.append(_row("two equal vs 1e-9 apart", "A continuity", _rel(A_eq, A_ne, np.max(np.abs(A_eq))), TOL_CONTINUITY * (abs(material.alpha) + 2.0) / 7.0))
+    rows.append(
+        _row(
+            "two equal vs 1e-9 apart",
+            "A continuity",
+            _rel(A_eq, A_ne, np.max(np.abs(A_eq))),
+            TOL_CONTINUITY * (abs(material.alpha) + 2.0) / 7.0,
+        )
+    )
 
     # objectivity and isotropy
     F = sets["random F"]
@@ -189,27 +276,68 @@ def material_point_checks(material: Ogden, *, rng: np.random.Generator | None = 
     a_scale, p_scale = np.max(np.abs(A)), max(np.max(np.abs(P)), mu)
     Wq, Pq, Aq = ogden_stress_tangent(np.einsum("nij,njk->nik", Q, F), material)
     rows.append(_row("objectivity F -> QF", "W(QF) - W(F)", _rel(Wq, W, mu), TOL_EXACT))
-    rows.append(_row("objectivity F -> QF", "P(QF) - Q P(F)", _rel(Pq, np.einsum("nia,naJ->niJ", Q, P), p_scale), TOL_EXACT))
-    rows.append(_row("objectivity F -> QF", "A(QF) - Q A(F) Q", _rel(Aq, np.einsum("nia,nkb,naJbL->niJkL", Q, Q, A), a_scale), TOL_EXACT))
+    rows.append(
+        _row(
+            "objectivity F -> QF",
+            "P(QF) - Q P(F)",
+            _rel(Pq, np.einsum("nia,naJ->niJ", Q, P), p_scale),
+            TOL_EXACT,
+        )
+    )
+    rows.append(
+        _row(
+            "objectivity F -> QF",
+            "A(QF) - Q A(F) Q",
+            _rel(Aq, np.einsum("nia,nkb,naJbL->niJkL", Q, Q, A), a_scale),
+            TOL_EXACT,
+        )
+    )
     Wm, Pm, Am = ogden_stress_tangent(np.einsum("nij,njk->nik", F, Q), material)
     rows.append(_row("isotropy F -> FQ", "W(FQ) - W(F)", _rel(Wm, W, mu), TOL_EXACT))
-    rows.append(_row("isotropy F -> FQ", "P(FQ) - P(F) Q", _rel(Pm, np.einsum("niM,nMJ->niJ", P, Q), p_scale), TOL_EXACT))
-    rows.append(_row("isotropy F -> FQ", "A(FQ) - A(F) Q Q", _rel(Am, np.einsum("niMkN,nMJ,nNL->niJkL", A, Q, Q), a_scale), TOL_EXACT))
+    rows.append(
+        _row(
+            "isotropy F -> FQ",
+            "P(FQ) - P(F) Q",
+            _rel(Pm, np.einsum("niM,nMJ->niJ", P, Q), p_scale),
+            TOL_EXACT,
+        )
+    )
+    rows.append(
+        _row(
+            "isotropy F -> FQ",
+            "A(FQ) - A(F) Q Q",
+            _rel(Am, np.einsum("niMkN,nMJ,nNL->niJkL", A, Q, Q), a_scale),
+            TOL_EXACT,
+        )
+    )
 
     # inverted elements
     F_inv = np.array([np.diag([1.0, 1.0, -1.0]), np.zeros((3, 3))])
     W_inv = ogden_energy(F_inv, material)
-    rows.append(_row("det F <= 0", "W = +inf (count of violations)", float(np.sum(~np.isposinf(W_inv))), 0.0))
+    rows.append(
+        _row(
+            "det F <= 0", "W = +inf (count of violations)", float(np.sum(~np.isposinf(W_inv))), 0.0
+        )
+    )
 
     # homogeneous responses, summarised
     hom = homogeneous_responses(material)
     for (case, quantity), g in hom.groupby(["case", "quantity"], sort=False):
         scale = max(np.max(np.abs(g["analytic"])), 1.0 if "stretch" in quantity else 1e3 * mu)
-        rows.append(_row(case, f"{quantity} vs analytic", np.max(np.abs(g["model"] - g["analytic"])) / scale, TOL_HOMOGENEOUS))
+        rows.append(
+            _row(
+                case,
+                f"{quantity} vs analytic",
+                np.max(np.abs(g["model"] - g["analytic"])) / scale,
+                TOL_HOMOGENEOUS,
+            )
+        )
     return pd.DataFrame(rows, columns=["case", "quantity", "max_error", "tolerance", "pass"])
 
 
-def _traction_free(material: Ogden, F: np.ndarray, free: list[int], *, tol: float = 1e-13, max_iter: int = 30) -> np.ndarray:
+def _traction_free(
+    material: Ogden, F: np.ndarray, free: list[int], *, tol: float = 1e-13, max_iter: int = 30
+) -> np.ndarray:
     """Solve P[a, a] = 0 for the diagonal entries F[a, a], a in ``free`` (kept equal), by Newton with the model tangent."""
     F = F.copy()
     for _ in range(max_iter):
@@ -237,12 +365,17 @@ def homogeneous_responses(
     model's traction-free stretch is found by Newton's method with the model's own tangent.
     """
     rows = []
-    for case, xs, free in (("uniaxial", uniaxial_stretches, [1, 2]), ("equibiaxial", equibiaxial_stretches, [2])):
+    for case, xs, free in (
+        ("uniaxial", uniaxial_stretches, [1, 2]),
+        ("equibiaxial", equibiaxial_stretches, [2]),
+    ):
         for x in xs:
             F = np.diag([x, x, 1.0]) if case == "equibiaxial" else np.diag([x, 1.0, 1.0])
             F = _traction_free(material, F, free)
             P = ogden_stress(F, material)
-            t_ref, p_ref = (analytic.uniaxial if case == "uniaxial" else analytic.equibiaxial)(x, material)
+            t_ref, p_ref = (analytic.uniaxial if case == "uniaxial" else analytic.equibiaxial)(
+                x, material
+            )
             rows.append((case, x, "nominal_stress_kpa", 1e3 * P[0, 0], 1e3 * p_ref))
             rows.append((case, x, "lateral_stretch", F[free[0], free[0]], t_ref))
     for g in shears:
@@ -252,8 +385,18 @@ def homogeneous_responses(
         sigma = P @ F.T / np.linalg.det(F)
         ref = analytic.simple_shear_cauchy(g, material)
         rows.append(("simple_shear", g, "shear_stress_kpa", 1e3 * sigma[0, 1], 1e3 * ref[0, 1]))
-        rows.append(("simple_shear", g, "normal_stress_difference_11_22_kpa", 1e3 * (sigma[0, 0] - sigma[1, 1]), 1e3 * (ref[0, 0] - ref[1, 1])))
-        rows.append(("simple_shear", g, "normal_stress_33_kpa", 1e3 * sigma[2, 2], 1e3 * ref[2, 2]))
+        rows.append(
+            (
+                "simple_shear",
+                g,
+                "normal_stress_difference_11_22_kpa",
+                1e3 * (sigma[0, 0] - sigma[1, 1]),
+                1e3 * (ref[0, 0] - ref[1, 1]),
+            )
+        )
+        rows.append(
+            ("simple_shear", g, "normal_stress_33_kpa", 1e3 * sigma[2, 2], 1e3 * ref[2, 2])
+        )
     df = pd.DataFrame(rows, columns=["case", "x", "quantity", "model", "analytic"])
     df["abs_error"] = (df["model"] - df["analytic"]).abs()
     return df
@@ -267,15 +410,35 @@ def plot_homogeneous(df: pd.DataFrame, path: str | Path) -> None:
     import matplotlib.pyplot as plt
 
     panels = [
-        ("uniaxial", "nominal_stress_kpa", "stretch $\\lambda$", "nominal stress $P_{11}$ [kPa]", "uniaxial (traction-free sides)"),
-        ("equibiaxial", "nominal_stress_kpa", "stretch $\\lambda$", "nominal stress $P_{11}$ [kPa]", "equibiaxial"),
-        ("simple_shear", "shear_stress_kpa", "amount of shear $\\gamma$", "shear stress $\\sigma_{12}$ [kPa]", "simple shear"),
+        (
+            "uniaxial",
+            "nominal_stress_kpa",
+            "stretch $\\lambda$",
+            "nominal stress $P_{11}$ [kPa]",
+            "uniaxial (traction-free sides)",
+        ),
+        (
+            "equibiaxial",
+            "nominal_stress_kpa",
+            "stretch $\\lambda$",
+            "nominal stress $P_{11}$ [kPa]",
+            "equibiaxial",
+        ),
+        (
+            "simple_shear",
+            "shear_stress_kpa",
+            "amount of shear $\\gamma$",
+            "shear stress $\\sigma_{12}$ [kPa]",
+            "simple shear",
+        ),
     ]
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.8))
     for ax, (case, q, xl, yl, title) in zip(axes, panels):
         g = df[(df["case"] == case) & (df["quantity"] == q)]
         ax.plot(g["x"], g["analytic"], "-", color="0.3", label="analytical (principal stretches)")
-        ax.plot(g["x"], g["model"], "o", ms=4, mfc="none", color="C0", label="deeptissue.fem.material")
+        ax.plot(
+            g["x"], g["model"], "o", ms=4, mfc="none", color="C0", label="deeptissue.fem.material"
+        )
         ax.axhline(0, color="0.8", lw=0.8)
         ax.set(xlabel=xl, ylabel=yl, title=title)
         ax.grid(alpha=0.3)
@@ -286,7 +449,9 @@ def plot_homogeneous(df: pd.DataFrame, path: str | Path) -> None:
     plt.close(fig)
 
 
-def time_material(material: Ogden, *, n_points: int = 100_000, repeats: int = 5, seed: int = 0) -> pd.DataFrame:
+def time_material(
+    material: Ogden, *, n_points: int = 100_000, repeats: int = 5, seed: int = 0
+) -> pd.DataFrame:
     """Best-of-``repeats`` wall and CPU time of each material function for ``n_points`` random F.
 
     One process, one thread (numpy element-wise code); CPU time is less sensitive than wall time
@@ -304,7 +469,15 @@ def time_material(material: Ogden, *, n_points: int = 100_000, repeats: int = 5,
             fun(F, material)
             wall = min(wall, time.perf_counter() - t0)
             cpu = min(cpu, time.process_time() - c0)
-        rows.append({"function": fun.__name__, "n_points": n_points, "best_wall_s": wall, "best_cpu_s": cpu, "us_per_point": 1e6 * wall / n_points})
+        rows.append(
+            {
+                "function": fun.__name__,
+                "n_points": n_points,
+                "best_wall_s": wall,
+                "best_cpu_s": cpu,
+                "us_per_point": 1e6 * wall / n_points,
+            }
+        )
     return pd.DataFrame(rows)
 
 
@@ -313,8 +486,15 @@ def _write_csv(df: pd.DataFrame, path) -> None:
         df.to_csv(tmp, index=False, float_format="%.10g")
 
 
-def run_material_verification(material: Ogden, *, point_csv, homogeneous_csv, figure_png, speed_csv,
-                              raise_on_failure: bool = True) -> pd.DataFrame:
+def run_material_verification(
+    material: Ogden,
+    *,
+    point_csv,
+    homogeneous_csv,
+    figure_png,
+    speed_csv,
+    raise_on_failure: bool = True,
+) -> pd.DataFrame:
     """Write the material-point checks, the homogeneous responses and their plot, and the speed table.
 
     Raises RuntimeError naming the failed checks (after writing the files) if any check fails and
@@ -327,8 +507,19 @@ def run_material_verification(material: Ogden, *, point_csv, homogeneous_csv, fi
     _write_csv(checks, point_csv)
     speed = time_material(material)
     _write_csv(speed, speed_csv)
-    log.info("material %s\n%s\n%s", material, checks.to_string(index=False), speed.to_string(index=False))
+    log.info(
+        "material %s\n%s\n%s",
+        material,
+        checks.to_string(index=False),
+        speed.to_string(index=False),
+    )
     failed = checks[~checks["pass"]]
     if raise_on_failure and len(failed):
-        raise RuntimeError("material verification failed: " + "; ".join(f"{r.case}: {r.quantity} error {r.max_error:.3g} > {r.tolerance:.3g}" for r in failed.itertuples()))
+        raise RuntimeError(
+            "material verification failed: "
+            + "; ".join(
+                f"{r.case}: {r.quantity} error {r.max_error:.3g} > {r.tolerance:.3g}"
+                for r in failed.itertuples()
+            )
+        )
     return checks

@@ -23,25 +23,44 @@ def write_tet_vtu(path: str | Path, mesh: TetMesh, *, point_data: dict, cell_dat
 
     for k, v in cell_data.items():
         if len(v) != len(mesh.tets):
-            raise ValueError(f"{path}: cell data {k!r} has {len(v)} rows, the mesh has {len(mesh.tets)} tets")
+            raise ValueError(
+                f"{path}: cell data {k!r} has {len(v)} rows, the mesh has {len(mesh.tets)} tets"
+            )
     for k, v in point_data.items():
         if len(v) != len(mesh.nodes_mm):
-            raise ValueError(f"{path}: point data {k!r} has {len(v)} rows, the mesh has {len(mesh.nodes_mm)} nodes")
-    cells = [("tetra10", mesh.tets[:, GMSH_TO_VTK_TET10]) if mesh.order == 2 else ("tetra", mesh.tets)]
-    m = meshio.Mesh(mesh.nodes_mm, cells, point_data={k: np.asarray(v) for k, v in point_data.items()},
-                    cell_data={k: [np.asarray(v)] for k, v in cell_data.items()})
+            raise ValueError(
+                f"{path}: point data {k!r} has {len(v)} rows, the mesh has {len(mesh.nodes_mm)} nodes"
+            )
+    cells = [
+        ("tetra10", mesh.tets[:, GMSH_TO_VTK_TET10]) if mesh.order == 2 else ("tetra", mesh.tets)
+    ]
+    m = meshio.Mesh(
+        mesh.nodes_mm,
+        cells,
+        point_data={k: np.asarray(v) for k, v in point_data.items()},
+        cell_data={k: [np.asarray(v)] for k, v in cell_data.items()},
+    )
     with atomic_path(path) as tmp:
         meshio.write(tmp, m, file_format="vtu")
 
 
-def write_result_vtu(path: str | Path, mesh: TetMesh, result, *, cell_data: dict | None = None,
-                     point_data: dict | None = None) -> None:
+def write_result_vtu(
+    path: str | Path,
+    mesh: TetMesh,
+    result,
+    *,
+    cell_data: dict | None = None,
+    point_data: dict | None = None,
+) -> None:
     """Write ``mesh`` with ``result.displacement_mm`` (point data 'displacement_mm', (n_nodes, 3)) and
     ``result.deformation_gradient`` (cell data 'F', (n_tets, 9) row-major, and 'J') to a .vtu file.
 
     cell_data / point_data: extra arrays by name, (n_tets, ...) / (n_nodes, ...).
     """
-    cd = {"F": np.asarray(result.deformation_gradient).reshape(len(mesh.tets), 9),
-          "J": np.linalg.det(result.deformation_gradient), **(cell_data or {})}
+    cd = {
+        "F": np.asarray(result.deformation_gradient).reshape(len(mesh.tets), 9),
+        "J": np.linalg.det(result.deformation_gradient),
+        **(cell_data or {}),
+    }
     pd = {"displacement_mm": np.asarray(result.displacement_mm), **(point_data or {})}
     write_tet_vtu(path, mesh, point_data=pd, cell_data=cd)

@@ -37,7 +37,9 @@ def _size_field(gmsh, h_mm, refine_point_mm, refine_h_mm, refine_radius_mm, refi
         return
     pts = np.asarray(refine_point_mm, float).reshape(-1, 3)
     if len(pts) > 2:
-        raise ValueError(f"refine_point_mm: a point or a segment (two points), got {len(pts)} points")
+        raise ValueError(
+            f"refine_point_mm: a point or a segment (two points), got {len(pts)} points"
+        )
     # every number in parentheses: gmsh's expression parser rejects "x--1" and "*-4"
     a, b = ([f"({float(v)!r})" for v in p] for p in (pts[0], pts[-1]))
     d = pts[-1] - pts[0]
@@ -51,7 +53,9 @@ def _size_field(gmsh, h_mm, refine_point_mm, refine_h_mm, refine_radius_mm, refi
     ramp = refine_radius_mm if refine_growth is None else (h_mm - refine_h_mm) / refine_growth
     f = gmsh.model.mesh.field.add("MathEval")
     gmsh.model.mesh.field.setString(
-        f, "F", f"Min({h_mm}, {refine_h_mm} + ({h_mm} - {refine_h_mm}) * Max(0, {r} - {refine_radius_mm}) / {ramp})"
+        f,
+        "F",
+        f"Min({h_mm}, {refine_h_mm} + ({h_mm} - {refine_h_mm}) * Max(0, {r} - {refine_radius_mm}) / {ramp})",
     )
     gmsh.model.mesh.field.setAsBackgroundMesh(f)
     gmsh.option.setNumber("Mesh.MeshSizeMax", h_mm)
@@ -68,8 +72,16 @@ def _finish(gmsh, order: int = 2) -> TetMesh:
     return extract_tetmesh(order=order)
 
 
-def block_mesh(size_mm=(10.0, 10.0, 5.0), *, h_mm=1.0, refine_point_mm=None, refine_h_mm=None,
-               refine_radius_mm=None, refine_growth=None, order=2) -> TetMesh:
+def block_mesh(
+    size_mm=(10.0, 10.0, 5.0),
+    *,
+    h_mm=1.0,
+    refine_point_mm=None,
+    refine_h_mm=None,
+    refine_radius_mm=None,
+    refine_growth=None,
+    order=2,
+) -> TetMesh:
     """A box [0, lx] x [0, ly] x [0, lz] meshed with quadratic tets (linear with ``order=1``).
 
     Facet sets: xmin, xmax, ymin, ymax, bottom (z = 0), top (z = lz). Optional local refinement to
@@ -86,7 +98,9 @@ def block_mesh(size_mm=(10.0, 10.0, 5.0), *, h_mm=1.0, refine_point_mm=None, ref
         names = {}
         for _, t in gmsh.model.getEntities(2):
             c = gmsh.model.occ.getCenterOfMass(2, t)
-            for k, (lo, hi, nlo, nhi) in enumerate([(0, lx, "xmin", "xmax"), (0, ly, "ymin", "ymax"), (0, lz, "bottom", "top")]):
+            for k, (lo, hi, nlo, nhi) in enumerate(
+                [(0, lx, "xmin", "xmax"), (0, ly, "ymin", "ymax"), (0, lz, "bottom", "top")]
+            ):
                 if abs(c[k] - lo) < 1e-9:
                     names[nlo] = t
                 elif abs(c[k] - hi) < 1e-9:
@@ -99,8 +113,17 @@ def block_mesh(size_mm=(10.0, 10.0, 5.0), *, h_mm=1.0, refine_point_mm=None, ref
         gmsh.finalize()
 
 
-def cored_cylinder_mesh(*, length_mm=20.0, radius_mm=5.0, core_radius_mm=1.0, h_mm=1.0, refine_point_mm=None,
-                        refine_h_mm=None, refine_radius_mm=None, order=2) -> TetMesh:
+def cored_cylinder_mesh(
+    *,
+    length_mm=20.0,
+    radius_mm=5.0,
+    core_radius_mm=1.0,
+    h_mm=1.0,
+    refine_point_mm=None,
+    refine_h_mm=None,
+    refine_radius_mm=None,
+    order=2,
+) -> TetMesh:
     """A cylinder along z (0..length) of ``radius_mm`` around a rigid core hole of ``core_radius_mm``,
     meshed with quadratic tets (linear with ``order=1``).
 
@@ -124,7 +147,9 @@ def cored_cylinder_mesh(*, length_mm=20.0, radius_mm=5.0, core_radius_mm=1.0, h_
                 groups["proximal"].append(t)
             else:
                 bb = gmsh.model.getBoundingBox(2, t)
-                groups["bone" if bb[3] < radius_mm * 0.5 + core_radius_mm * 0.5 else "skin"].append(t)
+                groups[
+                    "bone" if bb[3] < radius_mm * 0.5 + core_radius_mm * 0.5 else "skin"
+                ].append(t)
         for n, ts in groups.items():
             gmsh.model.addPhysicalGroup(2, ts, name=n)
         gmsh.model.addPhysicalGroup(2, groups["skin"], name="patch")
@@ -134,7 +159,9 @@ def cored_cylinder_mesh(*, length_mm=20.0, radius_mm=5.0, core_radius_mm=1.0, h_
         gmsh.finalize()
 
 
-def distort_interior(mesh: TetMesh, *, amount=0.25, seed=0, keep_sets=None, curved=True) -> TetMesh:
+def distort_interior(
+    mesh: TetMesh, *, amount=0.25, seed=0, keep_sets=None, curved=True
+) -> TetMesh:
     """Move interior corner nodes randomly by up to ``amount`` x local edge length, and every
     interior mid-node off its straight edge if ``curved`` (order 2); boundary nodes stay. For patch tests."""
     rng = np.random.default_rng(seed)
@@ -154,7 +181,9 @@ def distort_interior(mesh: TetMesh, *, amount=0.25, seed=0, keep_sets=None, curv
     if mesh.order == 1:
         out = TetMesh(nodes_mm=p, tets=mesh.tets, facets=mesh.facets)
         if np.any(out.volumes_mm3() <= 0):
-            raise ValueError("distort_interior: distortion inverted a tetrahedron; use a smaller amount")
+            raise ValueError(
+                "distort_interior: distortion inverted a tetrahedron; use a smaller amount"
+            )
         return out
     # mid-nodes: midpoint of the (moved) corners plus a bump for interior edges
     m, mid = edge_midpoints(t, p)
@@ -167,5 +196,7 @@ def distort_interior(mesh: TetMesh, *, amount=0.25, seed=0, keep_sets=None, curv
     from .skmesh import reference_jacobians
 
     if np.any(out.volumes_mm3() <= 0) or np.any(reference_jacobians(out) <= 0):
-        raise ValueError("distort_interior: distortion inverted a tetrahedron; use a smaller amount")
+        raise ValueError(
+            "distort_interior: distortion inverted a tetrahedron; use a smaller amount"
+        )
     return out

@@ -17,8 +17,14 @@ from skfem import MeshTet1, MeshTet2
 
 from ..mesh import GMSH_TET10_EDGES, TetMesh, edge_midpoints
 
-__all__ = ["GMSH_TO_SKFEM_TET10", "SkMesh", "jacobian_points", "reference_jacobians",
-           "straighten_invalid", "to_skfem"]
+__all__ = [
+    "GMSH_TO_SKFEM_TET10",
+    "SkMesh",
+    "jacobian_points",
+    "reference_jacobians",
+    "straighten_invalid",
+    "to_skfem",
+]
 
 # gmsh -> skfem local node permutation of a 10-node tet (swap 8 and 9)
 GMSH_TO_SKFEM_TET10 = np.array([0, 1, 2, 3, 4, 5, 6, 7, 9, 8])
@@ -71,7 +77,12 @@ def to_skfem(tm: TetMesh) -> SkMesh:
     t = vert[tm.tets[:, :4]].T
     m1 = MeshTet1(tm.nodes_mm[corners].T.copy(), np.ascontiguousarray(t))
     if tm.order == 1:
-        return SkMesh(mesh=m1, tetmesh_node=corners, vertex_of_node=vert, facets=_facet_sets(tm, m1, vert, len(corners)))
+        return SkMesh(
+            mesh=m1,
+            tetmesh_node=corners,
+            vertex_of_node=vert,
+            facets=_facet_sets(tm, m1, vert, len(corners)),
+        )
     m2 = MeshTet2.from_mesh(m1)
 
     # gmsh mid-node of every (vertex pair)
@@ -98,7 +109,12 @@ def to_skfem(tm: TetMesh) -> SkMesh:
     if not (np.array_equal(ed[:4], m2.t) and np.array_equal(ed[4:], m2.t2e + m2.nvertices)):
         raise AssertionError("unexpected skfem P2 dof numbering")
     mesh = MeshTet2(doflocs, m2.t.copy())
-    return SkMesh(mesh=mesh, tetmesh_node=tetmesh_node, vertex_of_node=vert, facets=_facet_sets(tm, mesh, vert, len(corners)))
+    return SkMesh(
+        mesh=mesh,
+        tetmesh_node=tetmesh_node,
+        vertex_of_node=vert,
+        facets=_facet_sets(tm, mesh, vert, len(corners)),
+    )
 
 
 def _facet_sets(tm: TetMesh, mesh, vert: np.ndarray, nv: int) -> dict:
@@ -119,7 +135,9 @@ def _facet_sets(tm: TetMesh, mesh, vert: np.ndarray, nv: int) -> dict:
         p = np.searchsorted(fks, k)
         ok = (p < len(fks)) & (fks[np.minimum(p, len(fks) - 1)] == k)
         if not np.all(ok):
-            raise ValueError(f"TetMesh.facets[{name!r}]: {np.count_nonzero(~ok)} facets are not faces of the tetrahedra")
+            raise ValueError(
+                f"TetMesh.facets[{name!r}]: {np.count_nonzero(~ok)} facets are not faces of the tetrahedra"
+            )
         facets[name] = forder[p]
     return facets
 
@@ -134,7 +152,9 @@ def jacobian_points(order: int, *, corners: bool = True) -> np.ndarray:
     return np.concatenate([xi, np.eye(3), np.zeros((1, 3))]) if corners else xi
 
 
-def reference_jacobians(tm: TetMesh, *, order: int = 4, skmesh: SkMesh | None = None, corners: bool = True) -> np.ndarray:
+def reference_jacobians(
+    tm: TetMesh, *, order: int = 4, skmesh: SkMesh | None = None, corners: bool = True
+) -> np.ndarray:
     """det(dX/dxi) (n_tets, n_points) of the (curved) P2 geometry (straight P1 geometry for order 1) at the points of a quadrature
     rule of ``order`` (and at the 4 corners if ``corners``): must be > 0 where the solver integrates."""
     sk = skmesh if skmesh is not None else to_skfem(tm)
@@ -149,7 +169,9 @@ def straighten_invalid(tm: TetMesh, *, order: int = 2, max_rounds: int = 5) -> t
     if tm.order == 1:
         bad = np.any(reference_jacobians(tm, order=order) <= 0, axis=1)
         if np.any(bad):
-            raise ValueError(f"mesh: {int(bad.sum())} linear tetrahedra are inverted or flat, e.g. tet {int(np.flatnonzero(bad)[0])}")
+            raise ValueError(
+                f"mesh: {int(bad.sum())} linear tetrahedra are inverted or flat, e.g. tet {int(np.flatnonzero(bad)[0])}"
+            )
         return tm, 0
     nodes = tm.nodes_mm.copy()
     fixed = np.zeros(len(tm.tets), bool)
@@ -161,4 +183,6 @@ def straighten_invalid(tm: TetMesh, *, order: int = 2, max_rounds: int = 5) -> t
         fixed |= bad
         m, mid = edge_midpoints(tm.tets[bad], nodes)
         nodes[m] = mid
-    raise ValueError(f"mesh: {int(bad.sum())} tetrahedra stay inverted after straightening their edges")
+    raise ValueError(
+        f"mesh: {int(bad.sum())} tetrahedra stay inverted after straightening their edges"
+    )

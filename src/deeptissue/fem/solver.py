@@ -55,10 +55,29 @@ from .linsolve import PardisoSymmetric
 
 log = logging.getLogger(__name__)
 
-__all__ = ["BoneState", "ContactSettings", "EndState", "FacetSets", "IncrementRecord", "IncrementSettings",
-           "NewtonSettings", "SolveResult", "SolverSettings", "end_state", "load_bone_state", "load_end_state",
-           "save_bone_state", "save_end_state", "solve_bone_rotation", "solve_from", "solve_indentation", "solve_prescribed",
-           "solve_turned", "solver_settings_from_config", "summed_costs"]
+__all__ = [
+    "BoneState",
+    "ContactSettings",
+    "EndState",
+    "FacetSets",
+    "IncrementRecord",
+    "IncrementSettings",
+    "NewtonSettings",
+    "SolveResult",
+    "SolverSettings",
+    "end_state",
+    "load_bone_state",
+    "load_end_state",
+    "save_bone_state",
+    "save_end_state",
+    "solve_bone_rotation",
+    "solve_from",
+    "solve_indentation",
+    "solve_prescribed",
+    "solve_turned",
+    "solver_settings_from_config",
+    "summed_costs",
+]
 
 # Fixed parts of the method (not settings: no scene has needed another value)
 _ATOL_MU_REL = 1e-10  # absolute residual floor in units of mu V^(2/3) [N]
@@ -118,7 +137,9 @@ class NewtonSettings:
 
     def __post_init__(self):
         if not (0 < self.rtol <= self.rtol_intermediate < 1) or self.max_iterations < 1:
-            raise ValueError(f"NewtonSettings: need 0 < rtol <= rtol_intermediate < 1 and max_iterations >= 1, got {self}")
+            raise ValueError(
+                f"NewtonSettings: need 0 < rtol <= rtol_intermediate < 1 and max_iterations >= 1, got {self}"
+            )
 
 
 @dataclass(frozen=True)
@@ -141,10 +162,14 @@ class IncrementSettings:
     turn_initial_increment: float = 1.0
 
     def __post_init__(self):
-        if not (0 < self.min_increment <= self.initial_increment <= self.max_increment <= 1
-                and self.min_increment <= self.turn_initial_increment <= 1):
-            raise ValueError("IncrementSettings: need 0 < min_increment <= initial_increment <= max_increment <= 1 and "
-                             f"min_increment <= turn_initial_increment <= 1, got {self}")
+        if not (
+            0 < self.min_increment <= self.initial_increment <= self.max_increment <= 1
+            and self.min_increment <= self.turn_initial_increment <= 1
+        ):
+            raise ValueError(
+                "IncrementSettings: need 0 < min_increment <= initial_increment <= max_increment <= 1 and "
+                f"min_increment <= turn_initial_increment <= 1, got {self}"
+            )
 
 
 @dataclass(frozen=True)
@@ -160,7 +185,11 @@ class ContactSettings:
     cast_candidate_distance_mm: float = 0.1
 
     def __post_init__(self):
-        if not (self.gap_tol_rel > 0 and self.candidate_distance_rel > 0 and self.cast_candidate_distance_mm > 0):
+        if not (
+            self.gap_tol_rel > 0
+            and self.candidate_distance_rel > 0
+            and self.cast_candidate_distance_mm > 0
+        ):
             raise ValueError(f"ContactSettings: every value must be > 0, got {self}")
 
 
@@ -220,7 +249,9 @@ class IncrementRecord:
     converged: bool
     reason: str  # "" if converged, else why it was cut
     iterations: int
-    active_set_changes: int  # entries that entered or left the active set after the first iteration
+    active_set_changes: (
+        int  # entries that entered or left the active set after the first iteration
+    )
     residuals: tuple  # residual norms [N] of the Newton iterations
     tip_mm: tuple
     indenter_force_N: float
@@ -311,14 +342,21 @@ class EndState:
 
 
 def _contact_arrays(contact: dict) -> dict:
-    return {k: v for name, (nodes, lam) in contact.items() for k, v in ((f"{name}_nodes", nodes), (f"{name}_lam_N", lam))}
+    return {
+        k: v
+        for name, (nodes, lam) in contact.items()
+        for k, v in ((f"{name}_nodes", nodes), (f"{name}_lam_N", lam))
+    }
 
 
 def _write_state(path, displacement_mm, contact: dict, meta: dict) -> None:
     from ..io import atomic_path
 
-    arrays = dict(displacement_mm=displacement_mm, meta=np.array(json.dumps({**meta, "obstacles": sorted(contact)})),
-                  **_contact_arrays(contact))
+    arrays = dict(
+        displacement_mm=displacement_mm,
+        meta=np.array(json.dumps({**meta, "obstacles": sorted(contact)})),
+        **_contact_arrays(contact),
+    )
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         np.savez(f, **arrays)
 
@@ -336,9 +374,16 @@ def _tuples(d: dict) -> dict:
 
 def save_bone_state(path, state: BoneState) -> None:
     """Write a BoneState as .npz (arrays, and the rest as JSON), atomically."""
-    meta = dict(strain_energy_mJ=state.strain_energy_mJ, newton_iterations=state.newton_iterations,
-                wall_s=state.wall_s, assembly_s=state.assembly_s, linear_solve_s=state.linear_solve_s,
-                contact_s=state.contact_s, history=[asdict(h) for h in state.history], settings=asdict(state.settings))
+    meta = dict(
+        strain_energy_mJ=state.strain_energy_mJ,
+        newton_iterations=state.newton_iterations,
+        wall_s=state.wall_s,
+        assembly_s=state.assembly_s,
+        linear_solve_s=state.linear_solve_s,
+        contact_s=state.contact_s,
+        history=[asdict(h) for h in state.history],
+        settings=asdict(state.settings),
+    )
     _write_state(path, state.displacement_mm, state.contact, meta)
 
 
@@ -346,27 +391,49 @@ def load_bone_state(path) -> BoneState:
     """Read :func:`save_bone_state`'s file; ValueError naming the file if it is not one."""
     try:
         u, contact, meta = _read_state(path)
-        return BoneState(displacement_mm=u, contact=contact, strain_energy_mJ=float(meta["strain_energy_mJ"]),
-                         history=tuple(IncrementRecord(**_tuples(h)) for h in meta["history"]),
-                         newton_iterations=int(meta["newton_iterations"]), wall_s=float(meta["wall_s"]),
-                         assembly_s=float(meta["assembly_s"]), linear_solve_s=float(meta["linear_solve_s"]),
-                         contact_s=float(meta["contact_s"]), settings=solver_settings_from_config(meta["settings"]))
+        return BoneState(
+            displacement_mm=u,
+            contact=contact,
+            strain_energy_mJ=float(meta["strain_energy_mJ"]),
+            history=tuple(IncrementRecord(**_tuples(h)) for h in meta["history"]),
+            newton_iterations=int(meta["newton_iterations"]),
+            wall_s=float(meta["wall_s"]),
+            assembly_s=float(meta["assembly_s"]),
+            linear_solve_s=float(meta["linear_solve_s"]),
+            contact_s=float(meta["contact_s"]),
+            settings=solver_settings_from_config(meta["settings"]),
+        )
     except (KeyError, OSError, ValueError, TypeError) as exc:
         raise ValueError(f"{path}: not a bone-state file ({type(exc).__name__}: {exc})") from exc
 
 
-def end_state(result: SolveResult, mesh: TetMesh, *, indenter: Indenter, bone_motion: BoneMotion,
-              settings: SolverSettings) -> EndState | None:
+def end_state(
+    result: SolveResult,
+    mesh: TetMesh,
+    *,
+    indenter: Indenter,
+    bone_motion: BoneMotion,
+    settings: SolverSettings,
+) -> EndState | None:
     """The EndState of a converged :func:`solve_indentation` result (None if it did not converge)."""
     if not result.converged:
         return None
-    return EndState(displacement_mm=result.displacement_mm.ravel().copy(), contact=dict(result.extra["contact_state"]),
-                    indenter=indenter, bone_motion=bone_motion, settings=settings)
+    return EndState(
+        displacement_mm=result.displacement_mm.ravel().copy(),
+        contact=dict(result.extra["contact_state"]),
+        indenter=indenter,
+        bone_motion=bone_motion,
+        settings=settings,
+    )
 
 
 def save_end_state(path, state: EndState) -> None:
     """Write an EndState as .npz (arrays, and the rest as JSON), atomically."""
-    meta = dict(indenter=asdict(state.indenter), bone_motion=asdict(state.bone_motion), settings=asdict(state.settings))
+    meta = dict(
+        indenter=asdict(state.indenter),
+        bone_motion=asdict(state.bone_motion),
+        settings=asdict(state.settings),
+    )
     _write_state(path, state.displacement_mm, state.contact, meta)
 
 
@@ -374,9 +441,13 @@ def load_end_state(path) -> EndState:
     """Read :func:`save_end_state`'s file; ValueError naming the file if it is not one."""
     try:
         u, contact, meta = _read_state(path)
-        return EndState(displacement_mm=u, contact=contact, indenter=Indenter(**_tuples(meta["indenter"])),
-                        bone_motion=BoneMotion(**_tuples(meta["bone_motion"])),
-                        settings=solver_settings_from_config(meta["settings"]))
+        return EndState(
+            displacement_mm=u,
+            contact=contact,
+            indenter=Indenter(**_tuples(meta["indenter"])),
+            bone_motion=BoneMotion(**_tuples(meta["bone_motion"])),
+            settings=solver_settings_from_config(meta["settings"]),
+        )
     except (KeyError, OSError, ValueError, TypeError) as exc:
         raise ValueError(f"{path}: not an end-state file ({type(exc).__name__}: {exc})") from exc
 
@@ -384,10 +455,14 @@ def load_end_state(path) -> EndState:
 def summed_costs(*results: SolveResult) -> dict:
     """The Newton iterations and the assembly, linear-solve and contact seconds of several tries of one solve,
     summed (for ``dataclasses.replace`` of the result reported; its wall time is the caller's)."""
-    return {k: sum(getattr(r, k) for r in results) for k in ("newton_iterations", "assembly_s", "linear_solve_s", "contact_s")}
+    return {
+        k: sum(getattr(r, k) for r in results)
+        for k in ("newton_iterations", "assembly_s", "linear_solve_s", "contact_s")
+    }
 
 
 # ------------------------------------------------------------------------------------------- load schedules
+
 
 class _Schedule:
     """The bone's rigid motion and the indenter's travel as functions of the load t in [0, 4]."""
@@ -460,7 +535,11 @@ class _TurnSchedule(_Schedule):
 
     def indenter(self, t):
         s = float(np.clip(t - 3.0, 0.0, 1.0)) * self.angle
-        a = self.a0 * np.cos(s) + np.cross(self.k, self.a0) * np.sin(s) + self.k * (self.k @ self.a0) * (1 - np.cos(s))
+        a = (
+            self.a0 * np.cos(s)
+            + np.cross(self.k, self.a0) * np.sin(s)
+            + self.k * (self.k @ self.a0) * (1 - np.cos(s))
+        )
         return replace(self.ind, axis=tuple(a))
 
 
@@ -507,9 +586,18 @@ def _skin_overlap_mm(sched, X: np.ndarray, u: np.ndarray, t: float) -> float:
 
 # ------------------------------------------------------------------------------------------- entry points
 
-def solve_indentation(mesh: TetMesh, *, material, indenter: Indenter | None, bone_motion: BoneMotion,
-                      cast: Cast | None = None, settings: SolverSettings = SolverSettings(),
-                      sets: FacetSets = FacetSets(), start: BoneState | None = None) -> SolveResult:
+
+def solve_indentation(
+    mesh: TetMesh,
+    *,
+    material,
+    indenter: Indenter | None,
+    bone_motion: BoneMotion,
+    cast: Cast | None = None,
+    settings: SolverSettings = SolverSettings(),
+    sets: FacetSets = FacetSets(),
+    start: BoneState | None = None,
+) -> SolveResult:
     """Solve the indentation of ``mesh`` (TetMesh, mm) and return a :class:`SolveResult`.
 
     material: an Ogden parameter set (deeptissue.fem.material.Ogden) or an assembly.MaterialLaw.
@@ -522,31 +610,78 @@ def solve_indentation(mesh: TetMesh, *, material, indenter: Indenter | None, bon
     state. Raises ValueError for missing facet sets or a start of another mesh.
     """
     if start is not None and start.displacement_mm.shape != (3 * len(mesh.nodes_mm),):
-        raise ValueError(f"solve_indentation: the bone state has {start.displacement_mm.size} displacement dofs, "
-                         f"the mesh {3 * len(mesh.nodes_mm)}: not this mesh's state")
-    use = start if start is not None and replace(start.settings, max_wall_s=None) == replace(settings, max_wall_s=None) else None
-    return _solve(mesh, material=material, indenter=indenter, schedule=_Schedule(bone_motion, indenter),
-                  bc_sets=(sets.bone,), cast=cast, settings=settings, sets=sets, start=use)
+        raise ValueError(
+            f"solve_indentation: the bone state has {start.displacement_mm.size} displacement dofs, "
+            f"the mesh {3 * len(mesh.nodes_mm)}: not this mesh's state"
+        )
+    use = (
+        start
+        if start is not None
+        and replace(start.settings, max_wall_s=None) == replace(settings, max_wall_s=None)
+        else None
+    )
+    return _solve(
+        mesh,
+        material=material,
+        indenter=indenter,
+        schedule=_Schedule(bone_motion, indenter),
+        bc_sets=(sets.bone,),
+        cast=cast,
+        settings=settings,
+        sets=sets,
+        start=use,
+    )
 
 
-def solve_bone_rotation(mesh: TetMesh, *, material, bone_motion: BoneMotion, cast: Cast | None = None,
-                        settings: SolverSettings = SolverSettings(), sets: FacetSets = FacetSets()
-                        ) -> tuple[SolveResult, BoneState | None]:
+def solve_bone_rotation(
+    mesh: TetMesh,
+    *,
+    material,
+    bone_motion: BoneMotion,
+    cast: Cast | None = None,
+    settings: SolverSettings = SolverSettings(),
+    sets: FacetSets = FacetSets(),
+) -> tuple[SolveResult, BoneState | None]:
     """The bone-rotation steps alone (t 0 -> 3, no indenter): (result, BoneState), the state None if they
     did not converge. Every variant on this mesh with these settings can start from the state
     (``solve_indentation(..., start=state)``) and takes the same path as if it had solved them itself."""
-    r = _solve(mesh, material=material, indenter=None, schedule=_Schedule(bone_motion, None), bc_sets=(sets.bone,),
-               cast=cast, settings=settings, sets=sets, rotation_only=True)
+    r = _solve(
+        mesh,
+        material=material,
+        indenter=None,
+        schedule=_Schedule(bone_motion, None),
+        bc_sets=(sets.bone,),
+        cast=cast,
+        settings=settings,
+        sets=sets,
+        rotation_only=True,
+    )
     if not r.converged:
         return r, None
-    return r, BoneState(displacement_mm=r.displacement_mm.ravel().copy(), contact=dict(r.extra["contact_state"]),
-                        strain_energy_mJ=r.strain_energy_mJ, history=r.history, newton_iterations=r.newton_iterations,
-                        wall_s=r.wall_s, assembly_s=r.assembly_s, linear_solve_s=r.linear_solve_s,
-                        contact_s=r.contact_s, settings=settings)
+    return r, BoneState(
+        displacement_mm=r.displacement_mm.ravel().copy(),
+        contact=dict(r.extra["contact_state"]),
+        strain_energy_mJ=r.strain_energy_mJ,
+        history=r.history,
+        newton_iterations=r.newton_iterations,
+        wall_s=r.wall_s,
+        assembly_s=r.assembly_s,
+        linear_solve_s=r.linear_solve_s,
+        contact_s=r.contact_s,
+        settings=settings,
+    )
 
 
-def solve_turned(mesh: TetMesh, *, material, base: EndState, indenter: Indenter, cast: Cast | None = None,
-                 settings: SolverSettings = SolverSettings(), sets: FacetSets = FacetSets()) -> SolveResult:
+def solve_turned(
+    mesh: TetMesh,
+    *,
+    material,
+    base: EndState,
+    indenter: Indenter,
+    cast: Cast | None = None,
+    settings: SolverSettings = SolverSettings(),
+    sets: FacetSets = FacetSets(),
+) -> SolveResult:
     """Solve a variant whose indenter differs from the one of ``base`` (a converged end state on this mesh,
     :func:`end_state`) only by a turn about the same final tip: from that state (displacement and contact
     forces), with the bone at its final pose, the indenter is turned about its final tip to ``indenter``'s
@@ -555,27 +690,56 @@ def solve_turned(mesh: TetMesh, *, material, base: EndState, indenter: Indenter,
     raises for non-convergence (the caller then solves the variant from the start); ValueError if
     ``indenter`` is not such a turn of ``base.indenter`` or the state is not of this mesh."""
     a, b = base.indenter, indenter
-    if (a.kind, a.radius_mm, a.bar_length_mm) != (b.kind, b.radius_mm, b.bar_length_mm) or not np.allclose(
-            a.end_mm, b.end_mm, rtol=0.0, atol=1e-9):
+    if (a.kind, a.radius_mm, a.bar_length_mm) != (
+        b.kind,
+        b.radius_mm,
+        b.bar_length_mm,
+    ) or not np.allclose(a.end_mm, b.end_mm, rtol=0.0, atol=1e-9):
         raise ValueError(f"solve_turned: {b} is not a turn of {a} about its final tip")
     if base.displacement_mm.shape != (3 * len(mesh.nodes_mm),):
-        raise ValueError(f"solve_turned: the end state has {base.displacement_mm.size} displacement dofs, the mesh "
-                         f"{3 * len(mesh.nodes_mm)}: not this mesh's state")
+        raise ValueError(
+            f"solve_turned: the end state has {base.displacement_mm.size} displacement dofs, the mesh "
+            f"{3 * len(mesh.nodes_mm)}: not this mesh's state"
+        )
     inc = settings.increments
     if np.allclose(a.unit_axis, b.unit_axis, rtol=0.0, atol=1e-12):
         # no turn (a state carried from another mesh): every fraction of it is the same problem, tried once
-        inc = replace(inc, initial_increment=1.0, max_increment=1.0, min_increment=1.0, turn_initial_increment=1.0)
+        inc = replace(
+            inc,
+            initial_increment=1.0,
+            max_increment=1.0,
+            min_increment=1.0,
+            turn_initial_increment=1.0,
+        )
     else:
         inc = replace(inc, initial_increment=min(inc.turn_initial_increment, inc.max_increment))
     turn = replace(settings, increments=inc)
-    r = _solve(mesh, material=material, indenter=indenter, schedule=_TurnSchedule(base.bone_motion, a, b),
-               bc_sets=(sets.bone,), cast=cast, settings=turn, sets=sets, start=base)
+    r = _solve(
+        mesh,
+        material=material,
+        indenter=indenter,
+        schedule=_TurnSchedule(base.bone_motion, a, b),
+        bc_sets=(sets.bone,),
+        cast=cast,
+        settings=turn,
+        sets=sets,
+        start=base,
+    )
     return replace(r, extra={**r.extra, "turned": True})
 
 
-def solve_from(mesh: TetMesh, *, material, indenter: Indenter, bone_motion: BoneMotion, base: EndState | None = None,
-               start: BoneState | None = None, cast: Cast | None = None, settings: SolverSettings = SolverSettings(),
-               sets: FacetSets = FacetSets()) -> SolveResult:
+def solve_from(
+    mesh: TetMesh,
+    *,
+    material,
+    indenter: Indenter,
+    bone_motion: BoneMotion,
+    base: EndState | None = None,
+    start: BoneState | None = None,
+    cast: Cast | None = None,
+    settings: SolverSettings = SolverSettings(),
+    sets: FacetSets = FacetSets(),
+) -> SolveResult:
     """Solve a variant from the nearest converged state there is: from ``base`` (:func:`solve_turned`: an end
     state on this mesh whose indenter turns about the same final tip into ``indenter``, or with the same
     indenter, a state carried from another mesh, :func:`deeptissue.fem.transfer.mapped_end_state`), and from
@@ -584,43 +748,90 @@ def solve_from(mesh: TetMesh, *, material, indenter: Indenter, bone_motion: Bone
     ``extra['turned']`` says whether the base was used."""
     first = None
     if base is not None:
-        first = solve_turned(mesh, material=material, base=base, indenter=indenter, cast=cast, settings=settings,
-                             sets=sets)
+        first = solve_turned(
+            mesh,
+            material=material,
+            base=base,
+            indenter=indenter,
+            cast=cast,
+            settings=settings,
+            sets=sets,
+        )
         if first.converged:
             return first
-        log.warning("solving from the given end state did not converge (%s): solving from the start", first.reason)
-    r = solve_indentation(mesh, material=material, indenter=indenter, bone_motion=bone_motion, cast=cast,
-                          settings=settings, sets=sets, start=start)
+        log.warning(
+            "solving from the given end state did not converge (%s): solving from the start",
+            first.reason,
+        )
+    r = solve_indentation(
+        mesh,
+        material=material,
+        indenter=indenter,
+        bone_motion=bone_motion,
+        cast=cast,
+        settings=settings,
+        sets=sets,
+        start=start,
+    )
     if first is None:
         return r
-    return replace(r, **summed_costs(r, first), wall_s=r.wall_s + first.wall_s,
-                   extra={**r.extra, "turn_failed": first.reason})
+    return replace(
+        r,
+        **summed_costs(r, first),
+        wall_s=r.wall_s + first.wall_s,
+        extra={**r.extra, "turn_failed": first.reason},
+    )
 
 
-def solve_prescribed(mesh: TetMesh, *, material, bc_sets, displacement_mm,
-                     settings: SolverSettings = SolverSettings()) -> SolveResult:
+def solve_prescribed(
+    mesh: TetMesh,
+    *,
+    material,
+    bc_sets,
+    displacement_mm,
+    settings: SolverSettings = SolverSettings(),
+) -> SolveResult:
     """Solve with a prescribed displacement on the nodes of facet sets ``bc_sets`` (no contact).
 
     displacement_mm(X (n, 3), s) -> (n, 3) [mm]: displacement at load fraction s in [0, 1].
     Used for patch tests and homogeneous deformations.
     """
-    return _solve(mesh, material=material, indenter=None, schedule=_Prescribed(displacement_mm), bc_sets=tuple(bc_sets),
-                  cast=None, settings=settings, sets=FacetSets())
+    return _solve(
+        mesh,
+        material=material,
+        indenter=None,
+        schedule=_Prescribed(displacement_mm),
+        bc_sets=tuple(bc_sets),
+        cast=None,
+        settings=settings,
+        sets=FacetSets(),
+    )
 
 
 # ------------------------------------------------------------------------------------------- the solve
 
+
 class _Problem:
     """The fixed parts of one solve: settings, assembler, contact, linear solver, timers."""
 
-    def __init__(self, s: SolverSettings, asm: Assembler, contact: WeightedContact, constrained: np.ndarray,
-                 force_unit_N: float):
+    def __init__(
+        self,
+        s: SolverSettings,
+        asm: Assembler,
+        contact: WeightedContact,
+        constrained: np.ndarray,
+        force_unit_N: float,
+    ):
         self.s, self.asm, self.contact, self.constrained = s, asm, contact, constrained
         self.gap_tol = s.contact.gap_tol_rel * contact.h  # [mm]
-        self.gap_tol_intermediate = max(s.contact.gap_tol_rel, _GAP_TOL_INTERMEDIATE_REL) * contact.h
+        self.gap_tol_intermediate = (
+            max(s.contact.gap_tol_rel, _GAP_TOL_INTERMEDIATE_REL) * contact.h
+        )
         self.atol = _ATOL_MU_REL * force_unit_N
         self.atol_intermediate = _ATOL_INTERMEDIATE_MU_REL * force_unit_N
-        self.fmap = np.full(asm.n_dofs, -1, np.int64)  # dof -> row of the free dofs (-1: prescribed)
+        self.fmap = np.full(
+            asm.n_dofs, -1, np.int64
+        )  # dof -> row of the free dofs (-1: prescribed)
         self.fmap[asm.free] = np.arange(asm.n_free)
         self.solver = PardisoSymmetric()
         self.timers = dict(assembly=0.0, solve=0.0, contact=0.0)
@@ -667,8 +878,14 @@ class _Problem:
         g = np.where(fin, gw, 0.0)
         rho = _LAGRANGIAN_PENALTY * self.contact.c
         on = fin & (lam - rho * g > 0)
-        psi = np.where(on, -lam * g + 0.5 * rho * g * g, np.where(fin, -lam * lam / (2.0 * rho), 0.0))
-        return psi, np.where(on, rho * g - lam, 0.0), np.where(on, -g, np.where(fin, -lam / rho, 0.0))
+        psi = np.where(
+            on, -lam * g + 0.5 * rho * g * g, np.where(fin, -lam * lam / (2.0 * rho), 0.0)
+        )
+        return (
+            psi,
+            np.where(on, rho * g - lam, 0.0),
+            np.where(on, -g, np.where(fin, -lam / rho, 0.0)),
+        )
 
     def lagrangian_slope(self, f, gw, G, lam, du, dlam):
         """Derivative of :meth:`lagrangian` along (du, dlam) at the point of internal force f, weighted gaps gw
@@ -730,7 +947,11 @@ def _solve_increment(p: _Problem, u, lam, target_d, rtol, atol, gap_tol):
         if data is None:
             _, f, data, Ke_bc = _tangent(p, u)
             gw, G, geo, fc = p.weighted(u, lam)
-        new_act = contact.cand & np.isfinite(gw) & (lam - contact.c * np.where(np.isfinite(gw), gw, 0.0) > 0)
+        new_act = (
+            contact.cand
+            & np.isfinite(gw)
+            & (lam - contact.c * np.where(np.isfinite(gw), gw, 0.0) > 0)
+        )
         if it > 0:
             changes += int(np.count_nonzero(new_act != act))
         act = new_act
@@ -754,16 +975,27 @@ def _solve_increment(p: _Problem, u, lam, target_d, rtol, atol, gap_tol):
             if not has_d and (step is None or step < _SHORT_STEP):
                 slope = p.lagrangian_slope(f, gw, G, lam, du, dlam)
                 if slope < 0:
-                    al_step = _line_search(p.lagrangian, u, lam, du, dlam, p.lagrangian(u, lam), slope)
+                    al_step = _line_search(
+                        p.lagrangian, u, lam, du, dlam, p.lagrangian(u, lam), slope
+                    )
                     if al_step is not None and (step is None or al_step > step):
                         step = al_step
-                        p.merit(u + step * du, lam + step * dlam)  # ``last``: the next iteration's force and gaps
+                        p.merit(
+                            u + step * du, lam + step * dlam
+                        )  # ``last``: the next iteration's force and gaps
             if step is not None or not geo:
                 break
         if step is None:
             return False, "line search failed", it, residuals, changes
-        log.debug("  it %d res %.3e active %d (changed %d) step %.3g min lam %.2e", it, res, int(act.sum()),
-                  int(np.count_nonzero(new_act != (lam > 0))), step, float(lam_new.min(initial=0.0)))
+        log.debug(
+            "  it %d res %.3e active %d (changed %d) step %.3g min lam %.2e",
+            it,
+            res,
+            int(act.sum()),
+            int(np.count_nonzero(new_act != (lam > 0))),
+            step,
+            float(lam_new.min(initial=0.0)),
+        )
         u += step * du
         lam += step * dlam
     return False, "too many iterations", s.newton.max_iterations, residuals, changes
@@ -805,7 +1037,9 @@ def _direction(p: _Problem, data, Ke_bc, f, du_d, act, gw, G, geo, curvature=1.0
     rmap = np.full(len(contact.node), -1, np.int64)
     rmap[cand] = np.arange(len(cand))
     keep = (fmap[cols] >= 0) & (rmap[rows] >= 0)
-    Gc = sp.csr_matrix((vals[keep], (rmap[rows[keep]], fmap[cols[keep]])), shape=(len(cand), n_free))
+    Gc = sp.csr_matrix(
+        (vals[keep], (rmap[rows[keep]], fmap[cols[keep]])), shape=(len(cand), n_free)
+    )
     a_row = act[cand]
     g2 = np.asarray(Gc.multiply(Gc).sum(axis=1)).ravel()
     rho = _AUGMENTATION * float(np.median(Kc.diagonal())) / np.where(g2 > 0, g2, 1.0)
@@ -815,13 +1049,17 @@ def _direction(p: _Problem, data, Ke_bc, f, du_d, act, gw, G, geo, curvature=1.0
             r_parts.append(P.row)
             c_parts.append(P.col)
             v_parts.append(P.data if values else np.zeros_like(P.data))
-    A = sp.coo_matrix((np.concatenate(v_parts), (np.concatenate(r_parts), np.concatenate(c_parts))),
-                      shape=(n_free, n_free)).tocsr()
+    A = sp.coo_matrix(
+        (np.concatenate(v_parts), (np.concatenate(r_parts), np.concatenate(c_parts))),
+        shape=(n_free, n_free),
+    ).tocsr()
     A.sort_indices()
     bc = asm.bc_force(Ke_bc, du_d) if np.any(du_d) else np.zeros(asm.n_dofs)
     ts = time.perf_counter()
     try:
-        x, lam_a = p.solver.solve_constrained(A, Gc[a_row], rho[a_row], -(f + bc)[free], -gw[cand][a_row])
+        x, lam_a = p.solver.solve_constrained(
+            A, Gc[a_row], rho[a_row], -(f + bc)[free], -gw[cand][a_row]
+        )
     except np.linalg.LinAlgError:
         return None, None
     finally:
@@ -864,8 +1102,12 @@ def _clear_start(sched, contact, k_ind, u, clearance_mm):
         back += clearance_mm - gmin
         sched.ind = replace(ind, start_mm=tuple(np.asarray(ind.start_mm, float) - back * a))
     if back > 0:
-        log.warning("the indenter touches the skin at its start position: start moved %.3f mm back along its axis "
-                    "(%.2f mm clear)", back, clearance_mm)
+        log.warning(
+            "the indenter touches the skin at its start position: start moved %.3f mm back along its axis "
+            "(%.2f mm clear)",
+            back,
+            clearance_mm,
+        )
     return back
 
 
@@ -874,8 +1116,13 @@ def _forces(contact, u, lam, k_ind, k_cast):
     out = []
     for k in (k_ind, k_cast):
         sel = (lam != 0) & (contact.obstacle == k) if k is not None else np.zeros(len(lam), bool)
-        out.append(contact.weighted(u, sel, np.where(sel, lam, 0.0), curvature=False)[3].reshape(-1, 3).sum(axis=0)
-                   if np.any(sel) else np.zeros(3))
+        out.append(
+            contact.weighted(u, sel, np.where(sel, lam, 0.0), curvature=False)[3]
+            .reshape(-1, 3)
+            .sum(axis=0)
+            if np.any(sel)
+            else np.zeros(3)
+        )
     return out[0], out[1]
 
 
@@ -885,7 +1132,9 @@ def _penetration(surfaces, contact, u, which=None):
     pen_mm, pen_rel = 0.0, 0.0
     for k, name in enumerate(contact.names):
         surf, fn = surfaces[name], contact.gapfns[k]
-        idx = None if which is None else contact.facets_with(k, which)  # the surface has the contact set's facets
+        idx = (
+            None if which is None else contact.facets_with(k, which)
+        )  # the surface has the contact set's facets
         if idx is not None and not len(idx):
             continue
         gq = surf.gaps(u, fn, idx)
@@ -895,20 +1144,39 @@ def _penetration(surfaces, contact, u, which=None):
     return max(pen_mm, 0.0), max(pen_rel, 0.0)
 
 
-def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings: SolverSettings, sets: FacetSets,
-           start: BoneState | EndState | None = None, rotation_only: bool = False) -> SolveResult:
+def _solve(
+    mesh,
+    *,
+    material,
+    indenter,
+    schedule,
+    bc_sets,
+    cast,
+    settings: SolverSettings,
+    sets: FacetSets,
+    start: BoneState | EndState | None = None,
+    rotation_only: bool = False,
+) -> SolveResult:
     """The increment loop: load steps, increments sized by the last one's Newton count and active-set changes."""
     t_wall = time.perf_counter()
     keep_freed_memory()
     s, inc = settings, settings.increments
-    for name, need in [*((b, True) for b in bc_sets), (sets.indenter, indenter is not None), (sets.cast, cast is not None)]:
+    for name, need in [
+        *((b, True) for b in bc_sets),
+        (sets.indenter, indenter is not None),
+        (sets.cast, cast is not None),
+    ]:
         if need and (name not in mesh.facets or len(mesh.facets[name]) == 0):
-            raise ValueError(f"solve_indentation: mesh has no facet set {name!r} (sets: {sorted(mesh.facets)})")
+            raise ValueError(
+                f"solve_indentation: mesh has no facet set {name!r} (sets: {sorted(mesh.facets)})"
+            )
     from .skmesh import straighten_invalid
 
     mesh, n_straightened = straighten_invalid(mesh, order=s.quadrature_order)
     if n_straightened:
-        log.warning("straightened the edges of %d curved tets with a non-positive Jacobian", n_straightened)
+        log.warning(
+            "straightened the edges of %d curved tets with a non-positive Jacobian", n_straightened
+        )
     law = as_material_law(material)
     X = mesh.nodes_mm
     bone_nodes = np.unique(np.concatenate([mesh.facets[b].ravel() for b in bc_sets]))
@@ -916,8 +1184,14 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings: Solve
     constrained[(3 * bone_nodes[:, None] + np.arange(3)).ravel()] = True
     asm = Assembler(mesh, law, constrained=constrained, intorder=s.quadrature_order)
     sched = schedule
-    pair_sets = [(n, mesh.facets[fs]) for n, fs, on in (("indenter", sets.indenter, indenter is not None),
-                                                        ("cast", sets.cast, cast is not None)) if on]
+    pair_sets = [
+        (n, mesh.facets[fs])
+        for n, fs, on in (
+            ("indenter", sets.indenter, indenter is not None),
+            ("cast", sets.cast, cast is not None),
+        )
+        if on
+    ]
     contact = WeightedContact(X, pair_sets, bone_nodes, law.young_mpa)
     surfaces = {n: ContactSurface(X, f, order=_REPORT_QUADRATURE_ORDER) for n, f in pair_sets}
     k_ind = contact.names.index("indenter") if indenter is not None else None
@@ -925,8 +1199,11 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings: Solve
     if k_cast is not None:
         contact.gapfns[k_cast] = cast.gap
     h_max = float(contact.h.max()) if len(contact.h) else 1.0
-    cand_dist = np.where(contact.obstacle == k_cast, s.contact.cast_candidate_distance_mm,
-                         s.contact.candidate_distance_rel * h_max)
+    cand_dist = np.where(
+        contact.obstacle == k_cast,
+        s.contact.cast_candidate_distance_mm,
+        s.contact.candidate_distance_rel * h_max,
+    )
     p = _Problem(s, asm, contact, constrained, law.mu_mpa * asm.volume_mm3 ** (2.0 / 3.0))
     timers = p.timers
 
@@ -949,9 +1226,15 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings: Solve
         lam = _start_multipliers(contact, start.contact)
         if isinstance(start, BoneState):
             history, n_iter = list(start.history), start.newton_iterations
-            for name, v in (("assembly", start.assembly_s), ("solve", start.linear_solve_s), ("contact", start.contact_s)):
+            for name, v in (
+                ("assembly", start.assembly_s),
+                ("solve", start.linear_solve_s),
+                ("contact", start.contact_s),
+            ):
                 timers[name] += v
-    carried = isinstance(start, EndState) and not start.contact  # mapped_end_state: no contact forces
+    carried = (
+        isinstance(start, EndState) and not start.contact
+    )  # mapped_end_state: no contact forces
     Xb = X[bone_nodes]
     axis = indenter.unit_axis if indenter is not None else np.zeros(3)
     done, reason_fail, t = True, "", 0.0
@@ -960,10 +1243,15 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings: Solve
     infeasible = bone_clearance_mm is not None and bone_clearance_mm < s.min_bone_clearance_mm
     if infeasible:
         done = False
-        where = (f"{-bone_clearance_mm:.3f} mm inside the moved bone" if bone_clearance_mm < 0
-                 else f"{bone_clearance_mm:.3f} mm from the moved bone")
-        reason_fail = (f"infeasible: the indenter ends {where} (min_bone_clearance_mm {s.min_bone_clearance_mm:g}): "
-                       "no tissue state fits between them")
+        where = (
+            f"{-bone_clearance_mm:.3f} mm inside the moved bone"
+            if bone_clearance_mm < 0
+            else f"{bone_clearance_mm:.3f} mm from the moved bone"
+        )
+        reason_fail = (
+            f"infeasible: the indenter ends {where} (min_bone_clearance_mm {s.min_bone_clearance_mm:g}): "
+            "no tissue state fits between them"
+        )
         log.warning(reason_fail)
     travel, end_overlap_mm = 0.0, 0.0
     for k in () if infeasible else steps:
@@ -981,10 +1269,18 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings: Solve
                 done, reason_fail = False, f"more than {inc.max_increments} increments"
                 break
             if s.max_wall_s is not None and time.perf_counter() - t_wall > s.max_wall_s:
-                done, reason_fail = False, f"wall-time budget of {s.max_wall_s:g} s spent at t = {t:.4f}"
+                done, reason_fail = (
+                    False,
+                    f"wall-time budget of {s.max_wall_s:g} s spent at t = {t:.4f}",
+                )
                 break
             dt = min(dt, inc.max_increment, k + 1 - t)
-            if k == 3 and k_ind is not None and travel > 0 and not np.any(lam[contact.obstacle == k_ind] > 0):
+            if (
+                k == 3
+                and k_ind is not None
+                and travel > 0
+                and not np.any(lam[contact.obstacle == k_ind] > 0)
+            ):
                 # first touch (no indenter force yet): do not jump deep into contact
                 set_time(t)
                 sel = contact.obstacle == k_ind
@@ -1010,16 +1306,23 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings: Solve
                 # a state carried from another mesh has no contact forces: the entries within a fraction of a facet
                 # of touching start active, and the first Newton iteration finds their forces
                 gw0 = contact.weighted(u_try, contact.cand)[0]
-                near = contact.cand & np.isfinite(gw0) & (gw0 < _CARRIED_ACTIVE_GAP_REL * contact.h)
+                near = (
+                    contact.cand & np.isfinite(gw0) & (gw0 < _CARRIED_ACTIVE_GAP_REL * contact.h)
+                )
                 lam_try[near] = contact.c[near] * _CARRIED_ACTIVE_GAP_REL * contact.h[near]
             # only the end of the load is reported (path independent: the ends of the bone-rotation steps only
             # start the next one)
             end = t1 >= 4.0 - 1e-12
-            rtol, atol, gap_tol = ((s.newton.rtol, p.atol, p.gap_tol) if end else
-                                   (s.newton.rtol_intermediate, p.atol_intermediate, p.gap_tol_intermediate))
+            rtol, atol, gap_tol = (
+                (s.newton.rtol, p.atol, p.gap_tol)
+                if end
+                else (s.newton.rtol_intermediate, p.atol_intermediate, p.gap_tol_intermediate)
+            )
             iters, residuals, changes = 0, [], 0
             while True:
-                ok, why, it, res, ch = _solve_increment(p, u_try, lam_try, target[constrained], rtol, atol, gap_tol)
+                ok, why, it, res, ch = _solve_increment(
+                    p, u_try, lam_try, target[constrained], rtol, atol, gap_tol
+                )
                 iters, residuals, changes = iters + it, residuals + res, changes + ch
                 if not ok:
                     break
@@ -1034,16 +1337,44 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings: Solve
             # between the nodes, on the facets of the candidates (the others are too far from an obstacle)
             pen = _penetration(surfaces, contact, u_try, contact.cand) if ok else (np.nan, np.nan)
             if ok and pen[1] > _MAX_PENETRATION_REL:
-                ok, why = False, f"the indenter passes between the skin's nodes ({pen[1]:.0%} of a facet deep)"
-            force = _forces(contact, u_try, lam_try, k_ind, k_cast) if ok else (np.zeros(3), np.zeros(3))
-            history.append(IncrementRecord(
-                step=k + 1, t_start=t, t_end=t1, converged=ok, reason=why, iterations=iters, active_set_changes=changes,
-                residuals=tuple(residuals), tip_mm=tuple(sched.tip(t1)) if indenter is not None else (),
-                indenter_force_N=float(force[0] @ axis), max_penetration_mm=pen[0],
-                assembly_s=timers["assembly"] - t0c["assembly"], linear_solve_s=timers["solve"] - t0c["solve"],
-                contact_s=timers["contact"] - t0c["contact"]))
-            log.info("step %d t %.4f->%.4f %s it %d changes %d F %.4g N pen %.3g mm", k + 1, t, t1,
-                     "ok" if ok else f"cut ({why})", iters, changes, history[-1].indenter_force_N, pen[0])
+                ok, why = (
+                    False,
+                    f"the indenter passes between the skin's nodes ({pen[1]:.0%} of a facet deep)",
+                )
+            force = (
+                _forces(contact, u_try, lam_try, k_ind, k_cast)
+                if ok
+                else (np.zeros(3), np.zeros(3))
+            )
+            history.append(
+                IncrementRecord(
+                    step=k + 1,
+                    t_start=t,
+                    t_end=t1,
+                    converged=ok,
+                    reason=why,
+                    iterations=iters,
+                    active_set_changes=changes,
+                    residuals=tuple(residuals),
+                    tip_mm=tuple(sched.tip(t1)) if indenter is not None else (),
+                    indenter_force_N=float(force[0] @ axis),
+                    max_penetration_mm=pen[0],
+                    assembly_s=timers["assembly"] - t0c["assembly"],
+                    linear_solve_s=timers["solve"] - t0c["solve"],
+                    contact_s=timers["contact"] - t0c["contact"],
+                )
+            )
+            log.info(
+                "step %d t %.4f->%.4f %s it %d changes %d F %.4g N pen %.3g mm",
+                k + 1,
+                t,
+                t1,
+                "ok" if ok else f"cut ({why})",
+                iters,
+                changes,
+                history[-1].indenter_force_N,
+                pen[0],
+            )
             if ok:
                 active_per_increment.append(np.unique(contact.node[lam_try > 0]))
                 # the entries whose contact state the increment changed, from its start to its end
@@ -1051,8 +1382,12 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings: Solve
                 prev = (t, u, lam) if k == 3 else None
                 u, lam, t = u_try, lam_try, t1
                 if iters == 0:
-                    dt = inc.max_increment  # the rigid predictor was exact: finish the step at once
-                elif iters <= _EASY_ITERATIONS and max(changes, moved) <= _EASY_CHANGES_REL * max(np.count_nonzero(lam), 1):
+                    dt = (
+                        inc.max_increment
+                    )  # the rigid predictor was exact: finish the step at once
+                elif iters <= _EASY_ITERATIONS and max(changes, moved) <= _EASY_CHANGES_REL * max(
+                    np.count_nonzero(lam), 1
+                ):
                     dt *= _GROW
                 elif iters > _HARD_ITERATIONS:
                     dt *= _SHRINK
@@ -1060,7 +1395,10 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings: Solve
                 dt *= _CUT
                 prev = None
                 if dt < inc.min_increment:
-                    done, reason_fail = False, f"increment below {inc.min_increment} at t = {t:.4f} ({why})"
+                    done, reason_fail = (
+                        False,
+                        f"increment below {inc.min_increment} at t = {t:.4f} ({why})",
+                    )
                     break
         if not done:
             break
@@ -1071,35 +1409,80 @@ def _solve(mesh, *, material, indenter, schedule, bc_sets, cast, settings: Solve
     force_N = float(ft @ axis)
     if done and end_overlap_mm > _THROUGH_OVERLAP_MM and not force_N > 0:
         done = False
-        reason_fail = (f"the tissue passed through the indenter: its end overlaps the rigidly moved skin by "
-                       f"{end_overlap_mm:.2f} mm, yet it pushes with {force_N:.3g} N")
+        reason_fail = (
+            f"the tissue passed through the indenter: its end overlaps the rigidly moved skin by "
+            f"{end_overlap_mm:.2f} mm, yet it pushes with {force_N:.3g} N"
+        )
         log.warning(reason_fail)
     pen_mm, pen_rel = _penetration(surfaces, contact, u)
-    node_pen = float(np.max(np.where(np.isfinite(gw_end), -gw_end / contact.h, -np.inf), initial=0.0))
+    node_pen = float(
+        np.max(np.where(np.isfinite(gw_end), -gw_end / contact.h, -np.inf), initial=0.0)
+    )
     F = asm.deformation_gradient(u)
     Fe = np.einsum("eqij,eq->eij", F, asm.w) / asm.w.sum(axis=1)[:, None, None]
     on = lam > 0
-    active = {name: int(np.count_nonzero(on & (contact.obstacle == j))) for j, name in enumerate(contact.names)}
+    active = {
+        name: int(np.count_nonzero(on & (contact.obstacle == j)))
+        for j, name in enumerate(contact.names)
+    }
     # every nonzero multiplier: a state before the end of the load may hold small negative ones (within its gap
     # tolerance), and a solve started from it must take the same path as one that went on from it
     held = lam != 0
-    state = {name: (contact.node[held & (contact.obstacle == j)].copy(), lam[held & (contact.obstacle == j)].copy())
-             for j, name in enumerate(contact.names)}
+    state = {
+        name: (
+            contact.node[held & (contact.obstacle == j)].copy(),
+            lam[held & (contact.obstacle == j)].copy(),
+        )
+        for j, name in enumerate(contact.names)
+    }
     wall = time.perf_counter() - t_wall + (start.wall_s if isinstance(start, BoneState) else 0.0)
-    log.info("solve %s in %.1f s: %d increments, %d Newton iterations, %d active-set changes",
-             "converged" if done else f"not converged ({reason_fail})", wall, len(history), n_iter, total_changes)
+    log.info(
+        "solve %s in %.1f s: %d increments, %d Newton iterations, %d active-set changes",
+        "converged" if done else f"not converged ({reason_fail})",
+        wall,
+        len(history),
+        n_iter,
+        total_changes,
+    )
     return SolveResult(
-        converged=done, reason=reason_fail, displacement_mm=u.reshape(-1, 3).copy(), deformation_gradient=Fe,
-        history=tuple(history), indenter_force_N=force_N, force_on_tissue_N=ft, cast_force_N=fcast,
-        max_penetration_mm=pen_mm, max_penetration_rel=pen_rel, strain_energy_mJ=float(asm.energy(u)),
-        n_dofs=asm.n_dofs, n_free_dofs=asm.n_free, increments=sum(1 for h in history if h.converged),
-        newton_iterations=n_iter, load_reached=t, wall_s=wall, assembly_s=timers["assembly"],
-        linear_solve_s=timers["solve"], contact_s=timers["contact"],
-        extra={"straightened_tets": n_straightened, "start_backoff_mm": start_backoff_mm,
-               "bone_clearance_mm": bone_clearance_mm, "infeasible": infeasible, "active_nodes": active,
-               "active_nodes_per_increment": tuple(active_per_increment), "active_set_changes": total_changes,
-               "node_penetration_rel": max(node_pen, 0.0), "min_force_N": float(lam.min(initial=0.0)),
-               "started_from_bone_state": isinstance(start, BoneState), "contact_state": state,
-               "contact_entries": {"nodes": contact.node.copy(), "obstacle": contact.obstacle.copy(), "lam_N": lam.copy(),
-                                   "weighted_gap_mm": gw_end, "h_mm": contact.h.copy()}},
+        converged=done,
+        reason=reason_fail,
+        displacement_mm=u.reshape(-1, 3).copy(),
+        deformation_gradient=Fe,
+        history=tuple(history),
+        indenter_force_N=force_N,
+        force_on_tissue_N=ft,
+        cast_force_N=fcast,
+        max_penetration_mm=pen_mm,
+        max_penetration_rel=pen_rel,
+        strain_energy_mJ=float(asm.energy(u)),
+        n_dofs=asm.n_dofs,
+        n_free_dofs=asm.n_free,
+        increments=sum(1 for h in history if h.converged),
+        newton_iterations=n_iter,
+        load_reached=t,
+        wall_s=wall,
+        assembly_s=timers["assembly"],
+        linear_solve_s=timers["solve"],
+        contact_s=timers["contact"],
+        extra={
+            "straightened_tets": n_straightened,
+            "start_backoff_mm": start_backoff_mm,
+            "bone_clearance_mm": bone_clearance_mm,
+            "infeasible": infeasible,
+            "active_nodes": active,
+            "active_nodes_per_increment": tuple(active_per_increment),
+            "active_set_changes": total_changes,
+            "node_penetration_rel": max(node_pen, 0.0),
+            "min_force_N": float(lam.min(initial=0.0)),
+            "started_from_bone_state": isinstance(start, BoneState),
+            "contact_state": state,
+            "contact_entries": {
+                "nodes": contact.node.copy(),
+                "obstacle": contact.obstacle.copy(),
+                "lam_N": lam.copy(),
+                "weighted_gap_mm": gw_end,
+                "h_mm": contact.h.copy(),
+            },
+        },
     )

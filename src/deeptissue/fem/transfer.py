@@ -34,15 +34,21 @@ __all__ = ["interpolate_nodal", "mapped_end_state"]
 log = logging.getLogger(__name__)
 
 _UNTANGLE_FLOOR = 0.05  # an untangled tet keeps at least this fraction of its reference Jacobian
-_UNTANGLE_STAY = 1e-3  # weight of the distance moved (over the patch's mean edge) against the shortfall
-_UNTANGLE_MAX_MOVE_REL = 0.25  # a repair that moves a node farther (of the patch's mean edge) is not a repair
+_UNTANGLE_STAY = (
+    1e-3  # weight of the distance moved (over the patch's mean edge) against the shortfall
+)
+_UNTANGLE_MAX_MOVE_REL = (
+    0.25  # a repair that moves a node farther (of the patch's mean edge) is not a repair
+)
 
 
 def interpolate_nodal(mesh: TetMesh, values, points_mm) -> np.ndarray:
     """A nodal field ``values`` (n_nodes, ...) of ``mesh`` at ``points_mm`` (n, 3): (n, ...)."""
     V = np.asarray(values, float)
     if V.shape[0] != len(mesh.nodes_mm):
-        raise ValueError(f"interpolate_nodal: {V.shape[0]} nodal values for a mesh of {len(mesh.nodes_mm)} nodes")
+        raise ValueError(
+            f"interpolate_nodal: {V.shape[0]} nodal values for a mesh of {len(mesh.nodes_mm)} nodes"
+        )
     elem, lam = locate_in_tets(mesh, points_mm)
     N = tet10_shape_functions(lam[:, 1:]) if mesh.order == 2 else lam
     return np.einsum("na,na...->n...", N, V[mesh.tets[elem]])
@@ -50,11 +56,15 @@ def interpolate_nodal(mesh: TetMesh, values, points_mm) -> np.ndarray:
 
 def _inverted(mesh: TetMesh, u: np.ndarray, order: int) -> np.ndarray:
     """The tets (bool (n_tets,)) that displacement ``u`` inverts: a Jacobian <= 0 at a corner or a quadrature point."""
-    return np.any(reference_jacobians(TetMesh(nodes_mm=mesh.nodes_mm + u, tets=mesh.tets), order=order) <= 0, axis=1)
+    return np.any(
+        reference_jacobians(TetMesh(nodes_mm=mesh.nodes_mm + u, tets=mesh.tets), order=order) <= 0,
+        axis=1,
+    )
 
 
-def _unfolded(mesh: TetMesh, u: np.ndarray, fixed: np.ndarray, *, order: int, max_rounds: int = 3
-              ) -> tuple[np.ndarray, int]:
+def _unfolded(
+    mesh: TetMesh, u: np.ndarray, fixed: np.ndarray, *, order: int, max_rounds: int = 3
+) -> tuple[np.ndarray, int]:
     """(``u`` (n_nodes, 3) with the mid-edge nodes of every quadratic tet it inverts (a Jacobian <= 0 at a
     corner or a quadrature point of ``order``) moved to the midpoints of their deformed edges, except the
     ``fixed`` ones (bool (n_nodes,), the bone's, which the solver prescribes), the number of tets still
@@ -74,8 +84,9 @@ def _unfolded(mesh: TetMesh, u: np.ndarray, fixed: np.ndarray, *, order: int, ma
     return u, int(bad.sum())
 
 
-def _untangled(mesh: TetMesh, u: np.ndarray, inverted: np.ndarray, fixed: np.ndarray, order: int
-               ) -> np.ndarray | None:
+def _untangled(
+    mesh: TetMesh, u: np.ndarray, inverted: np.ndarray, fixed: np.ndarray, order: int
+) -> np.ndarray | None:
     """``u`` (n_nodes, 3) with the nodes of the ``inverted`` tets (bool (n_tets,)) and of the tets that share a
     corner with them moved as little as gives every tet they belong to a Jacobian of at least
     ``_UNTANGLE_FLOOR`` of its reference one at its corners and the quadrature points of ``order`` (least
@@ -101,12 +112,16 @@ def _untangled(mesh: TetMesh, u: np.ndarray, inverted: np.ndarray, fixed: np.nda
         J = np.einsum("mqn,mqn->mq", c[:, :, 0], g0)
         if not grad:
             return J
-        g = np.stack([g0, np.cross(c[:, :, 2], c[:, :, 0]), np.cross(c[:, :, 0], c[:, :, 1])], axis=2)
+        g = np.stack(
+            [g0, np.cross(c[:, :, 2], c[:, :, 0]), np.cross(c[:, :, 0], c[:, :, 1])], axis=2
+        )
         return J, np.einsum("mqkn,qak->mqan", g, dN)
 
     J0 = jac(X, grad=False)
     sign, J0 = np.sign(J0), np.abs(J0)
-    edge_mm = float(np.mean(np.linalg.norm(X[T][:, [1, 2, 3, 2, 3, 3]] - X[T][:, [0, 0, 0, 1, 1, 2]], axis=2)))
+    edge_mm = float(
+        np.mean(np.linalg.norm(X[T][:, [1, 2, 3, 2, 3, 3]] - X[T][:, [0, 0, 0, 1, 1, 2]], axis=2))
+    )
     slot = np.full(len(X), -1)
     slot[ids] = np.arange(len(ids))
     loc = slot[T]
@@ -125,33 +140,62 @@ def _untangled(mesh: TetMesh, u: np.ndarray, inverted: np.ndarray, fixed: np.nda
     def residuals(z):
         y = x.copy()
         y[ids] = z.reshape(-1, 3)
-        return np.concatenate([np.maximum(_UNTANGLE_FLOOR * J0 - sign * jac(y, grad=False), 0.0).ravel() / J0.ravel(),
-                               stay * (z - x0.ravel())])
+        return np.concatenate(
+            [
+                np.maximum(_UNTANGLE_FLOOR * J0 - sign * jac(y, grad=False), 0.0).ravel()
+                / J0.ravel(),
+                stay * (z - x0.ravel()),
+            ]
+        )
 
     def jacobian(z):
         y = x.copy()
         y[ids] = z.reshape(-1, 3)
         J, dJ = jac(y)
-        below = (_UNTANGLE_FLOOR * J0 - sign * J > 0.0)
+        below = _UNTANGLE_FLOOR * J0 - sign * J > 0.0
         vals = (-(sign * below) / J0)[:, :, None, None] * dJ
         top = sparse.csr_matrix((vals[keep], (rows[keep], cols[keep])), shape=(m * q, n_z))
         return sparse.vstack([top, stay * sparse.identity(n_z, format="csr")], format="csr")
 
-    z = least_squares(residuals, x0.ravel(), jac=jacobian, method="trf", tr_solver="lsmr", max_nfev=50,
-                      x_scale=edge_mm).x
+    z = least_squares(
+        residuals,
+        x0.ravel(),
+        jac=jacobian,
+        method="trf",
+        tr_solver="lsmr",
+        max_nfev=50,
+        x_scale=edge_mm,
+    ).x
     worst_mm = float(np.linalg.norm(z.reshape(-1, 3) - x0, axis=1).max(initial=0.0))
     if worst_mm > _UNTANGLE_MAX_MOVE_REL * edge_mm:
-        log.info("untangling %d inverted tets would move a node %.3g mm (mean edge %.3g mm): not done",
-                 int(inverted.sum()), worst_mm, edge_mm)
+        log.info(
+            "untangling %d inverted tets would move a node %.3g mm (mean edge %.3g mm): not done",
+            int(inverted.sum()),
+            worst_mm,
+            edge_mm,
+        )
         return None
     out = u.copy()
     out[ids] = z.reshape(-1, 3) - X[ids]
-    log.info("untangled %d inverted tets by moving %d nodes up to %.3g mm", int(inverted.sum()), len(ids), worst_mm)
+    log.info(
+        "untangled %d inverted tets by moving %d nodes up to %.3g mm",
+        int(inverted.sum()),
+        len(ids),
+        worst_mm,
+    )
     return out
 
 
-def mapped_end_state(src: TetMesh, displacement_mm, dst: TetMesh, *, indenter: Indenter, bone_motion: BoneMotion,
-                     settings: SolverSettings, bone_set: str = "bone") -> EndState | None:
+def mapped_end_state(
+    src: TetMesh,
+    displacement_mm,
+    dst: TetMesh,
+    *,
+    indenter: Indenter,
+    bone_motion: BoneMotion,
+    settings: SolverSettings,
+    bone_set: str = "bone",
+) -> EndState | None:
     """The end state ``displacement_mm`` (n_nodes, 3) of mesh ``src`` carried to the nodes of mesh ``dst`` (the
     same body meshed again): the start of :func:`deeptissue.fem.solver.solve_turned` with ``indenter`` on
     ``dst``. The nodes of facet set ``bone_set`` are moved by ``bone_motion``; the curved tets the state would
@@ -160,11 +204,20 @@ def mapped_end_state(src: TetMesh, displacement_mm, dst: TetMesh, *, indenter: I
     some tets stay inverted."""
     u = interpolate_nodal(src, np.asarray(displacement_mm, float).reshape(-1, 3), dst.nodes_mm)
     fixed = np.zeros(len(dst.nodes_mm), bool)
-    if bone_set in dst.facets:  # the bone's nodes follow its rigid motion exactly, as the solver prescribes
+    if (
+        bone_set in dst.facets
+    ):  # the bone's nodes follow its rigid motion exactly, as the solver prescribes
         b = np.unique(dst.facets[bone_set])
         X = dst.nodes_mm[b]
-        u[b] = apply_rigid(X, rotation_deg=bone_motion.rotation_deg, centre_mm=bone_motion.centre_mm,
-                           translation_mm=bone_motion.translation_mm) - X
+        u[b] = (
+            apply_rigid(
+                X,
+                rotation_deg=bone_motion.rotation_deg,
+                centre_mm=bone_motion.centre_mm,
+                translation_mm=bone_motion.translation_mm,
+            )
+            - X
+        )
         fixed[b] = True
     order = settings.quadrature_order
     u, folded = _unfolded(dst, u, fixed, order=order)
@@ -175,5 +228,10 @@ def mapped_end_state(src: TetMesh, displacement_mm, dst: TetMesh, *, indenter: I
     if folded:
         log.warning("the state carried to the new mesh inverts %d tets: not used", folded)
         return None
-    return EndState(displacement_mm=u.ravel(), contact={}, indenter=indenter, bone_motion=bone_motion,
-                    settings=settings)
+    return EndState(
+        displacement_mm=u.ravel(),
+        contact={},
+        indenter=indenter,
+        bone_motion=bone_motion,
+        settings=settings,
+    )

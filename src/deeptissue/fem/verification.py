@@ -20,7 +20,13 @@ from ..rigid import BoneMotion
 from .assembly import as_material_law
 from .indenters import Indenter
 from .shapes import block_mesh, cored_cylinder_mesh, distort_interior
-from .solver import IncrementSettings, NewtonSettings, SolverSettings, solve_indentation, solve_prescribed
+from .solver import (
+    IncrementSettings,
+    NewtonSettings,
+    SolverSettings,
+    solve_indentation,
+    solve_prescribed,
+)
 
 # states inside the load step are recorded as points of a curve: converge them like end states
 ACCURATE = NewtonSettings(rtol=1e-7, rtol_intermediate=1e-7)
@@ -40,13 +46,30 @@ def hertz_force_N(material, radius_mm: float, depth_mm) -> np.ndarray:
 
 
 def _block_with_top_patch(size, h, h_fine, r_fine, centre, growth=None):
-    m = block_mesh(size, h_mm=h, refine_point_mm=centre, refine_h_mm=h_fine, refine_radius_mm=r_fine,
-                   refine_growth=growth)
+    m = block_mesh(
+        size,
+        h_mm=h,
+        refine_point_mm=centre,
+        refine_h_mm=h_fine,
+        refine_radius_mm=r_fine,
+        refine_growth=growth,
+    )
     return TetMesh(m.nodes_mm, m.tets, {"bone": m.facets["bottom"], "patch": m.facets["top"]})
 
 
-def hertz_curve(material, *, radius_mm=1.5, max_depth_mm=0.15, block_mm=(40.0, 40.0, 20.0), h_mm=6.0,
-                h_fine_mm=0.1, fine_radius_mm=0.4, growth=0.5, max_increment=0.25, accurate=True) -> pd.DataFrame:
+def hertz_curve(
+    material,
+    *,
+    radius_mm=1.5,
+    max_depth_mm=0.15,
+    block_mm=(40.0, 40.0, 20.0),
+    h_mm=6.0,
+    h_fine_mm=0.1,
+    fine_radius_mm=0.4,
+    growth=0.5,
+    max_increment=0.25,
+    accurate=True,
+) -> pd.DataFrame:
     """Sphere (radius R) pressed into the centre of a block whose bottom is fixed.
 
     Returns depth_mm, force_N, hertz_N, rel_error per converged increment (depth from first touch),
@@ -61,13 +84,27 @@ def hertz_curve(material, *, radius_mm=1.5, max_depth_mm=0.15, block_mm=(40.0, 4
     lx, ly, lz = block_mm
     top = (lx / 2, ly / 2, lz)
     m = _block_with_top_patch(block_mm, h_mm, h_fine_mm, fine_radius_mm, top, growth)
-    ind = Indenter("sphere", axis=(0, 0, -1), start_mm=(lx / 2, ly / 2, lz + 1e-3), end_mm=(lx / 2, ly / 2, lz - max_depth_mm),
-                   radius_mm=radius_mm)
-    st = SolverSettings(increments=IncrementSettings(max_increment=max_increment, initial_increment=max_increment,
-                                                     first_touch_mm=max_depth_mm * max_increment),
-                        newton=ACCURATE if accurate else NewtonSettings())
-    r = solve_indentation(m, material=material, indenter=ind, bone_motion=BoneMotion(), settings=st)
-    rows = [(lz - h.tip_mm[2], h.indenter_force_N) for h in r.history if h.converged and h.step == 4]
+    ind = Indenter(
+        "sphere",
+        axis=(0, 0, -1),
+        start_mm=(lx / 2, ly / 2, lz + 1e-3),
+        end_mm=(lx / 2, ly / 2, lz - max_depth_mm),
+        radius_mm=radius_mm,
+    )
+    st = SolverSettings(
+        increments=IncrementSettings(
+            max_increment=max_increment,
+            initial_increment=max_increment,
+            first_touch_mm=max_depth_mm * max_increment,
+        ),
+        newton=ACCURATE if accurate else NewtonSettings(),
+    )
+    r = solve_indentation(
+        m, material=material, indenter=ind, bone_motion=BoneMotion(), settings=st
+    )
+    rows = [
+        (lz - h.tip_mm[2], h.indenter_force_N) for h in r.history if h.converged and h.step == 4
+    ]
     df = pd.DataFrame(rows, columns=["depth_mm", "force_N"])
     df = df[df.depth_mm > 0].reset_index(drop=True)
     df["hertz_N"] = hertz_force_N(material, radius_mm, df.depth_mm)
@@ -76,8 +113,15 @@ def hertz_curve(material, *, radius_mm=1.5, max_depth_mm=0.15, block_mm=(40.0, 4
     return df
 
 
-def locking_check(material, *, d_values_mm2_per_n=(57.0, 5.7, 0.57), radius_mm=1.5, depth_rel=0.1, h_fine_mm=0.15,
-                  fine_radius_mm=0.6) -> pd.DataFrame:
+def locking_check(
+    material,
+    *,
+    d_values_mm2_per_n=(57.0, 5.7, 0.57),
+    radius_mm=1.5,
+    depth_rel=0.1,
+    h_fine_mm=0.15,
+    fine_radius_mm=0.6,
+) -> pd.DataFrame:
     """Does the displacement formulation lock at the study's compressibility? The same Hertz indentation
     (to depth_rel x R, one mesh) for the given D values: a locking element would show a force error
     against Hertz that grows as D -> 0 (nu -> 0.5) on the same mesh.
@@ -88,12 +132,24 @@ def locking_check(material, *, d_values_mm2_per_n=(57.0, 5.7, 0.57), radius_mm=1
     rows = []
     for d in d_values_mm2_per_n:
         mat = replace(material, d_mm2_per_n=float(d))
-        df = hertz_curve(mat, radius_mm=radius_mm, max_depth_mm=depth_rel * radius_mm, h_fine_mm=h_fine_mm,
-                         fine_radius_mm=fine_radius_mm)
+        df = hertz_curve(
+            mat,
+            radius_mm=radius_mm,
+            max_depth_mm=depth_rel * radius_mm,
+            h_fine_mm=h_fine_mm,
+            fine_radius_mm=fine_radius_mm,
+        )
         cols = ["depth_mm", "force_N", "hertz_N", "rel_error"]
         last = {c: float(df[c].iloc[-1]) if len(df) else np.nan for c in cols}
-        rows.append(dict(d_mm2_per_n=float(d), nu=small_strain_moduli(mat)[1], **last,
-                         n_dofs=df.attrs.get("n_dofs"), converged=df.attrs.get("converged")))
+        rows.append(
+            dict(
+                d_mm2_per_n=float(d),
+                nu=small_strain_moduli(mat)[1],
+                **last,
+                n_dofs=df.attrs.get("n_dofs"),
+                converged=df.attrs.get("converged"),
+            )
+        )
     return pd.DataFrame(rows)
 
 
@@ -102,14 +158,23 @@ def rigid_motion_cases(material) -> pd.DataFrame:
     m = cored_cylinder_mesh(length_mm=6.0, radius_mm=3.0, core_radius_mm=0.8, h_mm=1.0)
     rows = []
     for angle in (15.0, 90.0):
-        motion = BoneMotion(rotation_deg=tuple(angle * np.array([0.6, -0.48, 0.64])), centre_mm=(0.5, -0.2, 3.0),
-                            translation_mm=(0.3, -0.4, 0.2))
+        motion = BoneMotion(
+            rotation_deg=tuple(angle * np.array([0.6, -0.48, 0.64])),
+            centre_mm=(0.5, -0.2, 3.0),
+            translation_mm=(0.3, -0.4, 0.2),
+        )
         r = solve_indentation(m, material=material, indenter=None, bone_motion=motion)
         exact = motion.apply(m.nodes_mm)
         F = r.deformation_gradient
         E = 0.5 * (np.swapaxes(F, -1, -2) @ F - np.eye(3))
-        rows.append(dict(case=f"rigid bone {angle:g} deg", converged=r.converged, max_abs_green_strain=float(np.abs(E).max()),
-                         max_position_error_mm=float(np.abs(m.nodes_mm + r.displacement_mm - exact).max())))
+        rows.append(
+            dict(
+                case=f"rigid bone {angle:g} deg",
+                converged=r.converged,
+                max_abs_green_strain=float(np.abs(E).max()),
+                max_position_error_mm=float(np.abs(m.nodes_mm + r.displacement_mm - exact).max()),
+            )
+        )
     return pd.DataFrame(rows)
 
 
@@ -118,13 +183,30 @@ def patch_cases(material) -> pd.DataFrame:
     F0 = np.array([[1.12, 0.05, 0.0], [0.02, 0.93, 0.04], [0.03, 0.0, 1.06]])
     rows = []
     for curved in (False, True):
-        m = distort_interior(block_mesh((3.0, 2.0, 2.0), h_mm=0.8), amount=0.1 if curved else 0.3, seed=1, curved=curved)
+        m = distort_interior(
+            block_mesh((3.0, 2.0, 2.0), h_mm=0.8),
+            amount=0.1 if curved else 0.3,
+            seed=1,
+            curved=curved,
+        )
         st = SolverSettings(quadrature_order=3 if curved else 2)
-        r = solve_prescribed(m, material=material, bc_sets=list(m.facets),
-                             displacement_mm=lambda X, s: s * X @ (F0 - np.eye(3)).T, settings=st)
-        rows.append(dict(case=f"patch test, {'curved' if curved else 'straight'} distorted", converged=r.converged,
-                         max_displacement_error_mm=float(np.abs(r.displacement_mm - m.nodes_mm @ (F0 - np.eye(3)).T).max()),
-                         max_F_error=float(np.abs(r.deformation_gradient - F0).max())))
+        r = solve_prescribed(
+            m,
+            material=material,
+            bc_sets=list(m.facets),
+            displacement_mm=lambda X, s: s * X @ (F0 - np.eye(3)).T,
+            settings=st,
+        )
+        rows.append(
+            dict(
+                case=f"patch test, {'curved' if curved else 'straight'} distorted",
+                converged=r.converged,
+                max_displacement_error_mm=float(
+                    np.abs(r.displacement_mm - m.nodes_mm @ (F0 - np.eye(3)).T).max()
+                ),
+                max_F_error=float(np.abs(r.deformation_gradient - F0).max()),
+            )
+        )
     return pd.DataFrame(rows)
 
 
@@ -133,7 +215,11 @@ def reference_limb(h_mm=1.0, *, fine_h_mm=None, fine_at_mm=(5.0, 0.0, 10.0)) -> 
 
     fine_h_mm: element size within 2.5 mm of fine_at_mm, a point or a segment (two points).
     """
-    kw = {} if fine_h_mm is None else dict(refine_point_mm=fine_at_mm, refine_h_mm=fine_h_mm, refine_radius_mm=2.5)
+    kw = (
+        {}
+        if fine_h_mm is None
+        else dict(refine_point_mm=fine_at_mm, refine_h_mm=fine_h_mm, refine_radius_mm=2.5)
+    )
     return cored_cylinder_mesh(length_mm=20.0, radius_mm=5.0, core_radius_mm=1.0, h_mm=h_mm, **kw)
 
 
@@ -144,7 +230,9 @@ def _limb_indenter(kind="sphere", tilt_deg=0.0, depth_mm=2.0) -> Indenter:
     axis = np.array([-np.cos(a), 0.0, np.sin(a)])  # tilted toward +z about the y axis
     end = np.array([5.0 - depth_mm, 0.0, 10.0])
     start = end - (depth_mm + 0.5) * axis
-    return Indenter(kind, axis=tuple(axis), start_mm=tuple(start), end_mm=tuple(end), bar_length_mm=8.0)
+    return Indenter(
+        kind, axis=tuple(axis), start_mm=tuple(start), end_mm=tuple(end), bar_length_mm=8.0
+    )
 
 
 def _bar_footprint(tilt_deg, depth_mm=2.0):
@@ -159,11 +247,24 @@ def _bar_footprint(tilt_deg, depth_mm=2.0):
     return (tuple(end - half), tuple(end + half))
 
 
-def _indent_limb(mesh, material, *, kind="sphere", tilt_deg=0.0, depth_mm=2.0, settings=SolverSettings(),
-                 bone_motion=BoneMotion()):
+def _indent_limb(
+    mesh,
+    material,
+    *,
+    kind="sphere",
+    tilt_deg=0.0,
+    depth_mm=2.0,
+    settings=SolverSettings(),
+    bone_motion=BoneMotion(),
+):
     """Indent the reference limb at (5, 0, 10) along -x, tilted by tilt_deg about y (:func:`_limb_indenter`)."""
-    return solve_indentation(mesh, material=material, indenter=_limb_indenter(kind, tilt_deg, depth_mm),
-                             bone_motion=bone_motion, settings=settings)
+    return solve_indentation(
+        mesh,
+        material=material,
+        indenter=_limb_indenter(kind, tilt_deg, depth_mm),
+        bone_motion=bone_motion,
+        settings=settings,
+    )
 
 
 def _touching_indenter() -> Indenter:
@@ -182,14 +283,22 @@ def hard_cases(material, *, max_wall_s: float = 1800.0) -> pd.DataFrame:
 
     # a bar is refined along its footprint (its rounded ends concentrate strain too), not only at its centre
     def along_bar(tilt_deg, h_mm=1.6, fine_h_mm=0.5, depth_mm=2.0):
-        return reference_limb(h_mm, fine_h_mm=fine_h_mm, fine_at_mm=_bar_footprint(tilt_deg, depth_mm))
+        return reference_limb(
+            h_mm, fine_h_mm=fine_h_mm, fine_at_mm=_bar_footprint(tilt_deg, depth_mm)
+        )
 
     def sphere(depth_mm, mesh=coarse, **kw):
         return lambda: _indent_limb(mesh, material, depth_mm=depth_mm, settings=budget, **kw)
 
     def bar(tilt_deg, depth_mm=2.0, mesh=None):
-        return lambda: _indent_limb(mesh or along_bar(tilt_deg, depth_mm=depth_mm), material, kind="bar",
-                                    tilt_deg=tilt_deg, depth_mm=depth_mm, settings=budget)
+        return lambda: _indent_limb(
+            mesh or along_bar(tilt_deg, depth_mm=depth_mm),
+            material,
+            kind="bar",
+            tilt_deg=tilt_deg,
+            depth_mm=depth_mm,
+            settings=budget,
+        )
 
     cases = {
         "sphere to depth 2R (3 mm)": sphere(3.0),
@@ -205,20 +314,41 @@ def hard_cases(material, *, max_wall_s: float = 1800.0) -> pd.DataFrame:
         "bar tilted 45 deg, 1.5 mm": bar(45.0, 1.5),
         "first touch (0.02 mm)": sphere(0.02),
         "first touch at zero clearance (start 0.02 mm inside the skin)": lambda: solve_indentation(
-            coarse, material=material, indenter=_touching_indenter(), bone_motion=BoneMotion(), settings=budget),
+            coarse,
+            material=material,
+            indenter=_touching_indenter(),
+            bone_motion=BoneMotion(),
+            settings=budget,
+        ),
         "coarse distorted mesh, sphere 2 mm": sphere(
-            2.0, mesh=distort_interior(reference_limb(2.2, fine_h_mm=0.7), amount=0.15, seed=3, curved=False)),
+            2.0,
+            mesh=distort_interior(
+                reference_limb(2.2, fine_h_mm=0.7), amount=0.15, seed=3, curved=False
+            ),
+        ),
         "bone rotation 20 deg + sphere 1.5 mm": sphere(
-            1.5, bone_motion=BoneMotion(rotation_deg=(10.0, 5.0, 15.0), centre_mm=(0, 0, 10.0))),
+            1.5, bone_motion=BoneMotion(rotation_deg=(10.0, 5.0, 15.0), centre_mm=(0, 0, 10.0))
+        ),
     }
     rows = []
     for name, run in cases.items():
         t = time.perf_counter()
         r = run()
-        rows.append(dict(case=name, converged=r.converged, reason=r.reason, load_reached=r.load_reached,
-                         increments=r.increments, newton_iterations=r.newton_iterations,
-                         active_set_changes=r.extra.get("active_set_changes"), indenter_force_N=r.indenter_force_N,
-                         max_penetration_rel=r.max_penetration_rel, n_dofs=r.n_dofs, wall_s=time.perf_counter() - t))
+        rows.append(
+            dict(
+                case=name,
+                converged=r.converged,
+                reason=r.reason,
+                load_reached=r.load_reached,
+                increments=r.increments,
+                newton_iterations=r.newton_iterations,
+                active_set_changes=r.extra.get("active_set_changes"),
+                indenter_force_N=r.indenter_force_N,
+                max_penetration_rel=r.max_penetration_rel,
+                n_dofs=r.n_dofs,
+                wall_s=time.perf_counter() - t,
+            )
+        )
     return pd.DataFrame(rows)
 
 
@@ -229,11 +359,26 @@ def benchmark(material, *, h_mm=1.0) -> pd.DataFrame:
     t = time.perf_counter()
     r = _indent_limb(m, material, depth_mm=2.0)
     wall = time.perf_counter() - t
-    return pd.DataFrame([dict(
-        case="reference sphere 2 mm", converged=r.converged, n_dofs=r.n_dofs,
-        n_free_dofs=r.n_free_dofs, n_tets=len(m.tets), load_reached=r.load_reached, increments=r.increments,
-        newton_iterations=r.newton_iterations, wall_s=wall, assembly_s=r.assembly_s, linear_solve_s=r.linear_solve_s, contact_s=r.contact_s,
-        other_s=wall - r.assembly_s - r.linear_solve_s - r.contact_s, indenter_force_N=r.indenter_force_N)])
+    return pd.DataFrame(
+        [
+            dict(
+                case="reference sphere 2 mm",
+                converged=r.converged,
+                n_dofs=r.n_dofs,
+                n_free_dofs=r.n_free_dofs,
+                n_tets=len(m.tets),
+                load_reached=r.load_reached,
+                increments=r.increments,
+                newton_iterations=r.newton_iterations,
+                wall_s=wall,
+                assembly_s=r.assembly_s,
+                linear_solve_s=r.linear_solve_s,
+                contact_s=r.contact_s,
+                other_s=wall - r.assembly_s - r.linear_solve_s - r.contact_s,
+                indenter_force_N=r.indenter_force_N,
+            )
+        ]
+    )
 
 
 def _write_csv(df: pd.DataFrame, path) -> None:
@@ -261,15 +406,32 @@ def write_hertz_curve(material, *, hertz_csv, curve_csv, figure_png, radius_mm=1
     import matplotlib.pyplot as plt
 
     small = pd.read_csv(hertz_csv)
-    big = hertz_curve(material, radius_mm=radius_mm, max_depth_mm=2 * radius_mm, h_mm=6.0, h_fine_mm=0.3,
-                      fine_radius_mm=1.5, growth=0.5, max_increment=0.05, accurate=True)
+    big = hertz_curve(
+        material,
+        radius_mm=radius_mm,
+        max_depth_mm=2 * radius_mm,
+        h_mm=6.0,
+        h_fine_mm=0.3,
+        fine_radius_mm=1.5,
+        growth=0.5,
+        max_increment=0.05,
+        accurate=True,
+    )
     big["status"] = "converged"
     if not big.attrs.get("converged", False):
-        big.loc[len(big)] = dict(depth_mm=2 * radius_mm, force_N=np.nan, hertz_N=float(hertz_force_N(material, radius_mm, 2 * radius_mm)),
-                                 rel_error=np.nan, status=f"not converged: {big.attrs.get('reason', '')}")
+        big.loc[len(big)] = dict(
+            depth_mm=2 * radius_mm,
+            force_N=np.nan,
+            hertz_N=float(hertz_force_N(material, radius_mm, 2 * radius_mm)),
+            rel_error=np.nan,
+            status=f"not converged: {big.attrs.get('reason', '')}",
+        )
     _write_csv(big, curve_csv)
     fig, ax = plt.subplots(1, 2, figsize=(10, 4))
-    for a, df, title in ((ax[0], small, "depth <= 0.1 R (fine mesh)"), (ax[1], big.dropna(), "to depth 2 R")):
+    for a, df, title in (
+        (ax[0], small, "depth <= 0.1 R (fine mesh)"),
+        (ax[1], big.dropna(), "to depth 2 R"),
+    ):
         d = np.linspace(0, 2 * radius_mm if df is not small else df.depth_mm.max(), 200)
         a.plot(d, hertz_force_N(material, radius_mm, d), "k-", label="Hertz (small strain)")
         a.plot(df.depth_mm, df.force_N, "o", ms=4, label="FE (Ogden)")
@@ -299,7 +461,9 @@ def write_cylinder_verification(material, *, curve_csv, voi_csv, meshes=None) ->
     depth_mm, force_N, ...), voi_csv (mesh, depth_mm, voi_mm3, voi_err_mm3, bins_percent.*, bins_err_pp.*, ...)."""
     from .cylinder import REFERENCE_MESH, CylinderMesh, mesh_convergence
 
-    curve, voi = mesh_convergence(material, [CylinderMesh(), REFERENCE_MESH] if meshes is None else meshes)
+    curve, voi = mesh_convergence(
+        material, [CylinderMesh(), REFERENCE_MESH] if meshes is None else meshes
+    )
     _write_csv(curve, curve_csv)
     _write_csv(voi, voi_csv)
 
@@ -333,8 +497,10 @@ HERTZ_RADIUS_MM = 1.5
 
 # Checks that fail on the project's machine for a known reason: status ``known-failure`` instead of
 # ``fail`` (a passing check stays ``pass``). Remove an entry once its check passes again.
-_PINCH = ("open hard case: the tissue pinched against the rigid core stalls in the last increments (active-set "
-          "changes without descent; the force stops growing) on the project's machine")
+_PINCH = (
+    "open hard case: the tissue pinched against the rigid core stalls in the last increments (active-set "
+    "changes without descent; the force stops growing) on the project's machine"
+)
 KNOWN_FAILURES = {"hard case: sphere pinched 0.1 mm from the bone": _PINCH}
 
 # cylinder scene, each fixed mesh and each adaptive run against the finest fixed mesh: the accuracy goal
@@ -347,14 +513,28 @@ ESTIMATE_FACTOR = 2.0
 
 # the default mesh on the cylinder scene misses the goal against the 0.4 mm mesh (the solves converge;
 # the finer mesh moves the numbers): the scene asks for a finer mesh than the default
-_CYLINDER_MESH_REASON = ("the default mesh is too coarse for this scene (the solve converges, the finer mesh "
-                         "moves the number): what mesh refinement from the error estimate is for")
-KNOWN_FAILURES.update({f"cylinder: 1.6 / 0.8 mm mesh: force at {d:g} mm: |F / F_finest - 1|": _CYLINDER_MESH_REASON
-                       for d in (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)})
-KNOWN_FAILURES.update({f"cylinder: 1.6 / 0.8 mm mesh: bins at {d:g} mm: max |p - p_finest| [pp]": _CYLINDER_MESH_REASON
-                       for d in (1.5, 2.0, 3.0)})
-KNOWN_FAILURES.update({f"cylinder: 1.6 / 0.8 mm mesh: VOI at {d:g} mm: |VOI / VOI_finest - 1|": _CYLINDER_MESH_REASON
-                       for d in (1.5, 2.0)})
+_CYLINDER_MESH_REASON = (
+    "the default mesh is too coarse for this scene (the solve converges, the finer mesh "
+    "moves the number): what mesh refinement from the error estimate is for"
+)
+KNOWN_FAILURES.update(
+    {
+        f"cylinder: 1.6 / 0.8 mm mesh: force at {d:g} mm: |F / F_finest - 1|": _CYLINDER_MESH_REASON
+        for d in (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
+    }
+)
+KNOWN_FAILURES.update(
+    {
+        f"cylinder: 1.6 / 0.8 mm mesh: bins at {d:g} mm: max |p - p_finest| [pp]": _CYLINDER_MESH_REASON
+        for d in (1.5, 2.0, 3.0)
+    }
+)
+KNOWN_FAILURES.update(
+    {
+        f"cylinder: 1.6 / 0.8 mm mesh: VOI at {d:g} mm: |VOI / VOI_finest - 1|": _CYLINDER_MESH_REASON
+        for d in (1.5, 2.0)
+    }
+)
 
 _HOMOGENEOUS_CASES = ("uniaxial", "equibiaxial", "simple_shear")
 
@@ -370,8 +550,15 @@ def _material_checks(points: pd.DataFrame) -> list[dict]:
     rows = []
     for r in points.itertuples(index=False):
         group = "homogeneous" if r.case in _HOMOGENEOUS_CASES else "material point"
-        rows.append(_check(f"{group}: {r.case}: {r.quantity}", r.max_error, r.tolerance, r.max_error <= r.tolerance,
-                           "relative error <= limit"))
+        rows.append(
+            _check(
+                f"{group}: {r.case}: {r.quantity}",
+                r.max_error,
+                r.tolerance,
+                r.max_error <= r.tolerance,
+                "relative error <= limit",
+            )
+        )
     return rows
 
 
@@ -381,9 +568,20 @@ def _hertz_checks(hertz: pd.DataFrame, radius_mm: float) -> list[dict]:
     target = 0.1 * radius_mm
     err = float(hertz["rel_error"].abs().max()) if len(hertz) else np.nan
     return [
-        _check("Hertz: depth reached [mm]", depth, target, depth >= target * (1 - 1e-9), "depth >= limit (0.1 R)"),
-        _check("Hertz: max |F / F_Hertz - 1| to 0.1 R", err, HERTZ_REL_LIMIT, err <= HERTZ_REL_LIMIT,
-               f"{len(hertz)} increments; value <= limit"),
+        _check(
+            "Hertz: depth reached [mm]",
+            depth,
+            target,
+            depth >= target * (1 - 1e-9),
+            "depth >= limit (0.1 R)",
+        ),
+        _check(
+            "Hertz: max |F / F_Hertz - 1| to 0.1 R",
+            err,
+            HERTZ_REL_LIMIT,
+            err <= HERTZ_REL_LIMIT,
+            f"{len(hertz)} increments; value <= limit",
+        ),
     ]
 
 
@@ -394,7 +592,9 @@ def _hertz_curve_checks(curve: pd.DataFrame, radius_mm: float) -> list[dict]:
     depth = float(curve.loc[done, "depth_mm"].max()) if done.any() else 0.0
     stopped = curve.loc[~done, "status"]
     note = str(stopped.iloc[-1]) if len(stopped) else "converged to depth 2 R"
-    return [_check("Hertz curve: depth reached [mm]", depth, 2 * radius_mm, not len(stopped), note)]
+    return [
+        _check("Hertz curve: depth reached [mm]", depth, 2 * radius_mm, not len(stopped), note)
+    ]
 
 
 def _locking_checks(locking: pd.DataFrame) -> list[dict]:
@@ -403,15 +603,26 @@ def _locking_checks(locking: pd.DataFrame) -> list[dict]:
     for r in locking.itertuples(index=False):
         err = abs(r.rel_error)
         note = f"nu = {r.nu:.4f}; value <= limit" + ("" if r.converged else "; not converged")
-        rows.append(_check(f"locking: D = {r.d_mm2_per_n:g} mm^2/N: |F / F_Hertz - 1|", err, HERTZ_REL_LIMIT,
-                           bool(r.converged) and err <= HERTZ_REL_LIMIT, note))
+        rows.append(
+            _check(
+                f"locking: D = {r.d_mm2_per_n:g} mm^2/N: |F / F_Hertz - 1|",
+                err,
+                HERTZ_REL_LIMIT,
+                bool(r.converged) and err <= HERTZ_REL_LIMIT,
+                note,
+            )
+        )
     return rows
 
 
 def _fem_case_checks(checks: pd.DataFrame) -> list[dict]:
     """fem_checks.csv: patch tests exact to rounding, rigid bone motion strain free; each solve converged."""
-    limits = dict(max_displacement_error_mm=PATCH_LIMIT, max_F_error=PATCH_LIMIT,
-                  max_abs_green_strain=RIGID_LIMIT, max_position_error_mm=RIGID_LIMIT)
+    limits = dict(
+        max_displacement_error_mm=PATCH_LIMIT,
+        max_F_error=PATCH_LIMIT,
+        max_abs_green_strain=RIGID_LIMIT,
+        max_position_error_mm=RIGID_LIMIT,
+    )
     rows = []
     for r in checks.to_dict("records"):
         for column, limit in limits.items():
@@ -419,7 +630,15 @@ def _fem_case_checks(checks: pd.DataFrame) -> list[dict]:
             if pd.isna(value):
                 continue
             note = "value <= limit" + ("" if r["converged"] else "; not converged")
-            rows.append(_check(f"fem check: {r['case']}: {column}", value, limit, bool(r["converged"]) and value <= limit, note))
+            rows.append(
+                _check(
+                    f"fem check: {r['case']}: {column}",
+                    value,
+                    limit,
+                    bool(r["converged"]) and value <= limit,
+                    note,
+                )
+            )
     return rows
 
 
@@ -428,9 +647,20 @@ def _solve_checks(df: pd.DataFrame, prefix: str) -> list[dict]:
     rows = []
     for r in df.to_dict("records"):
         reason = r.get("reason", "")
-        note = (f"{r['increments']} increments, {r['newton_iterations']} Newton iterations, {r['wall_s']:.0f} s; "
-                "value = load parameter reached" + ("" if r["converged"] or pd.isna(reason) else f"; {reason}"))
-        rows.append(_check(f"{prefix}: {r['case']}", r.get("load_reached", np.nan), LOAD_DONE, r["converged"], note))
+        note = (
+            f"{r['increments']} increments, {r['newton_iterations']} Newton iterations, {r['wall_s']:.0f} s; "
+            "value = load parameter reached"
+            + ("" if r["converged"] or pd.isna(reason) else f"; {reason}")
+        )
+        rows.append(
+            _check(
+                f"{prefix}: {r['case']}",
+                r.get("load_reached", np.nan),
+                LOAD_DONE,
+                r["converged"],
+                note,
+            )
+        )
     return rows
 
 
@@ -449,35 +679,78 @@ def _cylinder_checks(curve: pd.DataFrame, voi: pd.DataFrame) -> list[dict]:
         for d, r in c.iterrows():
             err = abs(r.force_N / ref_c.loc[d, "force_N"] - 1) if d in ref_c.index else np.nan
             ok = bool(r.converged) and np.isfinite(err) and err <= CYLINDER_FORCE_LIMIT
-            rows.append(_check(f"cylinder: {mesh} mesh: force at {d:g} mm: |F / F_finest - 1|", err, CYLINDER_FORCE_LIMIT,
-                               ok, f"finest {ref_mesh}; {r.force_N:.5g} N against {ref_c.loc[d, 'force_N']:.5g} N"
-                               if d in ref_c.index else "finest mesh has no solve at this depth"))
+            rows.append(
+                _check(
+                    f"cylinder: {mesh} mesh: force at {d:g} mm: |F / F_finest - 1|",
+                    err,
+                    CYLINDER_FORCE_LIMIT,
+                    ok,
+                    f"finest {ref_mesh}; {r.force_N:.5g} N against {ref_c.loc[d, 'force_N']:.5g} N"
+                    if d in ref_c.index
+                    else "finest mesh has no solve at this depth",
+                )
+            )
         v = voi[voi["mesh"] == mesh].set_index("depth_mm")
         for d in ref_v.index:
             if d not in v.index:
-                rows.append(_check(f"cylinder: {mesh} mesh: VOI at {d:g} mm: |VOI / VOI_finest - 1|", np.nan,
-                                   CYLINDER_VOI_LIMIT, False, "not converged"))
+                rows.append(
+                    _check(
+                        f"cylinder: {mesh} mesh: VOI at {d:g} mm: |VOI / VOI_finest - 1|",
+                        np.nan,
+                        CYLINDER_VOI_LIMIT,
+                        False,
+                        "not converged",
+                    )
+                )
                 continue
             r, ref = v.loc[d], ref_v.loc[d]
             true = r.voi_mm3 - ref.voi_mm3
             rel = abs(true) / ref.voi_mm3
             note = f"{r.voi_mm3:.3f} mm^3 against {ref.voi_mm3:.3f} mm^3; estimate {r.voi_err_mm3:.3f} mm^3"
-            rows.append(_check(f"cylinder: {mesh} mesh: VOI at {d:g} mm: |VOI / VOI_finest - 1|", rel,
-                               CYLINDER_VOI_LIMIT, rel <= CYLINDER_VOI_LIMIT, note))
+            rows.append(
+                _check(
+                    f"cylinder: {mesh} mesh: VOI at {d:g} mm: |VOI / VOI_finest - 1|",
+                    rel,
+                    CYLINDER_VOI_LIMIT,
+                    rel <= CYLINDER_VOI_LIMIT,
+                    note,
+                )
+            )
             diff = (r[bins] - ref[bins]).abs()
             worst = diff.astype(float).idxmax()
             est = r.get(worst.replace("bins_percent.", "bins_err_pp."), np.nan)
-            rows.append(_check(f"cylinder: {mesh} mesh: bins at {d:g} mm: max |p - p_finest| [pp]", diff.max(),
-                               CYLINDER_BINS_LIMIT_PP, diff.max() <= CYLINDER_BINS_LIMIT_PP,
-                               f"largest in bin {worst.split('.', 1)[1]}; estimate {est:.2f} pp"))
-            ratio = abs(true) / r.voi_err_mm3 if r.voi_err_mm3 > 0 else (0.0 if true == 0 else np.inf)
-            rows.append(_check(f"cylinder: {mesh} mesh: VOI at {d:g} mm: true error / estimate", ratio, ESTIMATE_FACTOR,
-                               ratio <= ESTIMATE_FACTOR, f"true {true:+.3f} mm^3, estimate {r.voi_err_mm3:.3f} mm^3"))
+            rows.append(
+                _check(
+                    f"cylinder: {mesh} mesh: bins at {d:g} mm: max |p - p_finest| [pp]",
+                    diff.max(),
+                    CYLINDER_BINS_LIMIT_PP,
+                    diff.max() <= CYLINDER_BINS_LIMIT_PP,
+                    f"largest in bin {worst.split('.', 1)[1]}; estimate {est:.2f} pp",
+                )
+            )
+            ratio = (
+                abs(true) / r.voi_err_mm3 if r.voi_err_mm3 > 0 else (0.0 if true == 0 else np.inf)
+            )
+            rows.append(
+                _check(
+                    f"cylinder: {mesh} mesh: VOI at {d:g} mm: true error / estimate",
+                    ratio,
+                    ESTIMATE_FACTOR,
+                    ratio <= ESTIMATE_FACTOR,
+                    f"true {true:+.3f} mm^3, estimate {r.voi_err_mm3:.3f} mm^3",
+                )
+            )
             est_b = float(r[[c for c in voi.columns if c.startswith("bins_err_pp.")]].max())
             ratio = diff.max() / est_b if est_b > 0 else (0.0 if diff.max() == 0 else np.inf)
-            rows.append(_check(f"cylinder: {mesh} mesh: bins at {d:g} mm: largest true error / largest estimate", ratio,
-                               ESTIMATE_FACTOR, ratio <= ESTIMATE_FACTOR,
-                               f"true {diff.max():.2f} pp, estimate {est_b:.2f} pp"))
+            rows.append(
+                _check(
+                    f"cylinder: {mesh} mesh: bins at {d:g} mm: largest true error / largest estimate",
+                    ratio,
+                    ESTIMATE_FACTOR,
+                    ratio <= ESTIMATE_FACTOR,
+                    f"true {diff.max():.2f} pp, estimate {est_b:.2f} pp",
+                )
+            )
     return rows
 
 
@@ -492,29 +765,63 @@ def _cylinder_adaptive_checks(table: pd.DataFrame) -> list[dict]:
         last = run.loc[run["pass_index"].idxmax()]
         where = f"pass {int(last['pass_index'])}, {int(last['n_dofs'])} DOFs, {last['wall_s']:.0f} s for all passes"
         met = bool(last["goal_met"])
-        rows.append(_check(f"cylinder: adaptive mesh at {d:g} mm: goal met by its own estimate", float(met), 1.0, met,
-                           f"{where}; stopped on: {last.get('stop_reason', '')}"))
+        rows.append(
+            _check(
+                f"cylinder: adaptive mesh at {d:g} mm: goal met by its own estimate",
+                float(met),
+                1.0,
+                met,
+                f"{where}; stopped on: {last.get('stop_reason', '')}",
+            )
+        )
         err = abs(last["true_force_percent"]) / 100
-        rows.append(_check(f"cylinder: adaptive mesh: force at {d:g} mm: |F / F_finest - 1|", err, CYLINDER_FORCE_LIMIT,
-                           err <= CYLINDER_FORCE_LIMIT, f"{where}; estimate {last['est_force_percent']:.2f} %"))
+        rows.append(
+            _check(
+                f"cylinder: adaptive mesh: force at {d:g} mm: |F / F_finest - 1|",
+                err,
+                CYLINDER_FORCE_LIMIT,
+                err <= CYLINDER_FORCE_LIMIT,
+                f"{where}; estimate {last['est_force_percent']:.2f} %",
+            )
+        )
         if np.isfinite(last["true_voi_percent"]):
             rel = abs(last["true_voi_percent"]) / 100
-            rows.append(_check(f"cylinder: adaptive mesh: VOI at {d:g} mm: |VOI / VOI_finest - 1|", rel,
-                               CYLINDER_VOI_LIMIT, rel <= CYLINDER_VOI_LIMIT,
-                               f"{where}; estimate {last['est_voi_percent']:.2f} %"))
-            rows.append(_check(f"cylinder: adaptive mesh: bins at {d:g} mm: max |p - p_finest| [pp]",
-                               last["true_bins_pp"], CYLINDER_BINS_LIMIT_PP,
-                               last["true_bins_pp"] <= CYLINDER_BINS_LIMIT_PP,
-                               f"{where}; estimate {last['est_bins_pp']:.2f} pp"))
+            rows.append(
+                _check(
+                    f"cylinder: adaptive mesh: VOI at {d:g} mm: |VOI / VOI_finest - 1|",
+                    rel,
+                    CYLINDER_VOI_LIMIT,
+                    rel <= CYLINDER_VOI_LIMIT,
+                    f"{where}; estimate {last['est_voi_percent']:.2f} %",
+                )
+            )
+            rows.append(
+                _check(
+                    f"cylinder: adaptive mesh: bins at {d:g} mm: max |p - p_finest| [pp]",
+                    last["true_bins_pp"],
+                    CYLINDER_BINS_LIMIT_PP,
+                    last["true_bins_pp"] <= CYLINDER_BINS_LIMIT_PP,
+                    f"{where}; estimate {last['est_bins_pp']:.2f} pp",
+                )
+            )
     return rows
 
 
-def verification_summary(*, points: pd.DataFrame, hertz: pd.DataFrame, curve: pd.DataFrame,
-                         locking: pd.DataFrame, checks: pd.DataFrame, hard: pd.DataFrame,
-                         benchmark: pd.DataFrame, cylinder_curve: pd.DataFrame | None = None,
-                         cylinder_voi: pd.DataFrame | None = None, cylinder_adaptive: pd.DataFrame | None = None,
-                         radius_mm: float = HERTZ_RADIUS_MM,
-                         known_failures: dict[str, str] | None = None) -> pd.DataFrame:
+def verification_summary(
+    *,
+    points: pd.DataFrame,
+    hertz: pd.DataFrame,
+    curve: pd.DataFrame,
+    locking: pd.DataFrame,
+    checks: pd.DataFrame,
+    hard: pd.DataFrame,
+    benchmark: pd.DataFrame,
+    cylinder_curve: pd.DataFrame | None = None,
+    cylinder_voi: pd.DataFrame | None = None,
+    cylinder_adaptive: pd.DataFrame | None = None,
+    radius_mm: float = HERTZ_RADIUS_MM,
+    known_failures: dict[str, str] | None = None,
+) -> pd.DataFrame:
     """One row per check of the ``verify`` target, from the tables its rules write.
 
     Parameters
@@ -547,11 +854,21 @@ def verification_summary(*, points: pd.DataFrame, hertz: pd.DataFrame, curve: pd
         (a failing check named in ``known_failures``, its reason prefixed to the note).
     """
     known = KNOWN_FAILURES if known_failures is None else known_failures
-    rows = (_material_checks(points) + _hertz_checks(hertz, radius_mm) + _hertz_curve_checks(curve, radius_mm)
-            + _locking_checks(locking) + _fem_case_checks(checks) + _solve_checks(hard, "hard case")
-            + _solve_checks(benchmark, "benchmark")
-            + ([] if cylinder_curve is None or cylinder_voi is None else _cylinder_checks(cylinder_curve, cylinder_voi))
-            + ([] if cylinder_adaptive is None else _cylinder_adaptive_checks(cylinder_adaptive)))
+    rows = (
+        _material_checks(points)
+        + _hertz_checks(hertz, radius_mm)
+        + _hertz_curve_checks(curve, radius_mm)
+        + _locking_checks(locking)
+        + _fem_case_checks(checks)
+        + _solve_checks(hard, "hard case")
+        + _solve_checks(benchmark, "benchmark")
+        + (
+            []
+            if cylinder_curve is None or cylinder_voi is None
+            else _cylinder_checks(cylinder_curve, cylinder_voi)
+        )
+        + ([] if cylinder_adaptive is None else _cylinder_adaptive_checks(cylinder_adaptive))
+    )
     for row in rows:
         if row.pop("ok"):
             row["status"] = "pass"
@@ -568,17 +885,36 @@ def failed_checks(summary: pd.DataFrame) -> list[str]:
     return summary.loc[summary["status"] == "fail", "check"].tolist()
 
 
-def write_verification_summary(*, point_csv, hertz_csv, curve_csv, locking_csv, checks_csv, hard_csv,
-                               benchmark_csv, summary_csv, cylinder_curve_csv=None, cylinder_voi_csv=None,
-                               cylinder_adaptive_csv=None) -> pd.DataFrame:
+def write_verification_summary(
+    *,
+    point_csv,
+    hertz_csv,
+    curve_csv,
+    locking_csv,
+    checks_csv,
+    hard_csv,
+    benchmark_csv,
+    summary_csv,
+    cylinder_curve_csv=None,
+    cylinder_voi_csv=None,
+    cylinder_adaptive_csv=None,
+) -> pd.DataFrame:
     """Read the verification CSVs, write :func:`verification_summary` to summary_csv and return it
     (the cylinder rows when both cylinder CSVs are given, the adaptive ones when cylinder_adaptive_csv is)."""
     cyl = cylinder_curve_csv is not None and cylinder_voi_csv is not None
     summary = verification_summary(
-        points=pd.read_csv(point_csv), hertz=pd.read_csv(hertz_csv), curve=pd.read_csv(curve_csv),
-        locking=pd.read_csv(locking_csv), checks=pd.read_csv(checks_csv), hard=pd.read_csv(hard_csv),
-        benchmark=pd.read_csv(benchmark_csv), cylinder_curve=pd.read_csv(cylinder_curve_csv) if cyl else None,
+        points=pd.read_csv(point_csv),
+        hertz=pd.read_csv(hertz_csv),
+        curve=pd.read_csv(curve_csv),
+        locking=pd.read_csv(locking_csv),
+        checks=pd.read_csv(checks_csv),
+        hard=pd.read_csv(hard_csv),
+        benchmark=pd.read_csv(benchmark_csv),
+        cylinder_curve=pd.read_csv(cylinder_curve_csv) if cyl else None,
         cylinder_voi=pd.read_csv(cylinder_voi_csv) if cyl else None,
-        cylinder_adaptive=None if cylinder_adaptive_csv is None else pd.read_csv(cylinder_adaptive_csv))
+        cylinder_adaptive=None
+        if cylinder_adaptive_csv is None
+        else pd.read_csv(cylinder_adaptive_csv),
+    )
     _write_csv(summary, summary_csv)
     return summary

@@ -12,8 +12,15 @@ The stage reads the during scan and the contours of both states and writes ``pos
 """
 
 from .accuracy import ACCURACY_TOLERANCES, accuracy_table, pose_errors, run_pose_accuracy
-from .bone import (MIN_FIBULA_SLICES, BoneFit, bone_centroid_mm, dense_surface, fit_bone_motion, moved_section,
-                   resolve_bone_dof)
+from .bone import (
+    MIN_FIBULA_SLICES,
+    BoneFit,
+    bone_centroid_mm,
+    dense_surface,
+    fit_bone_motion,
+    moved_section,
+    resolve_bone_dof,
+)
 from .estimate import PoseOptions, estimate_pose, run_pose
 from .indenter import (
     FluidComponent,

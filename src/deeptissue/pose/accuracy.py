@@ -36,14 +36,18 @@ def pose_errors(estimate: Pose, truth: Pose) -> dict:
     R_est = rotation_matrix(estimate.bone_rotation_deg)
     R_true = rotation_matrix(truth.bone_rotation_deg)
     rel = Rotation.from_matrix(R_est @ R_true.T).magnitude()
-    t_about_truth = estimate.bone_translation_mm + (R_est - np.eye(3)) @ (truth.bone_com_mm - estimate.bone_com_mm)
+    t_about_truth = estimate.bone_translation_mm + (R_est - np.eye(3)) @ (
+        truth.bone_com_mm - estimate.bone_com_mm
+    )
     return {
         "axis_error_deg": float(np.degrees(np.arccos(cos))),
         "tip_end_error_mm": float(np.linalg.norm(estimate.tip_end_mm - truth.tip_end_mm)),
         "tip_start_error_mm": float(np.linalg.norm(estimate.tip_start_mm - truth.tip_start_mm)),
         "depth_error_mm": abs(estimate.depth_mm - truth.depth_mm),
         "bone_rotation_error_deg": float(np.degrees(rel)),
-        "bone_translation_error_mm": float(np.linalg.norm(t_about_truth - truth.bone_translation_mm)),
+        "bone_translation_error_mm": float(
+            np.linalg.norm(t_about_truth - truth.bone_translation_mm)
+        ),
         "bone_com_error_mm": float(np.linalg.norm(estimate.bone_com_mm - truth.bone_com_mm)),
     }
 
@@ -53,8 +57,14 @@ def accuracy_table(estimate: Pose, truth: Pose) -> list[dict]:
     rows = []
     for k, v in pose_errors(estimate, truth).items():
         tol = ACCURACY_TOLERANCES.get(k)
-        rows.append({"quantity": k, "error": v, "tolerance": tol if tol is not None else "",
-                     "within_tolerance": "" if tol is None else bool(v <= tol)})
+        rows.append(
+            {
+                "quantity": k,
+                "error": v,
+                "tolerance": tol if tol is not None else "",
+                "within_tolerance": "" if tol is None else bool(v <= tol),
+            }
+        )
     return rows
 
 

@@ -21,8 +21,15 @@ from .result import PoseError, _where
 if TYPE_CHECKING:
     from ..contours import Contours
 
-__all__ = ["MIN_FIBULA_SLICES", "BoneFit", "bone_centroid_mm", "dense_surface", "fit_bone_motion", "moved_section",
-           "resolve_bone_dof"]
+__all__ = [
+    "MIN_FIBULA_SLICES",
+    "BoneFit",
+    "bone_centroid_mm",
+    "dense_surface",
+    "fit_bone_motion",
+    "moved_section",
+    "resolve_bone_dof",
+]
 
 MIN_FIBULA_SLICES = 3  # a fibula seen on fewer slices of a state is not used by the bone fit
 
@@ -81,8 +88,9 @@ def bone_centroid_mm(bone_mm: np.ndarray) -> np.ndarray:
     return np.array([np.sum(w * cx), np.sum(w * cy), np.sum(w * cz)]) / w.sum()
 
 
-def dense_surface(contours_mm: np.ndarray, *, step_mm: float = 0.05, extend_mm: float = 0.5,
-                  upsample: int = 2) -> tuple[np.ndarray, np.ndarray]:
+def dense_surface(
+    contours_mm: np.ndarray, *, step_mm: float = 0.05, extend_mm: float = 0.5, upsample: int = 2
+) -> tuple[np.ndarray, np.ndarray]:
     """A dense point cloud on the surface through a contour stack, with unit normals.
 
     ``contours_mm`` (n_slices, n_points, 3), slices at increasing or decreasing z. Each contour is
@@ -210,9 +218,14 @@ def fit_bone_motion(
     # matched to the end of the pre surface, it would pull the fit along the bone)
     use = np.ones(pre.shape[0], bool) if during_slices is None else np.asarray(during_slices, bool)
     if use.shape != (pre.shape[0],) or use.sum() < 2:
-        raise PoseError(f"{_where(animal)}the bone fit needs the tibia on at least 2 during slices, "
-                        f"got {int(use.sum()) if use.shape == (pre.shape[0],) else use.shape}")
-    has_pre, has_dur = _fibula_mask(fibula_pre_mm, pre.shape[0]), _fibula_mask(fibula_during_mm, pre.shape[0])
+        raise PoseError(
+            f"{_where(animal)}the bone fit needs the tibia on at least 2 during slices, "
+            f"got {int(use.sum()) if use.shape == (pre.shape[0],) else use.shape}"
+        )
+    has_pre, has_dur = (
+        _fibula_mask(fibula_pre_mm, pre.shape[0]),
+        _fibula_mask(fibula_during_mm, pre.shape[0]),
+    )
     has_dur = has_dur & use
     both = has_pre & has_dur
     use_fibula = has_pre.sum() >= MIN_FIBULA_SLICES and both.sum() >= MIN_FIBULA_SLICES
@@ -249,30 +262,54 @@ def fit_bone_motion(
 
     rms0 = rms(residuals_for(np.zeros(3), np.zeros(3)))
     rms_com = rms(residuals_for(np.zeros(3), shift))
+
     def correction(x):  # translation correction (mm) added to the centroid shift
         return np.array([x[3], x[4], x[5] if dof == 6 else 0.0]) if dof > 3 else np.zeros(3)
 
     fun = lambda x: residuals_for(x[:3], shift + correction(x))  # noqa: E731
     x0 = np.zeros(dof)
-    res = least_squares(fun, x0, method="lm", x_scale=np.ones_like(x0), diff_step=1e-4 if method == "surface" else None)
+    res = least_squares(
+        fun,
+        x0,
+        method="lm",
+        x_scale=np.ones_like(x0),
+        diff_step=1e-4 if method == "surface" else None,
+    )
     rot = res.x[:3]
     trans = shift + correction(res.x)
     # standard errors of the parameters from the Jacobian (residual variance x (J^T J)^-1)
     try:
-        cov = np.linalg.inv(res.jac.T @ res.jac) * np.mean(res.fun**2) * len(res.fun) / max(len(res.fun) - dof, 1)
+        cov = (
+            np.linalg.inv(res.jac.T @ res.jac)
+            * np.mean(res.fun**2)
+            * len(res.fun)
+            / max(len(res.fun) - dof, 1)
+        )
         sd = np.sqrt(np.clip(np.diag(cov), 0, None))
     except np.linalg.LinAlgError:
         sd = np.full(dof, np.inf)
     return BoneFit(
-        motion=BoneMotion(rotation_deg=rot, centre_mm=com_pre, translation_mm=trans), com_shift_mm=shift,
-        rms_initial_mm=rms0, rms_com_mm=rms_com, rms_final_mm=rms(res.fun), method=method, dof=dof,
-        n_evaluations=int(res.nfev), parameter_sd=sd,
+        motion=BoneMotion(rotation_deg=rot, centre_mm=com_pre, translation_mm=trans),
+        com_shift_mm=shift,
+        rms_initial_mm=rms0,
+        rms_com_mm=rms_com,
+        rms_final_mm=rms(res.fun),
+        method=method,
+        dof=dof,
+        n_evaluations=int(res.nfev),
+        parameter_sd=sd,
         fibula_slices=(int(has_pre.sum()), int(both.sum())) if use_fibula else (0, 0),
     )
 
 
-def moved_section(bone_pre_mm: np.ndarray, motion: BoneMotion, z_mm: float, *, n_points: int = 100,
-                  start_angle_deg: float = 90.0) -> np.ndarray:
+def moved_section(
+    bone_pre_mm: np.ndarray,
+    motion: BoneMotion,
+    z_mm: float,
+    *,
+    n_points: int = 100,
+    start_angle_deg: float = 90.0,
+) -> np.ndarray:
     """The section at the plane ``z = z_mm`` of the pre bone surface moved by ``motion``: (n_points, 3) [mm].
 
     The surface is :func:`dense_surface` of ``bone_pre_mm`` (n_slices, n_points, 3); each of its point tracks
@@ -308,7 +345,6 @@ def _fibula_mask(fibula_mm, n_slices: int) -> np.ndarray:
     return slices_with_contour(f)
 
 
-
 def resolve_bone_dof(bone_dof, pre: Contours, during_contours: Contours) -> tuple[int, str]:
     """The fit's degrees of freedom for the config value ``bone_dof`` (3, 5, 6 or 'auto') and why.
 
@@ -329,5 +365,7 @@ def resolve_bone_dof(bone_dof, pre: Contours, during_contours: Contours) -> tupl
         return int(bone_dof), f"bone_dof {bone_dof} as configured ({seen})"
     if has:
         return 6, f"bone_dof auto -> 6: tibia and fibula fitted together ({seen})"
-    return 5, (f"bone_dof auto -> 5: no usable fibula contours ({seen}; {MIN_FIBULA_SLICES} needed); "
-               "tibia alone, the shift along the leg (z) is the centroid's")
+    return 5, (
+        f"bone_dof auto -> 5: no usable fibula contours ({seen}; {MIN_FIBULA_SLICES} needed); "
+        "tibia alone, the shift along the leg (z) is the centroid's"
+    )

@@ -45,46 +45,88 @@ class Limit:
 LIMITS = {
     # RMS distance of the fitted during tibia from the pre tibia: 0.006-0.012 mm good, 0.090 mm for the pre
     # scan of another animal. Warning at 2.5x, failure at 5x the largest good value.
-    "bone_fit_rms_mm": Limit(0.03, 0.06, "pre/during mismatch: check that the pre and during scans are of the same "
-                             "animal and leg, and the segmentation figures of both"),
+    "bone_fit_rms_mm": Limit(
+        0.03,
+        0.06,
+        "pre/during mismatch: check that the pre and during scans are of the same "
+        "animal and leg, and the segmentation figures of both",
+    ),
     # fraction of the during slices whose tibia joins the rigid fit: 1.0 on the demo phantoms, 0.9 with the
     # indenter 0.05 mm from the tibia; the segmentation refuses more than half of the slices hidden.
-    "bone_slices_used": Limit(0.75, 0.5, "the tibia is hidden by the indenter on many slices: check the during "
-                              "segmentation figure; the bone motion rests on the other slices", below=True),
+    "bone_slices_used": Limit(
+        0.75,
+        0.5,
+        "the tibia is hidden by the indenter on many slices: check the during "
+        "segmentation figure; the bone motion rests on the other slices",
+        below=True,
+    ),
     # largest in-plane jump of the tibia's centroid between neighbouring slices per mm of their spacing:
     # 0.022-0.048 mm/mm good (the shaft drifts 0.02 mm/mm); the fibula taken for the tibia jumps by its
     # distance from the tibia, 2-4 mm. Warning at 5x the largest good value, failure at 0.6 mm/mm.
-    "tibia_centroid_jump_pre_mm_per_mm": Limit(0.25, 0.6, "the contour taken for the tibia jumps between slices "
-                                               "(another structure on some slices?): check the pre segmentation "
-                                               "figure, set segmentation.bone_select or draw an override"),
-    "tibia_centroid_jump_during_mm_per_mm": Limit(0.25, 0.6, "the contour taken for the tibia jumps between slices "
-                                                  "(another structure on some slices?): check the during "
-                                                  "segmentation figure, set segmentation.bone_select or draw an "
-                                                  "override"),
+    "tibia_centroid_jump_pre_mm_per_mm": Limit(
+        0.25,
+        0.6,
+        "the contour taken for the tibia jumps between slices "
+        "(another structure on some slices?): check the pre segmentation "
+        "figure, set segmentation.bone_select or draw an override",
+    ),
+    "tibia_centroid_jump_during_mm_per_mm": Limit(
+        0.25,
+        0.6,
+        "the contour taken for the tibia jumps between slices "
+        "(another structure on some slices?): check the during "
+        "segmentation figure, set segmentation.bone_select or draw an "
+        "override",
+    ),
     # largest change of the tibia's section area between neighbouring slices, |log(A_k+1 / A_k)|: 0.038-0.052
     # good; the fibula (0.5 mm^2) for the tibia (2-4 mm^2) changes it by 1.4-2.1.
-    "tibia_area_step_pre": Limit(0.25, 0.6, "the tibia's section changes size abruptly between slices: check the "
-                                 "pre segmentation figure"),
-    "tibia_area_step_during": Limit(0.25, 0.6, "the tibia's section changes size abruptly between slices: check the "
-                                    "during segmentation figure"),
+    "tibia_area_step_pre": Limit(
+        0.25,
+        0.6,
+        "the tibia's section changes size abruptly between slices: check the "
+        "pre segmentation figure",
+    ),
+    "tibia_area_step_during": Limit(
+        0.25,
+        0.6,
+        "the tibia's section changes size abruptly between slices: check the "
+        "during segmentation figure",
+    ),
     # length along the axis of the fluid column used for the axis: 9.0-10.7 mm good, 3.4 mm with the
     # indenter tilted 60 deg out of the slice plane. Below 5 mm the cylinder fit cannot run (it leaves 1.5 mm
     # at each end and needs 2 mm) and the axis is the inertia axis of a short blob.
-    "fluid_column_length_mm": Limit(6.0, 5.0, "too little of the fluid column is in the scan to find the indenter "
-                                    "axis (steep tilt out of the slices, short field of view): check the axis "
-                                    "figure and give pose_override.indenter_axis", below=True),
+    "fluid_column_length_mm": Limit(
+        6.0,
+        5.0,
+        "too little of the fluid column is in the scan to find the indenter "
+        "axis (steep tilt out of the slices, short field of view): check the axis "
+        "figure and give pose_override.indenter_axis",
+        below=True,
+    ),
     # angle between the fluid column's inertia axis and its cylinder fit: 0.03-1.03 deg good (the inertia
     # axis of 1 mm slices is off by up to ~2 deg); NaN when the fit did not run (a warning).
-    "axis_inertia_vs_cylinder_deg": Limit(2.0, 4.0, "the fluid column's inertia axis and cylinder fit disagree (or "
-                                          "the fit did not run): check the axis figure, give "
-                                          "pose_override.indenter_axis if it is off"),
+    "axis_inertia_vs_cylinder_deg": Limit(
+        2.0,
+        4.0,
+        "the fluid column's inertia axis and cylinder fit disagree (or "
+        "the fit did not run): check the axis figure, give "
+        "pose_override.indenter_axis if it is off",
+    ),
     # standard errors of the fitted bone rotation (largest component) and translation: 0.0011-0.008 deg and
     # 0.0013-0.0021 mm good; 5 slices 0.014 deg and 0.016 mm; the mismatched pair 0.063 deg and 0.015 mm.
-    "bone_rotation_sd_deg": Limit(0.02, 0.2, "the bone rotation is poorly determined (few slices or little bone "
-                                  "shape): check pose_bone.png; scan more slices"),
-    "bone_translation_sd_mm": Limit(0.006, 0.05, "the bone translation is poorly determined (few slices, or a "
-                                    "fibula too short to show the shift along the leg): check pose_bone.png; "
-                                    "scan more slices or set pose.bone_dof: 5"),
+    "bone_rotation_sd_deg": Limit(
+        0.02,
+        0.2,
+        "the bone rotation is poorly determined (few slices or little bone "
+        "shape): check pose_bone.png; scan more slices",
+    ),
+    "bone_translation_sd_mm": Limit(
+        0.006,
+        0.05,
+        "the bone translation is poorly determined (few slices, or a "
+        "fibula too short to show the shift along the leg): check pose_bone.png; "
+        "scan more slices or set pose.bone_dof: 5",
+    ),
 }
 
 
@@ -101,7 +143,7 @@ class Check:
     action: str
 
     def describe(self) -> str:
-        """"name value > limit" (or "<" for a check that is bad below its limit), the limit its status crossed;
+        """ "name value > limit" (or "<" for a check that is bad below its limit), the limit its status crossed;
         "name not measured" for a NaN value."""
         lim = LIMITS[self.name]
         if not np.isfinite(self.value):
@@ -115,8 +157,18 @@ def _status(name: str, value: float) -> Check:
     bad = (lambda x: x < lim.fail) if lim.below else (lambda x: x > lim.fail)
     poor = (lambda x: x < lim.warn) if lim.below else (lambda x: x > lim.warn)
     # a value that could not be measured (NaN) is a warning: the estimate stands without its evidence
-    status = "warn" if not np.isfinite(value) else "fail" if bad(value) else "warn" if poor(value) else "ok"
-    return Check(name, float(value), lim.warn, lim.fail, status, "" if status == "ok" else lim.action)
+    status = (
+        "warn"
+        if not np.isfinite(value)
+        else "fail"
+        if bad(value)
+        else "warn"
+        if poor(value)
+        else "ok"
+    )
+    return Check(
+        name, float(value), lim.warn, lim.fail, status, "" if status == "ok" else lim.action
+    )
 
 
 def tibia_steps(contours: Contours) -> tuple[float, float]:
@@ -162,7 +214,7 @@ def evaluate_checks(pose: Pose, pre: Contours, during: Contours) -> list[Check]:
 
 
 def warnings_of(checks: list[Check]) -> list[str]:
-    """"name value > limit" of every check with status warn."""
+    """ "name value > limit" of every check with status warn."""
     return [c.describe() for c in checks if c.status == "warn"]
 
 
@@ -185,4 +237,13 @@ def write_checks(path, checks: list[Check]) -> None:
             w = csv.writer(fh)
             w.writerow(["check", "value", "limit", "fail_limit", "status", "action"])
             for c in checks:
-                w.writerow([c.name, f"{c.value:.6g}", f"{c.limit:g}", f"{c.fail_limit:g}", c.status, c.action])
+                w.writerow(
+                    [
+                        c.name,
+                        f"{c.value:.6g}",
+                        f"{c.limit:g}",
+                        f"{c.fail_limit:g}",
+                        c.status,
+                        c.action,
+                    ]
+                )

@@ -14,8 +14,15 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .bone import bone_centroid_mm, fit_bone_motion, resolve_bone_dof
-from .indenter import (find_fluid_component, fluid_threshold, inside_skin_mask, line_triangle_hits, orient_axis,
-                       skin_triangles, tip_end_mm)
+from .indenter import (
+    find_fluid_component,
+    fluid_threshold,
+    inside_skin_mask,
+    line_triangle_hits,
+    orient_axis,
+    skin_triangles,
+    tip_end_mm,
+)
 from .qc import plot_axis_qc, plot_bone_qc, plot_tip_qc
 from .result import Pose, PoseError, _where, save_pose
 
@@ -45,13 +52,19 @@ class PoseOptions:
     bone_surface_step_mm: float = 0.05
 
     @classmethod
-    def from_config(cls, section: dict | None) -> "PoseOptions":
+    def from_config(cls, section: dict | None) -> PoseOptions:
         """The options of a config section ``pose`` (None: all defaults); keys that are not options are ignored."""
         known = {f for f in cls.__dataclass_fields__}
         return cls(**{k: v for k, v in (section or {}).items() if k in known})
 
 
-_OVERRIDE_KEYS = ("indenter_axis", "tip_end_mm", "tip_start_mm", "bone_rotation_deg", "bone_translation_mm")
+_OVERRIDE_KEYS = (
+    "indenter_axis",
+    "tip_end_mm",
+    "tip_start_mm",
+    "bone_rotation_deg",
+    "bone_translation_mm",
+)
 
 
 def estimate_pose(
@@ -116,22 +129,33 @@ def estimate_pose(
         if thr is None:
             thr = fluid_threshold(during, mask, ratio=options.fluid_threshold_ratio)
         fluid = find_fluid_component(
-            during, affine, threshold=thr, exclude_mask=mask, min_volume_mm3=options.min_component_mm3,
-            ambiguity_ratio=options.ambiguity_ratio, animal=animal,
+            during,
+            affine,
+            threshold=thr,
+            exclude_mask=mask,
+            min_volume_mm3=options.min_component_mm3,
+            ambiguity_ratio=options.ambiguity_ratio,
+            animal=animal,
         )
         m = fluid.moments_mm2
-        extra.update(fluid_threshold=fluid.threshold, fluid_volume_mm3=fluid.volume_mm3,
-                     fluid_candidate_volumes_mm3=list(fluid.candidate_volumes_mm3[:5]),
-                     fluid_elongation=float(np.sqrt(m[2] / max(m[0], 1e-12))))
+        extra.update(
+            fluid_threshold=fluid.threshold,
+            fluid_volume_mm3=fluid.volume_mm3,
+            fluid_candidate_volumes_mm3=list(fluid.candidate_volumes_mm3[:5]),
+            fluid_elongation=float(np.sqrt(m[2] / max(m[0], 1e-12))),
+        )
         # evidence for the QC checks: the column's length along the axis, and how far the cylinder fit turned
         # the inertia axis (NaN when the fit did not run or was rejected: the axis is the inertia axis)
         s_col = (fluid.points_mm - fluid.com_mm) @ fluid.axis
         extra["fluid_column_length_mm"] = float(s_col.max() - s_col.min())
         if fluid.axis_inertia is not None:
             refined = not np.array_equal(fluid.axis_inertia, fluid.axis)
-            cos = abs(float(fluid.axis_inertia @ fluid.axis)) / float(np.linalg.norm(fluid.axis_inertia))
-            extra["axis_inertia_vs_cylinder_deg"] = (float(np.degrees(np.arccos(min(cos, 1.0)))) if refined
-                                                     else float("nan"))
+            cos = abs(float(fluid.axis_inertia @ fluid.axis)) / float(
+                np.linalg.norm(fluid.axis_inertia)
+            )
+            extra["axis_inertia_vs_cylinder_deg"] = (
+                float(np.degrees(np.arccos(min(cos, 1.0)))) if refined else float("nan")
+            )
         qc["fluid_points_mm"] = fluid.points_mm
 
     if "indenter_axis" in override:
@@ -145,8 +169,14 @@ def estimate_pose(
     else:
         front = float(np.max((fluid.points_mm - com) @ axis))
         tip_end, info = tip_end_mm(
-            during_contours.skin, axis=axis, com_mm=com, front_mm=front, roi_diameter_mm=options.roi_diameter_mm,
-            reach_mm=options.roi_reach_mm, head_radius_mm=options.head_radius_mm, method=options.tip_method,
+            during_contours.skin,
+            axis=axis,
+            com_mm=com,
+            front_mm=front,
+            roi_diameter_mm=options.roi_diameter_mm,
+            reach_mm=options.roi_reach_mm,
+            head_radius_mm=options.head_radius_mm,
+            method=options.tip_method,
             animal=animal,
         )
         extra.update(info)
@@ -178,26 +208,49 @@ def estimate_pose(
         dof, why = resolve_bone_dof(options.bone_dof, pre, during_contours)
         log.info("%s%s", _where(animal), why)
         fit = fit_bone_motion(
-            pre.bone, during_contours.bone, fibula_pre_mm=pre.fibula, fibula_during_mm=during_contours.fibula,
-            method=options.bone_method, dof=dof, surface_step_mm=options.bone_surface_step_mm,
-            during_slices=during_contours.bone_seen if pre.n_slices == during_contours.n_slices else None,
+            pre.bone,
+            during_contours.bone,
+            fibula_pre_mm=pre.fibula,
+            fibula_during_mm=during_contours.fibula,
+            method=options.bone_method,
+            dof=dof,
+            surface_step_mm=options.bone_surface_step_mm,
+            during_slices=during_contours.bone_seen
+            if pre.n_slices == during_contours.n_slices
+            else None,
             animal=animal,
         )
-        extra["bone_slices_used"] = [int(during_contours.bone_seen.sum()), during_contours.n_slices]
+        extra["bone_slices_used"] = [
+            int(during_contours.bone_seen.sum()),
+            during_contours.n_slices,
+        ]
         extra["bone_dof_reason"] = why
         extra["bone_fibula_slices"] = list(fit.fibula_slices)
         com_pre = fit.motion.centre_mm
         rot = override.get("bone_rotation_deg", fit.motion.rotation_deg)
         trans = override.get("bone_translation_mm", fit.motion.translation_mm)
-        extra.update(bone_method=fit.method, bone_dof=fit.dof, bone_com_shift_mm=fit.com_shift_mm,
-                     bone_rms_initial_mm=fit.rms_initial_mm, bone_rms_com_mm=fit.rms_com_mm,
-                     bone_rms_final_mm=fit.rms_final_mm, bone_fit_evaluations=fit.n_evaluations,
-                     bone_fit_sd=fit.parameter_sd)
+        extra.update(
+            bone_method=fit.method,
+            bone_dof=fit.dof,
+            bone_com_shift_mm=fit.com_shift_mm,
+            bone_rms_initial_mm=fit.rms_initial_mm,
+            bone_rms_com_mm=fit.rms_com_mm,
+            bone_rms_final_mm=fit.rms_final_mm,
+            bone_fit_evaluations=fit.n_evaluations,
+            bone_fit_sd=fit.parameter_sd,
+        )
         qc["bone_com_shift_mm"] = fit.com_shift_mm
 
     pose = Pose(
-        indenter_axis=axis, tip_start_mm=tip_start, tip_end_mm=tip_end, depth_mm=depth, bone_com_mm=com_pre,
-        bone_rotation_deg=rot, bone_translation_mm=trans, indenter_com_mm=com, extra=extra,
+        indenter_axis=axis,
+        tip_start_mm=tip_start,
+        tip_end_mm=tip_end,
+        depth_mm=depth,
+        bone_com_mm=com_pre,
+        bone_rotation_deg=rot,
+        bone_translation_mm=trans,
+        indenter_com_mm=com,
+        extra=extra,
     )
     return pose, qc
 
@@ -254,24 +307,33 @@ def run_pose(
     """
     from dataclasses import replace
 
-    from .checks import evaluate_checks, failed_message, warnings_of, write_checks
-
     from ..contours import load_contours
     from ..imaging import load_nifti
+    from .checks import evaluate_checks, failed_message, warnings_of, write_checks
 
-    vol = load_nifti(during_nifti, animal=animal)  # an unreadable or not-3D file: ImagingError naming both
+    vol = load_nifti(
+        during_nifti, animal=animal
+    )  # an unreadable or not-3D file: ImagingError naming both
     data = vol.data.astype(float)
     pre = load_contours(pre_contours)
     dur = load_contours(during_contours)
     opts = PoseOptions.from_config(options)
-    pose, qc = estimate_pose(data, vol.affine, pre, dur, options=opts, override=override, animal=animal)
+    pose, qc = estimate_pose(
+        data, vol.affine, pre, dur, options=opts, override=override, animal=animal
+    )
     checks = evaluate_checks(pose, pre, dur)
     if checks_csv is not None:
         write_checks(checks_csv, checks)
     for c in checks:
-        log.log(logging.INFO if c.status == "ok" else logging.WARNING, "%s check %s", animal, c.describe()
-                if c.status != "ok" else f"{c.name} {c.value:.4g} ok")
-    message = failed_message(checks, animal=animal, pre_file=pre_nifti or pre_contours, during_file=during_nifti)
+        log.log(
+            logging.INFO if c.status == "ok" else logging.WARNING,
+            "%s check %s",
+            animal,
+            c.describe() if c.status != "ok" else f"{c.name} {c.value:.4g} ok",
+        )
+    message = failed_message(
+        checks, animal=animal, pre_file=pre_nifti or pre_contours, during_file=during_nifti
+    )
     if message:
         raise PoseError(message)
     pose = replace(pose, extra={**pose.extra, "qc_warnings": warnings_of(checks)})

@@ -80,7 +80,9 @@ def inside_skin_mask(shape: tuple, affine: np.ndarray, skin_mm: np.ndarray) -> n
         if not 0 <= k < shape[2]:
             continue
         # voxel centres of slice k in world mm, tested against the contour in world x, y
-        centres = voxel_centres_mm(affine, np.column_stack([ii.ravel(), jj.ravel(), np.full(ii.size, k)]))
+        centres = voxel_centres_mm(
+            affine, np.column_stack([ii.ravel(), jj.ravel(), np.full(ii.size, k)])
+        )
         inside = MplPath(contour[:, :2]).contains_points(centres[:, :2])
         mask[:, :, k] = inside.reshape(ii.shape)
     return mask
@@ -94,7 +96,9 @@ def fluid_threshold(volume: np.ndarray, inside_mask: np.ndarray, *, ratio: float
     return float(ratio * np.median(leg))
 
 
-def inertia_axis(points_mm: np.ndarray, *, voxel_edges_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def inertia_axis(
+    points_mm: np.ndarray, *, voxel_edges_mm: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Centre of mass, principal axis and principal moments of a set of equal voxels.
 
     ``points_mm`` (n, 3) voxel centres [mm]; ``voxel_edges_mm`` (3, 3) the voxel's edge vectors as
@@ -189,21 +193,48 @@ def find_fluid_component(
         pts_used = pts
     axis_inertia = axis
     if refine_axis:
-        background = np.median(vol[~bright & ~exclude_mask]) if exclude_mask is not None else np.median(vol[~bright])
+        background = (
+            np.median(vol[~bright & ~exclude_mask])
+            if exclude_mask is not None
+            else np.median(vol[~bright])
+        )
         fluid_level = float(np.median(vol[labels == cands[0] + 1]))
         level = 0.5 * (fluid_level + float(background))
-        axis, com = refine_axis_cylinder(vol, affine, pts_used, com_mm=com, axis=axis, level=level,
-                                         exclude_mask=exclude_mask, fluid_level=fluid_level)
+        axis, com = refine_axis_cylinder(
+            vol,
+            affine,
+            pts_used,
+            com_mm=com,
+            axis=axis,
+            level=level,
+            exclude_mask=exclude_mask,
+            fluid_level=fluid_level,
+        )
     return FluidComponent(
-        points_mm=pts_used, com_mm=com, axis=axis, moments_mm2=moments, volume_mm3=cand_vols[0],
-        candidate_volumes_mm3=cand_vols, threshold=float(threshold), axis_inertia=axis_inertia,
+        points_mm=pts_used,
+        com_mm=com,
+        axis=axis,
+        moments_mm2=moments,
+        volume_mm3=cand_vols[0],
+        candidate_volumes_mm3=cand_vols,
+        threshold=float(threshold),
+        axis_inertia=axis_inertia,
     )
 
 
 def refine_axis_cylinder(
-    volume: np.ndarray, affine: np.ndarray, points_mm: np.ndarray, *, com_mm: np.ndarray, axis: np.ndarray,
-    level: float, exclude_mask: np.ndarray | None = None, exclude_margin_mm: float = 0.5,
-    end_margin_mm: float = 1.5, max_change_deg: float = 5.0, fluid_level: float | None = None,
+    volume: np.ndarray,
+    affine: np.ndarray,
+    points_mm: np.ndarray,
+    *,
+    com_mm: np.ndarray,
+    axis: np.ndarray,
+    level: float,
+    exclude_mask: np.ndarray | None = None,
+    exclude_margin_mm: float = 0.5,
+    end_margin_mm: float = 1.5,
+    max_change_deg: float = 5.0,
+    fluid_level: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Axis (3,) of the fluid column refined by a cylinder fit to its in-plane edges, and the COM (3,)
     moved onto the fitted axis line.
@@ -249,7 +280,9 @@ def refine_axis_cylinder(
         ijk_k = np.round(in_k @ inv[:3, :3].T + inv[:3, 3]).astype(int)
         peak = float(np.percentile(volume[ijk_k[:, 0], ijk_k[:, 1], k], 95))
         background = 2.0 * level - fluid_level
-        if peak < background + 0.9 * (fluid_level - background):  # the slice only grazes the column
+        if peak < background + 0.9 * (
+            fluid_level - background
+        ):  # the slice only grazes the column
             continue
         tree = cKDTree(in_k)
         near_leg = None
@@ -390,8 +423,11 @@ def tip_end_mm(
         )
     s_deep = float(s[roi].max())
     tip_vertex = c + s_deep * a
-    info = {"tip_roi_vertices": int(roi.sum()), "tip_method": "deepest_vertex",
-            "tip_deepest_vertex_mm": tip_vertex.tolist()}
+    info = {
+        "tip_roi_vertices": int(roi.sum()),
+        "tip_method": "deepest_vertex",
+        "tip_deepest_vertex_mm": tip_vertex.tolist(),
+    }
     if method == "vertex":
         return tip_vertex, info
     t_hit = line_triangle_hits(c, a, skin_triangles(skin_during_mm))
@@ -424,7 +460,9 @@ def tip_end_mm(
     if keep.sum() < 8 or rms_fit > max_fit_rms_mm or np.linalg.norm(tip - seed) > 0.5:
         info["tip_sphere_fit_rejected_rms_mm"] = rms_fit
         return seed, info
-    info.update(tip_method="head_sphere_fit", tip_fit_vertices=int(keep.sum()), tip_fit_rms_mm=rms_fit)
+    info.update(
+        tip_method="head_sphere_fit", tip_fit_vertices=int(keep.sum()), tip_fit_rms_mm=rms_fit
+    )
     return tip, info
 
 
@@ -442,7 +480,9 @@ def skin_triangles(skin_mm: np.ndarray) -> np.ndarray:
     return np.concatenate([t1, t2])
 
 
-def line_triangle_hits(point_mm: np.ndarray, direction: np.ndarray, triangles_mm: np.ndarray) -> np.ndarray:
+def line_triangle_hits(
+    point_mm: np.ndarray, direction: np.ndarray, triangles_mm: np.ndarray
+) -> np.ndarray:
     """Parameters t of the points ``point + t * direction`` where the line crosses the triangles (T, 3, 3).
 
     Möller–Trumbore, vectorised; returns a sorted 1D array (empty if the line misses).
@@ -513,8 +553,16 @@ class IndenterShape:
         return np.linalg.norm(q, axis=-1) - self.radius_mm
 
 
-def indenter_shape(volume: np.ndarray, affine: np.ndarray, fluid: FluidComponent, *, axis: np.ndarray,
-                   radius_mm: float, exclude_mask: np.ndarray | None = None, animal: str = "") -> IndenterShape:
+def indenter_shape(
+    volume: np.ndarray,
+    affine: np.ndarray,
+    fluid: FluidComponent,
+    *,
+    axis: np.ndarray,
+    radius_mm: float,
+    exclude_mask: np.ndarray | None = None,
+    animal: str = "",
+) -> IndenterShape:
     """The indenter's head and fluid radius from the contrast fluid's sub-pixel edge.
 
     The edge is the iso-contour of each axial slice of ``volume`` half-way between the fluid (median of the
@@ -576,8 +624,10 @@ def indenter_shape(volume: np.ndarray, affine: np.ndarray, fluid: FluidComponent
             edge.append(w[d <= 0.3])
     edge = np.concatenate(edge) if edge else np.zeros((0, 3))
     if len(edge) < 20:
-        raise PoseError(f"{_where(animal)}the contrast fluid's edge has {len(edge)} points: too few to fit the "
-                        "indenter's head")
+        raise PoseError(
+            f"{_where(animal)}the contrast fluid's edge has {len(edge)} points: too few to fit the "
+            "indenter's head"
+        )
     rel = edge - c0
     s = rel @ a
     r = np.linalg.norm(rel - np.outer(s, a), axis=1)
@@ -585,15 +635,22 @@ def indenter_shape(volume: np.ndarray, affine: np.ndarray, fluid: FluidComponent
     body = s < front - 1.5
     r_fluid = float(np.median(r[body])) if body.sum() >= 20 else float(np.median(r))
     if r_fluid >= radius_mm:
-        raise PoseError(f"{_where(animal)}the contrast fluid is {2 * r_fluid:.3g} mm across, wider than the "
-                        f"indenter ({2 * radius_mm:g} mm, pose.head_radius_mm); check pose.head_radius_mm")
+        raise PoseError(
+            f"{_where(animal)}the contrast fluid is {2 * r_fluid:.3g} mm across, wider than the "
+            f"indenter ({2 * radius_mm:g} mm, pose.head_radius_mm); check pose.head_radius_mm"
+        )
     s_head = front - r_fluid
     for _ in range(3):  # the front hemisphere: edge points ahead of the head centre
         cap = edge[s >= s_head]
         if len(cap) < 10:
             break
-        fit = least_squares(lambda x: np.linalg.norm(cap - (c0 + x[0] * a), axis=1) - r_fluid, [s_head],
-                            loss="soft_l1", f_scale=0.05)
+        fit = least_squares(
+            lambda x, cap=cap: np.linalg.norm(cap - (c0 + x[0] * a), axis=1) - r_fluid,
+            [s_head],
+            loss="soft_l1",
+            f_scale=0.05,
+        )
         s_head = float(fit.x[0])
-    return IndenterShape(axis=a, head_centre_mm=c0 + s_head * a, radius_mm=float(radius_mm),
-                         fluid_radius_mm=r_fluid)
+    return IndenterShape(
+        axis=a, head_centre_mm=c0 + s_head * a, radius_mm=float(radius_mm), fluid_radius_mm=r_fluid
+    )

@@ -18,7 +18,9 @@ if TYPE_CHECKING:
 __all__ = ["plot_axis_qc", "plot_bone_qc", "plot_tip_qc"]
 
 
-def plot_axis_qc(path, during: np.ndarray, affine: np.ndarray, pose: Pose, qc: dict, *, title: str = "") -> None:
+def plot_axis_qc(
+    path, during: np.ndarray, affine: np.ndarray, pose: Pose, qc: dict, *, title: str = ""
+) -> None:
     """Axial and sagittal cross-sections through the indenter COM with the fluid voxels and the axis."""
     import matplotlib
 
@@ -40,10 +42,19 @@ def plot_axis_qc(path, during: np.ndarray, affine: np.ndarray, pose: Pose, qc: d
     fig, axs = plt.subplots(1, 2, figsize=(11, 5))
     line = centre[None] + np.linspace(-8, 8, 2)[:, None] * pose.indenter_axis
     pts = qc.get("fluid_points_mm")
-    axs[0].imshow(np.asarray(during)[:, :, k].T, origin="lower", cmap="gray",
-                  extent=[xs[0] - sx / 2, xs[1] + sx / 2, ys[0] - sy / 2, ys[1] + sy / 2])
-    axs[1].imshow(np.asarray(during)[i, :, :].T, origin="lower", cmap="gray", aspect="auto",
-                  extent=[ys[0] - sy / 2, ys[1] + sy / 2, zs[0] - sz / 2, zs[1] + sz / 2])
+    axs[0].imshow(
+        np.asarray(during)[:, :, k].T,
+        origin="lower",
+        cmap="gray",
+        extent=[xs[0] - sx / 2, xs[1] + sx / 2, ys[0] - sy / 2, ys[1] + sy / 2],
+    )
+    axs[1].imshow(
+        np.asarray(during)[i, :, :].T,
+        origin="lower",
+        cmap="gray",
+        aspect="auto",
+        extent=[ys[0] - sy / 2, ys[1] + sy / 2, zs[0] - sz / 2, zs[1] + sz / 2],
+    )
     if pts is not None:
         sel = np.abs(pts[:, 2] - affine[2, 3] - k * affine[2, 2]) < sz / 2
         axs[0].plot(pts[sel, 0], pts[sel, 1], ",", color="tab:cyan", alpha=0.5)
@@ -53,10 +64,20 @@ def plot_axis_qc(path, during: np.ndarray, affine: np.ndarray, pose: Pose, qc: d
         ax.plot(line[:, a], line[:, b], "r-", lw=1, label="axis")
         ax.plot(*pose.tip_end_mm[[a, b]], "y+", ms=12, mew=2, label="tip end")
         ax.plot(*pose.tip_start_mm[[a, b]], "gx", ms=10, mew=2, label="tip start")
-    axs[0].set(title=f"axial z = {zs[0] + k * sz:.1f} mm", xlabel="x [mm]", ylabel="y [mm]",
-               xlim=(xs[0] - sx / 2, xs[1] + sx / 2), ylim=(ys[0] - sy / 2, ys[1] + sy / 2))
-    axs[1].set(title=f"sagittal x = {xs[0] + i * sx:.2f} mm", xlabel="y [mm]", ylabel="z [mm]",
-               xlim=(ys[0] - sy / 2, ys[1] + sy / 2), ylim=(zs[0] - sz / 2, zs[1] + sz / 2))
+    axs[0].set(
+        title=f"axial z = {zs[0] + k * sz:.1f} mm",
+        xlabel="x [mm]",
+        ylabel="y [mm]",
+        xlim=(xs[0] - sx / 2, xs[1] + sx / 2),
+        ylim=(ys[0] - sy / 2, ys[1] + sy / 2),
+    )
+    axs[1].set(
+        title=f"sagittal x = {xs[0] + i * sx:.2f} mm",
+        xlabel="y [mm]",
+        ylabel="z [mm]",
+        xlim=(ys[0] - sy / 2, ys[1] + sy / 2),
+        ylim=(zs[0] - sz / 2, zs[1] + sz / 2),
+    )
     axs[0].legend(loc="lower left", fontsize=8)
     fig.suptitle(title + " — contrast fluid (cyan) and indenter axis")
     with atomic_path(path) as tmp:
@@ -64,8 +85,15 @@ def plot_axis_qc(path, during: np.ndarray, affine: np.ndarray, pose: Pose, qc: d
     plt.close(fig)
 
 
-def plot_tip_qc(path, pre: Contours, during_contours: Contours, pose: Pose, *, roi_diameter_mm: float = 5.0,
-                title: str = "") -> None:
+def plot_tip_qc(
+    path,
+    pre: Contours,
+    during_contours: Contours,
+    pose: Pose,
+    *,
+    roi_diameter_mm: float = 5.0,
+    title: str = "",
+) -> None:
     """The skin ROI around the axis with the start and end points: depth along vs distance from the axis."""
     import matplotlib
 
@@ -77,7 +105,10 @@ def plot_tip_qc(path, pre: Contours, during_contours: Contours, pose: Pose, *, r
     a = pose.indenter_axis
     ref = pose.tip_start_mm
     fig, axs = plt.subplots(1, 2, figsize=(11, 5))
-    for c, lab, col in [(pre.skin, "pre skin", "tab:blue"), (during_contours.skin, "during skin", "tab:orange")]:
+    for c, lab, col in [
+        (pre.skin, "pre skin", "tab:blue"),
+        (during_contours.skin, "during skin", "tab:orange"),
+    ]:
         v = c.reshape(-1, 3)
         d = v - ref
         s = d @ a
@@ -88,17 +119,30 @@ def plot_tip_qc(path, pre: Contours, during_contours: Contours, pose: Pose, *, r
     axs[0].axhline(float((pose.tip_end_mm - ref) @ a), color="r", lw=1, label="tip end")
     s_end = float((pose.tip_end_mm - ref) @ a)
     axs[0].set_ylim(s_end + 2.0, -1.0)  # the far side of the leg is outside the ROI's reach
-    axs[0].set(xlabel="distance from axis [mm]", ylabel="depth along axis from tip start [mm]",
-               title=f"ROI (⌀ {roi_diameter_mm:g} mm), depth = {pose.depth_mm:.3f} mm")
+    axs[0].set(
+        xlabel="distance from axis [mm]",
+        ylabel="depth along axis from tip start [mm]",
+        title=f"ROI (⌀ {roi_diameter_mm:g} mm), depth = {pose.depth_mm:.3f} mm",
+    )
     axs[0].legend(fontsize=8)
     k = int(np.argmin(np.abs(during_contours.z_mm - pose.tip_end_mm[2])))
-    for c, lab, col in [(pre.skin, "pre", "tab:blue"), (during_contours.skin, "during", "tab:orange")]:
-        axs[1].plot(*np.vstack([c[k], c[k][:1]])[:, :2].T, "-", color=col, lw=1, label=f"{lab} skin")
+    for c, lab, col in [
+        (pre.skin, "pre", "tab:blue"),
+        (during_contours.skin, "during", "tab:orange"),
+    ]:
+        axs[1].plot(
+            *np.vstack([c[k], c[k][:1]])[:, :2].T, "-", color=col, lw=1, label=f"{lab} skin"
+        )
     line = pose.tip_end_mm[None] + np.linspace(-6, 2, 2)[:, None] * a
     axs[1].plot(line[:, 0], line[:, 1], "r-", lw=0.8)
     axs[1].plot(*pose.tip_start_mm[:2], "gx", ms=10, mew=2, label="tip start")
     axs[1].plot(*pose.tip_end_mm[:2], "r+", ms=12, mew=2, label="tip end")
-    axs[1].set(aspect="equal", xlabel="x [mm]", ylabel="y [mm]", title=f"slice z = {during_contours.z_mm[k]:.1f} mm")
+    axs[1].set(
+        aspect="equal",
+        xlabel="x [mm]",
+        ylabel="y [mm]",
+        title=f"slice z = {during_contours.z_mm[k]:.1f} mm",
+    )
     axs[1].legend(fontsize=8)
     fig.suptitle(title + " — skin region of interest, start and end of travel")
     with atomic_path(path) as tmp:
@@ -106,7 +150,9 @@ def plot_tip_qc(path, pre: Contours, during_contours: Contours, pose: Pose, *, r
     plt.close(fig)
 
 
-def plot_bone_qc(path, pre: Contours, during_contours: Contours, pose: Pose, *, title: str = "") -> None:
+def plot_bone_qc(
+    path, pre: Contours, during_contours: Contours, pose: Pose, *, title: str = ""
+) -> None:
     """Bone contours (tibia, and the fibula when both states have it) before, after centroid alignment,
     and after the full rigid fit (x-y and y-z views)."""
     import matplotlib
@@ -132,8 +178,22 @@ def plot_bone_qc(path, pre: Contours, during_contours: Contours, pose: Pose, *, 
     for j, (b, name) in enumerate(zip(back, names)):
         for row, (p, q) in enumerate([(0, 1), (1, 2)]):
             ax = axs[row, j]
-            ax.plot(pre_pts[..., p].ravel(), pre_pts[..., q].ravel(), ".", ms=1, color="tab:blue", label="pre")
-            ax.plot(b[..., p].ravel(), b[..., q].ravel(), ".", ms=1, color="tab:red", label="during, mapped back")
+            ax.plot(
+                pre_pts[..., p].ravel(),
+                pre_pts[..., q].ravel(),
+                ".",
+                ms=1,
+                color="tab:blue",
+                label="pre",
+            )
+            ax.plot(
+                b[..., p].ravel(),
+                b[..., q].ravel(),
+                ".",
+                ms=1,
+                color="tab:red",
+                label="during, mapped back",
+            )
             ax.set(xlabel="xyz"[p] + " [mm]", ylabel="xyz"[q] + " [mm]")
             if row == 0:
                 ax.set(aspect="equal", title=name)

@@ -19,7 +19,14 @@ from ..rigid import BoneMotion
 
 __all__ = ["Pose", "PoseError", "load_pose", "save_pose"]
 
-_VECTORS = ("indenter_axis", "tip_start_mm", "tip_end_mm", "bone_com_mm", "bone_rotation_deg", "bone_translation_mm")
+_VECTORS = (
+    "indenter_axis",
+    "tip_start_mm",
+    "tip_end_mm",
+    "bone_com_mm",
+    "bone_rotation_deg",
+    "bone_translation_mm",
+)
 
 
 @dataclass(frozen=True)
@@ -58,13 +65,17 @@ class Pose:
         for name in _VECTORS:
             v = np.asarray(getattr(self, name), dtype=float)
             if v.shape != (3,) or not np.all(np.isfinite(v)):
-                raise ValueError(f"pose.{name}: expected 3 finite numbers, got {getattr(self, name)!r}")
+                raise ValueError(
+                    f"pose.{name}: expected 3 finite numbers, got {getattr(self, name)!r}"
+                )
             object.__setattr__(self, name, v)
         n = np.linalg.norm(self.indenter_axis)
         if not np.isclose(n, 1.0, atol=1e-6):
             raise ValueError(f"pose.indenter_axis: not a unit vector (norm {n:.6g})")
         if self.indenter_com_mm is not None:
-            object.__setattr__(self, "indenter_com_mm", np.asarray(self.indenter_com_mm, dtype=float))
+            object.__setattr__(
+                self, "indenter_com_mm", np.asarray(self.indenter_com_mm, dtype=float)
+            )
         object.__setattr__(self, "depth_mm", float(self.depth_mm))
 
     @property
@@ -75,8 +86,11 @@ class Pose:
     @property
     def bone_motion(self) -> BoneMotion:
         """The tibia's rigid motion (rotation about ``bone_com_mm``, then translation)."""
-        return BoneMotion(rotation_deg=tuple(self.bone_rotation_deg), centre_mm=tuple(self.bone_com_mm),
-                          translation_mm=tuple(self.bone_translation_mm))
+        return BoneMotion(
+            rotation_deg=tuple(self.bone_rotation_deg),
+            centre_mm=tuple(self.bone_com_mm),
+            translation_mm=tuple(self.bone_translation_mm),
+        )
 
     def to_dict(self) -> dict:
         """The keys of ``pose.json``: the quantities as lists, then ``extra``'s keys."""
@@ -88,13 +102,16 @@ class Pose:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Pose":
+    def from_dict(cls, d: dict) -> Pose:
         """The Pose of :meth:`to_dict`'s keys; keys it does not know go to ``extra``."""
         known = set(_VECTORS) | {"depth_mm", "indenter_com_mm"}
         missing = [k for k in (*_VECTORS, "depth_mm") if k not in d]
         if missing:
             raise ValueError(f"pose lacks key(s) {missing}")
-        return cls(**{k: d[k] for k in known if k in d}, extra={k: v for k, v in d.items() if k not in known})
+        return cls(
+            **{k: d[k] for k in known if k in d},
+            extra={k: v for k, v in d.items() if k not in known},
+        )
 
 
 def save_pose(path: str | Path, pose: Pose) -> None:
