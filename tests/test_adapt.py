@@ -10,7 +10,6 @@ import pytest
 from deeptissue.adapt import (
     AdaptSettings,
     PassEstimate,
-    SizeField,
     adapt,
     element_sizes,
     estimated_tets,
@@ -18,8 +17,8 @@ from deeptissue.adapt import (
     node_sizes,
     target_sizes,
 )
-from deeptissue.fem.cylinder import CylinderMesh, cylinder_mesh
-from deeptissue.mesh import TetMesh
+from deeptissue.mesh import SizeField, TetMesh
+from deeptissue.verification.cylinder import CylinderMesh, cylinder_mesh
 
 COARSE = CylinderMesh(element_size_mm=2.0, refine_size_mm=2.0)
 
@@ -111,7 +110,7 @@ def test_fit_budget_scales_the_refined_sizes_together():
 
 @pytest.mark.parametrize("method", ["view", "callback"])
 def test_the_remesher_makes_small_elements_where_asked(coarse_cylinder, method, monkeypatch):
-    import deeptissue.adapt as adapt_module
+    import deeptissue.verification.cylinder as cylinder_module
 
     m0 = coarse_cylinder
     c = _centroids(m0)
@@ -124,9 +123,9 @@ def test_the_remesher_makes_small_elements_where_asked(coarse_cylinder, method, 
     assert len(field.nodes_mm) == len(np.unique(m0.tets)) and field.tets.max() < len(
         field.nodes_mm
     )
-    real = adapt_module.set_background_size
+    real = cylinder_module.set_background_size
     monkeypatch.setattr(
-        adapt_module, "set_background_size", lambda g, s: real(g, s, method=method)
+        cylinder_module, "set_background_size", lambda g, s: real(g, s, method=method)
     )
     m = cylinder_mesh(COARSE, size_field=field, order=1)
     h, cc = element_sizes(m), _centroids(m)
@@ -417,7 +416,7 @@ def test_a_contact_zone_the_budget_cannot_refine_is_left_alone_and_said_so(coars
 
 
 def test_contact_tets_are_the_elements_under_the_sphere(coarse_cylinder):
-    from deeptissue.fem.cylinder import _indenter, contact_tets
+    from deeptissue.verification.cylinder import _indenter, contact_tets
 
     m = coarse_cylinder
     ind = _indenter(
@@ -431,7 +430,7 @@ def test_contact_tets_are_the_elements_under_the_sphere(coarse_cylinder):
 
 
 def test_adaptive_comparison_errors_against_the_reference(tmp_path):
-    from deeptissue.fem.cylinder import adaptive_comparison, plot_adaptive
+    from deeptissue.verification.cylinder import adaptive_comparison, plot_adaptive
 
     voi = pd.DataFrame(
         dict(
@@ -498,8 +497,8 @@ def test_adaptive_comparison_errors_against_the_reference(tmp_path):
 
 @pytest.fixture(scope="module")
 def adaptive_2mm():
-    from deeptissue.fem.cylinder import adaptive_cylinder
     from deeptissue.fem.material import Ogden
+    from deeptissue.verification.cylinder import adaptive_cylinder
 
     return adaptive_cylinder(Ogden(), 2.0)
 

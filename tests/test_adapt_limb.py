@@ -8,11 +8,11 @@ import pytest
 from model_synth import leg_contours, leg_pose
 from study_meshes import boundary_tri6, box_tet10
 
-from deeptissue.adapt import AdaptSettings, SizeField, element_sizes, node_sizes
+from deeptissue.adapt import AdaptSettings, element_sizes, node_sizes
 from deeptissue.adapt_limb import contact_tets, limb_mesher, run_adaptive_variant
 from deeptissue.contours import save_contours
 from deeptissue.fem.indenters import Indenter
-from deeptissue.mesh import TetMesh
+from deeptissue.mesh import SizeField, TetMesh
 from deeptissue.model import build_cast, build_model, save_cast
 from deeptissue.pose import save_pose
 from deeptissue.summary import read_result_vtu, read_summary

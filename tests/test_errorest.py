@@ -53,7 +53,7 @@ def test_recovery_is_the_volume_weighted_nodal_average():
 
 
 def _block(h_mm):
-    from deeptissue.fem.shapes import block_mesh
+    from deeptissue.verification.shapes import block_mesh
 
     return block_mesh(
         (2.0, 2.0, 4.0),
@@ -78,7 +78,7 @@ def _shear_field(mesh):
 
 def _true_errors(mesh, u, g_h, v):
     """VOI [mm³] and largest bin [pp] error of γh against the exact γ at the same sample points."""
-    from deeptissue.strain import tet10_shape_functions, tet_subdivision
+    from deeptissue.elements import tet10_shape_functions, tet_subdivision
 
     z = tet10_shape_functions(tet_subdivision(2)[0]) @ mesh.nodes_mm[mesh.tets][..., 2].T  # (q, m)
     exact = voi_statistics(_simple_shear_gamma(P * K * z.T ** (P - 1)).ravel(), v.ravel())
@@ -132,8 +132,8 @@ def test_sampling_difference_of_two_statistics():
 
 
 def test_cylinder_mesh_sets_volume_and_refinement():
-    from deeptissue.fem.cylinder import CylinderMesh, cylinder_mesh
     from deeptissue.strain import element_volumes_mm3
+    from deeptissue.verification.cylinder import CylinderMesh, cylinder_mesh
 
     m = cylinder_mesh(
         CylinderMesh(
@@ -202,8 +202,8 @@ def test_a_strain_jump_across_the_threshold_is_estimated_in_the_summary_and_voi_
 
 
 def test_cylinder_scene_on_a_coarse_mesh_gives_the_curve_and_the_estimated_voi():
-    from deeptissue.fem.cylinder import CylinderMesh, cylinder_scene
     from deeptissue.fem.material import Ogden
+    from deeptissue.verification.cylinder import CylinderMesh, cylinder_scene
 
     coarse = CylinderMesh(
         element_size_mm=4.0,
@@ -236,7 +236,7 @@ def test_cylinder_scene_on_a_coarse_mesh_gives_the_curve_and_the_estimated_voi()
 def test_effectivity_table_divides_each_estimate_by_the_true_error_against_the_finest():
     import pandas as pd
 
-    from deeptissue.fem.cylinder import effectivity_table
+    from deeptissue.verification.cylinder import effectivity_table
 
     base = {
         "bins_percent.0.3-0.4": 70.0,

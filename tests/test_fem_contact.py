@@ -6,7 +6,6 @@ import pytest
 from deeptissue.fem.contact import WeightedContact
 from deeptissue.fem.indenters import Indenter
 from deeptissue.fem.material import Ogden
-from deeptissue.fem.shapes import block_mesh, cored_cylinder_mesh
 from deeptissue.fem.solver import (
     BoneMotion,
     FacetSets,
@@ -15,6 +14,7 @@ from deeptissue.fem.solver import (
     solve_indentation,
 )
 from deeptissue.mesh import TetMesh
+from deeptissue.verification.shapes import block_mesh, cored_cylinder_mesh
 
 LAW = Ogden()
 R_MM = 1.5
@@ -139,7 +139,7 @@ def test_missing_facet_set_raises():
 
 @pytest.mark.slow
 def test_sphere_force_within_3_percent_of_hertz_at_small_depth():
-    from deeptissue.fem.verification import _block_with_top_patch
+    from deeptissue.verification.scenes import _block_with_top_patch
 
     d = 0.06  # 0.04 R, the block and mesh of verification.hertz_curve
     m = _block_with_top_patch((40.0, 40.0, 20.0), 6.0, 0.1, 0.4, (20.0, 20.0, 20.0), 0.5)

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from deeptissue.fem.material import Ogden
-from deeptissue.fem.shapes import block_mesh
-from deeptissue.fem.verification import hertz_curve
+from deeptissue.verification.scenes import hertz_curve
+from deeptissue.verification.shapes import block_mesh
 
 LAW = Ogden()
 

@@ -13,7 +13,7 @@ import scipy.sparse as sp
 from deeptissue.fem.assembly import Assembler, as_material_law
 from deeptissue.fem.linsolve import NotPositiveDefinite, PardisoSymmetric
 from deeptissue.fem.material import Ogden
-from deeptissue.fem.shapes import block_mesh
+from deeptissue.verification.shapes import block_mesh
 
 
 def _full(U):
@@ -238,7 +238,7 @@ def test_two_reproducible_contact_solves_take_identical_newton_iterations():
         from deeptissue.fem.linsolve import pin_reproducible
         pin_reproducible()
         from deeptissue.fem.material import Ogden
-        from deeptissue.fem.verification import _indent_limb, reference_limb
+        from deeptissue.verification.scenes import _indent_limb, reference_limb
         r = _indent_limb(reference_limb(h_mm=2.5), Ogden(), kind="sphere", depth_mm=1.5)
         assert r.converged, r.reason
         print(r.increments, r.newton_iterations, hashlib.sha256(r.displacement_mm.tobytes()).hexdigest())

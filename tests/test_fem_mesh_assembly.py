@@ -10,9 +10,9 @@ from skfem.models.elasticity import linear_elasticity
 
 from deeptissue.fem.assembly import Assembler, MaterialLaw, as_material_law
 from deeptissue.fem.material import Ogden
-from deeptissue.fem.shapes import block_mesh, cored_cylinder_mesh
 from deeptissue.fem.skmesh import GMSH_TO_SKFEM_TET10, to_skfem
 from deeptissue.mesh import TetMesh
+from deeptissue.verification.shapes import block_mesh, cored_cylinder_mesh
 
 LAW = as_material_law(Ogden())
 # any law with the API of deeptissue.fem.material works: a compressible neo-Hookean (test-only)

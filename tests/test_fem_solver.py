@@ -9,7 +9,6 @@ from deeptissue.fem.assembly import as_material_law
 from deeptissue.fem.cast import Cast
 from deeptissue.fem.indenters import Indenter
 from deeptissue.fem.material import Ogden
-from deeptissue.fem.shapes import block_mesh, cored_cylinder_mesh, distort_interior
 from deeptissue.fem.solver import (
     IncrementSettings,
     NewtonSettings,
@@ -19,6 +18,7 @@ from deeptissue.fem.solver import (
 )
 from deeptissue.mesh import TetMesh
 from deeptissue.rigid import BoneMotion, apply_rigid
+from deeptissue.verification.shapes import block_mesh, cored_cylinder_mesh, distort_interior
 
 LAW = as_material_law(Ogden())  # mu = 3.65 kPa, alpha = 5, D = 57 mm^2/N
 

@@ -8,10 +8,10 @@ import pytest
 from deeptissue.fem.assembly import as_material_law
 from deeptissue.fem.indenters import Indenter
 from deeptissue.fem.material import Ogden
-from deeptissue.fem.shapes import block_mesh, cored_cylinder_mesh
 from deeptissue.fem.solver import SolverSettings, solve_from, solve_indentation
 from deeptissue.fem.transfer import interpolate_nodal, mapped_end_state
 from deeptissue.rigid import BoneMotion, apply_rigid
+from deeptissue.verification.shapes import block_mesh, cored_cylinder_mesh
 
 LAW = as_material_law(Ogden())
 
@@ -124,8 +124,8 @@ def test_a_carried_state_that_still_folds_tets_is_not_used():
 
 
 def test_a_state_that_folds_a_tet_at_its_corners_is_untangled_by_a_small_local_move():
+    from deeptissue.elements import GMSH_TET10_EDGES
     from deeptissue.fem.transfer import _inverted
-    from deeptissue.mesh import GMSH_TET10_EDGES
 
     mesh = cored_cylinder_mesh(length_mm=4.0, radius_mm=3.0, core_radius_mm=0.8, h_mm=1.0)
     X, corners = mesh.nodes_mm, mesh.tets[:, :4]

@@ -8,7 +8,6 @@ import pytest
 import yaml
 
 from deeptissue.config import validate_config
-from deeptissue.fem import analytic
 from deeptissue.fem.material import (
     Ogden,
     ogden_energy,
@@ -16,7 +15,8 @@ from deeptissue.fem.material import (
     ogden_stress_tangent,
     sym_eig3,
 )
-from deeptissue.fem.material_checks import (
+from deeptissue.verification import analytic
+from deeptissue.verification.material import (
     FD_STEP_SECOND,
     FD_STEP_STRESS,
     TOL_FD,

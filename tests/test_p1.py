@@ -17,7 +17,6 @@ from deeptissue.fem.assembly import Assembler, as_material_law
 from deeptissue.fem.contact import ContactSurface
 from deeptissue.fem.indenters import Indenter
 from deeptissue.fem.material import Ogden
-from deeptissue.fem.shapes import block_mesh, cored_cylinder_mesh, distort_interior
 from deeptissue.fem.skmesh import to_skfem
 from deeptissue.fem.solver import solve_indentation, solve_prescribed
 from deeptissue.mesh import TetMesh, load_tetmesh, save_tetmesh
@@ -29,6 +28,7 @@ from deeptissue.summary import (
     summarize_solution,
     write_result_vtu,
 )
+from deeptissue.verification.shapes import block_mesh, cored_cylinder_mesh, distort_interior
 
 LAW = as_material_law(Ogden())
 

@@ -7,6 +7,12 @@ import numpy as np
 import pytest
 from study_meshes import box_tet10, centroids
 
+from deeptissue.elements import (
+    tet10_shape_functions,
+    tet10_shape_gradients,
+    tet_quadrature,
+    tet_subdivision,
+)
 from deeptissue.mesh import TetMesh
 from deeptissue.rigid import rotation_matrix
 from deeptissue.strain import (
@@ -20,10 +26,6 @@ from deeptissue.strain import (
     max_shear,
     principal_log_stretches,
     principal_values,
-    tet10_shape_functions,
-    tet10_shape_gradients,
-    tet_quadrature,
-    tet_subdivision,
     voi_statistics,
 )
 

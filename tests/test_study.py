@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from deeptissue.fem.shapes import cored_cylinder_mesh
 from deeptissue.mesh import save_tetmesh
 from deeptissue.pose import Pose, save_pose
 from deeptissue.study import run_bone_state, run_solve, variant_indenter
 from deeptissue.summary import read_result_vtu, read_summary
+from deeptissue.verification.shapes import cored_cylinder_mesh
 
 R, L = 5.0, 10.0  # cylinder radius and length [mm]
 

@@ -4,7 +4,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from deeptissue.fem.verification import (
+from deeptissue.verification.scenes import (
     HERTZ_REL_LIMIT,
     SUMMARY_COLUMNS,
     failed_checks,
@@ -340,7 +340,7 @@ def test_the_cylinder_rows_are_read_from_their_csv_files(tmp_path):
 
 def _adaptive(curve, voi, *, force_error=0.002, voi_error=-0.01, goal_met=True):
     """rule verify_cylinder_adaptive's table for _cylinder's meshes: two passes at 1.5 mm, one at 0.5 and 3 mm."""
-    from deeptissue.fem.cylinder import adaptive_comparison
+    from deeptissue.verification.cylinder import adaptive_comparison
 
     ref = "1.2 / 0.4 mm"
     rows = []

@@ -5,8 +5,8 @@ One pass solves on a mesh, estimates the discretisation error of the VOI, its bi
 budget of passes or wall time is spent; otherwise it turns the per-element indicator into a target
 element size (:func:`target_sizes`), carries the sizes to the nodes with a bounded gradation
 (:func:`node_sizes`), caps the element count (:func:`fit_budget`) and hands the sizes to the mesher
-as a gmsh background size field (:func:`set_background_size`). :func:`adapt` takes the mesher, the solver and the estimator as
-callables, so the same loop serves the cylinder scene (:mod:`deeptissue.fem.cylinder`) and a limb.
+as a gmsh background size field (:func:`deeptissue.mesh.set_background_size`). :func:`adapt` takes the mesher, the solver and the estimator as
+callables, so the same loop serves the cylinder scene (:mod:`deeptissue.verification.cylinder`) and a limb.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from .mesh import TetMesh
+from .mesh import SizeField, TetMesh
 
 __all__ = [
     "AdaptPass",
@@ -27,13 +27,11 @@ __all__ = [
     "GMSH_EDGE_RATIO",
     "GMSH_TET_VOLUME",
     "PassEstimate",
-    "SizeField",
     "adapt",
     "element_sizes",
     "estimated_tets",
     "fit_budget",
     "node_sizes",
-    "set_background_size",
     "target_sizes",
 ]
 
@@ -208,65 +206,6 @@ def node_sizes(
             break
     out[~np.isfinite(out)] = np.nan
     return out
-
-
-@dataclass(frozen=True)
-class SizeField:
-    """A background size for gmsh: corner nodes (n, 3) [mm], linear tetrahedra (m, 4) and node sizes (n,) [mm]."""
-
-    nodes_mm: np.ndarray
-    tets: np.ndarray
-    size_mm: np.ndarray
-
-    @classmethod
-    def from_mesh(cls, mesh: TetMesh, node_size_mm) -> SizeField:
-        """The field of ``mesh``'s corner nodes and sizes (the mid-edge nodes are dropped)."""
-        corners = np.unique(mesh.tets[:, :4])
-        index = np.full(len(mesh.nodes_mm), -1)
-        index[corners] = np.arange(len(corners))
-        return cls(
-            mesh.nodes_mm[corners],
-            index[mesh.tets[:, :4]],
-            np.asarray(node_size_mm, float)[corners],
-        )
-
-    @property
-    def h_min_mm(self) -> float:
-        """The smallest size of the field [mm]."""
-        return float(np.min(self.size_mm))
-
-
-def set_background_size(gmsh, sizes: SizeField, *, method: str = "view") -> None:
-    """Make ``sizes`` the background size field of the current gmsh model (call before generating).
-
-    ``method='view'`` (default): a post-processing view of the linear tetrahedra and their node sizes
-    (list data ``SS``) used through a ``PostView`` field: gmsh interpolates the sizes linearly and
-    finds the tetrahedron holding a point with its own octree; a point of a curved face just outside
-    the old mesh's flat facets still gets the size there. ``method='callback'``: the nearest node's
-    size, looked up by a k-d tree from ``gmsh.model.mesh.setSizeCallback`` (piecewise constant).
-    On the cylinder the view meshes in 0.15 s where the callback takes 0.21 s, and makes the same
-    sizes in the refined regions with a quarter fewer elements (its sizes blend linearly instead of
-    jumping at the midpoint between nodes). Either way the mesher's ``Mesh.MeshSizeMin`` and
-    ``Mesh.MeshSizeMax`` still clip the size.
-    """
-    h = np.asarray(sizes.size_mm, float)
-    if method == "callback":
-        from scipy.spatial import cKDTree
-
-        tree = cKDTree(sizes.nodes_mm)
-        gmsh.model.mesh.setSizeCallback(
-            lambda dim, tag, x, y, z, lc: float(min(lc, h[tree.query((x, y, z))[1]]))
-        )
-        return
-    if method != "view":
-        raise ValueError(f"method {method!r}: expected 'view' or 'callback'")
-    X = sizes.nodes_mm[sizes.tets]  # (m, 4, 3)
-    data = np.concatenate([X[:, :, 0], X[:, :, 1], X[:, :, 2], h[sizes.tets]], axis=1)
-    view = gmsh.view.add("adapt_size")
-    gmsh.view.addListData(view, "SS", len(sizes.tets), data.ravel().tolist())
-    fv = gmsh.model.mesh.field.add("PostView")
-    gmsh.model.mesh.field.setNumber(fv, "ViewTag", view)
-    gmsh.model.mesh.field.setAsBackgroundMesh(fv)
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .adapt import AdaptResult, AdaptSettings, PassEstimate, SizeField, adapt
+from .adapt import AdaptResult, AdaptSettings, PassEstimate, adapt
 from .contours import Contours
 from .errorest import voi_error_estimate
 from .fem.cast import Cast as SolverCast
@@ -28,7 +28,7 @@ from .fem.indenters import Indenter
 from .fem.material import Ogden
 from .fem.solver import SolverSettings, solve_bone_rotation
 from .fem.transfer import mapped_end_state
-from .mesh import TetMesh
+from .mesh import SizeField, TetMesh
 from .model import Cast, ModelSettings, build_model
 from .pose import Pose
 from .strain import ElementStrain

@@ -19,7 +19,7 @@ element's shape functions) and compares γ* with γh at the same sample points a
 
 The nodal average of each element's own nodal γ (``recovery='average'``) and the difference of two
 samplings of γh (:func:`sampling_difference`) are kept for comparison: on the cylinder scene
-(:func:`deeptissue.fem.cylinder.effectivity_table`) they miss errors the patch recovery bounds.
+(:func:`deeptissue.verification.cylinder.effectivity_table`) they miss errors the patch recovery bounds.
 """
 
 from __future__ import annotations
@@ -29,14 +29,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .mesh import GMSH_TET10_EDGES, TetMesh
+from .elements import GMSH_TET10_EDGES, tet10_shape_functions, tet_shape_gradients, tet_subdivision
+from .mesh import TetMesh
 from .strain import (
     DEFAULT_BIN_EDGES,
     bin_labels,
     gamma_at_points,
-    tet10_shape_functions,
-    tet_shape_gradients,
-    tet_subdivision,
     voi_statistics,
 )
 

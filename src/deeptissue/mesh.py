@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .elements import GMSH_TET10_EDGES, tet10_shape_gradients
 from .io import save_npz
 
 GMSH_TET10 = 11  # gmsh element type of the 10-node tetrahedron
@@ -25,8 +26,6 @@ GMSH_TRI3 = 2  # gmsh element type of the 3-node triangle
 # nodes per tetrahedron / facet of each element order
 TET_NODES = {1: 4, 2: 10}
 FACET_NODES = {1: 3, 2: 6}
-# local corner pairs of a Tetrahedron10's mid-edge nodes: node 4 + k lies on edge k (gmsh's node order)
-GMSH_TET10_EDGES = ((0, 1), (1, 2), (0, 2), (0, 3), (2, 3), (1, 3))
 
 
 @dataclass(frozen=True)
@@ -232,6 +231,65 @@ def load_tetmesh(path: str | Path) -> TetMesh:
 
 GMSH_LINE3 = 8
 _ALGORITHMS_3D = {"delaunay": 1, "hxt": 10}
+
+
+@dataclass(frozen=True)
+class SizeField:
+    """A background size for gmsh: corner nodes (n, 3) [mm], linear tetrahedra (m, 4) and node sizes (n,) [mm]."""
+
+    nodes_mm: np.ndarray
+    tets: np.ndarray
+    size_mm: np.ndarray
+
+    @classmethod
+    def from_mesh(cls, mesh: TetMesh, node_size_mm) -> SizeField:
+        """The field of ``mesh``'s corner nodes and sizes (the mid-edge nodes are dropped)."""
+        corners = np.unique(mesh.tets[:, :4])
+        index = np.full(len(mesh.nodes_mm), -1)
+        index[corners] = np.arange(len(corners))
+        return cls(
+            mesh.nodes_mm[corners],
+            index[mesh.tets[:, :4]],
+            np.asarray(node_size_mm, float)[corners],
+        )
+
+    @property
+    def h_min_mm(self) -> float:
+        """The smallest size of the field [mm]."""
+        return float(np.min(self.size_mm))
+
+
+def set_background_size(gmsh, sizes: SizeField, *, method: str = "view") -> None:
+    """Make ``sizes`` the background size field of the current gmsh model (call before generating).
+
+    ``method='view'`` (default): a post-processing view of the linear tetrahedra and their node sizes
+    (list data ``SS``) used through a ``PostView`` field: gmsh interpolates the sizes linearly and
+    finds the tetrahedron holding a point with its own octree; a point of a curved face just outside
+    the old mesh's flat facets still gets the size there. ``method='callback'``: the nearest node's
+    size, looked up by a k-d tree from ``gmsh.model.mesh.setSizeCallback`` (piecewise constant).
+    On the cylinder the view meshes in 0.15 s where the callback takes 0.21 s, and makes the same
+    sizes in the refined regions with a quarter fewer elements (its sizes blend linearly instead of
+    jumping at the midpoint between nodes). Either way the mesher's ``Mesh.MeshSizeMin`` and
+    ``Mesh.MeshSizeMax`` still clip the size.
+    """
+    h = np.asarray(sizes.size_mm, float)
+    if method == "callback":
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(sizes.nodes_mm)
+        gmsh.model.mesh.setSizeCallback(
+            lambda dim, tag, x, y, z, lc: float(min(lc, h[tree.query((x, y, z))[1]]))
+        )
+        return
+    if method != "view":
+        raise ValueError(f"method {method!r}: expected 'view' or 'callback'")
+    X = sizes.nodes_mm[sizes.tets]  # (m, 4, 3)
+    data = np.concatenate([X[:, :, 0], X[:, :, 1], X[:, :, 2], h[sizes.tets]], axis=1)
+    view = gmsh.view.add("adapt_size")
+    gmsh.view.addListData(view, "SS", len(sizes.tets), data.ravel().tolist())
+    fv = gmsh.model.mesh.field.add("PostView")
+    gmsh.model.mesh.field.setNumber(fv, "ViewTag", view)
+    gmsh.model.mesh.field.setAsBackgroundMesh(fv)
 
 
 class MeshQualityError(ValueError):
@@ -532,7 +590,6 @@ def tet10_min_det_jacobian(mesh: TetMesh) -> np.ndarray:
             [1 / 3, 1 / 3, 1 / 3],
         ]
     )
-    from .strain import tet10_shape_gradients  # strain imports this module
 
     x = mesh.nodes_mm[mesh.tets]  # (n, 10, 3)
     J = np.einsum("nic,pij->npcj", x, tet10_shape_gradients(ref))
@@ -602,7 +659,7 @@ def mesh_limb(
         Named in every error message.
     msh_path : path, optional
         Where to write the gmsh ``.msh`` (physical groups, patches included).
-    size_field : deeptissue.adapt.SizeField, optional
+    size_field : deeptissue.mesh.SizeField, optional
         A background size [mm] (a previous mesh's nodes and the sizes its solution asks for,
         :func:`deeptissue.adapt.adapt`) in place of the refinement around ``refine_segments``;
         capped at ``element_size_mm``.
@@ -754,7 +811,7 @@ def _mesh_size_field(
 ) -> None:
     """Set the meshing options and the size field: ``element_size_mm`` everywhere, ``refine_size_mm``
     within ``refine_radius_mm`` of each refine segment, a linear ramp back over ``refine_transition_mm``;
-    or, with ``size_field`` (:class:`deeptissue.adapt.SizeField`), that background size instead."""
+    or, with ``size_field`` (:class:`deeptissue.mesh.SizeField`), that background size instead."""
     g.option.setNumber("Mesh.MeshSizeMax", element_size_mm)
     g.option.setNumber("Mesh.MeshSizeMin", min(refine_size_mm, element_size_mm) * 0.5)
     g.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
@@ -772,8 +829,6 @@ def _mesh_size_field(
     g.option.setNumber("Mesh.SecondOrderLinear", 1)
     h, hr = float(element_size_mm), float(min(refine_size_mm, element_size_mm))
     if size_field is not None:
-        from .adapt import set_background_size
-
         g.option.setNumber("Mesh.MeshSizeMin", 0.5 * min(size_field.h_min_mm, h))
         set_background_size(g, size_field)
     elif refine_segments and hr < h:
@@ -1010,7 +1065,6 @@ def tet10_volume_mm3(mesh: TetMesh) -> float:
         ]
     )
     w = np.array([-4 / 5, 9 / 20, 9 / 20, 9 / 20, 9 / 20]) / 6.0
-    from .strain import tet10_shape_gradients  # strain imports this module
 
     x = mesh.nodes_mm[mesh.tets]
     return float(

@@ -322,7 +322,7 @@ def build_model(
         For messages.
     cast : Cast or None
         The cast; built with :func:`build_cast` when None.
-    size_field : deeptissue.adapt.SizeField or None
+    size_field : deeptissue.mesh.SizeField or None
         A background size [mm] in place of the refinement around the variants' travel
         (:func:`deeptissue.mesh.mesh_limb`; the adaptive loop's remeshing, :mod:`deeptissue.adapt_limb`).
 

@@ -4,8 +4,8 @@ import sys
 
 import pandas as pd
 
-from deeptissue.fem.verification import failed_checks
 from deeptissue.io import script_log
+from deeptissue.verification.scenes import failed_checks
 
 with script_log(snakemake.log[0], "verify"):  # noqa: F821
     summary_csv = snakemake.input.summary  # noqa: F821

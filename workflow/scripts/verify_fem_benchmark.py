@@ -1,8 +1,8 @@
 """Glue of rule verify_fem_benchmark: wall time and DOFs of the reference indentation."""
 
 from deeptissue.fem.material import Ogden
-from deeptissue.fem.verification import write_benchmark
 from deeptissue.io import script_log
+from deeptissue.verification.scenes import write_benchmark
 
 with script_log(snakemake.log[0], "verify_fem_benchmark"):
     write_benchmark(

@@ -1,8 +1,8 @@
 """Glue of rule verify_fem_cases: patch tests, rigid bone motion, hard convergence cases."""
 
 from deeptissue.fem.material import Ogden
-from deeptissue.fem.verification import write_case_verification
 from deeptissue.io import script_log
+from deeptissue.verification.scenes import write_case_verification
 
 with script_log(snakemake.log[0], "verify_fem_cases"):
     write_case_verification(

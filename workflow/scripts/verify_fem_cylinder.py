@@ -1,8 +1,8 @@
 """Glue of rule verify_cylinder: the cylinder scene on the default and the finest mesh."""
 
 from deeptissue.fem.material import Ogden
-from deeptissue.fem.verification import write_cylinder_verification
 from deeptissue.io import script_log
+from deeptissue.verification.scenes import write_cylinder_verification
 
 with script_log(snakemake.log[0], "verify_cylinder"):  # noqa: F821
     write_cylinder_verification(

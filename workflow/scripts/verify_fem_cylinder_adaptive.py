@@ -1,8 +1,8 @@
 """Glue of rule verify_cylinder_adaptive: the cylinder scene on adaptive meshes against the fixed ones."""
 
-from deeptissue.fem.cylinder import write_adaptive_cylinder
 from deeptissue.fem.material import Ogden
 from deeptissue.io import script_log
+from deeptissue.verification.cylinder import write_adaptive_cylinder
 
 with script_log(snakemake.log[0], "verify_cylinder_adaptive"):  # noqa: F821
     write_adaptive_cylinder(

@@ -1,8 +1,8 @@
 """Glue of rule verify_hertz: sphere into a block against Hertz to depth 0.1 R."""
 
 from deeptissue.fem.material import Ogden
-from deeptissue.fem.verification import write_hertz_verification
 from deeptissue.io import script_log
+from deeptissue.verification.scenes import write_hertz_verification
 
 with script_log(snakemake.log[0], "verify_fem_hertz"):
     write_hertz_verification(

@@ -1,8 +1,8 @@
 """Glue of rule verify_hertz_curve: sphere force-depth curve to depth 2 R and the Hertz plot."""
 
 from deeptissue.fem.material import Ogden
-from deeptissue.fem.verification import write_hertz_curve
 from deeptissue.io import script_log
+from deeptissue.verification.scenes import write_hertz_curve
 
 with script_log(snakemake.log[0], "verify_fem_hertz_curve"):
     write_hertz_curve(

@@ -1,8 +1,8 @@
 """Glue of rule verify_locking: Hertz force error of the displacement formulation as D -> 0."""
 
 from deeptissue.fem.material import Ogden
-from deeptissue.fem.verification import write_locking_check
 from deeptissue.io import script_log
+from deeptissue.verification.scenes import write_locking_check
 
 with script_log(snakemake.log[0], "verify_fem_locking"):
     write_locking_check(

@@ -1,8 +1,8 @@
 """Glue of rule verify_material: material-point checks, homogeneous responses, speed (failures recorded, not raised)."""
 
 from deeptissue.fem.material import Ogden
-from deeptissue.fem.material_checks import run_material_verification
 from deeptissue.io import script_log
+from deeptissue.verification.material import run_material_verification
 
 with script_log(snakemake.log[0], "verify_material"):
     run_material_verification(

@@ -2,8 +2,8 @@
 
 import logging
 
-from deeptissue.fem.verification import write_verification_summary
 from deeptissue.io import script_log
+from deeptissue.verification.scenes import write_verification_summary
 
 with script_log(snakemake.log[0], "verify_summary"):  # noqa: F821
     summary = write_verification_summary(

@@ -15,7 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 from skfem import MeshTet1, MeshTet2
 
-from ..mesh import GMSH_TET10_EDGES, TetMesh, edge_midpoints
+from ..elements import GMSH_TET10_EDGES
+from ..mesh import TetMesh, edge_midpoints
 
 __all__ = [
     "GMSH_TO_SKFEM_TET10",

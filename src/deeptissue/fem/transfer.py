@@ -22,9 +22,9 @@ import numpy as np
 from scipy import sparse
 from scipy.optimize import least_squares
 
+from ..elements import tet10_shape_functions, tet_shape_gradients
 from ..mesh import TetMesh, edge_midpoints, locate_in_tets
 from ..rigid import BoneMotion, apply_rigid
-from ..strain import tet10_shape_functions, tet_shape_gradients
 from .indenters import Indenter
 from .skmesh import jacobian_points, reference_jacobians
 from .solver import EndState, SolverSettings

@@ -12,21 +12,24 @@ from __future__ import annotations
 import time
 from dataclasses import replace
 
+import matplotlib
 import numpy as np
 import pandas as pd
 
-from ..mesh import TetMesh
-from ..rigid import BoneMotion
-from .assembly import as_material_law
-from .indenters import Indenter
-from .shapes import block_mesh, cored_cylinder_mesh, distort_interior
-from .solver import (
+from ..fem.assembly import as_material_law
+from ..fem.indenters import Indenter
+from ..fem.solver import (
     IncrementSettings,
     NewtonSettings,
     SolverSettings,
     solve_indentation,
     solve_prescribed,
 )
+from ..io import atomic_path
+from ..mesh import TetMesh
+from ..rigid import BoneMotion
+from .cylinder import REFERENCE_MESH, CylinderMesh, mesh_convergence
+from .shapes import block_mesh, cored_cylinder_mesh, distort_interior
 
 # states inside the load step are recorded as points of a curve: converge them like end states
 ACCURATE = NewtonSettings(rtol=1e-7, rtol_intermediate=1e-7)
@@ -382,7 +385,6 @@ def benchmark(material, *, h_mm=1.0) -> pd.DataFrame:
 
 
 def _write_csv(df: pd.DataFrame, path) -> None:
-    from ..io import atomic_path
 
     with atomic_path(path) as tmp:
         df.to_csv(tmp, index=False)
@@ -400,7 +402,6 @@ def write_hertz_curve(material, *, hertz_csv, curve_csv, figure_png, radius_mm=1
     curve_csv: depth_mm, force_N, hertz_N, rel_error, status ('converged' per converged increment;
     a last row 'not converged: <reason>' at the target depth if the solve stopped short).
     """
-    import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -440,7 +441,6 @@ def write_hertz_curve(material, *, hertz_csv, curve_csv, figure_png, radius_mm=1
         a.set_title(title)
         a.legend()
     fig.tight_layout()
-    from ..io import atomic_path
 
     with atomic_path(figure_png) as tmp:
         fig.savefig(tmp, dpi=120)
@@ -455,11 +455,10 @@ def write_case_verification(material, *, checks_csv, hard_csv) -> None:
 
 
 def write_cylinder_verification(material, *, curve_csv, voi_csv, meshes=None) -> None:
-    """The cylinder scene (:mod:`deeptissue.fem.cylinder`) on the default mesh and the reference mesh
-    (``meshes``: :class:`~deeptissue.fem.cylinder.CylinderMesh` list, the finest last; default the
-    study's 1.6 / 0.8 mm and :data:`~deeptissue.fem.cylinder.REFERENCE_MESH`): curve_csv (mesh,
+    """The cylinder scene (:mod:`deeptissue.verification.cylinder`) on the default mesh and the reference mesh
+    (``meshes``: :class:`~deeptissue.verification.cylinder.CylinderMesh` list, the finest last; default the
+    study's 1.6 / 0.8 mm and :data:`~deeptissue.verification.cylinder.REFERENCE_MESH`): curve_csv (mesh,
     depth_mm, force_N, ...), voi_csv (mesh, depth_mm, voi_mm3, voi_err_mm3, bins_percent.*, bins_err_pp.*, ...)."""
-    from .cylinder import REFERENCE_MESH, CylinderMesh, mesh_convergence
 
     curve, voi = mesh_convergence(
         material, [CylinderMesh(), REFERENCE_MESH] if meshes is None else meshes
@@ -755,7 +754,7 @@ def _cylinder_checks(curve: pd.DataFrame, voi: pd.DataFrame) -> list[dict]:
 
 
 def _cylinder_adaptive_checks(table: pd.DataFrame) -> list[dict]:
-    """cylinder_adaptive.csv (:func:`deeptissue.fem.cylinder.adaptive_comparison`): at every depth the
+    """cylinder_adaptive.csv (:func:`deeptissue.verification.cylinder.adaptive_comparison`): at every depth the
     adaptive run's last pass meets the study's goal by its own estimate, and against the finest fixed
     mesh its force is within CYLINDER_FORCE_LIMIT, its VOI within CYLINDER_VOI_LIMIT and its bins within
     CYLINDER_BINS_LIMIT_PP (the VOI and bins at the depths the reference has them)."""
@@ -840,7 +839,7 @@ def verification_summary(
         cylinder_curve.csv and cylinder_voi.csv (:func:`write_cylinder_verification`): each mesh
         against the finest (:func:`_cylinder_checks`); None: no cylinder rows.
     cylinder_adaptive : DataFrame, optional
-        cylinder_adaptive.csv (:func:`deeptissue.fem.cylinder.write_adaptive_cylinder`): the adaptive
+        cylinder_adaptive.csv (:func:`deeptissue.verification.cylinder.write_adaptive_cylinder`): the adaptive
         meshes against the finest fixed mesh (:func:`_cylinder_adaptive_checks`); None: no such rows.
     radius_mm : float
         Radius of the Hertz sphere [mm].

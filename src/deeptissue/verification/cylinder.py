@@ -10,19 +10,28 @@ discretisation error of the study's numbers and its estimate (:mod:`deeptissue.e
 
 from __future__ import annotations
 
+import logging
+import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import matplotlib
 import numpy as np
 import pandas as pd
 
-from ..mesh import TetMesh
+from ..adapt import AdaptSettings, PassEstimate, adapt
+from ..errorest import sampling_difference, voi_error_estimate
+from ..fem.indenters import Indenter
+from ..fem.solver import SolverSettings, solve_from, solve_indentation
+from ..fem.transfer import mapped_end_state
+from ..io import atomic_path
+from ..mesh import TetMesh, set_background_size
 from ..rigid import BoneMotion
-from .indenters import Indenter
-from .solver import SolverSettings, solve_from, solve_indentation
-from .transfer import mapped_end_state
+from ..strain import DEFAULT_BIN_EDGES, gamma_at_points, voi_statistics
+from ..summary import SAMPLING_LEVELS, summarize_solution
+from .shapes import _finish, _start
 
 __all__ = [
     "ADAPTIVE_START",
@@ -89,10 +98,9 @@ def cylinder_mesh(
 
     Facet sets: ``bone`` (bottom face z = 0, fixed), ``patch`` (top face, the indenter's contact
     set), ``side``, and ``skin`` (top and side: every free face). Sizes: :class:`CylinderMesh`, or
-    a background size (:class:`deeptissue.adapt.SizeField`, capped at ``sizes.element_size_mm``)
+    a background size (:class:`deeptissue.mesh.SizeField`, capped at ``sizes.element_size_mm``)
     that replaces its refinement around the axis.
     """
-    from .shapes import _finish, _start
 
     if sizes.refine_size_mm > sizes.element_size_mm:
         raise ValueError(
@@ -119,8 +127,6 @@ def cylinder_mesh(
         for k in ("MeshSizeExtendFromBoundary", "MeshSizeFromPoints", "MeshSizeFromCurvature"):
             opt(f"Mesh.{k}", 0)
         if size_field is not None:
-            from ..adapt import set_background_size
-
             opt("Mesh.MeshSizeMin", 0.5 * min(size_field.h_min_mm, h))
             set_background_size(gmsh, size_field)
         elif hr < h:  # distance to points along the axis below the top centre, then a linear ramp
@@ -159,7 +165,6 @@ def _other_estimates(mesh, u, summary, threshold, edges) -> dict:
     """The estimates the summary's is compared with (columns ``est_<candidate>_voi_mm3`` and
     ``est_<candidate>_bins_pp``, the largest over the bins): the signed-difference form of the patch
     recovery, both forms of the nodal-average recovery, and the difference of the two samplings."""
-    from ..errorest import sampling_difference, voi_error_estimate
 
     out = {}
     for rec in ("patch", "average"):
@@ -209,8 +214,6 @@ def cylinder_scene(
         One row per depth of ``voi_depths_mm``: depth_mm, voi_mm3, voi_err_mm3, bins_percent.<bin>,
         bins_err_pp.<bin> and voi_centroid_mm3 (:func:`deeptissue.summary.summarize_solution`).
     """
-    from ..strain import DEFAULT_BIN_EDGES
-    from ..summary import summarize_solution
 
     edges = DEFAULT_BIN_EDGES if bin_edges is None else tuple(bin_edges)
     m = cylinder_mesh(sizes, height_mm=height_mm) if mesh is None else mesh
@@ -347,10 +350,6 @@ def cylinder_estimate(
     and the largest bin's, as the study's summary computes them (γh at 64 points per element against
     the patch-recovered γ*, :func:`deeptissue.errorest.voi_error_estimate`), its per-element indicator,
     the force and the contact zone (:func:`contact_tets`)."""
-    from ..adapt import PassEstimate
-    from ..errorest import voi_error_estimate
-    from ..strain import DEFAULT_BIN_EDGES, gamma_at_points, voi_statistics
-    from ..summary import SAMPLING_LEVELS
 
     edges = DEFAULT_BIN_EDGES if bin_edges is None else tuple(bin_edges)
     u = solution.displacement_mm
@@ -392,7 +391,6 @@ def adaptive_cylinder(
     pass on ``start`` (uniform 1.6 mm: 10 809 DOFs, a quarter of the default mesh's solve), each next one remeshed from the previous solution's
     estimate (:func:`cylinder_estimate`) until it meets the goal of ``settings``
     (:class:`deeptissue.adapt.AdaptSettings`) or its budget is spent. Returns the AdaptResult."""
-    from ..adapt import AdaptSettings, adapt
 
     ind = _indenter(depth_mm, height_mm)
     st = SolverSettings() if solver_settings is None else solver_settings
@@ -494,12 +492,9 @@ def plot_adaptive(table: pd.DataFrame, path) -> None:
     (:func:`adaptive_comparison`'s table): the adaptive passes of each depth as a line (open markers:
     estimate not yet within the goal), the fixed meshes (but the reference) as squares, the goals of
     the verification case as dotted lines. A depth without a VOI row appears in the force's panel only."""
-    import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from ..io import atomic_path
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
     for j, d in enumerate(sorted(table["depth_mm"].unique())):
@@ -551,9 +546,6 @@ def write_adaptive_cylinder(
     (``voi_csv``, ``curve_csv``: cylinder_voi.csv and cylinder_curve.csv, whose finest mesh is the
     reference): the table of :func:`adaptive_comparison` with a stop_reason column (out_csv) and
     :func:`plot_adaptive` (figure_png). Each pass is logged."""
-    import logging
-
-    from ..io import atomic_path
 
     logger = logging.getLogger(__name__)
     runs = []
@@ -578,9 +570,7 @@ def write_adaptive_cylinder(
 
 if (
     __name__ == "__main__"
-):  # python -m deeptissue.fem.cylinder results/verification/cylinder_voi.csv [more.csv ...]
-    import sys
-
+):  # python -m deeptissue.verification.cylinder results/verification/cylinder_voi.csv [more.csv ...]
     pd.set_option("display.width", 250)
     tables = pd.concat([pd.read_csv(p) for p in sys.argv[1:]], ignore_index=True)
     print(effectivity_table(tables).round(3).T.to_string())

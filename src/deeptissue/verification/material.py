@@ -2,8 +2,8 @@
 
 Every check compares :mod:`deeptissue.fem.material` with a truth it does not compute itself:
 finite differences of its energy (whose values are checked against the independent principal-stretch
-energy of :mod:`deeptissue.fem.analytic`), small-strain elasticity, rotated evaluations, and the
-analytical homogeneous responses of :mod:`deeptissue.fem.analytic`.
+energy of :mod:`deeptissue.verification.analytic`), small-strain elasticity, rotated evaluations, and the
+analytical homogeneous responses of :mod:`deeptissue.verification.analytic`.
 
 Finite differences: fourth-order central stencils, f'(x) ~ [f(x-2h) - 8 f(x-h) + 8 f(x+h) - f(x+2h)] / (12 h),
 truncation error ~ h^4 f^(5) / 30, rounding error ~ 1.5 eps |f| / h. With entries of F of order 1,
@@ -28,12 +28,13 @@ import logging
 import time
 from pathlib import Path
 
+import matplotlib
 import numpy as np
 import pandas as pd
 
+from ..fem.material import Ogden, ogden_energy, ogden_stress, ogden_stress_tangent
 from ..io import atomic_path
 from . import analytic
-from .material import Ogden, ogden_energy, ogden_stress, ogden_stress_tangent
 
 __all__ = [
     "FD_STEP_SECOND",
@@ -404,7 +405,6 @@ def homogeneous_responses(
 
 def plot_homogeneous(df: pd.DataFrame, path: str | Path) -> None:
     """Nominal stress vs stretch (uniaxial, equibiaxial) and shear stress vs amount of shear."""
-    import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

@@ -2,15 +2,16 @@
 
 from __future__ import annotations
 
+import gmsh
 import numpy as np
 
+from ..fem.skmesh import reference_jacobians
 from ..mesh import TetMesh, edge_midpoints, extract_tetmesh
 
 __all__ = ["block_mesh", "cored_cylinder_mesh", "distort_interior"]
 
 
 def _start(name: str):
-    import gmsh
 
     gmsh.initialize(interruptible=False)
     gmsh.option.setNumber("General.Terminal", 0)
@@ -193,7 +194,6 @@ def distort_interior(
     bump = (0.02 if curved else 0.0) * np.median(edge_len) * rng.uniform(-1, 1, (len(mids), 3))
     p[mids] += bump
     out = TetMesh(nodes_mm=p, tets=mesh.tets, facets=mesh.facets)
-    from .skmesh import reference_jacobians
 
     if np.any(out.volumes_mm3() <= 0) or np.any(reference_jacobians(out) <= 0):
         raise ValueError(
