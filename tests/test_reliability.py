@@ -164,7 +164,7 @@ def test_the_reserved_names_are_every_study_folder_of_results():
 def test_phantom_values_it_cannot_render_are_refused_with_the_range_that_works():
     with pytest.raises(
         ConfigError,
-        match=r"animals.rat01.phantom.depth_mm: 0 is less than or equal to the minimum of 0",
+        match=r"animals.rat01.phantom.depth_mm: must be a number > 0 \[mm\], got 0",
     ):
         _validate(GOOD.replace("depth_mm: 2.0", "depth_mm: 0"))
     with pytest.raises(
@@ -231,7 +231,7 @@ def test_a_study_is_named_after_its_first_config_file():
         ),
         (
             lambda t: t.replace("depth_mm: 2.0", "depth_mm: 0"),
-            r"animals.rat01.phantom.depth_mm: 0 is less than",
+            r"animals.rat01.phantom.depth_mm: must be a number > 0",
         ),
         (
             lambda t: t.replace("depth_mm: 2.0", "depth_mm: 2.0, tilt_deg: [89, 0]"),

@@ -55,6 +55,33 @@ log = logging.getLogger(__name__)
 SPHERE_RADIUS_MM = 1.5
 
 
+# the bounds of the schema's section ``model`` (and fem.bar_length_mm, which the rules pass in)
+_POSITIVE = (
+    "element_size_mm",
+    "refine_size_mm",
+    "refine_transition_mm",
+    "cast_dz_mm",
+    "patch_diameter_mm",
+    "min_gap_mm",
+    "bar_length_mm",
+)
+_NON_NEGATIVE = (
+    "refine_radius_mm",
+    "refine_depth_mm",
+    "cast_offset_mm",
+    "cast_extension_mm",
+    "hole_diameter_mm",
+    "min_dihedral_deg",
+)
+_CHOICES = {
+    "cast_offset_direction": ("normal", "radial"),
+    "loft": ("ruled", "smooth"),
+    "algorithm_3d": ("hxt", "delaunay"),
+    "element_order": (1, 2),
+    "mesh_groups": ("indenter", "animal"),
+}
+
+
 @dataclass(frozen=True)
 class ModelSettings:
     """Settings of the model stage (config section ``model``; see the schema for descriptions)."""
@@ -84,6 +111,30 @@ class ModelSettings:
     min_gap_mm: float = 0.05
     element_order: int = 2  # 2: 10-node, 1: 4-node tetrahedra
     mesh_groups: str = "animal"  # which variants share a mesh (deeptissue.variants.mesh_groups; used by the workflow)
+
+    def __post_init__(self):
+        """The schema's bounds of the section ``model`` (deeptissue.config checks a config against the same)."""
+        for name in _POSITIVE + _NON_NEGATIVE + ("min_scaled_jacobian", "min_curved_ratio"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.number)):
+                raise ValueError(f"model.{name}: expected a number, got {value!r}")
+            if not np.isfinite(value):
+                raise ValueError(f"model.{name}: must be a finite number, got {value!r}")
+            if (name in _POSITIVE and value <= 0) or (name in _NON_NEGATIVE and value < 0):
+                raise ValueError(
+                    f"model.{name}: must be {'> 0' if name in _POSITIVE else '>= 0'}, got {value!r}"
+                )
+        if isinstance(self.spline_points, bool) or not (
+            isinstance(self.spline_points, (int, np.integer)) and self.spline_points >= 8
+        ):
+            raise ValueError(
+                f"model.spline_points: must be an integer >= 8, got {self.spline_points!r}"
+            )
+        for name, allowed in _CHOICES.items():
+            if getattr(self, name) not in allowed:
+                raise ValueError(
+                    f"model.{name}: expected one of {list(allowed)}, got {getattr(self, name)!r}"
+                )
 
     @classmethod
     def from_dict(cls, d: dict | None) -> ModelSettings:
@@ -173,8 +224,6 @@ def build_cast(
     s = settings if isinstance(settings, ModelSettings) else ModelSettings.from_dict(settings)
     geo.check_contours(contours.skin, contours.bone, animal=animal, min_gap_mm=s.min_gap_mm)
     contours = _equidistant(contours)
-    if s.loft not in ("ruled", "smooth"):
-        raise ValueError(f"animal {animal}: model.loft {s.loft!r}: expected 'ruled' or 'smooth'")
     # the cast is offset from the surface the mesh lies on: the ruled loft is rebuilt here exactly
     # (straight lines between the offset contours); the smooth one is sampled from OpenCASCADE
     surface = (
@@ -581,7 +630,8 @@ def plot_model_qc(path, model: AnimalModel, pose: Pose) -> None:
         ax.add_collection3d(
             Line3DCollection(v[ring], colors=[(0.1, 0.3, 0.9, 0.35)], linewidths=0.4)
         )
-        ax.add_collection3d(Line3DCollection(v[rim], colors="k", linewidths=1.5))
+        if len(rim):  # a cast without a hole (model.hole_diameter_mm 0) has no rim
+            ax.add_collection3d(Line3DCollection(v[rim], colors="k", linewidths=1.5))
         p0, p1 = pose.tip_start_mm - 4 * a, pose.tip_end_mm + 2 * a
         ax.plot(*np.stack([p0, p1]).T, color="orange", lw=2)
         lo, hi = v.min(axis=0), v.max(axis=0)
@@ -600,6 +650,11 @@ def plot_model_qc(path, model: AnimalModel, pose: Pose) -> None:
             elev=float(np.degrees(np.arcsin(np.clip(vv[2], -1, 1)))),
             azim=float(np.degrees(np.arctan2(vv[1], vv[0]))),
         )
+        ax.set_proj_type("ortho")
+        # the world axis closest to the line of sight is seen end-on: its ticks would pile up into one blot
+        along = "xyz"[int(np.argmax(np.abs(vv)))]
+        getattr(ax, f"set_{along}ticks")([])
+        getattr(ax, f"set_{along}label")("")
         ax.set_title(title, fontsize=9)
     st = model.info["mesh"]
     fig.suptitle(
