@@ -33,7 +33,14 @@ from deeptissue.fem.solver import (
     save_end_state,
 )
 from deeptissue.imaging import ImagingError, load_nifti, write_nifti
-from deeptissue.io import atomic_path, save_npz, write_json
+from deeptissue.io import (
+    PARTIAL_MARK,
+    STALE_FOREIGN_S,
+    atomic_path,
+    remove_stale_partials,
+    save_npz,
+    write_json,
+)
 from deeptissue.phantom import PhantomSpec, _Scene, check_indenter
 from deeptissue.rigid import BoneMotion
 
@@ -378,6 +385,74 @@ def test_the_study_failure_markers_are_written_atomically(tmp_path, monkeypatch)
     assert run_bone_state(**kw) is None
     with np.load(out) as d:
         assert "missing.npz" in str(d["failed"])
+
+
+_KILLED_WRITER = """
+import os, signal, sys
+from deeptissue.io import atomic_path
+with atomic_path(sys.argv[1]) as tmp:
+    tmp.write_bytes(b"PK half an archive")
+    os.kill(os.getpid(), signal.SIGKILL)
+"""
+
+
+def test_a_writer_killed_mid_write_leaves_a_partial_the_next_write_removes(tmp_path):
+    """SIGKILL (the out-of-memory killer) runs no finally block: the temporary stays, named by its pattern;
+    writing the same output again removes it, and the output appears whole."""
+    path = tmp_path / "results" / "rat01" / "end_state.npz"
+    r = subprocess.run([sys.executable, "-c", _KILLED_WRITER, str(path)], env=ENV, timeout=60)
+    assert r.returncode == -signal.SIGKILL
+    (partial,) = path.parent.iterdir()
+    assert partial.name.startswith(f".end_state.npz{PARTIAL_MARK}") and partial.name.endswith(
+        ".npz"
+    )
+    save_end_state(path, _end_state())
+    assert list(path.parent.iterdir()) == [path]
+
+
+def test_stale_partials_are_found_under_results_and_live_ones_kept(tmp_path):
+    """remove_stale_partials (the workflow's onstart): a partial of a killed process on this host, and one of
+    another host unchanged for longer than STALE_FOREIGN_S, go; one being written, and a recent one of another
+    host, stay, as do ordinary hidden files."""
+    results = tmp_path / "results"
+    r = subprocess.run(
+        [sys.executable, "-c", _KILLED_WRITER, str(results / "rat01" / "qc" / "model_all.png")],
+        env=ENV,
+        timeout=60,
+    )
+    assert r.returncode == -signal.SIGKILL
+    (killed,) = (results / "rat01" / "qc").iterdir()
+    old = _write(results / "rat02" / f".mesh.npz{PARTIAL_MARK}node07-4242-abcdefgh.npz", "x")
+    os.utime(old, (time.time() - STALE_FOREIGN_S - 60,) * 2)
+    recent = _write(results / "rat02" / f".pose.json{PARTIAL_MARK}node07-4243-abcdefgh.json", "x")
+    hidden = _write(results / ".keep", "")
+    with atomic_path(results / "rat03" / "pose.json") as live:
+        live.write_text("{}")
+        assert sorted(remove_stale_partials(results)) == sorted([killed, old])
+        assert live.exists() and recent.exists() and hidden.exists()
+    assert (results / "rat03" / "pose.json").read_text() == "{}"
+
+
+@pytest.mark.slow
+def test_a_run_from_the_workflow_folder_works_in_the_repository(tmp_path):
+    """``snakemake -s ../Snakefile`` started in workflow/ works in the repository (workdir): its
+    .snakemake (and results/) are the repository's, none appear in workflow/."""
+    repo = tmp_path / "repo"
+    (repo / "workflow").mkdir(parents=True)
+    (repo / "Snakefile").write_text((ROOT / "Snakefile").read_text())
+    for d in ("rules", "scripts", "schemas", "envs", "report"):
+        (repo / "workflow" / d).symlink_to(ROOT / "workflow" / d)
+    _write(repo / "config" / "config.yaml", GOOD)
+    cmd = [sys.executable, "-m", "snakemake", "-n", "--cores", "1", "-s", "../Snakefile"]
+    r = subprocess.run(
+        cmd, cwd=repo / "workflow", env=ENV, capture_output=True, text=True, timeout=300
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "results/rat01/mri/pre.nii.gz" in r.stdout
+    assert (repo / ".snakemake").is_dir()
+    assert sorted(p.name for p in (repo / "workflow").iterdir()) == sorted(
+        ["rules", "scripts", "schemas", "envs", "report"]
+    )
 
 
 @pytest.mark.parametrize("umask, mode", [(0o022, 0o644), (0o002, 0o664), (0o077, 0o600)])

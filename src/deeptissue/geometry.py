@@ -101,7 +101,7 @@ def _segments_intersect(ring: np.ndarray) -> bool:
     return bool(hit.any())
 
 
-def _inside_polygon(points: np.ndarray, ring: np.ndarray) -> np.ndarray:
+def inside_polygon(points: np.ndarray, ring: np.ndarray) -> np.ndarray:
     """Even-odd test of points (m, >=2) against a closed polygon (n, >=2) -> (m,) bool."""
     x, y = points[:, 0][:, None], points[:, 1][:, None]
     x0, y0 = ring[:, 0][None, :], ring[:, 1][None, :]
@@ -169,7 +169,7 @@ def check_contours(
                 )
             if _segments_intersect(a):
                 raise ModelInputError(f"animal {animal}: slice {k}: {name} contour crosses itself")
-        if not np.all(_inside_polygon(bone[k], skin[k])):
+        if not np.all(inside_polygon(bone[k], skin[k])):
             raise ModelInputError(
                 f"animal {animal}: slice {k}: bone contour is not inside the skin contour"
             )
