@@ -234,24 +234,28 @@ def build_cast(
         if s.loft == "smooth"
         else None
     )
-    footprints = None
     if s.hole_for_variants:
         footprints = [
             (sp.point_mm, sp.axis, sp.half_length_mm, sp.long_dir)
             for sp in _patch_specs(pose, list(variants), s).values()
         ]
+    else:
+        footprints = [(pose.tip_end_mm, pose.indenter_axis, 0.0, None)]
+    spec = geo.CastSpec(
+        offset_mm=s.cast_offset_mm,
+        offset_direction=s.cast_offset_direction,
+        extension_mm=s.cast_extension_mm,
+        dz_mm=s.cast_dz_mm,
+        ruled=s.loft == "ruled",
+        hole_diameter_mm=s.hole_diameter_mm,
+    )
     v, t, msgs = geo.build_cast(
         contours.skin,
+        footprints,
+        spec,
         axis=pose.indenter_axis,
         point_mm=pose.tip_end_mm,
-        offset_mm=s.cast_offset_mm,
-        extension_mm=s.cast_extension_mm,
-        hole_diameter_mm=s.hole_diameter_mm,
-        offset_direction=s.cast_offset_direction,
-        dz_mm=s.cast_dz_mm,
         surface=surface,
-        ruled=s.loft == "ruled",
-        footprints=footprints,
         animal=animal,
     )
     for m in msgs:
