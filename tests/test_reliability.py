@@ -455,6 +455,24 @@ def test_a_run_from_the_workflow_folder_works_in_the_repository(tmp_path):
     )
 
 
+@pytest.mark.slow
+def test_an_incomplete_output_is_made_again_by_the_same_command(tmp_path):
+    """An output a killed job left (marked incomplete in .snakemake/) is redone by the plain command, through
+    the workflow's default profile (profiles/default: rerun-incomplete), with no extra flag."""
+    from base64 import urlsafe_b64encode
+
+    f = _write(tmp_path / "study.yaml", GOOD)
+    target = "results/rat01/mri/pre.nii.gz"
+    _write(tmp_path / target, "half a file")
+    marker = tmp_path / ".snakemake" / "incomplete" / urlsafe_b64encode(target.encode()).decode()
+    _write(marker, '{"external_jobid": null}')
+    r = _dry_run(tmp_path, target, "--configfile", str(f))
+    assert r.returncode == 0, (r.stdout + r.stderr)[-2000:]
+    assert re.search(r"rule phantom:", r.stdout)
+    r = _dry_run(tmp_path, target, "--configfile", str(f), "--workflow-profile", "none")
+    assert r.returncode != 0 and "incomplete" in (r.stdout + r.stderr).lower()
+
+
 @pytest.mark.parametrize("umask, mode", [(0o022, 0o644), (0o002, 0o664), (0o077, 0o600)])
 def test_written_files_honour_the_umask(tmp_path, umask, mode):
     old = os.umask(umask)
