@@ -24,6 +24,8 @@ from typing import Any
 import jsonschema
 import yaml
 
+from .io import atomic_path
+
 __all__ = [
     "ANIMAL_NAME_MAX_CHARS",
     "ORDERED_KEYS",
@@ -824,8 +826,6 @@ def main(argv: list[str] | None = None) -> None:
         config files of a run in the order Snakemake is given them (the study's file, then overlays), whose
         input files are relative to the working directory.
     """
-    from .io import atomic_path
-
     parser = argparse.ArgumentParser(
         prog="python -m deeptissue.config", description=main.__doc__.splitlines()[0]
     )

@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.interpolate import CubicSpline
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 __all__ = [
@@ -684,9 +686,6 @@ def _cut_hole(
 
 def _components(tris: np.ndarray, mask: np.ndarray, n_vertices: int) -> np.ndarray:
     """Connected components (by shared vertices) of the masked triangles; -1 elsewhere (T,)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     idx = np.flatnonzero(mask)
     out = np.full(len(tris), -1)
     if len(idx) == 0:

@@ -11,6 +11,7 @@ Written and read only by :func:`save_tetmesh` / :func:`load_tetmesh` (``.npz``).
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,6 +22,8 @@ from scipy.spatial import cKDTree
 from .elements import GMSH_TET10_EDGES, tet10_shape_gradients
 from .geometry import inside_polygon, polygon_area_mm2, select_patch
 from .io import atomic_path, save_npz
+
+log = logging.getLogger(__name__)
 
 GMSH_TET10 = 11  # gmsh element type of the 10-node tetrahedron
 GMSH_TRI6 = 9  # gmsh element type of the 6-node triangle
@@ -764,6 +767,12 @@ def mesh_limb(
             f"refine_size_mm {spec.refine_size_mm:g}), more than the {MAX_DOFS} DOFs whose solve fits in "
             "memory (deeptissue.mesh.MAX_DOFS); raise model.element_size_mm or model.refine_size_mm"
         )
+    log.info(
+        "animal %s: meshing about %.0f tetrahedra (estimated; the limit is %d DOFs)",
+        animal,
+        estimate,
+        MAX_DOFS,
+    )
     stats: dict = {"element_order": int(spec.order), "estimated_tets": estimate}
     own_init = not gmsh.isInitialized()
     if own_init:

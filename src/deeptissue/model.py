@@ -15,6 +15,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import meshio
 import numpy as np
 
 from . import geometry as geo
@@ -591,8 +592,6 @@ def write_vtu(path: str | Path, mesh: TetMesh) -> None:
     """ParaView file: the 10-node tets and one block of 6-node triangles per facet set (4-node tets and
     3-node triangles for a linear mesh); cell data ``group`` (0 = tets, i = i-th facet set in sorted
     order, listed in field data)."""
-    import meshio
-
     names = sorted(mesh.facets)
     if mesh.order == 2:
         cells = [
