@@ -7,6 +7,11 @@ from deeptissue.config import check_config_files
 min_version("9.0")
 
 
+# paths are relative to the repository, wherever snakemake is started (`-s ../Snakefile` from workflow/ writes
+# the same results/), unless --directory names another working directory
+workdir: workflow.basedir
+
+
 # the demo study, unless a config file is given on the command line (`--configfile config/paper.yaml`):
 # then that file alone is the configuration (its animals are not merged with the demo's)
 CONFIG_FILES = [str(f) for f in workflow.overwrite_configfiles] or ["config/config.yaml"]

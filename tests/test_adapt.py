@@ -536,15 +536,17 @@ def test_adaptive_cylinder_at_2mm_meets_the_goal_with_fewer_dofs_than_the_fixed_
 
 
 def test_the_limb_mesher_follows_a_background_size():
+    from dataclasses import replace
+
     from model_synth import leg_contours
 
-    from deeptissue.mesh import mesh_limb
+    from deeptissue.mesh import MeshSpec, mesh_limb
 
     c = leg_contours(n_slices=8, z0_mm=-3.5)
-    kw = dict(
-        element_size_mm=1.6, order=1, animal="r", min_scaled_jacobian=0.01
-    )  # the sizes are tested here, not the gate
-    m0, _ = mesh_limb(c.skin, c.bone, **kw)
+    spec = MeshSpec(
+        element_size_mm=1.6, order=1, min_scaled_jacobian=0.01
+    )  # the sizes, not the gate
+    m0, _ = mesh_limb(c.skin, c.bone, spec, animal="r")
     spot = c.skin[4, 0]  # a skin point at mid-length: where an indenter would press
     near = np.linalg.norm(_centroids(m0) - spot, axis=1) < 2.0
     field = SizeField.from_mesh(
@@ -553,7 +555,7 @@ def test_the_limb_mesher_follows_a_background_size():
             m0, np.where(near, 0.5, element_sizes(m0)), grading=0.4, current_mm=element_sizes(m0)
         ),
     )
-    m, _ = mesh_limb(c.skin, c.bone, size_field=field, **kw)
+    m, _ = mesh_limb(c.skin, c.bone, replace(spec, size_field=field), animal="r")
     h, d = element_sizes(m), np.linalg.norm(_centroids(m) - spot, axis=1)
     h0, d0 = element_sizes(m0), np.linalg.norm(_centroids(m0) - spot, axis=1)
     assert h[d < 1.0].mean() == pytest.approx(0.5, rel=0.25)

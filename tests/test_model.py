@@ -6,6 +6,8 @@ the configured 0.2 mm cast gap and 3 mm patch/hole radius, and geometry computed
 """
 
 import json
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,8 +16,12 @@ from model_synth import leg_contours, leg_pose
 from deeptissue import geometry as geo
 from deeptissue.contours import Contours, save_contours
 from deeptissue.mesh import (
+    GMSH_TET_VOLUME,
     MeshQualityError,
+    MeshSizeError,
+    MeshSpec,
     TetMesh,
+    estimated_limb_tets,
     load_tetmesh,
     mesh_limb,
     tet10_min_det_jacobian,
@@ -23,6 +29,7 @@ from deeptissue.mesh import (
     tet_scaled_jacobian,
 )
 from deeptissue.model import (
+    MeshFiles,
     build_cast,
     build_model,
     cast_hole_boundary,
@@ -488,7 +495,9 @@ def test_quality_gate_refuses_naming_the_animal():
     with pytest.raises(
         MeshQualityError, match="animal rat7: mesh refused: .*scaled Jacobian below 0.99"
     ):
-        mesh_limb(c.skin, c.bone, element_size_mm=2.0, min_scaled_jacobian=0.99, animal="rat7")
+        mesh_limb(
+            c.skin, c.bone, MeshSpec(element_size_mm=2.0, min_scaled_jacobian=0.99), animal="rat7"
+        )
     # an inverted element is refused by the independent det J check too
     reg = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
     mids = [(0, 1), (1, 2), (0, 2), (0, 3), (2, 3), (1, 3)]
@@ -498,40 +507,89 @@ def test_quality_gate_refuses_naming_the_animal():
     assert tet10_min_det_jacobian(good)[0] > 0 > tet10_min_det_jacobian(bad)[0]
 
 
-def test_run_mesh_writes_every_output(tmp_path):
-    c = leg_contours(n_slices=6, z0_mm=-2.5)
-    p = leg_pose(c)
+def _rule_files(tmp_path, c, p, settings=None) -> MeshFiles:
+    """The inputs of rule mesh written into ``tmp_path`` and its outputs there."""
     save_contours(tmp_path / "pre.npz", c)
     save_pose(tmp_path / "pose.json", p)
-    save_cast(tmp_path / "cast.npz", build_cast(c, p, animal="r"))
-    outs = {
-        k: tmp_path / v
-        for k, v in dict(
-            mesh_npz="mesh.npz",
-            mesh_msh="mesh.msh",
-            mesh_vtu="mesh.vtu",
-            model_json="model.json",
-            qc_png="qc.png",
-        ).items()
-    }
-    run_mesh(
+    save_cast(tmp_path / "cast.npz", build_cast(c, p, animal="r", settings=settings))
+    return MeshFiles(
         contours_npz=tmp_path / "pre.npz",
         pose_json=tmp_path / "pose.json",
         cast_npz=tmp_path / "cast.npz",
+        mesh_npz=tmp_path / "mesh.npz",
+        mesh_msh=tmp_path / "mesh.msh",
+        mesh_vtu=tmp_path / "mesh.vtu",
+        model_json=tmp_path / "model.json",
+        qc_png=tmp_path / "qc.png",
+    )
+
+
+_OUTPUTS = ("mesh_npz", "mesh_msh", "mesh_vtu", "model_json", "qc_png")
+
+
+def test_run_mesh_writes_every_output(tmp_path):
+    c = leg_contours(n_slices=6, z0_mm=-2.5)
+    files = _rule_files(tmp_path, c, leg_pose(c))
+    run_mesh(
+        files,
         variants=["sphere"],
         settings={"element_size_mm": 1.5, "refine_size_mm": 1.0},
         animal="r",
-        **outs,
     )
-    assert all(f.stat().st_size > 0 for f in outs.values())
-    info = json.loads(outs["model_json"].read_text())
+    assert all(Path(getattr(files, k)).stat().st_size > 0 for k in _OUTPUTS)
+    info = json.loads(Path(files.model_json).read_text())
     assert 0.18 < info["cast"]["skin_gap_mm"]["min"] <= info["cast"]["skin_gap_mm"]["max"] < 0.22
+
+
+def test_a_hole_diameter_of_0_makes_a_cast_without_a_hole(tmp_path):
+    """model.hole_diameter_mm 0 (the schema's "no hole"): the cast is closed around the leg, and the rule
+    writes every output, its QC figure without a hole rim."""
+    c = leg_contours(n_slices=6, z0_mm=-2.5)
+    settings = {"element_size_mm": 1.5, "refine_size_mm": 1.0, "hole_diameter_mm": 0.0}
+    files = _rule_files(tmp_path, c, leg_pose(c), settings)
+    model = run_mesh(files, variants=["sphere"], settings=settings, animal="r")
+    assert len(cast_hole_boundary(model.cast)) == 0
+    with_hole = build_cast(c, leg_pose(c), settings={**settings, "hole_diameter_mm": 6.0})
+    assert len(cast_hole_boundary(with_hole)) > 0
+    assert all(Path(getattr(files, k)).stat().st_size > 0 for k in _OUTPUTS)
+
+
+def test_a_mesh_too_large_to_solve_is_refused_before_meshing(tmp_path):
+    """model.element_size_mm 0.001: refused within seconds with the estimate and the limit, and nothing is written."""
+    c = leg_contours(n_slices=6, z0_mm=-2.5)
+    files = _rule_files(tmp_path, c, leg_pose(c))
+    t0 = time.perf_counter()
+    with pytest.raises(
+        MeshSizeError, match=r"about 1.*e\+1\d tetrahedra .* more than the 450000 DOFs"
+    ) as info:
+        run_mesh(files, variants=["sphere"], settings={"element_size_mm": 0.001}, animal="rat01")
+    assert time.perf_counter() - t0 < 10  # noisy machine: a generous bound on a half-second check
+    assert "animal rat01" in str(info.value) and "model.element_size_mm" in str(info.value)
+    assert not any(Path(getattr(files, k)).exists() for k in _OUTPUTS)
+
+
+def test_the_element_estimate_is_the_volume_over_the_tet_volume_on_a_tube():
+    """A straight tube (skin radius 5 mm, bone 1 mm, 10 mm long) at a uniform size: the estimate is the
+    exact tube volume over GMSH_TET_VOLUME h^3, within the 0.5 mm sampling grid's error."""
+    t = np.linspace(0, 2 * np.pi, 400, endpoint=False)
+    ring = lambda r, z: np.stack([r * np.cos(t), r * np.sin(t), np.full_like(t, z)], axis=1)  # noqa: E731
+    z = np.arange(11.0)
+    skin, bone = np.stack([ring(5.0, zk) for zk in z]), np.stack([ring(1.0, zk) for zk in z])
+    exact = np.pi * (5.0**2 - 1.0**2) * 10.0 / (GMSH_TET_VOLUME * 1.2**3)
+    est = estimated_limb_tets(skin, bone, MeshSpec(element_size_mm=1.2, refine_size_mm=1.2))
+    assert est == pytest.approx(exact, rel=0.03)
+
+
+def test_the_element_estimate_is_near_gmshs_count(leg):
+    """On the standard leg (1.0 / 0.5 mm, refined around six variants' travels) the estimate made before
+    meshing is within 25 % of the element count gmsh makes."""
+    _, _, model = leg
+    assert model.info["mesh"]["estimated_tets"] == pytest.approx(model.mesh.n_tets, rel=0.25)
 
 
 @pytest.mark.slow
 def test_demo_phantom_meshes_without_manual_input():
     """rat01 of the demo config: the phantom's exact pre contours and truth pose, all default variants."""
-    from pathlib import Path
 
     import yaml
 

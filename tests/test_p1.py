@@ -292,11 +292,11 @@ def test_p1_limb_mesh_has_the_corner_tets_of_the_p2_mesh():
 def test_element_order_must_be_1_or_2():
     from model_synth import leg_contours
 
-    from deeptissue.mesh import mesh_limb
+    from deeptissue.mesh import MeshSpec, mesh_limb
 
     c = leg_contours(n_slices=6, n_points=40)
     with pytest.raises(ValueError, match="element order 3"):
-        mesh_limb(c.skin, c.bone, order=3, animal="rat7")
+        mesh_limb(c.skin, c.bone, MeshSpec(order=3), animal="rat7")
 
 
 @pytest.mark.slow
@@ -359,7 +359,7 @@ def test_p1_model_files_and_solve_job_with_the_cast(tmp_path):
     from model_synth import leg_contours, leg_pose
 
     from deeptissue.contours import save_contours
-    from deeptissue.model import run_cast, run_mesh
+    from deeptissue.model import MeshFiles, run_cast, run_mesh
     from deeptissue.pose import save_pose
     from deeptissue.study import run_solve
     from deeptissue.summary import read_summary
@@ -379,14 +379,16 @@ def test_p1_model_files_and_solve_job_with_the_cast(tmp_path):
     )
     out = {k: tmp_path / f"mesh.{k}" for k in ("npz", "msh", "vtu")}
     run_mesh(
-        contours_npz=tmp_path / "contours.npz",
-        pose_json=tmp_path / "pose.json",
-        cast_npz=tmp_path / "cast.npz",
-        mesh_npz=out["npz"],
-        mesh_msh=out["msh"],
-        mesh_vtu=out["vtu"],
-        model_json=tmp_path / "model.json",
-        qc_png=tmp_path / "qc.png",
+        MeshFiles(
+            contours_npz=tmp_path / "contours.npz",
+            pose_json=tmp_path / "pose.json",
+            cast_npz=tmp_path / "cast.npz",
+            mesh_npz=out["npz"],
+            mesh_msh=out["msh"],
+            mesh_vtu=out["vtu"],
+            model_json=tmp_path / "model.json",
+            qc_png=tmp_path / "qc.png",
+        ),
         variants=["sphere"],
         settings=settings,
         animal="synth",

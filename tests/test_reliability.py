@@ -33,7 +33,14 @@ from deeptissue.fem.solver import (
     save_end_state,
 )
 from deeptissue.imaging import ImagingError, load_nifti, write_nifti
-from deeptissue.io import atomic_path, save_npz, write_json
+from deeptissue.io import (
+    PARTIAL_MARK,
+    STALE_FOREIGN_S,
+    atomic_path,
+    remove_stale_partials,
+    save_npz,
+    write_json,
+)
 from deeptissue.phantom import PhantomSpec, _Scene, check_indenter
 from deeptissue.rigid import BoneMotion
 
@@ -164,7 +171,7 @@ def test_the_reserved_names_are_every_study_folder_of_results():
 def test_phantom_values_it_cannot_render_are_refused_with_the_range_that_works():
     with pytest.raises(
         ConfigError,
-        match=r"animals.rat01.phantom.depth_mm: 0 is less than or equal to the minimum of 0",
+        match=r"animals.rat01.phantom.depth_mm: must be a number > 0 \[mm\], got 0",
     ):
         _validate(GOOD.replace("depth_mm: 2.0", "depth_mm: 0"))
     with pytest.raises(
@@ -231,7 +238,7 @@ def test_a_study_is_named_after_its_first_config_file():
         ),
         (
             lambda t: t.replace("depth_mm: 2.0", "depth_mm: 0"),
-            r"animals.rat01.phantom.depth_mm: 0 is less than",
+            r"animals.rat01.phantom.depth_mm: must be a number > 0",
         ),
         (
             lambda t: t.replace("depth_mm: 2.0", "depth_mm: 2.0, tilt_deg: [89, 0]"),
@@ -378,6 +385,92 @@ def test_the_study_failure_markers_are_written_atomically(tmp_path, monkeypatch)
     assert run_bone_state(**kw) is None
     with np.load(out) as d:
         assert "missing.npz" in str(d["failed"])
+
+
+_KILLED_WRITER = """
+import os, signal, sys
+from deeptissue.io import atomic_path
+with atomic_path(sys.argv[1]) as tmp:
+    tmp.write_bytes(b"PK half an archive")
+    os.kill(os.getpid(), signal.SIGKILL)
+"""
+
+
+def test_a_writer_killed_mid_write_leaves_a_partial_the_next_write_removes(tmp_path):
+    """SIGKILL (the out-of-memory killer) runs no finally block: the temporary stays, named by its pattern;
+    writing the same output again removes it, and the output appears whole."""
+    path = tmp_path / "results" / "rat01" / "end_state.npz"
+    r = subprocess.run([sys.executable, "-c", _KILLED_WRITER, str(path)], env=ENV, timeout=60)
+    assert r.returncode == -signal.SIGKILL
+    (partial,) = path.parent.iterdir()
+    assert partial.name.startswith(f".end_state.npz{PARTIAL_MARK}") and partial.name.endswith(
+        ".npz"
+    )
+    save_end_state(path, _end_state())
+    assert list(path.parent.iterdir()) == [path]
+
+
+def test_stale_partials_are_found_under_results_and_live_ones_kept(tmp_path):
+    """remove_stale_partials (the workflow's onstart): a partial of a killed process on this host, and one of
+    another host unchanged for longer than STALE_FOREIGN_S, go; one being written, and a recent one of another
+    host, stay, as do ordinary hidden files."""
+    results = tmp_path / "results"
+    r = subprocess.run(
+        [sys.executable, "-c", _KILLED_WRITER, str(results / "rat01" / "qc" / "model_all.png")],
+        env=ENV,
+        timeout=60,
+    )
+    assert r.returncode == -signal.SIGKILL
+    (killed,) = (results / "rat01" / "qc").iterdir()
+    old = _write(results / "rat02" / f".mesh.npz{PARTIAL_MARK}node07-4242-abcdefgh.npz", "x")
+    os.utime(old, (time.time() - STALE_FOREIGN_S - 60,) * 2)
+    recent = _write(results / "rat02" / f".pose.json{PARTIAL_MARK}node07-4243-abcdefgh.json", "x")
+    hidden = _write(results / ".keep", "")
+    with atomic_path(results / "rat03" / "pose.json") as live:
+        live.write_text("{}")
+        assert sorted(remove_stale_partials(results)) == sorted([killed, old])
+        assert live.exists() and recent.exists() and hidden.exists()
+    assert (results / "rat03" / "pose.json").read_text() == "{}"
+
+
+@pytest.mark.slow
+def test_a_run_from_the_workflow_folder_works_in_the_repository(tmp_path):
+    """``snakemake -s ../Snakefile`` started in workflow/ works in the repository (workdir): its
+    .snakemake (and results/) are the repository's, none appear in workflow/."""
+    repo = tmp_path / "repo"
+    (repo / "workflow").mkdir(parents=True)
+    (repo / "Snakefile").write_text((ROOT / "Snakefile").read_text())
+    for d in ("rules", "scripts", "schemas", "envs", "report"):
+        (repo / "workflow" / d).symlink_to(ROOT / "workflow" / d)
+    _write(repo / "config" / "config.yaml", GOOD)
+    cmd = [sys.executable, "-m", "snakemake", "-n", "--cores", "1", "-s", "../Snakefile"]
+    r = subprocess.run(
+        cmd, cwd=repo / "workflow", env=ENV, capture_output=True, text=True, timeout=300
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "results/rat01/mri/pre.nii.gz" in r.stdout
+    assert (repo / ".snakemake").is_dir()
+    assert sorted(p.name for p in (repo / "workflow").iterdir()) == sorted(
+        ["rules", "scripts", "schemas", "envs", "report"]
+    )
+
+
+@pytest.mark.slow
+def test_an_incomplete_output_is_made_again_by_the_same_command(tmp_path):
+    """An output a killed job left (marked incomplete in .snakemake/) is redone by the plain command, through
+    the workflow's default profile (profiles/default: rerun-incomplete), with no extra flag."""
+    from base64 import urlsafe_b64encode
+
+    f = _write(tmp_path / "study.yaml", GOOD)
+    target = "results/rat01/mri/pre.nii.gz"
+    _write(tmp_path / target, "half a file")
+    marker = tmp_path / ".snakemake" / "incomplete" / urlsafe_b64encode(target.encode()).decode()
+    _write(marker, '{"external_jobid": null}')
+    r = _dry_run(tmp_path, target, "--configfile", str(f))
+    assert r.returncode == 0, (r.stdout + r.stderr)[-2000:]
+    assert re.search(r"rule phantom:", r.stdout)
+    r = _dry_run(tmp_path, target, "--configfile", str(f), "--workflow-profile", "none")
+    assert r.returncode != 0 and "incomplete" in (r.stdout + r.stderr).lower()
 
 
 @pytest.mark.parametrize("umask, mode", [(0o022, 0o644), (0o002, 0o664), (0o077, 0o600)])

@@ -13,7 +13,10 @@ from __future__ import annotations
 
 import argparse
 import copy
+import functools
 import json
+import math
+import re
 from collections import Counter
 from pathlib import Path
 from typing import Any
@@ -21,7 +24,11 @@ from typing import Any
 import jsonschema
 import yaml
 
+from .io import atomic_path
+
 __all__ = [
+    "ANIMAL_NAME_MAX_CHARS",
+    "ORDERED_KEYS",
     "REGENERATE_COMMAND",
     "SCHEMA_PATH",
     "RESERVED_ANIMAL_NAMES",
@@ -46,6 +53,19 @@ REGENERATE_COMMAND = "python -m deeptissue.config docs/config.md"
 
 #: folders of results/ that hold the study's own outputs, not an animal's: no animal may be named so
 RESERVED_ANIMAL_NAMES = ("convergence", "logs", "summary", "verification")
+
+#: the longest animal name: it names folders and, with a variant and a ladder setting, log files
+#: (``results/convergence/logs/<animal>_<variant>_<setting>.log``), which must stay under the 255 bytes
+#: of a file name; the schema's ``animals.propertyNames.maxLength`` says the same
+ANIMAL_NAME_MAX_CHARS = 64
+
+#: keys whose values must not decrease in the order given (within one section), as the solver's
+#: settings require (deeptissue.fem.solver.NewtonSettings, IncrementSettings)
+ORDERED_KEYS = (
+    ("fem.solver.newton", ("rtol", "rtol_intermediate")),
+    ("fem.solver.increments", ("min_increment", "initial_increment", "max_increment")),
+    ("fem.solver.increments", ("min_increment", "turn_initial_increment")),
+)
 
 
 class ConfigError(ValueError):
@@ -192,18 +212,88 @@ def _extend_with_default(validator_class):
 _DefaultFilling = _extend_with_default(jsonschema.Draft7Validator)
 
 
-def _message(err: jsonschema.ValidationError) -> str:
-    """One line for a schema violation that names the key."""
+_BOUND_SIGNS = {"minimum": ">=", "exclusiveMinimum": ">", "maximum": "<=", "exclusiveMaximum": "<"}
+
+
+def _bound_message(where: str, err: jsonschema.ValidationError) -> str:
+    """``must be a non-negative integer, got -1``: a bound a value breaks, in words, with the unit."""
+    kinds = err.schema.get("type", "number")
+    integer = "integer" in (kinds if isinstance(kinds, list) else [kinds])
+    sign, bound = _BOUND_SIGNS[err.validator], err.validator_value
+    if integer and err.validator == "minimum" and bound in (0, 1):
+        kind = "a non-negative integer" if bound == 0 else "a positive integer"
+    else:
+        kind = f"{'an integer' if integer else 'a number'} {sign} {bound}"
+    unit = err.schema.get("unit")
+    unit = f" [{unit}]" if unit not in (None, "1", "-") else ""
+    return f"config key {where}: must be {kind}{unit}, got {err.instance!r}"
+
+
+def _message(
+    err: jsonschema.ValidationError, parent: jsonschema.ValidationError | None = None
+) -> str:
+    """One line for a schema violation that names the key (``parent``: the oneOf it is a form of)."""
     where = _key_path(err.absolute_path)
     if err.validator == "additionalProperties":
         allowed = sorted(err.schema.get("properties", {}))
         extra = sorted(set(err.instance) - set(allowed))
         return f"config key {where}: unknown key(s) {extra}; allowed: {allowed}"
+    if err.validator in _BOUND_SIGNS:
+        return _bound_message(where, err)
+    if err.validator == "not" and isinstance(err.instance, dict):
+        rule = parent.schema.get("description", "") if parent is not None else ""
+        given = sorted(k for k in err.instance if k in _FORM_KEYS)
+        return f"config key {where}: {given} do not go together; {' '.join(rule.split())}"
+    if err.validator == "not" and "const" in err.validator_value:
+        return f"config key {where}: must not be {err.validator_value['const']!r}"
     if err.validator == "required":
         return f"config key {where}: {err.message}"
     if err.validator in ("oneOf", "anyOf"):
         return f"config key {where}: does not match any allowed form ({err.schema.get('description', err.message)})"
     return f"config key {where}: {err.message}"
+
+
+#: the keys of an animal that choose its form (a phantom, or scans)
+_FORM_KEYS = ("phantom", "pre", "during")
+
+
+def _schema_node(schema: dict, path: tuple) -> dict:
+    """The schema node of a config key (``("animals", "rat01", "phantom", "snr")``), {} if it has none."""
+    node = _resolve(schema, schema)
+    for part in path:
+        if isinstance(part, int):
+            node = node.get("items", {})
+        elif part in node.get("properties", {}):
+            node = node["properties"][part]
+        elif isinstance(node.get("additionalProperties"), dict):
+            node = node["additionalProperties"]
+        else:
+            return {}
+        node = _resolve(node, schema) if isinstance(node, dict) else {}
+    return node
+
+
+def _check_finite(value: Any, schema: dict, path: tuple = ()) -> None:
+    """Refuse NaN and ±Inf anywhere in a config (YAML's ``.nan``, ``.inf``): NaN passes every bound, since
+    every comparison with it is false, and no key takes an infinite value (a limit that can be switched off
+    takes null)."""
+    if isinstance(value, dict):
+        for key, sub in value.items():
+            _check_finite(sub, schema, (*path, key))
+    elif isinstance(value, (list, tuple)):
+        for i, sub in enumerate(value):
+            _check_finite(sub, schema, (*path, i))
+    elif isinstance(value, float) and not math.isfinite(value):
+        kinds = _schema_node(schema, path).get("type", [])
+        off = " (or null to switch it off)" if "null" in kinds else ""
+        raise ConfigError(
+            f"config key {_key_path(path)}: {value} is not a finite number; give a finite number{off} "
+            f"in the key's range (docs/config.md)"
+        )
+
+
+#: libyaml's safe loader where PyYAML has it: it reads the schema ten times faster than the Python one
+_FAST_SAFE_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
 
 def load_schema(schema_path: str | Path) -> dict:
@@ -217,10 +307,18 @@ def load_schema(schema_path: str | Path) -> dict:
     Returns
     -------
     dict
-        The schema as loaded by ``yaml.safe_load``.
+        The schema as loaded by ``yaml.safe_load`` (a copy of its own: the file is parsed once while it
+        is unchanged).
     """
-    with open(schema_path) as fh:
-        return yaml.safe_load(fh)
+    path = Path(schema_path).resolve()
+    return copy.deepcopy(_parsed_schema(path, path.stat().st_mtime_ns))
+
+
+@functools.lru_cache(maxsize=4)
+def _parsed_schema(path: Path, mtime_ns: int) -> dict:
+    """The schema file parsed (cached by path and modification time)."""
+    with open(path) as fh:
+        return yaml.load(fh, Loader=_FAST_SAFE_LOADER)
 
 
 def validate_config(
@@ -252,6 +350,7 @@ def validate_config(
     """
     _check_animal_keys(config)
     schema = load_schema(schema_path)
+    _check_finite(config, schema)
     validator = _DefaultFilling(schema)
     errors = sorted(
         validator.iter_errors(config),
@@ -259,7 +358,7 @@ def validate_config(
     )
     if errors:
         # the deepest error is the most specific; oneOf errors carry their context
-        err = errors[-1]
+        err = parent = errors[-1]
         if err.context:
             # the allowed form the value comes closest to: fewest errors, then deepest, not a plain type mismatch
             per_form = Counter(e.relative_schema_path[0] for e in err.context)
@@ -271,7 +370,7 @@ def validate_config(
                     -len(e.absolute_path),
                 ),
             )
-        raise ConfigError(_message(err))
+        raise ConfigError(_message(err, parent if err is not parent else None))
     _check_files(config, Path(base_dir))
     if config["study"]["name"] is None:
         config["study"]["name"] = study_name(config_files)
@@ -295,8 +394,13 @@ def study_name(config_files) -> str:
     return Path(files[0]).stem if files else "config"
 
 
+_ANIMAL_NAME = re.compile(r"[A-Za-z0-9_-]+")
+
+
 def _check_animal_keys(config: dict[str, Any]) -> None:
-    """Refuse an animal name that is not a string (YAML reads ``01`` as the number 1)."""
+    """Refuse an animal name that is not a string (YAML reads ``01`` as the number 1), is longer than
+    :data:`ANIMAL_NAME_MAX_CHARS` or holds a character other than letters, digits, ``_`` and ``-``
+    (it names folders and files)."""
     animals = config.get("animals")
     if not isinstance(animals, dict):
         return
@@ -305,6 +409,12 @@ def _check_animal_keys(config: dict[str, Any]) -> None:
             raise ConfigError(
                 f"config key animals: animal name {name!r} is read by YAML as {_a(type(name).__name__)}, not a name; "
                 f"quote it in the config file (as written there, e.g. '01')"
+            )
+        shown = name if len(name) <= 24 else f"{name[:20]}..."
+        if len(name) > ANIMAL_NAME_MAX_CHARS or not _ANIMAL_NAME.fullmatch(name):
+            raise ConfigError(
+                f"config key animals: animal name {shown!r} ({len(name)} characters) names folders and files of "
+                f"results/: use 1 to {ANIMAL_NAME_MAX_CHARS} letters, digits, '_' or '-'"
             )
 
 
@@ -414,6 +524,35 @@ def _check_bin_edges(config: dict[str, Any]) -> None:
         raise ConfigError(f"config key study.bin_edges: not strictly increasing: {edges}")
 
 
+def _section(config: dict[str, Any], dotted: str) -> dict:
+    """The config section at a dotted path (``fem.solver.newton``), with its defaults filled in."""
+    node = config
+    for part in dotted.split("."):
+        node = node[part]
+    return node
+
+
+def _check_ordered(config: dict[str, Any]) -> None:
+    """The keys of :data:`ORDERED_KEYS` do not decrease, and a ladder's Newton tolerance
+    (``convergence.tolerances[].rtol``) is not looser than ``fem.solver.newton.rtol_intermediate``."""
+    for dotted, keys in ORDERED_KEYS:
+        section = _section(config, dotted)
+        for low, high in zip(keys, keys[1:]):
+            if section[low] > section[high]:
+                chain = " <= ".join(f"{dotted}.{k} ({section[k]})" for k in keys)
+                raise ConfigError(
+                    f"config key {dotted}.{low}: {section[low]} is larger than {dotted}.{high} "
+                    f"({section[high]}); the solver needs {chain}"
+                )
+    loosest = config["fem"]["solver"]["newton"]["rtol_intermediate"]
+    for i, pair in enumerate(config["convergence"]["tolerances"]):
+        if pair.get("rtol", 0.0) > loosest:
+            raise ConfigError(
+                f"config key convergence.tolerances[{i}].rtol: {pair['rtol']} is larger than "
+                f"fem.solver.newton.rtol_intermediate ({loosest}); give a tighter rtol or loosen that one"
+            )
+
+
 def _check_figure_animal(config: dict[str, Any]) -> None:
     name = config["study"]["figure_animal"]
     animals = list(config["animals"])
@@ -479,7 +618,8 @@ def check_config(config: dict[str, Any]) -> None:
 
     No animal is named like a folder of the study's own outputs (:data:`RESERVED_ANIMAL_NAMES`); every
     phantom's indenter can be imaged (:func:`deeptissue.phantom.check_indenter`);
-    ``study.bin_edges`` starts at ``study.threshold`` and increases strictly; ``study.figure_animal``
+    ``study.bin_edges`` starts at ``study.threshold`` and increases strictly; the keys of
+    :data:`ORDERED_KEYS` do not decrease; ``study.figure_animal``
     is a configured animal; ``convergence.animals`` are configured animals (the ``convergence`` target
     asks for a during scan); an animal's ``leg_point_mm`` lies inside its ``crop_mm``.
 
@@ -496,6 +636,7 @@ def check_config(config: dict[str, Any]) -> None:
     _check_reserved_names(config)
     _check_phantoms(config)
     _check_bin_edges(config)
+    _check_ordered(config)
     _check_figure_animal(config)
     _check_convergence_animals(config)
     _check_leg_points(config)
@@ -685,8 +826,6 @@ def main(argv: list[str] | None = None) -> None:
         config files of a run in the order Snakemake is given them (the study's file, then overlays), whose
         input files are relative to the working directory.
     """
-    from .io import atomic_path
-
     parser = argparse.ArgumentParser(
         prog="python -m deeptissue.config", description=main.__doc__.splitlines()[0]
     )

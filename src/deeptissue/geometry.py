@@ -17,15 +17,19 @@ paper and falls back to the normal for contours that are not star-shaped.
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.interpolate import CubicSpline
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 __all__ = [
     "ModelInputError",
     "axis_distance_mm",
     "bar_direction",
+    "CastSpec",
     "build_cast",
     "check_contours",
     "closest_point_on_triangles",
@@ -101,7 +105,7 @@ def _segments_intersect(ring: np.ndarray) -> bool:
     return bool(hit.any())
 
 
-def _inside_polygon(points: np.ndarray, ring: np.ndarray) -> np.ndarray:
+def inside_polygon(points: np.ndarray, ring: np.ndarray) -> np.ndarray:
     """Even-odd test of points (m, >=2) against a closed polygon (n, >=2) -> (m,) bool."""
     x, y = points[:, 0][:, None], points[:, 1][:, None]
     x0, y0 = ring[:, 0][None, :], ring[:, 1][None, :]
@@ -169,7 +173,7 @@ def check_contours(
                 )
             if _segments_intersect(a):
                 raise ModelInputError(f"animal {animal}: slice {k}: {name} contour crosses itself")
-        if not np.all(_inside_polygon(bone[k], skin[k])):
+        if not np.all(inside_polygon(bone[k], skin[k])):
             raise ModelInputError(
                 f"animal {animal}: slice {k}: bone contour is not inside the skin contour"
             )
@@ -479,79 +483,61 @@ def _compact(vertices: np.ndarray, triangles: np.ndarray):
     return vertices[used], renum[triangles]
 
 
+@dataclass(frozen=True)
+class CastSpec:
+    """How the cast is made from the skin: offset_mm, the gap to the skin [mm]; offset_direction, 'normal'
+    (along the skin's normal) or 'radial' (away from each slice's centroid); extension_mm, how far the end
+    contours are repeated past the leg's ends [mm]; dz_mm, the spacing of the lofted rings along the leg [mm];
+    ruled, straight lines between the offset contours in place of a cubic spline in z; hole_diameter_mm, the
+    hole's diameter [mm] about each indenter footprint (0: no hole)."""
+
+    offset_mm: float = 0.2
+    offset_direction: str = "normal"
+    extension_mm: float = 1.0
+    dz_mm: float = 0.25
+    ruled: bool = False
+    hole_diameter_mm: float = 6.0
+
+
 def build_cast(
     skin: np.ndarray,
+    footprints: list,
+    spec: CastSpec = CastSpec(),
     *,
     axis,
     point_mm,
-    offset_mm: float = 0.2,
-    extension_mm: float = 1.0,
-    hole_diameter_mm: float = 6.0,
-    offset_direction: str = "normal",
-    dz_mm: float = 0.25,
     surface: tuple | None = None,
-    ruled: bool = False,
-    footprints: list | None = None,
     animal: str = "?",
 ) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """The rigid cast around the pre skin: offset, extended, lofted, with the indenter hole.
 
-    skin (n_slices, n_points, 3) world mm; ``surface``: optionally the lofted skin surface sampled as a
-    grid ``(points (n_rows, n_cols, 3), outward unit normals (n_rows, n_cols, 3))``, rows from the first
-    to the last contour (:func:`deeptissue.mesh.sample_lofted_surface`, the surface the mesh lies on):
-    then that grid is offset (along the 3D normal, or radially about each row's centroid) instead of
-    the contours lofted here (by a cubic spline in z, or by straight lines if ``ruled``). ``axis`` unit vector from the indenter into the leg,
-    ``point_mm`` a point on it (the final tip). Returns ``vertices_mm`` (V, 3), ``triangles`` (T, 3)
-    with normals pointing toward the leg, and log messages saying how the hole was cut.
+    skin (n_slices, n_points, 3) world mm; ``footprints``: the indenter footprints ``(point_mm, axis,
+    half_length_mm, long_dir)`` (see :func:`footprint_distance_mm`; axis a unit vector from the indenter into
+    the leg, point_mm a point on it, the final tip) whose circles of ``spec.hole_diameter_mm``, each projected
+    along its own axis (a bar's swept along it), make the hole; ``axis`` (unit, from the indenter into the
+    leg) and ``point_mm`` (on it, the final tip): the estimated indenter axis, whose side of the cast is cut
+    and whose nearest sheet is cut where there are several; ``surface``: optionally the lofted skin
+    surface sampled as a grid ``(points (n_rows, n_cols, 3), outward unit normals (n_rows, n_cols, 3))``, rows
+    from the first to the last contour (:func:`deeptissue.mesh.sample_lofted_surface`, the surface the mesh
+    lies on): then that grid is offset (along the 3D normal, or radially about each row's centroid) instead
+    of the contours lofted here (by a cubic spline in z, or by straight lines if ``spec.ruled``). Returns
+    ``vertices_mm`` (V, 3), ``triangles`` (T, 3) with normals pointing toward the leg, and log messages saying
+    how the hole was cut.
 
-    The hole is the circle of ``hole_diameter_mm`` about the axis projected along the axis onto the
-    side of the cast that faces the indenter (outward normal . axis < 0): cast triangles are clipped
-    exactly on the projected circle. ``footprints``: optionally several indenter footprints
-    ``(point_mm, axis, half_length_mm, long_dir)`` (see :func:`footprint_distance_mm`); the hole is
-    then the union of the circles about each, projected along its own axis (a bar's swept along it). Where the projection cannot cut cleanly it is resolved, and
-    logged: a cut vertex almost on the circle is snapped onto it (no slivers); a circle wider than the
-    facing side of the cast stops at the silhouette (the far side is never cut); a circle reaching
-    past an end of the cast opens the hole into that end; of several facing sheets hit (a fold) only
-    the one nearest the indenter is cut.
+    The hole is cut on the side of the cast that faces the indenter (outward normal . axis < 0): cast
+    triangles are clipped exactly on the projected outline. Where the projection cannot cut cleanly it is
+    resolved, and logged: a cut vertex almost on the outline is snapped onto it (no slivers); a circle wider
+    than the facing side of the cast stops at the silhouette (the far side is never cut); a circle reaching
+    past an end of the cast opens the hole into that end; of several facing sheets hit (a fold) only the one
+    nearest the indenter is cut. A hole diameter of 0 leaves the cast closed around the leg.
     """
     msgs: list[str] = []
-    axis = np.asarray(axis, float)
-    point = np.asarray(point_mm, float)
-    if surface is None:
-        off, m = offset_rings(
-            np.asarray(skin, float), offset_mm, direction=offset_direction, animal=animal
-        )
-        msgs += m
-        rings = loft_rings(extend_rings(off, extension_mm), dz_mm=dz_mm, ruled=ruled)
-    else:
-        grid, normals = (np.asarray(a, float) for a in surface)
-        rings = grid + offset_mm * normals
-        if offset_direction == "radial":
-            for k in range(len(grid)):
-                if is_star_shaped(grid[k]):
-                    r = grid[k, :, :2] - grid[k, :, :2].mean(axis=0)
-                    rings[k] = grid[k]
-                    rings[k, :, :2] += offset_mm * r / np.linalg.norm(r, axis=1, keepdims=True)
-                elif not any("not star-shaped" in m for m in msgs):
-                    msgs.append(
-                        f"cast: the skin is not star-shaped about its centroid at z = {grid[k, :, 2].mean():.2f} mm (and maybe elsewhere): offset along the normal there instead of radially"
-                    )
-        for k in range(len(rings)):
-            if _segments_intersect(rings[k]):
-                raise ModelInputError(
-                    f"animal {animal}: the cast offset by {offset_mm} mm crosses itself at z = {rings[k, :, 2].mean():.2f} mm (a concavity of the skin tighter than the offset)"
-                )
-        rings = extend_rings(rings, extension_mm)
+    rings = _cast_rings(skin, spec, surface, animal=animal, msgs=msgs)
     n_rows, n_cols = rings.shape[:2]
     verts = rings.reshape(-1, 3)
     tris = grid_triangles(n_rows, n_cols, inward=True)
-    vnorm_out = grid_normals(rings).reshape(-1, 3)
-    radius = 0.5 * hole_diameter_mm
-    if radius <= 0:
+    if spec.hole_diameter_mm <= 0:
         return verts, tris, msgs + ["cast: no hole (hole_diameter_mm = 0)"]
-
-    if footprints is None:
-        footprints = [(point, axis, 0.0, None)]
     fps = [
         (
             np.asarray(p_, float),
@@ -561,10 +547,53 @@ def build_cast(
         )
         for p_, a_, h_, d_ in footprints
     ]
+    facing = (np.asarray(point_mm, float), np.asarray(axis, float))
+    v2, t2, n_cut = _cut_hole(rings, fps, facing, spec, animal=animal, msgs=msgs)
+    what = (
+        f"union of {len(fps)} variants' {spec.hole_diameter_mm} mm outlines"
+        if len(fps) > 1
+        else f"{spec.hole_diameter_mm} mm circle"
+    )
+    msgs.append(
+        f"cast: hole ({what}) cut on the facing side ({n_cut} triangles clipped or removed)"
+    )
+    return v2, t2, msgs
 
-    def hole_level(x):
-        """Signed distance-like level (m,) of points (m, 3): < 0 inside the hole's projected outline, and
-        the in-plane vector (m, 3) from the nearest footprint point (for snapping onto the outline)."""
+
+def _cast_rings(skin, spec: CastSpec, surface, *, animal: str, msgs: list) -> np.ndarray:
+    """The cast's rings (n_rows, n_cols, 3) [mm]: the skin contours (or the sampled ``surface``) offset by
+    ``spec.offset_mm``, extended past the leg's ends and lofted; ``msgs`` gains what was resolved."""
+    if surface is None:
+        off, m = offset_rings(
+            np.asarray(skin, float), spec.offset_mm, direction=spec.offset_direction, animal=animal
+        )
+        msgs += m
+        return loft_rings(extend_rings(off, spec.extension_mm), dz_mm=spec.dz_mm, ruled=spec.ruled)
+    grid, normals = (np.asarray(a, float) for a in surface)
+    rings = grid + spec.offset_mm * normals
+    if spec.offset_direction == "radial":
+        for k in range(len(grid)):
+            if is_star_shaped(grid[k]):
+                r = grid[k, :, :2] - grid[k, :, :2].mean(axis=0)
+                rings[k] = grid[k]
+                rings[k, :, :2] += spec.offset_mm * r / np.linalg.norm(r, axis=1, keepdims=True)
+            elif not any("not star-shaped" in m for m in msgs):
+                msgs.append(
+                    f"cast: the skin is not star-shaped about its centroid at z = {grid[k, :, 2].mean():.2f} mm (and maybe elsewhere): offset along the normal there instead of radially"
+                )
+    for k in range(len(rings)):
+        if _segments_intersect(rings[k]):
+            raise ModelInputError(
+                f"animal {animal}: the cast offset by {spec.offset_mm} mm crosses itself at z = {rings[k, :, 2].mean():.2f} mm (a concavity of the skin tighter than the offset)"
+            )
+    return extend_rings(rings, spec.extension_mm)
+
+
+def _hole_level(fps: list, radius: float):
+    """``level(x) -> (signed distance-like level (m,), in-plane vector (m, 3))`` of points (m, 3): < 0 inside
+    the hole's projected outline, and the vector from the nearest footprint point (for snapping onto it)."""
+
+    def level(x):
         best = np.full(len(x), np.inf)
         vec = np.zeros((len(x), 3))
         for p_, a_, h_, d_ in fps:
@@ -579,6 +608,21 @@ def build_cast(
             vec[take] = r_[take]
         return best - radius, vec
 
+    return level
+
+
+def _cut_hole(
+    rings: np.ndarray, fps: list, facing: tuple, spec: CastSpec, *, animal: str, msgs: list
+):
+    """(vertices (V, 3), triangles (T, 3), triangles clipped or removed) of the lofted cast ``rings`` with the
+    hole of the footprints ``fps`` cut on the side facing the indenter; ``msgs`` gains what was resolved."""
+    n_rows, n_cols = rings.shape[:2]
+    verts = rings.reshape(-1, 3)
+    tris = grid_triangles(n_rows, n_cols, inward=True)
+    vnorm_out = grid_normals(rings).reshape(-1, 3)
+    radius = 0.5 * spec.hole_diameter_mm
+    point, axis = facing
+    hole_level = _hole_level(fps, radius)
     f, _ = hole_level(verts)
     facing_v = vnorm_out @ axis < 0
     tri_out = -triangle_normals(verts, tris)  # outward normals
@@ -590,10 +634,10 @@ def build_cast(
         )
     # snap near-outline vertices (closer than 2% of the local edge length) onto the outline
     edge = np.linalg.norm(rings[:, 1:2] - rings[:, 0:1], axis=2).mean() if n_cols > 1 else 1.0
-    snap = np.abs(f) < 0.02 * min(edge, dz_mm)
+    snap = np.abs(f) < 0.02 * min(edge, spec.dz_mm)
     if np.any(snap & facing_v):
         msgs.append(
-            f"cast: hole: {int(np.sum(snap & facing_v))} vertex(es) within {0.02 * min(edge, dz_mm):.4f} mm of the hole outline snapped onto it (no sliver triangles)"
+            f"cast: hole: {int(np.sum(snap & facing_v))} vertex(es) within {0.02 * min(edge, spec.dz_mm):.4f} mm of the hole outline snapped onto it (no sliver triangles)"
         )
         _, vec = hole_level(verts[snap])
         verts = verts.copy()
@@ -617,7 +661,7 @@ def build_cast(
     sil = np.any((f[tris] < 0) & ~facing_v[tris], axis=1) & cand
     if np.any(sil):
         msgs.append(
-            f"cast: hole: the {hole_diameter_mm} mm circle is wider than the side of the cast facing the indenter; the hole stops at the silhouette ({int(sil.sum())} triangles there)"
+            f"cast: hole: the {spec.hole_diameter_mm} mm circle is wider than the side of the cast facing the indenter; the hole stops at the silhouette ({int(sil.sum())} triangles there)"
         )
     # ends
     end_rows = np.concatenate(
@@ -637,23 +681,11 @@ def build_cast(
     v2, t2 = _clip_surface(verts, tris, f, cand, level=lambda x: hole_level(x)[0])
     area = triangle_areas(v2, t2)
     t2 = t2[area > 1e-12]
-    v2, t2 = _compact(v2, t2)
-    what = (
-        f"union of {len(fps)} variants' {hole_diameter_mm} mm outlines"
-        if len(fps) > 1
-        else f"{hole_diameter_mm} mm circle"
-    )
-    msgs.append(
-        f"cast: hole ({what}) cut on the facing side ({int(cand.sum())} triangles clipped or removed)"
-    )
-    return v2, t2, msgs
+    return (*_compact(v2, t2), int(cand.sum()))
 
 
 def _components(tris: np.ndarray, mask: np.ndarray, n_vertices: int) -> np.ndarray:
     """Connected components (by shared vertices) of the masked triangles; -1 elsewhere (T,)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     idx = np.flatnonzero(mask)
     out = np.full(len(tris), -1)
     if len(idx) == 0:

@@ -6,9 +6,12 @@ import contextlib
 import json
 import logging
 import os
+import re
 import signal
+import socket
 import tempfile
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -16,8 +19,11 @@ from typing import Any
 import numpy as np
 
 __all__ = [
+    "PARTIAL_MARK",
+    "STALE_FOREIGN_S",
     "atomic_path",
     "read_json",
+    "remove_stale_partials",
     "save_npz",
     "script_log",
     "snakemake_ancestor",
@@ -132,19 +138,90 @@ def stop_with_snakemake(
             signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
 
 
+#: the marker in the name of :func:`atomic_path`'s temporary files: ``.<name>.partial-<host>-<pid>-<random><suffixes>``
+PARTIAL_MARK = ".partial-"
+_PARTIAL = re.compile(
+    r"^\.(?P<name>.+)\.partial-(?P<host>[A-Za-z0-9-]+)-(?P<pid>\d+)-[a-z0-9_]{8}"
+)
+#: a temporary file of another host (a cluster node) whose writer cannot be asked is stale after this long
+#: without a change [s]: longer than any job's wall-time limit (config convergence.runtime_min, 4 h)
+STALE_FOREIGN_S = 24 * 3600.0
+
+
+def _host() -> str:
+    """This machine's short host name, as it appears in temporary file names."""
+    return re.sub(r"[^A-Za-z0-9-]", "-", socket.gethostname().split(".")[0]) or "host"
+
+
+def _writer_gone(match: re.Match, path: Path) -> bool:
+    """Whether the process that wrote a temporary file is gone: on this host by its pid, on another by the
+    file's age (:data:`STALE_FOREIGN_S`)."""
+    if match["host"] != _host():
+        try:
+            return time.time() - path.stat().st_mtime > STALE_FOREIGN_S
+        except OSError:
+            return False
+    try:
+        os.kill(int(match["pid"]), 0)
+    except ProcessLookupError:
+        return True
+    except (PermissionError, OverflowError):
+        return False
+    return False
+
+
+def remove_stale_partials(folder: str | Path, *, name: str | None = None) -> list[Path]:
+    """Remove the temporary files of :func:`atomic_path` under ``folder`` whose writing process is gone (a
+    job killed with SIGKILL, by the out-of-memory killer say, leaves one holding part of the data).
+
+    Parameters
+    ----------
+    folder : str or Path
+        Searched recursively (``results/`` at the start of a workflow run).
+    name : str, optional
+        Only the temporaries of this output (its file name), searched in ``folder`` alone: what
+        :func:`atomic_path` does before it writes that output again.
+
+    Returns
+    -------
+    list of Path
+        The files removed.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    pattern = f".{name}{PARTIAL_MARK}*" if name is not None else f".*{PARTIAL_MARK}*"
+    found = folder.glob(pattern) if name is not None else folder.rglob(pattern)
+    removed = []
+    for path in found:
+        match = _PARTIAL.match(path.name)
+        if match is None or not path.is_file() or not _writer_gone(match, path):
+            continue
+        with contextlib.suppress(FileNotFoundError):
+            path.unlink()
+            removed.append(path)
+    return removed
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; move it onto ``path`` only if the block succeeds.
 
-    The temporary name keeps the suffix(es) of ``path`` so that writers that dispatch on the
-    extension (nibabel, matplotlib, meshio) still work. The file gets the mode ``open`` would give
-    it (0666 less the umask), not the 0600 of a temporary file, so colleagues can read it.
+    The temporary is named ``.<name>.partial-<host>-<pid>-<random><suffixes>`` (:data:`PARTIAL_MARK`): it keeps
+    the suffix(es) of ``path`` so that writers that dispatch on the extension (nibabel, matplotlib,
+    meshio) still work, and says which process writes it, so that :func:`remove_stale_partials` can tell
+    the temporaries of a killed job from those being written; the stale ones of ``path`` are removed before
+    it is written. The file gets the mode ``open`` would give it (0666 less the umask), not the 0600 of a
+    temporary file, so colleagues can read it.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_partials(path.parent, name=path.name)
     suffix = "".join(path.suffixes)
     fd, tmp = tempfile.mkstemp(
-        prefix=f".{path.name.split('.')[0]}.", suffix=suffix, dir=path.parent
+        prefix=f".{path.name}{PARTIAL_MARK}{_host()}-{os.getpid()}-",
+        suffix=suffix,
+        dir=path.parent,
     )
     os.close(fd)
     tmp = Path(tmp)

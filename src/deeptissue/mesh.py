@@ -11,13 +11,19 @@ Written and read only by :func:`save_tetmesh` / :func:`load_tetmesh` (``.npz``).
 
 from __future__ import annotations
 
+import logging
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .elements import GMSH_TET10_EDGES, tet10_shape_gradients
-from .io import save_npz
+from .geometry import inside_polygon, polygon_area_mm2, select_patch
+from .io import atomic_path, save_npz
+
+log = logging.getLogger(__name__)
 
 GMSH_TET10 = 11  # gmsh element type of the 10-node tetrahedron
 GMSH_TRI6 = 9  # gmsh element type of the 6-node triangle
@@ -100,8 +106,6 @@ def locate_in_tets(mesh: TetMesh, points_mm, *, nearest: int = 8) -> tuple[np.nd
     (>= 0: the point is inside it; < 0: the point is outside every element, and this is the one it is least
     outside of). Candidates: the elements with the ``nearest`` nearest centroids, and for a point inside none
     of them, every element whose centroid is within the largest centroid-corner distance."""
-    from scipy.spatial import cKDTree
-
     P = np.asarray(points_mm, float).reshape(-1, 3)
     corners = mesh.nodes_mm[mesh.tets[:, :4]]  # (m, 4, 3)
     cen = corners.mean(axis=1)
@@ -274,8 +278,6 @@ def set_background_size(gmsh, sizes: SizeField, *, method: str = "view") -> None
     """
     h = np.asarray(sizes.size_mm, float)
     if method == "callback":
-        from scipy.spatial import cKDTree
-
         tree = cKDTree(sizes.nodes_mm)
         gmsh.model.mesh.setSizeCallback(
             lambda dim, tag, x, y, z, lc: float(min(lc, h[tree.query((x, y, z))[1]]))
@@ -294,6 +296,10 @@ def set_background_size(gmsh, sizes: SizeField, *, method: str = "view") -> None
 
 class MeshQualityError(ValueError):
     """The mesh has inverted or degenerate elements; the message names the animal."""
+
+
+class MeshSizeError(ValueError):
+    """The mesh asked for would have more elements than fit in memory; nothing was meshed."""
 
 
 @dataclass(frozen=True)
@@ -392,8 +398,6 @@ def sample_lofted_surface(
             gmsh.model.remove()
     if pts[-1, :, 2].mean() < pts[0, :, 2].mean():
         pts, nrm = pts[::-1], nrm[::-1]
-    from .geometry import polygon_area_mm2
-
     if polygon_area_mm2(pts[0]) < 0:
         pts, nrm = pts[:, ::-1], nrm[:, ::-1]
     # outward: away from each row's centroid
@@ -478,8 +482,6 @@ def _curve_mid_nodes(
         enodes = np.asarray(enodes, np.int64).reshape(-1, 3 if dim == 1 else 6)
         if (dim, tag) not in corner_params:
             continue
-        from scipy.spatial import cKDTree
-
         xyz, par = corner_params[(dim, tag)]
         ntags, ncoord, _ = g.model.mesh.getNodes(dim, tag, includeBoundary=True)
         ncoord = np.asarray(ncoord, float).reshape(-1, 3)
@@ -596,33 +598,129 @@ def tet10_min_det_jacobian(mesh: TetMesh) -> np.ndarray:
     return np.min(np.linalg.det(J), axis=1) / 6.0
 
 
+#: gmsh's mean tetrahedron volume over the cube of its size field [mm³ / mm³] (a regular tetrahedron of edge h
+#: has 0.118 h³; gmsh's are larger on average), the factor of :func:`estimated_tets`
+GMSH_TET_VOLUME = 0.21
+#: the most degrees of freedom a mesh of :func:`mesh_limb` may have: a direct solve of 450 000 needs about
+#: 24 GB (6.9 GB at 175 000 measured by the adaptive loop, memory growing as DOFs^(4/3) with the fill of a 3D
+#: factorisation)
+MAX_DOFS = 450_000
+#: DOFs per tetrahedron of each element order: 3 per node, nodes per tetrahedron of gmsh's meshes of the
+#: synthetic leg (tests/model_synth.py at 1.6 / 0.8 mm: 14 322 nodes of 8 698 quadratic tets, 2 118 of linear)
+DOFS_PER_TET = {1: 0.73, 2: 4.9}
+#: the spacing of the points :func:`estimated_limb_tets` samples the limb at [mm]
+_ESTIMATE_SPACING_MM = 0.5
+
+
+@dataclass(frozen=True)
+class MeshSpec:
+    """What :func:`mesh_limb` makes of a limb: sizes, refinement, contact patches, loft, order and quality gate.
+
+    element_size_mm: element size away from the indenter [mm]; refine_size_mm, refine_radius_mm,
+    refine_transition_mm: the size within ``refine_radius_mm`` of each of ``refine_segments``
+    (:class:`RefineSegment`), growing back to ``element_size_mm`` over ``refine_transition_mm`` [mm];
+    size_field: a background size (:class:`SizeField`: a previous mesh's nodes and the sizes its solution asks
+    for, :func:`deeptissue.adapt.adapt`) in place of that refinement, capped at ``element_size_mm``;
+    patches: name -> :class:`PatchSpec`, each the facet set of its skin facets, their union the set
+    ``patch_union`` (none if None); spline_points: at most this many points of each contour in its closed
+    spline; loft: "ruled" (straight between slices, the surface whose volume is the prismatoid sum) or
+    "smooth" (one surface through all rings); curved: second order only, the boundary mid-edge nodes on the
+    geometry, straightened again in any element whose Jacobian ratio would fall below ``min_curved_ratio``;
+    min_scaled_jacobian, min_dihedral_deg [deg], min_curved_ratio: the quality gate's limits (corner-tet
+    scaled Jacobian, dihedral angle, gmsh's curved-element Jacobian ratio); algorithm_3d: gmsh's 3-D
+    algorithm, "hxt" (fast) or "delaunay"; order: 2 (10-node tets, 6-node facets) or 1 (4-node tets, 3-node
+    facets) on the same geometry and size field.
+    """
+
+    element_size_mm: float = 1.0
+    refine_size_mm: float = 0.5
+    refine_radius_mm: float = 4.0
+    refine_transition_mm: float = 2.0
+    refine_segments: tuple = ()
+    size_field: SizeField | None = None
+    patches: dict | None = None
+    patch_union: str | None = "patch"
+    spline_points: int = 100
+    loft: str = "ruled"
+    curved: bool = True
+    min_scaled_jacobian: float = 0.05
+    min_dihedral_deg: float = 2.0
+    min_curved_ratio: float = 0.2
+    algorithm_3d: str = "hxt"
+    order: int = 2
+
+    def size_at(self, points_mm: np.ndarray) -> np.ndarray:
+        """The size field [mm] at points (n, 3) [mm], as gmsh is given it (:func:`_mesh_size_field`): the
+        background size (its nearest node's) or the refinement ramp, capped at ``element_size_mm``."""
+        h = float(self.element_size_mm)
+        if self.size_field is not None:
+            near = cKDTree(self.size_field.nodes_mm).query(points_mm)[1]
+            return np.minimum(np.asarray(self.size_field.size_mm, float)[near], h)
+        hr = min(float(self.refine_size_mm), h)
+        if not self.refine_segments or hr >= h:
+            return np.full(len(points_mm), h)
+        d = np.min([_segment_distance(points_mm, sg) for sg in self.refine_segments], axis=0)
+        ramp = np.clip((d - self.refine_radius_mm) / self.refine_transition_mm, 0.0, 1.0)
+        return hr + (h - hr) * ramp
+
+
+def _segment_distance(points_mm: np.ndarray, seg: RefineSegment) -> np.ndarray:
+    """Distance of points (n, 3) from a segment [mm]."""
+    a, b = np.asarray(seg.start_mm, float), np.asarray(seg.end_mm, float)
+    ab = b - a
+    t = np.clip((points_mm - a) @ ab / max(float(ab @ ab), 1e-300), 0.0, 1.0)
+    return np.linalg.norm(points_mm - (a + t[:, None] * ab), axis=1)
+
+
+def estimated_tets(volume_mm3, h_mm) -> float:
+    """Number of tetrahedra gmsh makes of regions of volume ``volume_mm3`` (n,) [mm³] meshed at sizes
+    ``h_mm`` (n,) [mm]: the sum of each volume over gmsh's mean tetrahedron volume :data:`GMSH_TET_VOLUME` h³."""
+    return float(
+        np.sum(np.asarray(volume_mm3, float) / (GMSH_TET_VOLUME * np.asarray(h_mm, float) ** 3))
+    )
+
+
+def estimated_limb_tets(skin: np.ndarray, bone: np.ndarray, spec: MeshSpec) -> float:
+    """The number of tetrahedra gmsh makes of the limb between two contour stacks at ``spec``'s sizes.
+
+    The limb is sampled on a grid of :data:`_ESTIMATE_SPACING_MM` (coarser for a large limb: at most about a
+    million points) through the ruled loft (straight between corresponding points of neighbouring slices),
+    and each point's cell, inside the skin and outside the bone, counts with its size
+    (:meth:`MeshSpec.size_at`) in :func:`estimated_tets`. Milliseconds to a second, before any meshing.
+    """
+    skin, bone = np.asarray(skin, float), np.asarray(bone, float)
+    lo, hi = skin.reshape(-1, 3).min(axis=0), skin.reshape(-1, 3).max(axis=0)
+    step = max(_ESTIMATE_SPACING_MM, float(np.prod(hi - lo) / 1e6) ** (1 / 3))
+    xs, ys = np.arange(lo[0], hi[0], step) + step / 2, np.arange(lo[1], hi[1], step) + step / 2
+    grid = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)
+    points, volumes = [], []
+    for k in range(len(skin) - 1):
+        z0, z1 = skin[k, :, 2].mean(), skin[k + 1, :, 2].mean()
+        n = max(1, int(round(abs(z1 - z0) / step)))
+        for t in (np.arange(n) + 0.5) / n:
+            s = (1 - t) * skin[k] + t * skin[k + 1]
+            b = (1 - t) * bone[k] + t * bone[k + 1]
+            keep = inside_polygon(grid, s) & ~inside_polygon(grid, b)
+            z = np.full((int(keep.sum()), 1), (1 - t) * z0 + t * z1)
+            points.append(np.hstack([grid[keep], z]))
+            volumes.append(np.full(len(z), step * step * abs(z1 - z0) / n))
+    points, volumes = np.vstack(points), np.concatenate(volumes)
+    return estimated_tets(volumes, spec.size_at(points))
+
+
 def mesh_limb(
     skin: np.ndarray,
     bone: np.ndarray,
+    spec: MeshSpec = MeshSpec(),
     *,
-    element_size_mm: float = 1.0,
-    refine_size_mm: float = 0.5,
-    refine_radius_mm: float = 4.0,
-    refine_transition_mm: float = 2.0,
-    refine_segments: tuple = (),
-    patches: dict | None = None,
-    patch_union: str | None = "patch",
-    spline_points: int = 100,
-    loft: str = "ruled",
-    curved: bool = True,
-    min_scaled_jacobian: float = 0.05,
-    min_dihedral_deg: float = 2.0,
-    min_curved_ratio: float = 0.2,
-    algorithm_3d: str = "hxt",
-    order: int = 2,
     animal: str = "?",
     msh_path=None,
-    size_field=None,
 ) -> tuple[TetMesh, dict]:
     """Quadratic (default) or linear tetrahedral mesh of the limb between a skin and a bone contour stack.
 
-    The steps: the limb solid (:func:`_occ_limb`) and its face groups (:func:`_boundary_groups`), the
-    size field (:func:`_mesh_size_field`), meshing and curving of the boundary mid-edge nodes
+    The steps: the size check (:func:`estimated_limb_tets`, in DOFs against :data:`MAX_DOFS`), the limb solid
+    (:func:`_occ_limb`) and its face groups (:func:`_boundary_groups`), the size field
+    (:func:`_mesh_size_field`), meshing and curving of the boundary mid-edge nodes
     (:func:`_generate_and_curve`), the contact patches (:func:`_tag_patches`), extraction
     (:func:`extract_tetmesh`) and the quality gate (:func:`_quality_gate`).
 
@@ -631,69 +729,51 @@ def mesh_limb(
     skin, bone : (n_slices, n_points, 3) array
         Contour stacks [world mm] (checked by :func:`deeptissue.geometry.check_contours`). Skin and
         tibia are lofted (OpenCASCADE ``addThruSections`` through closed splines of at most
-        ``spline_points`` points per contour) and closed into the limb by the two annular end faces,
+        ``spec.spline_points`` points per contour) and closed into the limb by the two annular end faces,
         the planes of the first (``distal``, lowest z) and last (``proximal``) slice.
-    element_size_mm : float
-        Element size away from the indenter [mm].
-    refine_size_mm, refine_radius_mm, refine_transition_mm : float
-        Element size within ``refine_radius_mm`` of each of ``refine_segments``
-        (:class:`RefineSegment`), growing back to ``element_size_mm`` over ``refine_transition_mm`` [mm].
-    patches : dict, optional
-        Name -> :class:`PatchSpec`: each becomes the facet set of its skin facets; their union is
-        the set ``patch_union`` (none if ``patch_union`` is None).
-    loft : {"ruled", "smooth"}
-        "ruled": straight between slices, the surface whose volume is the prismatoid sum; "smooth":
-        one smooth surface through all rings.
-    curved : bool
-        Second order only: place the boundary mid-edge nodes on the geometry (parametric midpoint),
-        straightened again in any element whose Jacobian ratio would fall below ``min_curved_ratio``.
-    min_scaled_jacobian, min_dihedral_deg, min_curved_ratio : float
-        Limits of the quality gate: corner-tet scaled Jacobian, dihedral angle [deg], and gmsh's
-        curved-element Jacobian ratio (minSJ, 1 for straight elements; order 2 only).
-    algorithm_3d : {"hxt", "delaunay"}
-        gmsh's 3-D algorithm ("hxt" is fast).
-    order : {2, 1}
-        10-node tets and 6-node facets, or 4-node tets and 3-node facets on the same geometry and size
-        field (no mid-nodes; the gate checks the corner tets).
+    spec : MeshSpec
+        Sizes, refinement, patches, loft, element order and the quality gate's limits.
     animal : str
         Named in every error message.
     msh_path : path, optional
         Where to write the gmsh ``.msh`` (physical groups, patches included).
-    size_field : deeptissue.mesh.SizeField, optional
-        A background size [mm] (a previous mesh's nodes and the sizes its solution asks for,
-        :func:`deeptissue.adapt.adapt`) in place of the refinement around ``refine_segments``;
-        capped at ``element_size_mm``.
 
     Returns
     -------
     mesh : TetMesh
         Facet sets ``bone``, ``skin``, ``proximal``, ``distal``, the patches and their union.
     stats : dict
-        Element count, quality, volumes [mm^3], timings [s].
+        Element count (and the estimate made before meshing), quality, volumes [mm^3], timings [s].
 
     Raises
     ------
     MeshQualityError
         If an element is inverted or degenerate (a Jacobian determinant <= 0 anywhere sampled in a
         curved element, or a value below one of the gate's limits), a patch is empty, or gmsh fails.
+    MeshSizeError
+        If the estimated DOFs exceed :data:`MAX_DOFS` (nothing is meshed).
     ValueError
         For an unknown ``loft``, ``order`` or ``algorithm_3d``.
     """
-    import time
-
     import gmsh
 
-    from .io import atomic_path
-
     t_start = time.perf_counter()
-    if loft not in ("ruled", "smooth"):
-        raise ValueError(f"animal {animal}: loft {loft!r}: expected 'ruled' or 'smooth'")
-    if order not in TET_NODES:
-        raise ValueError(
-            f"animal {animal}: element order {order!r}: expected 1 (4-node) or 2 (10-node tetrahedra)"
+    _check_spec(spec, animal)
+    estimate = estimated_limb_tets(skin, bone, spec)
+    if estimate * DOFS_PER_TET[spec.order] > MAX_DOFS:
+        raise MeshSizeError(
+            f"animal {animal}: the mesh would have about {estimate:.3g} tetrahedra and "
+            f"{estimate * DOFS_PER_TET[spec.order]:.3g} DOFs (element_size_mm {spec.element_size_mm:g}, "
+            f"refine_size_mm {spec.refine_size_mm:g}), more than the {MAX_DOFS} DOFs whose solve fits in "
+            "memory (deeptissue.mesh.MAX_DOFS); raise model.element_size_mm or model.refine_size_mm"
         )
-    curved = bool(curved) and order == 2
-    stats: dict = {"element_order": int(order)}
+    log.info(
+        "animal %s: meshing about %.0f tetrahedra (estimated; the limit is %d DOFs)",
+        animal,
+        estimate,
+        MAX_DOFS,
+    )
+    stats: dict = {"element_order": int(spec.order), "estimated_tets": estimate}
     own_init = not gmsh.isInitialized()
     if own_init:
         gmsh.initialize(interruptible=False)
@@ -701,38 +781,35 @@ def mesh_limb(
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.model.add(f"limb_{animal}")
         occ = gmsh.model.occ
-        vol = _occ_limb(occ, skin, bone, spline_points, ruled=loft == "ruled")
+        vol = _occ_limb(occ, skin, bone, spec.spline_points, ruled=spec.loft == "ruled")
         occ.synchronize()
         if len(gmsh.model.getEntities(3)) != 1 or occ.getMass(3, vol) <= 0:
             raise MeshQualityError(f"animal {animal}: the lofted limb is not one closed volume")
         stats["occ_volume_mm3"] = float(occ.getMass(3, vol))
         stats["occ_s"] = time.perf_counter() - t_start
         groups = _boundary_groups(gmsh, vol, skin, bone, animal=animal)
-        _mesh_size_field(
-            gmsh,
-            element_size_mm=element_size_mm,
-            refine_size_mm=refine_size_mm,
-            refine_radius_mm=refine_radius_mm,
-            refine_transition_mm=refine_transition_mm,
-            refine_segments=refine_segments,
-            algorithm_3d=algorithm_3d,
-            animal=animal,
-            size_field=size_field,
-        )
+        _mesh_size_field(gmsh, spec)
+        curved = bool(spec.curved) and spec.order == 2
         q = _generate_and_curve(
             gmsh,
             vol,
             groups,
-            order=order,
+            order=spec.order,
             curved=curved,
-            min_curved_ratio=min_curved_ratio,
+            min_curved_ratio=spec.min_curved_ratio,
             stats=stats,
         )
-        if patches:
+        if spec.patches:
             _tag_patches(
-                gmsh, groups, bone, patches, patch_union=patch_union, order=order, animal=animal
+                gmsh,
+                groups,
+                bone,
+                spec.patches,
+                patch_union=spec.patch_union,
+                order=spec.order,
+                animal=animal,
             )
-        mesh = extract_tetmesh(gmsh, order=order)
+        mesh = extract_tetmesh(gmsh, order=spec.order)
         if msh_path is not None:
             with atomic_path(msh_path) as tmp:
                 gmsh.write(str(tmp))
@@ -747,19 +824,22 @@ def mesh_limb(
             gmsh.finalize()
         else:
             gmsh.model.remove()
-
-    _quality_gate(
-        mesh,
-        q,
-        min_scaled_jacobian=min_scaled_jacobian,
-        min_dihedral_deg=min_dihedral_deg,
-        min_curved_ratio=min_curved_ratio,
-        algorithm_3d=algorithm_3d,
-        animal=animal,
-        stats=stats,
-        t_start=t_start,
-    )
+    _quality_gate(mesh, q, spec, animal=animal, stats=stats, t_start=t_start)
     return mesh, stats
+
+
+def _check_spec(spec: MeshSpec, animal: str) -> None:
+    """Refuse an unknown loft, element order or 3-D algorithm, naming the animal."""
+    if spec.loft not in ("ruled", "smooth"):
+        raise ValueError(f"animal {animal}: loft {spec.loft!r}: expected 'ruled' or 'smooth'")
+    if spec.order not in TET_NODES:
+        raise ValueError(
+            f"animal {animal}: element order {spec.order!r}: expected 1 (4-node) or 2 (10-node tetrahedra)"
+        )
+    if spec.algorithm_3d not in _ALGORITHMS_3D:
+        raise ValueError(
+            f"animal {animal}: algorithm_3d {spec.algorithm_3d!r}: expected one of {sorted(_ALGORITHMS_3D)}"
+        )
 
 
 def _boundary_groups(g, vol: int, skin: np.ndarray, bone: np.ndarray, *, animal: str) -> dict:
@@ -797,46 +877,31 @@ def _boundary_groups(g, vol: int, skin: np.ndarray, bone: np.ndarray, *, animal:
     return groups
 
 
-def _mesh_size_field(
-    g,
-    *,
-    element_size_mm: float,
-    refine_size_mm: float,
-    refine_radius_mm: float,
-    refine_transition_mm: float,
-    refine_segments,
-    algorithm_3d: str,
-    animal: str,
-    size_field=None,
-) -> None:
+def _mesh_size_field(g, spec: MeshSpec) -> None:
     """Set the meshing options and the size field: ``element_size_mm`` everywhere, ``refine_size_mm``
     within ``refine_radius_mm`` of each refine segment, a linear ramp back over ``refine_transition_mm``;
     or, with ``size_field`` (:class:`deeptissue.mesh.SizeField`), that background size instead."""
-    g.option.setNumber("Mesh.MeshSizeMax", element_size_mm)
-    g.option.setNumber("Mesh.MeshSizeMin", min(refine_size_mm, element_size_mm) * 0.5)
+    h, hr = float(spec.element_size_mm), float(min(spec.refine_size_mm, spec.element_size_mm))
+    g.option.setNumber("Mesh.MeshSizeMax", h)
+    g.option.setNumber("Mesh.MeshSizeMin", hr * 0.5)
     g.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
     g.option.setNumber("Mesh.MeshSizeFromPoints", 0)
     g.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
     g.option.setNumber("Mesh.Algorithm", 6)
-    if algorithm_3d not in _ALGORITHMS_3D:
-        raise ValueError(
-            f"animal {animal}: algorithm_3d {algorithm_3d!r}: expected one of {sorted(_ALGORITHMS_3D)}"
-        )
-    g.option.setNumber("Mesh.Algorithm3D", _ALGORITHMS_3D[algorithm_3d])
+    g.option.setNumber("Mesh.Algorithm3D", _ALGORITHMS_3D[spec.algorithm_3d])
     g.option.setNumber("General.NumThreads", 1)
     g.option.setNumber("Mesh.OptimizeNetgen", 1)
     g.option.setNumber("Mesh.ElementOrder", 1)
     g.option.setNumber("Mesh.SecondOrderLinear", 1)
-    h, hr = float(element_size_mm), float(min(refine_size_mm, element_size_mm))
-    if size_field is not None:
-        g.option.setNumber("Mesh.MeshSizeMin", 0.5 * min(size_field.h_min_mm, h))
-        set_background_size(g, size_field)
-    elif refine_segments and hr < h:
+    if spec.size_field is not None:
+        g.option.setNumber("Mesh.MeshSizeMin", 0.5 * min(spec.size_field.h_min_mm, h))
+        set_background_size(g, spec.size_field)
+    elif spec.refine_segments and hr < h:
         # distance to points every refine_size/4 along each segment (free geometry points, not meshed
         # into the limb), then a linear ramp from refine_size to element_size
         occ = g.model.occ
         pts = []
-        for seg in refine_segments:
+        for seg in spec.refine_segments:
             a, b = np.asarray(seg.start_mm, float), np.asarray(seg.end_mm, float)
             n = max(2, int(np.ceil(np.linalg.norm(b - a) / (0.25 * hr))) + 1)
             pts += [occ.addPoint(*(a + t * (b - a))) for t in np.linspace(0, 1, n)]
@@ -847,8 +912,10 @@ def _mesh_size_field(
         g.model.mesh.field.setNumber(ft, "InField", fd)
         g.model.mesh.field.setNumber(ft, "SizeMin", hr)
         g.model.mesh.field.setNumber(ft, "SizeMax", h)
-        g.model.mesh.field.setNumber(ft, "DistMin", refine_radius_mm)
-        g.model.mesh.field.setNumber(ft, "DistMax", refine_radius_mm + refine_transition_mm)
+        g.model.mesh.field.setNumber(ft, "DistMin", spec.refine_radius_mm)
+        g.model.mesh.field.setNumber(
+            ft, "DistMax", spec.refine_radius_mm + spec.refine_transition_mm
+        )
         g.model.mesh.field.setAsBackgroundMesh(ft)
 
 
@@ -864,8 +931,6 @@ def _generate_and_curve(
     (n_tets,) array
         gmsh's curved-element Jacobian ratio of each tetrahedron (1 for first-order tets).
     """
-    import time
-
     tet_type = GMSH_TET10 if order == 2 else GMSH_TET4
     t0 = time.perf_counter()
     g.model.mesh.generate(3)
@@ -936,8 +1001,6 @@ def _tag_patches(
     Skin normals are turned to point away from the bone's axis (interpolated along z); a patch
     without a facet raises :class:`MeshQualityError`.
     """
-    from .geometry import select_patch
-
     tri_type, n_fn = (GMSH_TRI6, 6) if order == 2 else (GMSH_TRI3, 3)
     sk_nodes = []
     for s in groups["skin"]:
@@ -990,25 +1053,16 @@ def _tag_patches(
 
 
 def _quality_gate(
-    mesh: TetMesh,
-    q: np.ndarray,
-    *,
-    min_scaled_jacobian: float,
-    min_dihedral_deg: float,
-    min_curved_ratio: float,
-    algorithm_3d: str,
-    animal: str,
-    stats: dict,
-    t_start: float,
+    mesh: TetMesh, q: np.ndarray, spec: MeshSpec, *, animal: str, stats: dict, t_start: float
 ) -> None:
     """Check the extracted mesh with numpy (independently of gmsh) and record its quality in ``stats``.
 
-    Raises :class:`MeshQualityError` naming every violated limit: a Jacobian determinant <= 0 in a
-    (curved) element, a corner-tet scaled Jacobian below ``min_scaled_jacobian``, a dihedral angle
+    Raises :class:`MeshQualityError` naming every violated limit of ``spec``: a Jacobian determinant <= 0
+    in a (curved) element, a corner-tet scaled Jacobian below ``min_scaled_jacobian``, a dihedral angle
     below ``min_dihedral_deg``, or a gmsh Jacobian ratio ``q`` below ``min_curved_ratio``.
     """
-    import time
-
+    min_scaled_jacobian, min_dihedral_deg = spec.min_scaled_jacobian, spec.min_dihedral_deg
+    min_curved_ratio, algorithm_3d = spec.min_curved_ratio, spec.algorithm_3d
     corners = mesh.nodes_mm[mesh.tets[:, :4]]
     dih = _tet_dihedral_deg(corners)
     sj = tet_scaled_jacobian(corners)

@@ -10,17 +10,20 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import meshio
 import numpy as np
 
 from . import geometry as geo
-from .contours import Contours
+from .contours import Contours, load_contours
 from .io import atomic_path, save_npz, write_json
 from .mesh import (
     MeshQualityError,
+    MeshSpec,
     PatchSpec,
     RefineSegment,
     TetMesh,
@@ -28,13 +31,14 @@ from .mesh import (
     sample_lofted_surface,
     save_tetmesh,
 )
-from .pose import Pose
+from .pose import Pose, load_pose
 from .variants import parse_variant, variant_travel
 
 __all__ = [
     "SPHERE_RADIUS_MM",
     "AnimalModel",
     "Cast",
+    "MeshFiles",
     "ModelSettings",
     "build_cast",
     "build_model",
@@ -53,6 +57,33 @@ log = logging.getLogger(__name__)
 
 # indenter head and bar radius: the default Indenter.radius_mm (deeptissue.fem.indenters), 3 mm diameter
 SPHERE_RADIUS_MM = 1.5
+
+
+# the bounds of the schema's section ``model`` (and fem.bar_length_mm, which the rules pass in)
+_POSITIVE = (
+    "element_size_mm",
+    "refine_size_mm",
+    "refine_transition_mm",
+    "cast_dz_mm",
+    "patch_diameter_mm",
+    "min_gap_mm",
+    "bar_length_mm",
+)
+_NON_NEGATIVE = (
+    "refine_radius_mm",
+    "refine_depth_mm",
+    "cast_offset_mm",
+    "cast_extension_mm",
+    "hole_diameter_mm",
+    "min_dihedral_deg",
+)
+_CHOICES = {
+    "cast_offset_direction": ("normal", "radial"),
+    "loft": ("ruled", "smooth"),
+    "algorithm_3d": ("hxt", "delaunay"),
+    "element_order": (1, 2),
+    "mesh_groups": ("indenter", "animal"),
+}
 
 
 @dataclass(frozen=True)
@@ -84,6 +115,30 @@ class ModelSettings:
     min_gap_mm: float = 0.05
     element_order: int = 2  # 2: 10-node, 1: 4-node tetrahedra
     mesh_groups: str = "animal"  # which variants share a mesh (deeptissue.variants.mesh_groups; used by the workflow)
+
+    def __post_init__(self):
+        """The schema's bounds of the section ``model`` (deeptissue.config checks a config against the same)."""
+        for name in _POSITIVE + _NON_NEGATIVE + ("min_scaled_jacobian", "min_curved_ratio"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.number)):
+                raise ValueError(f"model.{name}: expected a number, got {value!r}")
+            if not np.isfinite(value):
+                raise ValueError(f"model.{name}: must be a finite number, got {value!r}")
+            if (name in _POSITIVE and value <= 0) or (name in _NON_NEGATIVE and value < 0):
+                raise ValueError(
+                    f"model.{name}: must be {'> 0' if name in _POSITIVE else '>= 0'}, got {value!r}"
+                )
+        if isinstance(self.spline_points, bool) or not (
+            isinstance(self.spline_points, (int, np.integer)) and self.spline_points >= 8
+        ):
+            raise ValueError(
+                f"model.spline_points: must be an integer >= 8, got {self.spline_points!r}"
+            )
+        for name, allowed in _CHOICES.items():
+            if getattr(self, name) not in allowed:
+                raise ValueError(
+                    f"model.{name}: expected one of {list(allowed)}, got {getattr(self, name)!r}"
+                )
 
     @classmethod
     def from_dict(cls, d: dict | None) -> ModelSettings:
@@ -173,8 +228,6 @@ def build_cast(
     s = settings if isinstance(settings, ModelSettings) else ModelSettings.from_dict(settings)
     geo.check_contours(contours.skin, contours.bone, animal=animal, min_gap_mm=s.min_gap_mm)
     contours = _equidistant(contours)
-    if s.loft not in ("ruled", "smooth"):
-        raise ValueError(f"animal {animal}: model.loft {s.loft!r}: expected 'ruled' or 'smooth'")
     # the cast is offset from the surface the mesh lies on: the ruled loft is rebuilt here exactly
     # (straight lines between the offset contours); the smooth one is sampled from OpenCASCADE
     surface = (
@@ -182,24 +235,28 @@ def build_cast(
         if s.loft == "smooth"
         else None
     )
-    footprints = None
     if s.hole_for_variants:
         footprints = [
             (sp.point_mm, sp.axis, sp.half_length_mm, sp.long_dir)
             for sp in _patch_specs(pose, list(variants), s).values()
         ]
+    else:
+        footprints = [(pose.tip_end_mm, pose.indenter_axis, 0.0, None)]
+    spec = geo.CastSpec(
+        offset_mm=s.cast_offset_mm,
+        offset_direction=s.cast_offset_direction,
+        extension_mm=s.cast_extension_mm,
+        dz_mm=s.cast_dz_mm,
+        ruled=s.loft == "ruled",
+        hole_diameter_mm=s.hole_diameter_mm,
+    )
     v, t, msgs = geo.build_cast(
         contours.skin,
+        footprints,
+        spec,
         axis=pose.indenter_axis,
         point_mm=pose.tip_end_mm,
-        offset_mm=s.cast_offset_mm,
-        extension_mm=s.cast_extension_mm,
-        hole_diameter_mm=s.hole_diameter_mm,
-        offset_direction=s.cast_offset_direction,
-        dz_mm=s.cast_dz_mm,
         surface=surface,
-        ruled=s.loft == "ruled",
-        footprints=footprints,
         animal=animal,
     )
     for m in msgs:
@@ -324,7 +381,7 @@ def build_model(
         The cast; built with :func:`build_cast` when None.
     size_field : deeptissue.mesh.SizeField or None
         A background size [mm] in place of the refinement around the variants' travel
-        (:func:`deeptissue.mesh.mesh_limb`; the adaptive loop's remeshing, :mod:`deeptissue.adapt_limb`).
+        (:class:`deeptissue.mesh.MeshSpec`; the adaptive loop's remeshing, :mod:`deeptissue.adapt_limb`).
 
     Returns
     -------
@@ -339,6 +396,8 @@ def build_model(
         Contours or a pose that cannot make a model (names the animal).
     deeptissue.mesh.MeshQualityError
         A mesh with inverted or degenerate elements with both 3D algorithms.
+    deeptissue.mesh.MeshSizeError
+        A mesh estimated to have more elements than fit in memory (before meshing).
     """
     t0 = time.perf_counter()
     s = settings if isinstance(settings, ModelSettings) else ModelSettings.from_dict(settings)
@@ -349,34 +408,16 @@ def build_model(
         contours.skin, contours.bone, animal=animal, min_gap_mm=s.min_gap_mm
     )
     contours = _equidistant(contours)
-    msgs: list[str] = []
     if cast is None:
         cast = build_cast(contours, pose, variants=variants, settings=s, animal=animal)
-    axes = variant_axes(pose, variants)
-    segs, seen = [], []
-    for name, (axis, start, end, v) in axes.items():
-        # the bar's travel is swept along the bar: its rounded ends concentrate strain too
-        half, long_dir = _bar_sweep(v, axis, s)
-        for off in [-half, 0.0, half] if half > 0 else [0.0]:
-            shift = off * long_dir if off else 0.0
-            key = tuple(np.round(np.concatenate([axis, start + shift]), 9))
-            if key in seen:
-                continue
-            seen.append(key)
-            segs.append(
-                RefineSegment(
-                    start_mm=start + shift, end_mm=end + shift + s.refine_depth_mm * axis
-                )
-            )
     specs = _patch_specs(pose, variants, s)
-    import tempfile
-
-    kw = dict(
+    spec = MeshSpec(
         element_size_mm=s.element_size_mm,
         refine_size_mm=s.refine_size_mm,
         refine_radius_mm=s.refine_radius_mm,
         refine_transition_mm=s.refine_transition_mm,
-        refine_segments=tuple(segs),
+        refine_segments=_refine_segments(pose, variants, s),
+        size_field=size_field,
         patches=specs,
         spline_points=s.spline_points,
         loft=s.loft,
@@ -384,33 +425,134 @@ def build_model(
         min_scaled_jacobian=s.min_scaled_jacobian,
         min_dihedral_deg=s.min_dihedral_deg,
         min_curved_ratio=s.min_curved_ratio,
+        algorithm_3d=s.algorithm_3d,
         order=s.element_order,
-        animal=animal,
-        size_field=size_field,
     )
+    msgs: list[str] = []
+    mesh, stats, msh_bytes = _mesh_with_fallback(contours, spec, animal=animal, msgs=msgs)
+    info = {
+        "animal": animal,
+        "settings": s.to_dict(),
+        "variants": variants,
+        "tags": _facet_tags(mesh),
+        "patches": _patch_facts(mesh, pose, variants),
+        "volumes": _volumes(contours, stats),
+        "mesh": {k: v for k, v in stats.items() if k not in ("facet_counts",)},
+        "cast": _cast_facts(mesh, cast, pose, list(specs.values()), s),
+        "contours": {
+            "n_slices": int(contours.n_slices),
+            "n_points": int(contours.skin.shape[1]),
+            "min_skin_bone_gap_mm": float(facts["min_gap_mm"].min()),
+        },
+        "refine_segments_mm": [[seg.start_mm, seg.end_mm] for seg in spec.refine_segments],
+        "log": msgs,
+        "wall_s": time.perf_counter() - t0,
+    }
+    log.info(
+        "animal %s: %d tets (estimated %.0f), %d nodes, min scaled Jacobian %.3f, min dihedral %.1f deg, "
+        "volume %.1f mm3 (prismatoid %+.2f %%)",
+        animal,
+        stats["n_tets"],
+        stats["estimated_tets"],
+        stats["n_nodes"],
+        stats["min_scaled_jacobian"],
+        stats["min_dihedral_deg"],
+        info["volumes"]["mesh_mm3"],
+        info["volumes"]["mesh_vs_prismatoid_percent"],
+    )
+    return AnimalModel(
+        animal=animal, mesh=mesh, cast=cast, info=info, msh_bytes=msh_bytes, log=tuple(msgs)
+    )
+
+
+def _refine_segments(pose: Pose, variants, s: ModelSettings) -> tuple:
+    """The segments the mesh is refined around: each variant's travel to ``refine_depth_mm`` past its final
+    tip, a bar's swept along the bar (its rounded ends concentrate strain too), duplicates once."""
+    segs, seen = [], set()
+    for axis, start, end, v in variant_axes(pose, variants).values():
+        half, long_dir = _bar_sweep(v, axis, s)
+        for off in [-half, 0.0, half] if half > 0 else [0.0]:
+            shift = off * long_dir if off else 0.0
+            key = tuple(np.round(np.concatenate([axis, start + shift]), 9))
+            if key in seen:
+                continue
+            seen.add(key)
+            segs.append(
+                RefineSegment(
+                    start_mm=start + shift, end_mm=end + shift + s.refine_depth_mm * axis
+                )
+            )
+    return tuple(segs)
+
+
+def _mesh_with_fallback(contours: Contours, spec: MeshSpec, *, animal: str, msgs: list):
+    """(mesh, stats, the .msh file's bytes) of :func:`deeptissue.mesh.mesh_limb`; a mesh the quality gate
+    refuses is made once more with the other 3D algorithm, and ``msgs`` says so."""
     with tempfile.TemporaryDirectory() as tmp:
         msh = Path(tmp) / "mesh.msh"
         try:
             mesh, stats = mesh_limb(
-                contours.skin, contours.bone, algorithm_3d=s.algorithm_3d, msh_path=msh, **kw
+                contours.skin, contours.bone, spec, animal=animal, msh_path=msh
             )
         except MeshQualityError as exc:
-            other = "delaunay" if s.algorithm_3d == "hxt" else "hxt"
+            other = "delaunay" if spec.algorithm_3d == "hxt" else "hxt"
             msgs.append(f"mesh: {exc}; retried with the {other} 3D algorithm")
             log.warning("animal %s: %s", animal, msgs[-1])
             mesh, stats = mesh_limb(
-                contours.skin, contours.bone, algorithm_3d=other, msh_path=msh, **kw
+                contours.skin,
+                contours.bone,
+                dataclasses.replace(spec, algorithm_3d=other),
+                animal=animal,
+                msh_path=msh,
             )
-        msh_bytes = msh.read_bytes()
+        return mesh, stats, msh.read_bytes()
 
+
+def _facet_tags(mesh: TetMesh) -> dict:
+    """{facet set: its facet count and area [mm²]}."""
+    tags = {}
+    for name in mesh.facets:
+        _, a = _facet_geometry(mesh, name)
+        tags[name] = {"n_facets": int(len(mesh.facets[name])), "area_mm2": float(a.sum())}
+    return tags
+
+
+def _patch_facts(mesh: TetMesh, pose: Pose, variants) -> dict:
+    """{variant: its patch's tag, indenter, axis and travel, facet count and farthest node from the axis [mm]}."""
+    patches = {}
+    for name, (axis, start, end, v) in variant_axes(pose, variants).items():
+        f = mesh.facets[f"patch_{name}"]
+        d = geo.axis_distance_mm(mesh.nodes_mm[f], point_mm=end, axis=axis)
+        patches[name] = {
+            "tag": f"patch_{name}",
+            "indenter": v.indenter,
+            "axis": axis,
+            "tip_start_mm": start,
+            "tip_end_mm": end,
+            "n_facets": int(len(f)),
+            "max_axis_distance_mm": float(d.max()),
+        }
+    return patches
+
+
+def _volumes(contours: Contours, stats: dict) -> dict:
+    """The mesh's, the prismatoid's and the CAD solid's volume [mm³], and the mesh against the prismatoid [%]."""
     prism = geo.limb_volume_mm3(contours.skin, contours.bone)
     vol = stats["mesh_volume_mm3"]
-    # skin-cast gap (QC), over skin nodes away from the hole
-    skin_nodes = np.unique(mesh.facets["skin"])
-    xs = mesh.nodes_mm[skin_nodes]
+    return {
+        "mesh_mm3": vol,
+        "prismatoid_mm3": prism,
+        "cad_mm3": stats.get("occ_volume_mm3"),
+        "mesh_vs_prismatoid_percent": 100.0 * (vol - prism) / prism,
+    }
+
+
+def _cast_facts(mesh: TetMesh, cast: Cast, pose: Pose, patches: list, s: ModelSettings) -> dict:
+    """The cast's size and the skin-cast gap [mm] over the skin nodes away from the hole (QC)."""
+    xs = mesh.nodes_mm[np.unique(mesh.facets["skin"])]
     gap = geo.surface_distance_mm(xs, cast.vertices_mm, cast.triangles)
     hole_fps = (
-        list(specs.values())
+        patches
         if s.hole_for_variants
         else [PatchSpec(point_mm=pose.tip_end_mm, axis=pose.indenter_axis, radius_mm=0.0)]
     )
@@ -430,69 +572,17 @@ def build_model(
     away = near_hole > 0.5 * s.hole_diameter_mm + 1.0
     away |= (
         xs - pose.tip_end_mm
-    ) @ pose.indenter_axis > 2.0  # far side of the leg (the hole is on the near side)
-    tags = {}
-    for name in mesh.facets:
-        c, a = _facet_geometry(mesh, name)
-        tags[name] = {"n_facets": int(len(mesh.facets[name])), "area_mm2": float(a.sum())}
-    patches = {}
-    for name, (axis, start, end, v) in axes.items():
-        f = mesh.facets[f"patch_{name}"]
-        d = geo.axis_distance_mm(mesh.nodes_mm[f], point_mm=end, axis=axis)
-        patches[name] = {
-            "tag": f"patch_{name}",
-            "indenter": v.indenter,
-            "axis": axis,
-            "tip_start_mm": start,
-            "tip_end_mm": end,
-            "n_facets": int(len(f)),
-            "max_axis_distance_mm": float(d.max()),
-        }
-    info = {
-        "animal": animal,
-        "settings": s.to_dict(),
-        "variants": variants,
-        "tags": tags,
-        "patches": patches,
-        "volumes": {
-            "mesh_mm3": vol,
-            "prismatoid_mm3": prism,
-            "cad_mm3": stats.get("occ_volume_mm3"),
-            "mesh_vs_prismatoid_percent": 100.0 * (vol - prism) / prism,
+    ) @ pose.indenter_axis > 2.0  # far side (the hole is on the near side)
+    return {
+        "n_vertices": int(len(cast.vertices_mm)),
+        "n_triangles": int(len(cast.triangles)),
+        "skin_gap_mm": {
+            "min": float(gap[away].min()),
+            "mean": float(gap[away].mean()),
+            "max": float(gap[away].max()),
         },
-        "mesh": {k: v for k, v in stats.items() if k not in ("facet_counts",)},
-        "cast": {
-            "n_vertices": int(len(cast.vertices_mm)),
-            "n_triangles": int(len(cast.triangles)),
-            "skin_gap_mm": {
-                "min": float(gap[away].min()),
-                "mean": float(gap[away].mean()),
-                "max": float(gap[away].max()),
-            },
-            "log": list(cast.log),
-        },
-        "contours": {
-            "n_slices": int(contours.n_slices),
-            "n_points": int(contours.skin.shape[1]),
-            "min_skin_bone_gap_mm": float(facts["min_gap_mm"].min()),
-        },
-        "refine_segments_mm": [[seg.start_mm, seg.end_mm] for seg in segs],
-        "log": msgs,
-        "wall_s": time.perf_counter() - t0,
+        "log": list(cast.log),
     }
-    log.info(
-        "animal %s: %d tets, %d nodes, min scaled Jacobian %.3f, min dihedral %.1f deg, volume %.1f mm3 (prismatoid %+.2f %%)",
-        animal,
-        stats["n_tets"],
-        stats["n_nodes"],
-        stats["min_scaled_jacobian"],
-        stats["min_dihedral_deg"],
-        vol,
-        info["volumes"]["mesh_vs_prismatoid_percent"],
-    )
-    return AnimalModel(
-        animal=animal, mesh=mesh, cast=cast, info=info, msh_bytes=msh_bytes, log=tuple(msgs)
-    )
 
 
 # --------------------------------------------------------------------------- writers and QC
@@ -502,8 +592,6 @@ def write_vtu(path: str | Path, mesh: TetMesh) -> None:
     """ParaView file: the 10-node tets and one block of 6-node triangles per facet set (4-node tets and
     3-node triangles for a linear mesh); cell data ``group`` (0 = tets, i = i-th facet set in sorted
     order, listed in field data)."""
-    import meshio
-
     names = sorted(mesh.facets)
     if mesh.order == 2:
         cells = [
@@ -581,7 +669,8 @@ def plot_model_qc(path, model: AnimalModel, pose: Pose) -> None:
         ax.add_collection3d(
             Line3DCollection(v[ring], colors=[(0.1, 0.3, 0.9, 0.35)], linewidths=0.4)
         )
-        ax.add_collection3d(Line3DCollection(v[rim], colors="k", linewidths=1.5))
+        if len(rim):  # a cast without a hole (model.hole_diameter_mm 0) has no rim
+            ax.add_collection3d(Line3DCollection(v[rim], colors="k", linewidths=1.5))
         p0, p1 = pose.tip_start_mm - 4 * a, pose.tip_end_mm + 2 * a
         ax.plot(*np.stack([p0, p1]).T, color="orange", lw=2)
         lo, hi = v.min(axis=0), v.max(axis=0)
@@ -600,6 +689,11 @@ def plot_model_qc(path, model: AnimalModel, pose: Pose) -> None:
             elev=float(np.degrees(np.arcsin(np.clip(vv[2], -1, 1)))),
             azim=float(np.degrees(np.arctan2(vv[1], vv[0]))),
         )
+        ax.set_proj_type("ortho")
+        # the world axis closest to the line of sight is seen end-on: its ticks would pile up into one blot
+        along = "xyz"[int(np.argmax(np.abs(vv)))]
+        getattr(ax, f"set_{along}ticks")([])
+        getattr(ax, f"set_{along}label")("")
         ax.set_title(title, fontsize=9)
     st = model.info["mesh"]
     fig.suptitle(
@@ -640,9 +734,6 @@ def run_cast(
     Cast
         What was written.
     """
-    from .contours import load_contours
-    from .pose import load_pose
-
     cast = build_cast(
         load_contours(contours_npz),
         load_pose(pose_json),
@@ -654,30 +745,31 @@ def run_cast(
     return cast
 
 
+@dataclass(frozen=True)
+class MeshFiles:
+    """The files of rule ``mesh``: its inputs, pre contours (:func:`deeptissue.contours.load_contours`), pose
+    (:func:`deeptissue.pose.load_pose`) and cast (:func:`run_cast`), and its outputs, the mesh files and
+    model.json (:func:`write_model`) and the QC figure (:func:`plot_model_qc`)."""
+
+    contours_npz: str | Path
+    pose_json: str | Path
+    cast_npz: str | Path
+    mesh_npz: str | Path
+    mesh_msh: str | Path
+    mesh_vtu: str | Path
+    model_json: str | Path
+    qc_png: str | Path
+
+
 def run_mesh(
-    *,
-    contours_npz,
-    pose_json,
-    cast_npz,
-    mesh_npz,
-    mesh_msh,
-    mesh_vtu,
-    model_json,
-    qc_png,
-    variants,
-    settings: dict | None = None,
-    animal: str = "?",
+    files: MeshFiles, *, variants, settings: dict | None = None, animal: str = "?"
 ) -> AnimalModel:
     """Rule ``mesh``: read pre contours, pose and cast; write the mesh files, model.json and the QC figure.
 
     Parameters
     ----------
-    contours_npz, pose_json, cast_npz : str or Path
-        Inputs: pre contours, pose, cast (:func:`run_cast`).
-    mesh_npz, mesh_msh, mesh_vtu, model_json : str or Path
-        Outputs of :func:`write_model`.
-    qc_png : str or Path
-        QC figure (:func:`plot_model_qc`).
+    files : MeshFiles
+        The rule's inputs and outputs.
     variants : sequence of str
         Variants tagged and refined for on this mesh.
     settings, animal
@@ -688,20 +780,21 @@ def run_mesh(
     AnimalModel
         The model written.
     """
-    from .contours import load_contours
-    from .pose import load_pose
-
-    pose = load_pose(pose_json)
+    pose = load_pose(files.pose_json)
     model = build_model(
-        load_contours(contours_npz),
+        load_contours(files.contours_npz),
         pose,
         variants=variants,
         settings=settings,
         animal=animal,
-        cast=load_cast(cast_npz),
+        cast=load_cast(files.cast_npz),
     )
     write_model(
-        model, mesh_npz=mesh_npz, mesh_msh=mesh_msh, mesh_vtu=mesh_vtu, model_json=model_json
+        model,
+        mesh_npz=files.mesh_npz,
+        mesh_msh=files.mesh_msh,
+        mesh_vtu=files.mesh_vtu,
+        model_json=files.model_json,
     )
-    plot_model_qc(qc_png, model, pose)
+    plot_model_qc(files.qc_png, model, pose)
     return model

@@ -3,6 +3,7 @@ from argparse import Namespace
 from pathlib import Path
 
 from deeptissue.config import has_during_scan, validate_config
+from deeptissue.io import remove_stale_partials
 from deeptissue.scanner import scan_kind
 from deeptissue.variants import mesh_group_of, mesh_groups, solve_priority, turn_base
 
@@ -125,6 +126,13 @@ def segment_inputs(wildcards):
     if is_phantom(wildcards.animal):
         inputs["truth"] = f"results/{wildcards.animal}/mri/truth_{wildcards.state}.npz"
     return inputs
+
+
+onstart:
+    # the temporaries of outputs whose job was killed mid-write (SIGKILL: the out-of-memory killer); a rerun of
+    # the job removes those of its own outputs, this removes those of outputs nothing will write again
+    for partial in remove_stale_partials("results"):
+        logger.info(f"removed {partial}: part of a file whose writing job was killed")
 
 
 # Final targets of the study: each stage's rule file extends this list with its outputs.
