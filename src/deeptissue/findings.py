@@ -475,7 +475,7 @@ def claim_peak_location(voi: pd.DataFrame, peaks: pd.DataFrame | None, *, shape:
 # --- claims 3, 4: the orientation offsets -------------------------------------------------------------
 
 
-def claim_offset_direction(ch: pd.DataFrame, n_included: int) -> Finding:
+def claim_offset_direction(ch: pd.DataFrame) -> Finding:
     """Claim 3a: per animal, every offset moves the VOI the way its sign says beyond the change's
     error; all included animals but one (none with fewer than three) must."""
     if ch.empty:
@@ -722,7 +722,7 @@ def findings_table(
         claim_tissue_below_threshold(voi, reference=reference),
         claim_peak_location(voi, peaks, shape="sphere"),
         claim_peak_location(voi, peaks, shape="bar"),
-        claim_offset_direction(ch, _included(voi)["animal"].nunique()),
+        claim_offset_direction(ch),
         claim_increases_vs_decreases(ch),
         claim_small_voi_change(ch),
         claim_little_bin_change(bins, ch, reference=reference),
@@ -758,6 +758,10 @@ def findings_markdown(findings: Sequence[Finding], *, study: str) -> str:
             f"| {f.claim_id}. {esc(f.claim)} | {esc(f.paper)} | {esc(f.finding)}{fig} | "
             f"**{f.verdict}** | {esc(f.reason)} |"
         )
+    figures = list(dict.fromkeys(f.figure for f in findings if f.figure))
+    if figures:
+        lines += ["", "## Figures", ""]
+        lines += [f"![{name}]({name})" for name in figures]
     return "\n".join(lines) + "\n"
 
 
