@@ -7,13 +7,15 @@ from study_meshes import box_tet10, centroids
 
 from deeptissue.pose import Pose, save_pose
 from deeptissue.report import (
+    AggregateJob,
+    SectionGrid,
     aggregate_study,
     exclusions,
     locate_points,
     sample_sections,
     section_frame,
     summary_tables,
-    voi_change_percent,
+    voi_changes,
 )
 from deeptissue.summary import (
     Summary,
@@ -108,7 +110,7 @@ def test_tables_flag_the_whole_animal_when_one_variant_fails(tmp_path):
     assert voi.loc[0, "bins_percent.0.3-0.4"] == 60.0 and voi.loc[0, "bins_percent.>1.0"] == 40.0
     assert "bins_percent" not in voi.columns and np.isnan(b["bins_percent.0.3-0.4"].iloc[1])
     assert len(bins) == 2 * 3 * len(LABELS)
-    assert list(bins.columns) == ["animal", "variant", "bin", "percent", "excluded"]
+    assert list(bins.columns) == ["animal", "variant", "bin", "percent", "err_pp", "excluded"]
     failed = bins[(bins["animal"] == "ratB") & (bins["variant"] == "bar")]
     assert list(failed["bin"]) == LABELS and failed["percent"].isna().all()
     a_sphere = bins[(bins["animal"] == "ratA") & (bins["variant"] == "sphere")].set_index("bin")[
@@ -126,11 +128,49 @@ def test_tables_flag_the_whole_animal_when_one_variant_fails(tmp_path):
 
 def test_voi_change_against_the_estimated_orientation():
     voi, _ = summary_tables(_study(), animals=["ratA", "ratB"], variants=VARIANTS)
-    ch = voi_change_percent(voi).set_index(["animal", "variant"])["voi_change_percent"]
+    ch = voi_changes(voi).set_index(["animal", "variant"])["voi_change_percent"]
     assert ch[("ratA", "bar")] == pytest.approx(50.0)
     assert ch[("ratA", "sphere_rx+15")] == pytest.approx(-20.0)
     assert ch[("ratB", "sphere_rx+15")] == pytest.approx(10.0)
     assert np.isnan(ch[("ratB", "bar")])  # not converged: undefined, not zero
+
+
+def test_voi_change_carries_the_sum_of_the_two_error_estimates():
+    def with_err(animal, variant, voi, err):
+        return Summary(**{**_ok(animal, variant, voi).to_dict(), "voi_err_mm3": err})
+
+    study = [
+        with_err("ratA", "sphere", 10.0, 0.5),
+        with_err("ratA", "sphere_rx+15", 11.0, 0.3),  # +1.0 against 0.8: larger than its error
+        with_err("ratA", "sphere_rx-15", 9.5, 0.3),  # -0.5 against 0.8: within it
+    ]
+    voi, _ = summary_tables(
+        study, animals=["ratA"], variants=["sphere", "sphere_rx+15", "sphere_rx-15"]
+    )
+    ch = voi_changes(voi).set_index("variant")
+    assert ch.loc["sphere_rx+15", "change_mm3"] == pytest.approx(1.0)
+    assert ch.loc["sphere_rx+15", "change_err_mm3"] == pytest.approx(0.8)
+    assert ch.loc["sphere_rx+15", "change_err_percent"] == pytest.approx(8.0)
+    assert ch["larger_than_error"].tolist() == [True, False]
+    # without error estimates the comparison is undefined, never "larger"
+    ch2 = voi_changes(voi.drop(columns="voi_err_mm3"))
+    assert ch2["larger_than_error"].isna().all()
+
+
+def test_tables_put_each_error_estimate_beside_its_number():
+    s = Summary(
+        **{
+            **_ok("ratA", "sphere", 10.0).to_dict(),
+            "voi_err_mm3": 0.4,
+            "bins_err_pp": dict.fromkeys(LABELS, 0.7),
+        }
+    )
+    voi, bins = summary_tables([s], animals=["ratA"], variants=["sphere"])
+    cols = list(voi.columns)
+    assert cols[cols.index("voi_mm3") + 1] == "voi_err_mm3"
+    for label in LABELS:
+        assert cols[cols.index(f"bins_percent.{label}") + 1] == f"bins_err_pp.{label}"
+    assert bins["err_pp"].tolist() == [0.7] * len(LABELS)
 
 
 def test_section_frame_contains_the_axis_and_follows_the_leg():
@@ -168,9 +208,7 @@ def test_sections_sample_the_planes_through_the_axis():
         cz[:, 2],
         axis=axis,
         tip_mm=tip,
-        half_width_mm=3.0,
-        v_range_mm=(-1.0, 5.0),
-        resolution_mm=0.25,
+        grid=SectionGrid(half_width_mm=3.0, v_range_mm=(-1.0, 5.0), resolution_mm=0.25),
     )
     assert s.values.shape == (7, len(s.v_mm), len(s.u_mm))
     np.testing.assert_allclose(s.offsets_mm, [-3, -2, -1, 0, 1, 2, 3])
@@ -185,9 +223,7 @@ def test_sections_sample_the_planes_through_the_axis():
         cz[:, 0],
         axis=axis,
         tip_mm=tip,
-        half_width_mm=3.0,
-        v_range_mm=(0.5, 4.0),
-        resolution_mm=0.25,
+        grid=SectionGrid(half_width_mm=3.0, v_range_mm=(0.5, 4.0), resolution_mm=0.25),
     )
     assert np.max(np.abs(s2.values[3] - (tip[0] + s2.u_mm)[None, :])) <= 0.25 + 1e-12
 
@@ -240,13 +276,15 @@ def synthetic_study(tmp_path):
 def test_aggregate_study_writes_tables_and_figures(synthetic_study, figure_animal):
     paths, vtus, outs, root = synthetic_study
     aggregate_study(
-        summary_paths=paths,
-        animals=["ratA", "ratB"],
-        variants=VARIANTS,
-        outputs=outs,
-        figure_animal=figure_animal,
-        figure_results=vtus,
-        pose_path=root / "ratA" / "pose.json",
+        AggregateJob(
+            summary_paths=paths,
+            animals=["ratA", "ratB"],
+            variants=VARIANTS,
+            outputs=outs,
+            figure_animal=figure_animal,
+            figure_results=vtus,
+            pose_path=root / "ratA" / "pose.json",
+        )
     )
     voi = pd.read_csv(outs["voi_csv"])
     assert len(voi) == 6 and voi["excluded"].tolist() == [False] * 3 + [True] * 3

@@ -29,6 +29,8 @@ __all__ = [
     "EXCLUDED_COLOUR",
     "EXCLUDED_HATCH",
     "MEASURE_LABELS",
+    "AggregateJob",
+    "SectionGrid",
     "Sections",
     "aggregate_study",
     "exclusions",
@@ -38,10 +40,12 @@ __all__ = [
     "plot_sections",
     "plot_voi",
     "plot_voi_change",
+    "pyplot",
     "sample_sections",
     "section_frame",
+    "save_figure",
     "summary_tables",
-    "voi_change_percent",
+    "voi_changes",
     "write_csv",
 ]
 
@@ -97,8 +101,9 @@ def summary_tables(
     variants: Sequence[str],
     bin_edges: Sequence[float] | None = None,
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """``voi`` (one row per animal × variant, every summary field, dicts flattened as ``key.sub``) and
-    ``bins`` (long: animal, variant, bin, percent, excluded), in the configured order. Bin labels come
+    """``voi`` (one row per animal × variant, every summary field, dicts flattened as ``key.sub``, each
+    error estimate right after its number) and ``bins`` (long: animal, variant, bin, percent, err_pp
+    (its estimated error [percentage points]), excluded), in the configured order. Bin labels come
     from the summaries, or from ``bin_edges`` when no run converged.
 
     Raises ValueError naming any animal × variant without a summary.
@@ -120,7 +125,7 @@ def summary_tables(
             }
             d = s.to_dict()
             d.pop("animal"), d.pop("variant")
-            row.update(_flatten(d))
+            row.update(_beside_errors(_flatten(d)))
             rows.append(row)
             labels = (
                 list(s.bins_percent or {})
@@ -128,18 +133,45 @@ def summary_tables(
                 or (bin_labels(bin_edges) if bin_edges else [])
             )
             for label in labels:
-                pct = (s.bins_percent or {}).get(label, np.nan) if s.converged else np.nan
+                ok = s.converged
                 bins.append(
                     {
                         "animal": a,
                         "variant": v,
                         "bin": label,
-                        "percent": pct,
+                        "percent": (s.bins_percent or {}).get(label, np.nan) if ok else np.nan,
+                        "err_pp": (s.bins_err_pp or {}).get(label, np.nan) if ok else np.nan,
                         "excluded": a in excl,
                     }
                 )
     voi = pd.DataFrame(rows)
-    return voi, pd.DataFrame(bins, columns=["animal", "variant", "bin", "percent", "excluded"])
+    return voi, pd.DataFrame(bins, columns=BINS_COLUMNS)
+
+
+BINS_COLUMNS = ["animal", "variant", "bin", "percent", "err_pp", "excluded"]
+
+
+def _beside_errors(flat: dict) -> dict:
+    """The same entries with each error estimate right after its number: ``voi_err_mm3`` after
+    ``voi_mm3``, ``bins_err_pp.<bin>`` after ``bins_percent.<bin>``."""
+    errors = {"voi_mm3": "voi_err_mm3"}
+    errors.update(
+        {
+            k: "bins_err_pp." + k[len("bins_percent.") :]
+            for k in flat
+            if k.startswith("bins_percent.")
+        }
+    )
+    placed = set(errors.values())
+    out = {}
+    for k, v in flat.items():
+        if k in placed:
+            continue
+        out[k] = v
+        if k in errors and errors[k] in flat:
+            out[errors[k]] = flat[errors[k]]
+    out.update({k: v for k, v in flat.items() if k not in out})
+    return out
 
 
 def _labels_from_any(summaries) -> list[str]:
@@ -158,7 +190,8 @@ def write_csv(path: str | Path, df: pd.DataFrame) -> None:
 # --- bar figures -----------------------------------------------------------------------------------
 
 
-def _plt():
+def pyplot():
+    """matplotlib.pyplot on the file-only Agg backend (the rules run without a display)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -167,14 +200,15 @@ def _plt():
     return plt
 
 
-def _save(fig, path) -> None:
+def save_figure(fig, path) -> None:
+    """Write ``fig`` as PNG (120 dpi, tight), atomically, and close it."""
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=120, bbox_inches="tight")
-    _plt().close(fig)
+    pyplot().close(fig)
 
 
 def _variant_colours(variants):
-    cmap = _plt().get_cmap("tab10")
+    cmap = pyplot().get_cmap("tab10")
     return {v: cmap(i % 10) for i, v in enumerate(variants)}
 
 
@@ -200,7 +234,7 @@ def plot_voi(
     voi: pd.DataFrame, path: str | Path, *, measure_label: str = "γmax (Green–Lagrange)"
 ) -> None:
     """Fig. 7A style: VOI [mm³] per animal, one bar per variant; excluded animals greyed and hatched."""
-    plt = _plt()
+    plt = pyplot()
     animals = list(dict.fromkeys(voi["animal"]))
     variants = list(dict.fromkeys(voi["variant"]))
     colours = _variant_colours(variants)
@@ -266,28 +300,22 @@ def plot_voi(
     ax.set_title(
         f"Volume with {measure_label} above threshold{at} (x: not converged{bars})", fontsize=10
     )
-    _save(fig, path)
+    save_figure(fig, path)
 
 
-def plot_bins(bins: pd.DataFrame, path: str | Path, *, voi: pd.DataFrame | None = None) -> None:
-    """Fig. 7B style: stacked % of the VOI per strain bin, one bar per animal × variant; with the
-    ``voi`` table, the largest estimated bin error (its ``bins_err_pp.*`` columns) is written above each bar."""
-    plt = _plt()
+def plot_bins(bins: pd.DataFrame, path: str | Path) -> None:
+    """Fig. 7B style: stacked % of the VOI per strain bin, one bar per animal × variant; the largest
+    estimated bin error (the ``err_pp`` column of :func:`summary_tables`' bins) is written above each bar."""
+    plt = pyplot()
     animals = list(dict.fromkeys(bins["animal"]))
     variants = list(dict.fromkeys(bins["variant"]))
     labels = list(dict.fromkeys(bins["bin"]))
     cmap = plt.get_cmap("viridis")
     colours = {b: cmap(k / max(1, len(labels) - 1)) for k, b in enumerate(labels)}
-    worst_err = {}
-    err_cols = [
-        c for c in (voi.columns if voi is not None else []) if c.startswith("bins_err_pp.")
+    errs = bins.assign(err=_numbers(bins, "err_pp")).groupby(["animal", "variant"], sort=False)[
+        "err"
     ]
-    if err_cols:
-        errs = voi[err_cols].apply(pd.to_numeric, errors="coerce").to_numpy(float)
-        worst_err = {
-            (a, v): float(np.nanmax(e)) if np.isfinite(e).any() else np.nan
-            for a, v, e in zip(voi["animal"], voi["variant"], errs)
-        }
+    worst_err = {k: float(e.max()) for k, e in errs if np.isfinite(e).any()}
     fig, ax = plt.subplots(figsize=(max(6, 0.35 * len(animals) * len(variants) + 2), 4))
     x, ticks, ticklabels = 0.0, [], []
     for a in animals:
@@ -332,56 +360,101 @@ def plot_bins(bins: pd.DataFrame, path: str | Path, *, voi: pd.DataFrame | None 
         "Distribution of the VOI over strain bins (hatched: excluded animal; n.c.: not converged;\n"
         "±: largest estimated bin error [pp])"
     )
-    _save(fig, path)
+    save_figure(fig, path)
 
 
-def voi_change_percent(voi: pd.DataFrame, *, reference: str = "sphere") -> pd.DataFrame:
-    """Per animal and variant ≠ reference: 100 (VOI_variant / VOI_reference − 1) [%] (NaN where undefined)."""
+def _numbers(df: pd.DataFrame, column: str) -> np.ndarray:
+    """A column as floats (NaN where empty or absent: a table without error estimates)."""
+    if column not in df:
+        return np.full(len(df), np.nan)
+    return pd.to_numeric(df[column], errors="coerce").to_numpy(float)
+
+
+VOI_CHANGE_COLUMNS = [
+    "animal",
+    "variant",
+    "voi_mm3",
+    "reference_voi_mm3",
+    "change_mm3",
+    "change_err_mm3",
+    "voi_change_percent",
+    "change_err_percent",
+    "larger_than_error",
+    "excluded",
+    "exclusion_reason",
+]
+
+
+def voi_changes(voi: pd.DataFrame, *, reference: str = "sphere") -> pd.DataFrame:
+    """The VOI change of every variant ≠ ``reference`` against it, per animal, with its uncertainty.
+
+    ``change_mm3`` = VOI − VOI_reference; ``change_err_mm3`` = ``voi_err_mm3`` of the variant plus that
+    of the reference (the sum of the two error estimates: the errors of two solutions on related meshes
+    may have either sign, and their sum bounds the error of the difference whatever the correlation);
+    ``voi_change_percent`` = 100 · change / VOI_reference and ``change_err_percent`` = 100 ·
+    change_err / VOI_reference [%]. ``larger_than_error`` is True where |change| > change_err, False
+    where not, and NaN (missing) where either is undefined (a variant not converged, an empty
+    reference VOI, no error estimate).
+    """
     rows = []
     for a, sub in voi.groupby("animal", sort=False):
         sub = sub.set_index("variant")
         if reference not in sub.index:
             continue
-        ref = pd.to_numeric(pd.Series([sub.loc[reference, "voi_mm3"]]), errors="coerce").iloc[0]
-        for v in sub.index:
+        vals, errs = _numbers(sub, "voi_mm3"), _numbers(sub, "voi_err_mm3")
+        i_ref = list(sub.index).index(reference)
+        ref, ref_err = vals[i_ref], errs[i_ref]
+        for k, v in enumerate(sub.index):
             if v == reference:
                 continue
-            val = pd.to_numeric(pd.Series([sub.loc[v, "voi_mm3"]]), errors="coerce").iloc[0]
-            change = (
-                100.0 * (val / ref - 1.0)
-                if (np.isfinite(ref) and ref > 0 and np.isfinite(val))
-                else np.nan
-            )
+            change, err = vals[k] - ref, errs[k] + ref_err
+            defined = np.isfinite(ref) and ref > 0 and np.isfinite(vals[k])
             rows.append(
                 {
                     "animal": a,
                     "variant": v,
-                    "voi_change_percent": change,
+                    "voi_mm3": vals[k],
+                    "reference_voi_mm3": ref,
+                    "change_mm3": change if defined else np.nan,
+                    "change_err_mm3": err if defined else np.nan,
+                    "voi_change_percent": 100.0 * change / ref if defined else np.nan,
+                    "change_err_percent": 100.0 * err / ref if defined else np.nan,
+                    "larger_than_error": bool(abs(change) > err)
+                    if defined and np.isfinite(err)
+                    else None,
                     "excluded": bool(sub["excluded"].iloc[0]),
                     "exclusion_reason": sub["exclusion_reason"].iloc[0],
                 }
             )
-    return pd.DataFrame(
-        rows, columns=["animal", "variant", "voi_change_percent", "excluded", "exclusion_reason"]
-    )
+    return pd.DataFrame(rows, columns=VOI_CHANGE_COLUMNS)
 
 
 def plot_voi_change(voi: pd.DataFrame, path: str | Path, *, reference: str = "sphere") -> None:
     """VOI change of every other orientation of the reference indenter (variants named
-    ``<reference>_…``, e.g. ``sphere_rx+15``) against the estimated orientation per animal [%]; other
-    indenters (the bar, several times the sphere's VOI) would set the scale and hide the orientations
-    (their change is in :func:`voi_change_percent`)."""
-    plt = _plt()
-    ch = voi_change_percent(voi, reference=reference)
+    ``<reference>_…``, e.g. ``sphere_rx+15``) against the estimated orientation per animal [%], with its
+    uncertainty as error bar (:func:`voi_changes`); a change larger than its uncertainty is drawn solid
+    and marked ``*``, one within it pale. Other indenters (the bar, several times the sphere's VOI)
+    would set the scale and hide the orientations (their change is in :func:`voi_changes`)."""
+    plt = pyplot()
+    ch = voi_changes(voi, reference=reference)
     animals = list(dict.fromkeys(voi["animal"]))
     all_variants = list(dict.fromkeys(voi["variant"]))
     variants = [v for v in all_variants if v != reference and v.startswith(f"{reference}_")]
     colours = _variant_colours(all_variants)
     fig, ax = plt.subplots(figsize=(max(6, 1.2 * len(animals) + 2), 4))
     width = 0.8 / max(1, len(variants))
-    vals = ch[ch["variant"].isin(variants)]["voi_change_percent"].to_numpy(float)
-    hi = max(10.0, 1.3 * float(np.nanmax(vals, initial=0.0))) if len(vals) else 10.0
-    lo = min(-10.0, 1.3 * float(np.nanmin(vals, initial=0.0))) if len(vals) else -10.0
+    shown = ch[ch["variant"].isin(variants)]
+    ends = np.concatenate(
+        [
+            _numbers(shown, "voi_change_percent") + _numbers(shown, "change_err_percent"),
+            _numbers(shown, "voi_change_percent") - _numbers(shown, "change_err_percent"),
+            _numbers(shown, "voi_change_percent"),
+        ]
+    )
+    hi = max(10.0, 1.3 * float(np.nanmax(ends, initial=0.0)))
+    lo = min(-10.0, 1.3 * float(np.nanmin(ends, initial=0.0)))
+    n_real = int((shown["larger_than_error"] == True).sum())  # noqa: E712 (None: undefined)
+    n_defined = int(shown["larger_than_error"].notna().sum())
     for i, a in enumerate(animals):
         sub = ch[ch["animal"] == a].set_index("variant")
         excluded = bool(sub["excluded"].iloc[0]) if len(sub) else False
@@ -391,6 +464,8 @@ def plot_voi_change(voi: pd.DataFrame, path: str | Path, *, reference: str = "sp
             if not np.isfinite(val):
                 ax.plot(x, 0, marker="x", color="k", ms=5)
                 continue
+            err = float(sub.loc[v, "change_err_percent"])
+            real = sub.loc[v, "larger_than_error"] == True  # noqa: E712 (None: undefined)
             ax.bar(
                 x,
                 val,
@@ -398,7 +473,13 @@ def plot_voi_change(voi: pd.DataFrame, path: str | Path, *, reference: str = "sp
                 color=EXCLUDED_COLOUR if excluded else colours[v],
                 hatch=EXCLUDED_HATCH if excluded else None,
                 edgecolor="0.4" if excluded else "none",
+                alpha=1.0 if real else 0.35,
+                yerr=err if np.isfinite(err) else None,
+                error_kw=dict(elinewidth=0.8, capsize=2, ecolor="k"),
             )
+            if real:
+                top = val + err if val >= 0 else val - err
+                ax.text(x, top, "*", ha="center", va="bottom" if val >= 0 else "top", fontsize=9)
         if excluded:
             _mark_excluded(ax, i, sub["exclusion_reason"].iloc[0], 0.98 * hi)
     ax.axhline(0, color="k", lw=0.8)
@@ -408,9 +489,12 @@ def plot_voi_change(voi: pd.DataFrame, path: str | Path, *, reference: str = "sp
     ax.set_ylim(lo, hi)
     ax.set_ylabel(f"VOI change vs '{reference}' [%]")
     ax.set_title(
-        f"VOI of each orientation relative to the estimated one '{reference}' (x: undefined)"
+        f"VOI of each orientation relative to the estimated one '{reference}' (x: undefined)\n"
+        f"error bar: sum of the two VOIs' estimated errors; * (solid): change larger than it, "
+        f"{n_real} of {n_defined}",
+        fontsize=9,
     )
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 # --- sections --------------------------------------------------------------------------------------
@@ -446,24 +530,34 @@ class Sections:
     v_mm: np.ndarray  # (n_v,) in-plane coordinate along the indenter axis, + into the leg [mm]
 
 
+@dataclass(frozen=True)
+class SectionGrid:
+    """Where :func:`sample_sections` samples: ``n_sections`` planes ``spacing_mm`` apart (the paper's
+    seven planes 1 mm apart), each a grid ``u ∈ [−half_width_mm, half_width_mm]`` across the indenter and
+    ``v ∈ v_range_mm`` along its axis from the tip (+ into the leg) [mm], ``resolution_mm`` apart
+    (0.1 mm: finer than the smallest element of the default meshes)."""
+
+    n_sections: int = 7
+    spacing_mm: float = 1.0
+    half_width_mm: float = 6.0
+    v_range_mm: tuple[float, float] = (-2.0, 8.0)
+    resolution_mm: float = 0.1
+
+
 def sample_sections(
     mesh: TetMesh,
     gamma,
     *,
     axis,
     tip_mm,
-    n_sections: int = 7,
-    spacing_mm: float = 1.0,
-    half_width_mm: float = 6.0,
-    v_range_mm: tuple[float, float] = (-2.0, 8.0),
-    resolution_mm: float = 0.1,
+    grid: SectionGrid = SectionGrid(),
     leg_axis=(0.0, 0.0, 1.0),
 ) -> Sections:
-    """Sample per-element ``gamma`` (n_tets,) on ``n_sections`` planes through the indenter axis.
+    """Sample per-element ``gamma`` (n_tets,) on ``grid.n_sections`` planes through the indenter axis.
 
     Plane ``k`` contains the line ``tip_mm + t·axis`` moved by ``offsets_mm[k]·n`` with offsets
     ``spacing·(k − (n_sections − 1)/2)``; the grid spans ``u ∈ [−half_width, half_width]`` along
-    ``e`` and ``v ∈ v_range`` along the axis from ``tip_mm``.
+    ``e`` and ``v ∈ v_range`` along the axis from ``tip_mm`` (:class:`SectionGrid`).
     """
     g = np.asarray(gamma, float)
     if g.shape != (mesh.n_tets,):
@@ -472,9 +566,10 @@ def sample_sections(
         )
     a, e, n = section_frame(axis, leg_axis=leg_axis)
     tip = np.asarray(tip_mm, float)
-    offsets = spacing_mm * (np.arange(n_sections) - (n_sections - 1) / 2)
-    u = np.arange(-half_width_mm, half_width_mm + 0.5 * resolution_mm, resolution_mm)
-    v = np.arange(v_range_mm[0], v_range_mm[1] + 0.5 * resolution_mm, resolution_mm)
+    offsets = grid.spacing_mm * (np.arange(grid.n_sections) - (grid.n_sections - 1) / 2)
+    step = grid.resolution_mm
+    u = np.arange(-grid.half_width_mm, grid.half_width_mm + 0.5 * step, step)
+    v = np.arange(grid.v_range_mm[0], grid.v_range_mm[1] + 0.5 * step, step)
     pts = (
         tip
         + offsets[:, None, None, None] * n
@@ -498,7 +593,7 @@ def plot_sections(
 ) -> None:
     """Rows: variants (a :class:`Sections`, or a string: the reason there is none); columns: the
     chosen section indices (default all). The threshold is drawn as a contour line."""
-    plt = _plt()
+    plt = pyplot()
     from matplotlib.colors import Normalize
 
     names = list(sections)
@@ -508,7 +603,7 @@ def plot_sections(
         ax.text(0.5, 0.5, "no variant of this kind is configured", ha="center", va="center")
         if title:
             fig.suptitle(title, fontsize=9)
-        _save(fig, path)
+        save_figure(fig, path)
         return
     first = next((s for s in sections.values() if isinstance(s, Sections)), None)
     n_total = first.values.shape[0] if first is not None else 7
@@ -568,7 +663,7 @@ def plot_sections(
         cb.set_label(f"{measure_label} (cyan line: {threshold:g})", fontsize=7)
     if title:
         fig.suptitle(title, fontsize=9)
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 # --- the whole aggregate step ------------------------------------------------------------------------
@@ -582,7 +677,7 @@ def figure_sections(
     pose,
     *,
     strain_measure: str = "green_lagrange",
-    **sample_kw,
+    grid: SectionGrid = SectionGrid(),
 ) -> dict[str, Sections | str]:
     """Sections of every given variant of one animal: variant -> (summary, result.vtu path).
 
@@ -607,89 +702,83 @@ def figure_sections(
             tip_start_mm=pose.tip_start_mm,
             tip_end_mm=pose.tip_end_mm,
         )
-        out[name] = sample_sections(mesh, cells[field], axis=axis, tip_mm=start, **sample_kw)
+        out[name] = sample_sections(mesh, cells[field], axis=axis, tip_mm=start, grid=grid)
     return out
 
 
-def aggregate_study(
-    *,
-    summary_paths: Sequence[str | Path],
-    animals: Sequence[str],
-    variants: Sequence[str],
-    outputs: Mapping[str, str | Path],
-    figure_animal: str,
-    figure_results: Mapping[str, str | Path],
-    pose_path: str | Path,
-    strain_measure: str = "green_lagrange",
-    threshold: float = 0.3,
-    bin_edges: Sequence[float] = DEFAULT_BIN_EDGES,
-    reference: str = "sphere",
-) -> None:
-    """Rule ``aggregate``: read every summary, write the tables and the figures of the study.
+@dataclass(frozen=True)
+class AggregateJob:
+    """What rule ``aggregate`` reads and writes.
 
-    Parameters
-    ----------
-    summary_paths : sequence of str or Path
-        Every ``summary.json`` of the study (:func:`deeptissue.summary.read_summary`).
-    animals, variants : sequence of str
-        The configured order of the tables and figures; each pair must have a summary.
-    outputs : mapping
-        Output paths by key: ``voi_csv``, ``bins_csv`` (:func:`summary_tables`), ``voi_png``,
-        ``bins_png``, ``voi_change_png``, ``sections_png`` (sphere vs bar, seven sections) and
-        ``orientations_png`` (sections 3–5 of every sphere variant).
-    figure_animal : str
-        The animal of the section figures.
-    figure_results : mapping
-        Variant -> ``result.vtu`` of ``figure_animal``, for the section figures.
-    pose_path : str or Path
-        Pose of ``figure_animal`` (indenter axis and tip of the section planes).
-    strain_measure : {'green_lagrange', 'log'}
-        Which γmax the section figures show (and the axis labels name).
-    threshold : float
-        γmax threshold drawn as a contour line in the sections [-].
-    bin_edges : sequence of float
-        Bin edges, for the labels of the bins table when no run converged.
-    reference : str
-        Variant the VOI changes are relative to.
-
-    Raises
-    ------
-    ValueError
-        If an animal × variant has no summary.
+    ``summary_paths``: every ``summary.json`` of the study (:func:`deeptissue.summary.read_summary`);
+    ``animals``, ``variants``: the configured order of the tables and figures, each pair with a summary;
+    ``outputs``: paths by key, ``voi_csv``, ``bins_csv`` (:func:`summary_tables`), ``voi_png``,
+    ``bins_png``, ``voi_change_png``, ``sections_png`` (sphere vs bar, seven sections) and
+    ``orientations_png`` (sections 3–5 of every sphere variant); ``figure_animal``: the animal of the
+    section figures, ``figure_results``: variant -> its ``result.vtu``, ``pose_path``: its pose (indenter
+    axis and tip of the section planes); ``strain_measure``: the γmax the sections show; ``threshold``:
+    the γmax drawn as a contour line [-]; ``bin_edges``: for the bin labels when no run converged;
+    ``reference``: the variant the VOI changes are relative to (the estimated orientation).
     """
-    from .pose import load_pose
+
+    summary_paths: Sequence[str | Path]
+    animals: Sequence[str]
+    variants: Sequence[str]
+    outputs: Mapping[str, str | Path]
+    figure_animal: str
+    figure_results: Mapping[str, str | Path]
+    pose_path: str | Path
+    strain_measure: str = "green_lagrange"
+    threshold: float = 0.3
+    bin_edges: Sequence[float] = DEFAULT_BIN_EDGES
+    reference: str = "sphere"
+
+
+def aggregate_study(job: AggregateJob) -> None:
+    """Rule ``aggregate``: read every summary, write the tables and the figures of the study
+    (:class:`AggregateJob`). ValueError if an animal × variant has no summary."""
     from .summary import read_summary
+
+    summaries = [read_summary(p) for p in job.summary_paths]
+    voi, bins = summary_tables(
+        summaries, animals=job.animals, variants=job.variants, bin_edges=job.bin_edges
+    )
+    out = job.outputs
+    write_csv(out["voi_csv"], voi)
+    write_csv(out["bins_csv"], bins)
+    label = MEASURE_LABELS[job.strain_measure]
+    plot_voi(voi, out["voi_png"], measure_label=label)
+    plot_bins(bins, out["bins_png"])
+    plot_voi_change(voi, out["voi_change_png"], reference=job.reference)
+    _write_section_figures(job, {(s.animal, s.variant): s for s in summaries}, label)
+
+
+def _write_section_figures(job: AggregateJob, by_key: Mapping, label: str) -> None:
+    """``sections_png`` and ``orientations_png`` of :class:`AggregateJob` for its figure animal."""
+    from .pose import load_pose
     from .variants import parse_variant
 
-    summaries = [read_summary(p) for p in summary_paths]
-    voi, bins = summary_tables(summaries, animals=animals, variants=variants, bin_edges=bin_edges)
-    write_csv(outputs["voi_csv"], voi)
-    write_csv(outputs["bins_csv"], bins)
-    label = MEASURE_LABELS[strain_measure]
-    plot_voi(voi, outputs["voi_png"], measure_label=label)
-    plot_bins(bins, outputs["bins_png"], voi=voi)
-    plot_voi_change(voi, outputs["voi_change_png"], reference=reference)
-
-    by_key = {(s.animal, s.variant): s for s in summaries}
-    pose = load_pose(pose_path)
-    excl = exclusions([by_key[(figure_animal, v)] for v in variants])
-    note = f" — EXCLUDED ({excl[figure_animal]})" if figure_animal in excl else ""
-    results = {v: (by_key[(figure_animal, v)], figure_results[v]) for v in figure_results}
-    sections = figure_sections(results, pose, strain_measure=strain_measure)
+    animal, out = job.figure_animal, job.outputs
+    excl = exclusions([by_key[(animal, v)] for v in job.variants])
+    note = f" — EXCLUDED ({excl[animal]})" if animal in excl else ""
+    results = {v: (by_key[(animal, v)], job.figure_results[v]) for v in job.figure_results}
+    sections = figure_sections(
+        results, load_pose(job.pose_path), strain_measure=job.strain_measure
+    )
     pair = {v: sections[v] for v in ("sphere", "bar") if v in sections}
     plot_sections(
         pair,
-        outputs["sections_png"],
-        threshold=threshold,
+        out["sections_png"],
+        threshold=job.threshold,
         measure_label=label,
-        title=f"{figure_animal}: {label} in seven planes 1 mm apart containing the indenter axis{note}",
+        title=f"{animal}: {label} in seven planes 1 mm apart containing the indenter axis{note}",
     )
     spheres = {v: s for v, s in sections.items() if parse_variant(v).indenter == "sphere"}
     plot_sections(
         spheres,
-        outputs["orientations_png"],
+        out["orientations_png"],
         columns=[2, 3, 4],
-        threshold=threshold,
+        threshold=job.threshold,
         measure_label=label,
-        title=f"{figure_animal}: slices 3-5 for every sphere orientation{note}",
+        title=f"{animal}: slices 3-5 for every sphere orientation{note}",
     )
