@@ -226,7 +226,9 @@ def main() -> None:
         f"bone_dof {opts.bone_dof}, {'exact' if a.exact else 'segmented'} contours, spec {spec_extra}"
     )
     print(
-        f"{'case':20s} {'axis':>6s} {'tip':>6s} {'depth':>6s} {'start':>6s} {'rot':>6s} {'drx':>7s} {'dry':>7s} {'drz':>7s}"
+        ""
+        if a.moves
+        else f"{'case':20s} {'axis':>6s} {'tip':>6s} {'depth':>6s} {'start':>6s} {'rot':>6s} {'drx':>7s} {'dry':>7s} {'drz':>7s}"
         f" {'trans':>6s} {'dtx':>7s} {'dty':>7s} {'dtz':>7s} {'dof':>3s} {'fib':>5s} {'s':>5s}"
     )
     from deeptissue.segment import SegmentationError

@@ -156,7 +156,8 @@ LIMITS = {
     # RMS distance of the far-field during skin (beyond 5 mm of the indenter, deeptissue.pose.LegGuard), after the leg's
     # correction, from the pre skin: 0.008-0.021 mm on the six phantoms, unmoved, moved up to 5 pixels or
     # turned 3 deg; 0.24-0.31 mm with the leg tilted 3 deg out of the slices, which the correction does
-    # not undo (`pose_phantom_cases.py --moves`). Warning at 2.4x, failure at 4.7x the largest good value.
+    # not undo (rat02, tilt25x-shallow, tilt18-deep-norot; the other three tilted scans are not segmented)
+    # (`pose_phantom_cases.py --moves`). Warning at 2.4x, failure at 4.7x the largest good value.
     "leg_skin_residual_mm": Limit(
         0.05,
         0.1,
