@@ -5,8 +5,8 @@ axial slices = constant K), and contour stacks ``(n_slices, n_points, 3)`` in wo
 The fluid column is found as the largest bright component outside the skin
 (:func:`find_fluid_component`), its axis is the inertia axis refined by a cylinder fit
 (:func:`refine_axis_cylinder`), the final tip is where the axis meets the deformed skin, refined by
-a fit of the indenter's head sphere (:func:`tip_end_mm`), and the start of the travel is where the
-axis meets the undeformed skin (:func:`skin_entry_mm`).
+a fit of the indenter's head sphere (:func:`tip_end_mm`); the start of the travel, where the axis meets
+the undeformed skin, is found by :mod:`.estimate` with :func:`line_triangle_hits`.
 """
 
 from __future__ import annotations
@@ -29,7 +29,6 @@ __all__ = [
     "line_triangle_hits",
     "orient_axis",
     "refine_axis_cylinder",
-    "skin_entry_mm",
     "skin_triangles",
     "TipSearch",
     "tip_end_mm",
@@ -534,23 +533,6 @@ def line_triangle_hits(
     t = np.einsum("ij,ij->i", e2, q) * inv
     hit = ok & (u >= 0) & (w >= 0) & (u + w <= 1)
     return np.sort(t[hit])
-
-
-def skin_entry_mm(
-    skin_pre_mm: np.ndarray, *, axis: np.ndarray, point_mm: np.ndarray, animal: str = ""
-) -> np.ndarray:
-    """Where the line through ``point_mm`` along ``axis`` meets the undeformed skin, nearest ``point_mm``.
-
-    ``skin_pre_mm`` (n_slices, n_points, 3). Raises :class:`PoseError` if the line misses the skin.
-    """
-    a = np.asarray(axis, float)
-    t = line_triangle_hits(point_mm, a, skin_triangles(skin_pre_mm))
-    if t.size == 0:
-        raise PoseError(
-            f"{_where(animal)}the indenter axis does not meet the undeformed (pre) skin surface; "
-            "give pose_override.tip_start_mm or indenter_axis"
-        )
-    return np.asarray(point_mm, float) + t[np.argmin(np.abs(t))] * a
 
 
 @dataclass(frozen=True)
