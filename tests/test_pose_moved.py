@@ -93,11 +93,13 @@ def test_the_far_field_skin_measures_a_turn_about_the_leg():
     assert leg.residual_mm < 0.002 and leg.residual_initial_mm > 0.05
 
 
-def test_a_refused_leg_writes_its_rows_and_names_both_scans(tmp_path):
+def test_a_refused_leg_writes_its_rows_and_names_both_scans(tmp_path, caplog):
     vol, A, pre, dur, _ = _shifted_scene((20, 0))
     files = _write(tmp_path, vol, A, pre, dur)
     with pytest.raises(PoseError) as exc:
         run_pose(files, options={}, animal="rat09")
+    # the log, which Snakemake keeps when it removes a failed rule's outputs, has the row too
+    assert f"rat09 check leg_shift_mm 2 > {LIMITS['leg_shift_mm'].fail:g} (fail)" in caplog.text
     msg = str(exc.value)
     assert "animal rat09" in msg and str(files.during_nifti) in msg and str(files.pre_nifti) in msg
     assert f"leg_shift_mm 2 > {LIMITS['leg_shift_mm'].fail:g}" in msg

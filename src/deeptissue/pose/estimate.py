@@ -452,6 +452,21 @@ class PoseFiles:
     pre_nifti: Path | None = None
 
 
+def _record_checks(checks: list, checks_csv: Path | None, animal: str) -> None:
+    """Write ``checks.csv`` (unless None) and log every row: a failed rule's outputs are removed by Snakemake,
+    its log (``results/{animal}/logs/pose.log``) is kept."""
+    if checks_csv is not None:
+        write_checks(checks_csv, checks)
+    for c in checks:
+        ok = c.status == "ok"
+        log.log(
+            logging.INFO if ok else logging.WARNING,
+            "%s check %s",
+            animal,
+            f"{c.name} {c.value:.4g} ok" if ok else f"{c.describe()} ({c.status})",
+        )
+
+
 def run_pose(
     files: PoseFiles,
     *,
@@ -505,22 +520,12 @@ def run_pose(
         )
     except LegMovedError as exc:
         checks = exc.checks + contour_checks(pre, dur)
-        if f.checks_csv is not None:
-            write_checks(f.checks_csv, checks)
+        _record_checks(checks, f.checks_csv, animal)
         raise PoseError(
             failed_message(checks, animal=animal, pre_file=pre_file, during_file=f.during_nifti)
         ) from exc
     checks = evaluate_checks(pose, pre, dur)
-    if f.checks_csv is not None:
-        write_checks(f.checks_csv, checks)
-    for c in checks:
-        ok = c.status == "ok"
-        log.log(
-            logging.INFO if ok else logging.WARNING,
-            "%s check %s",
-            animal,
-            f"{c.name} {c.value:.4g} ok" if ok else c.describe(),
-        )
+    _record_checks(checks, f.checks_csv, animal)
     message = failed_message(checks, animal=animal, pre_file=pre_file, during_file=f.during_nifti)
     if message:
         raise PoseError(message)
