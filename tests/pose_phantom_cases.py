@@ -7,10 +7,14 @@ and (-18, -18) deg, depths 1-3 mm, snr 12, bone rotations up to 3 deg (one of th
 Run (about 2-3 min on 2 cores)::
 
     OMP_NUM_THREADS=1 .venv/bin/python tests/pose_phantom_cases.py [--dof 5|6] [--exact] [--cache DIR] [--extra]
+    OMP_NUM_THREADS=1 .venv/bin/python tests/pose_phantom_cases.py --moves --supersample 4 [--cache DIR]
 
 It renders every phantom (``supersample`` 8, as the ``phantom`` rule), segments both states with
 Stage 1's ``segment_volume`` (or, with ``--exact``, uses the phantom's exact truth contours), runs
-``estimate_pose`` and prints the errors against the phantom truth.
+``estimate_pose`` and prints the errors against the phantom truth. With ``--moves`` (about 10 min) it
+moves each during scan as ``tests/moved_leg.py`` does (2, 5, 20 pixels in x and y, a turn of 3 deg about
+the leg, a tilt of 3 deg out of the slices), segments it again and prints the leg's registration (shift,
+turn, far-field skin residual) with the errors of the corrected pose, or the refusal.
 """
 
 from __future__ import annotations
@@ -157,6 +161,36 @@ def segmented_contours(
     return ph.truth, ph.during, ph.affine, pre, dur
 
 
+def print_moves(name: str, case: tuple, opts) -> None:
+    """One line per move of ``tests/moved_leg.py`` (and the unmoved scan) of case ``name`` =
+    (truth, during, affine, pre, during contours): the leg's registration and the pose errors, or the
+    refusal."""
+    from moved_leg import MOVES, move
+
+    from deeptissue.imaging import Volume
+    from deeptissue.pose import PoseError, estimate_pose, pose_errors
+    from deeptissue.segment import SegmentationError, segment_volume
+
+    truth, during, affine, pre, dur = case
+    for mv in [None, *MOVES]:
+        head = f"{name:18s} {mv or '-':6s}"
+        vol = during if mv is None else move(during, affine, mv)
+        try:
+            dc = dur if mv is None else segment_volume(Volume(vol, affine), state="during")[0]
+            pose, _ = estimate_pose(vol, affine, pre, dc, options=opts, animal=name)
+        except (PoseError, SegmentationError) as exc:
+            print(f"{head} refused: {str(exc)[:110]}", flush=True)
+            continue
+        e, x = pose_errors(pose, truth), pose.extra
+        print(
+            f"{head} shift {x['leg_shift_mm']:.4f} turn {x['leg_rotation_deg']:+.3f} "
+            f"residual {x['leg_skin_residual_mm']:.4f} | axis {e['axis_error_deg']:.3f} "
+            f"tip {e['tip_end_error_mm']:.3f} depth {e['depth_error_mm']:.3f} "
+            f"rot {e['bone_rotation_error_deg']:.3f} trans {e['bone_translation_error_mm']:.4f}",
+            flush=True,
+        )
+
+
 def main() -> None:
     from deeptissue.pose import PoseOptions, estimate_pose, pose_errors
     from deeptissue.rigid import rotation_matrix
@@ -176,6 +210,9 @@ def main() -> None:
         metavar="KEY=JSON",
         help="a further PhantomSpec key for every case, e.g. --spec fibula=false",
     )
+    ap.add_argument(
+        "--moves", action="store_true", help="each during scan moved (tests/moved_leg.py) too"
+    )
     ap.add_argument("cases", nargs="*")
     a = ap.parse_args()
     import json
@@ -189,7 +226,9 @@ def main() -> None:
         f"bone_dof {opts.bone_dof}, {'exact' if a.exact else 'segmented'} contours, spec {spec_extra}"
     )
     print(
-        f"{'case':20s} {'axis':>6s} {'tip':>6s} {'depth':>6s} {'start':>6s} {'rot':>6s} {'drx':>7s} {'dry':>7s} {'drz':>7s}"
+        ""
+        if a.moves
+        else f"{'case':20s} {'axis':>6s} {'tip':>6s} {'depth':>6s} {'start':>6s} {'rot':>6s} {'drx':>7s} {'dry':>7s} {'drz':>7s}"
         f" {'trans':>6s} {'dtx':>7s} {'dty':>7s} {'dtz':>7s} {'dof':>3s} {'fib':>5s} {'s':>5s}"
     )
     from deeptissue.segment import SegmentationError
@@ -206,6 +245,9 @@ def main() -> None:
             )
         except SegmentationError as exc:
             print(f"{name:20s} segmentation failed: {exc}", flush=True)
+            continue
+        if a.moves:
+            print_moves(name, (truth, during, affine, pre, dur), opts)
             continue
         pose, _ = estimate_pose(during, affine, pre, dur, options=opts, animal=name)
         e = pose_errors(pose, truth)

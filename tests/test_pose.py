@@ -14,8 +14,10 @@ import yaml
 from deeptissue.config import ConfigError, validate_config
 from deeptissue.contours import Contours, save_contours
 from deeptissue.pose import (
+    BoneDistance,
     Pose,
     PoseError,
+    PoseFiles,
     PoseOptions,
     bone_centroid_mm,
     estimate_pose,
@@ -206,7 +208,7 @@ def test_bone_motion_surface_fit_recovers_truth(rotation, translation):
     # the centroid shift alone is biased: the slab cuts a different piece of the moved bone
     assert np.linalg.norm(m.com_shift_mm - translation) > 0.05
     # nearest-vertex distances between stacks at the same z planes are biased by through-plane motion
-    v = fit_bone_motion(pre, dur, method="vertex", dof=3)
+    v = fit_bone_motion(pre, dur, distance=BoneDistance("vertex"), dof=3)
     assert np.linalg.norm(np.subtract(v.motion.rotation_deg, rotation)) > 3 * np.linalg.norm(
         np.subtract(m.motion.rotation_deg, rotation)
     )
@@ -374,13 +376,15 @@ def test_run_pose_writes_pose_figures_and_accuracy(tmp_path):
     save_contours(tmp_path / "during.npz", dur)
     out = {k: tmp_path / f"{k}.png" for k in ("axis", "tip", "bone")}
     run_pose(
-        during_nifti=tmp_path / "during.nii.gz",
-        pre_contours=tmp_path / "pre.npz",
-        during_contours=tmp_path / "during.npz",
-        pose_json=tmp_path / "pose.json",
-        axis_png=out["axis"],
-        tip_png=out["tip"],
-        bone_png=out["bone"],
+        PoseFiles(
+            during_nifti=tmp_path / "during.nii.gz",
+            pre_contours=tmp_path / "pre.npz",
+            during_contours=tmp_path / "during.npz",
+            pose_json=tmp_path / "pose.json",
+            axis_png=out["axis"],
+            tip_png=out["tip"],
+            bone_png=out["bone"],
+        ),
         options={},
         animal="synth",
     )

@@ -45,6 +45,9 @@ def _pose(**extra):
         axis_inertia_vs_cylinder_deg=0.3,
         fluid_column_length_mm=9.0,
         bone_fit_sd=[0.003, 0.003, 0.005, 0.0003, 0.0003],
+        leg_shift_mm=0.001,
+        leg_rotation_deg=-0.02,
+        leg_skin_residual_mm=0.011,
     )
     base.update(extra)
     return Pose(

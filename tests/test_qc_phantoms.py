@@ -11,7 +11,7 @@ import pytest
 from deeptissue.imaging import write_nifti
 from deeptissue.io import read_json
 from deeptissue.phantom import PhantomSpec, make_phantom
-from deeptissue.pose import PoseError, run_pose
+from deeptissue.pose import PoseError, PoseFiles, run_pose
 from deeptissue.segment import segment_files
 
 # config/config.yaml's rat01 and rat02
@@ -79,12 +79,14 @@ def _run(tmp_path, pre_of, during_of, animal="ratQ"):
     error = None
     try:
         run_pose(
-            during_nifti=dur_nii,
-            pre_nifti=pre_nii,
-            pre_contours=c["pre"],
-            during_contours=c["during"],
+            PoseFiles(
+                during_nifti=dur_nii,
+                pre_nifti=pre_nii,
+                pre_contours=c["pre"],
+                during_contours=c["during"],
+                **out,
+            ),
             animal=animal,
-            **out,
         )
     except PoseError as exc:
         error = str(exc)

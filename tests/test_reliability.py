@@ -508,7 +508,7 @@ def test_a_truncated_scan_names_animal_and_file(tmp_path):
 
 
 def test_the_pose_stage_reads_the_scan_through_the_same_error(tmp_path):
-    from deeptissue.pose import run_pose
+    from deeptissue.pose import PoseFiles, run_pose
 
     path = _truncated_nifti(tmp_path)
     out = {k: tmp_path / f"{k}.png" for k in ("axis_png", "tip_png", "bone_png")}
@@ -517,14 +517,16 @@ def test_the_pose_stage_reads_the_scan_through_the_same_error(tmp_path):
         match=rf"animal rat01, file {re.escape(str(path))}: cannot read the voxel data",
     ):
         run_pose(
-            during_nifti=path,
-            pre_contours=tmp_path / "pre.npz",
-            during_contours=tmp_path / "during.npz",
-            pose_json=tmp_path / "pose.json",
+            PoseFiles(
+                during_nifti=path,
+                pre_contours=tmp_path / "pre.npz",
+                during_contours=tmp_path / "during.npz",
+                pose_json=tmp_path / "pose.json",
+                **out,
+            ),
             options={},
             override={},
             animal="rat01",
-            **out,
         )
 
 

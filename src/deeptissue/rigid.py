@@ -77,3 +77,11 @@ class BoneMotion:
             centre_mm=self.centre_mm,
             translation_mm=self.translation_mm,
         )
+
+    def undo(self, points_mm: np.ndarray) -> np.ndarray:
+        """Points ``points_mm`` (..., 3) [mm] moved back by the inverse of this motion, same shape:
+        ``R^T (x - centre - translation) + centre``."""
+        p = np.asarray(points_mm, dtype=float)
+        c = np.asarray(self.centre_mm, dtype=float)
+        R = rotation_matrix(self.rotation_deg)
+        return (p - c - np.asarray(self.translation_mm, dtype=float)) @ R + c

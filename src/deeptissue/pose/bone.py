@@ -23,11 +23,13 @@ if TYPE_CHECKING:
 
 __all__ = [
     "MIN_FIBULA_SLICES",
+    "BoneDistance",
     "BoneFit",
     "bone_centroid_mm",
     "dense_surface",
     "fit_bone_motion",
     "moved_section",
+    "parameter_sd",
     "resolve_bone_dof",
 ]
 
@@ -128,15 +130,35 @@ def dense_surface(
     return pts.reshape(-1, 3), nrm.reshape(-1, 3)
 
 
+@dataclass(frozen=True)
+class BoneDistance:
+    """The distance :func:`fit_bone_motion` minimises (config ``pose.bone_method``,
+    ``pose.bone_surface_step_mm``).
+
+    ``method='surface'``: the point-to-plane distance to the nearest point of a dense cubic interpolation of
+    the pre surface between slices, every ``surface_step_mm`` [mm] along z (:func:`dense_surface`);
+    ``method='vertex'``: the distance to the nearest pre vertex on the original slices, which through-plane
+    motion biases (stacks sampled at the same 1 mm z planes).
+    """
+
+    method: str = "surface"
+    surface_step_mm: float = 0.05
+
+    def __post_init__(self):
+        if self.method not in ("surface", "vertex"):
+            raise ValueError(
+                f"fit_bone_motion: method must be 'surface' or 'vertex', got {self.method!r}"
+            )
+
+
 def fit_bone_motion(
     bone_pre_mm: np.ndarray,
     bone_during_mm: np.ndarray,
     *,
     fibula_pre_mm: np.ndarray | None = None,
     fibula_during_mm: np.ndarray | None = None,
-    method: str = "surface",
+    distance: BoneDistance = BoneDistance(),
     dof: int = 5,
-    surface_step_mm: float = 0.05,
     during_slices: np.ndarray | None = None,
     animal: str = "",
 ) -> BoneFit:
@@ -145,13 +167,9 @@ def fit_bone_motion(
     Translation: the shift of the bone centroid (initial guess). Rotation, and a translation
     correction (``dof=6``: all three components; ``dof=5``: across the leg only, the shift along z
     stays the centroid's; ``dof=3``: none), by Levenberg–Marquardt (``scipy.optimize.least_squares(method='lm')``) on
-    the distances of every during bone vertex, mapped back to the pre state, to the pre bone:
-    ``method='vertex'`` the distance to the nearest pre vertex (KD-tree) on the original slices;
-    ``method='surface'`` the point-to-plane distance to the nearest point of a dense cubic
-    interpolation of the pre surface between slices. The latter removes the bias that through-plane
-    motion gives nearest-vertex distances between stacks sampled at the same 1 mm z planes.
-    A bone that is (nearly) a prism along z cannot show a shift along z: its 6-DOF fit then drifts
-    along z with the segmentation noise (check ``parameter_sd``); ``dof=5`` is the remedy.
+    the ``distance`` (:class:`BoneDistance`) of every during bone vertex, mapped back to the pre state, to
+    the pre bone. A bone that is (nearly) a prism along z cannot show a shift along z: its 6-DOF fit then
+    drifts along z with the segmentation noise (check ``parameter_sd``); ``dof=5`` is the remedy.
 
     ``fibula_pre_mm`` / ``fibula_during_mm`` (n_slices, n_points_f, 3, NaN rows where absent): the
     fibula, which moves with the tibia as one rigid body. Its during vertices (on the slices where
@@ -167,13 +185,11 @@ def fit_bone_motion(
         Tibia contours [mm] of both states on the same slice planes.
     fibula_pre_mm, fibula_during_mm : (n_slices, n_points_f, 3) array or None
         Fibula contours [mm], NaN rows where a slice has none.
-    method : {'surface', 'vertex'}
-        Point-to-plane distance to the interpolated pre surface, or distance to the nearest pre vertex.
+    distance : BoneDistance
+        The distance minimised.
     dof : {3, 5, 6}
         Degrees of freedom: rotation, plus the translation correction across the leg (5) or in all
         directions (6).
-    surface_step_mm : float
-        Spacing [mm] along z of the interpolated pre surface (:func:`dense_surface`).
     during_slices : (n_slices,) bool array or None
         The during slices whose tibia (and fibula) contours join the fit; None: all. Slices where the bone
         cannot be seen (against the indenter) are left out; the pre surface keeps all its slices.
@@ -190,11 +206,60 @@ def fit_bone_motion(
     PoseError
         If the two stacks do not share their slice planes.
     ValueError
-        For an unknown ``method`` or ``dof``.
+        For an unknown ``dof``.
     """
     from scipy.optimize import least_squares
-    from scipy.spatial import cKDTree
 
+    pre, dur, use = _matched_stacks(bone_pre_mm, bone_during_mm, during_slices, animal)
+    if dof not in (3, 5, 6):
+        raise ValueError(f"fit_bone_motion: dof must be 3, 5 or 6, got {dof!r}")
+    # the pre fibula's surface through all its slices; the during fibula on the slices that have one
+    # in both states (a during section whose plane the pre fibula does not reach has no counterpart:
+    # matched to the end of the pre surface, it would pull the fit along the bone)
+    has_pre = _fibula_mask(fibula_pre_mm, pre.shape[0])
+    both = has_pre & _fibula_mask(fibula_during_mm, pre.shape[0]) & use
+    use_fibula = has_pre.sum() >= MIN_FIBULA_SLICES and both.sum() >= MIN_FIBULA_SLICES
+    bodies = [(pre, dur[use])]
+    if use_fibula:
+        bodies.append(
+            (np.asarray(fibula_pre_mm, float)[has_pre], np.asarray(fibula_during_mm, float)[both])
+        )
+    com_pre = bone_centroid_mm(pre)
+    shift = bone_centroid_mm(dur[use]) - bone_centroid_mm(pre[use])
+    residuals_for = _residual_function(bodies, com_pre, distance)
+
+    def rms(r):
+        return float(np.sqrt(np.mean(r**2)))
+
+    def correction(x):  # translation correction (mm) added to the centroid shift
+        return np.array([x[3], x[4], x[5] if dof == 6 else 0.0]) if dof > 3 else np.zeros(3)
+
+    res = least_squares(
+        lambda x: residuals_for(x[:3], shift + correction(x)),
+        np.zeros(dof),
+        method="lm",
+        x_scale=np.ones(dof),
+        diff_step=1e-4 if distance.method == "surface" else None,
+    )
+    return BoneFit(
+        motion=BoneMotion(
+            rotation_deg=res.x[:3], centre_mm=com_pre, translation_mm=shift + correction(res.x)
+        ),
+        com_shift_mm=shift,
+        rms_initial_mm=rms(residuals_for(np.zeros(3), np.zeros(3))),
+        rms_com_mm=rms(residuals_for(np.zeros(3), shift)),
+        rms_final_mm=rms(res.fun),
+        method=distance.method,
+        dof=dof,
+        n_evaluations=int(res.nfev),
+        parameter_sd=parameter_sd(res.jac, res.fun),
+        fibula_slices=(int(has_pre.sum()), int(both.sum())) if use_fibula else (0, 0),
+    )
+
+
+def _matched_stacks(bone_pre_mm, bone_during_mm, during_slices, animal: str):
+    """Both tibia stacks as arrays and the during slices used (bool (n_slices,)); :class:`PoseError` when
+    they do not share their slice planes or fewer than 2 during slices are used."""
     pre = np.asarray(bone_pre_mm, float)
     dur = np.asarray(bone_during_mm, float)
     if pre.ndim != 3 or dur.ndim != 3 or pre.shape[0] != dur.shape[0]:
@@ -209,38 +274,24 @@ def fit_bone_motion(
             f"{_where(animal)}during bone contours cannot be matched to the pre bone: slice planes differ "
             f"by up to {dz.max():.3g} mm"
         )
-    if method not in ("surface", "vertex"):
-        raise ValueError(f"fit_bone_motion: method must be 'surface' or 'vertex', got {method!r}")
-    if dof not in (3, 5, 6):
-        raise ValueError(f"fit_bone_motion: dof must be 3, 5 or 6, got {dof!r}")
-    # the pre fibula's surface through all its slices; the during fibula on the slices that have one
-    # in both states (a during section whose plane the pre fibula does not reach has no counterpart:
-    # matched to the end of the pre surface, it would pull the fit along the bone)
     use = np.ones(pre.shape[0], bool) if during_slices is None else np.asarray(during_slices, bool)
     if use.shape != (pre.shape[0],) or use.sum() < 2:
         raise PoseError(
             f"{_where(animal)}the bone fit needs the tibia on at least 2 during slices, "
             f"got {int(use.sum()) if use.shape == (pre.shape[0],) else use.shape}"
         )
-    has_pre, has_dur = (
-        _fibula_mask(fibula_pre_mm, pre.shape[0]),
-        _fibula_mask(fibula_during_mm, pre.shape[0]),
-    )
-    has_dur = has_dur & use
-    both = has_pre & has_dur
-    use_fibula = has_pre.sum() >= MIN_FIBULA_SLICES and both.sum() >= MIN_FIBULA_SLICES
-    if use_fibula:
-        fib_pre = np.asarray(fibula_pre_mm, float)[has_pre]
-        fib_dur = np.asarray(fibula_during_mm, float)[both]
-    com_pre = bone_centroid_mm(pre)
-    shift = bone_centroid_mm(dur[use]) - bone_centroid_mm(pre[use])
-    dur = dur[use]
-    # (during vertices, pre reference points, their normals, KD-tree) per bone
-    bodies = [(pre, dur)] + ([(fib_pre, fib_dur)] if use_fibula else [])
+    return pre, dur, use
+
+
+def _residual_function(bodies, com_pre: np.ndarray, distance: BoneDistance):
+    """``f(rotation_deg, translation_mm) -> residuals``: the ``distance`` of every during vertex of each
+    (pre stack, during stack) body, mapped back by the motion about ``com_pre``, to that body's pre bone."""
+    from scipy.spatial import cKDTree
+
     parts = []
     for b_pre, b_dur in bodies:
-        if method == "surface":
-            ref, nrm = dense_surface(b_pre, step_mm=surface_step_mm)
+        if distance.method == "surface":
+            ref, nrm = dense_surface(b_pre, step_mm=distance.surface_step_mm)
         else:
             ref, nrm = b_pre.reshape(-1, 3), None
         parts.append((b_dur.reshape(-1, 3), ref, nrm, cKDTree(ref)))
@@ -257,49 +308,18 @@ def fit_bone_motion(
                 out.append(np.einsum("ij,ij->i", p - ref[j], nrm[j]))
         return np.concatenate(out)
 
-    def rms(r):
-        return float(np.sqrt(np.mean(r**2)))
+    return residuals_for
 
-    rms0 = rms(residuals_for(np.zeros(3), np.zeros(3)))
-    rms_com = rms(residuals_for(np.zeros(3), shift))
 
-    def correction(x):  # translation correction (mm) added to the centroid shift
-        return np.array([x[3], x[4], x[5] if dof == 6 else 0.0]) if dof > 3 else np.zeros(3)
-
-    fun = lambda x: residuals_for(x[:3], shift + correction(x))  # noqa: E731
-    x0 = np.zeros(dof)
-    res = least_squares(
-        fun,
-        x0,
-        method="lm",
-        x_scale=np.ones_like(x0),
-        diff_step=1e-4 if method == "surface" else None,
-    )
-    rot = res.x[:3]
-    trans = shift + correction(res.x)
-    # standard errors of the parameters from the Jacobian (residual variance x (J^T J)^-1)
+def parameter_sd(jac: np.ndarray, fun: np.ndarray) -> np.ndarray:
+    """Standard errors of least-squares parameters from the Jacobian ``jac`` (m, n) and the residuals ``fun``
+    (m,): the residual variance times the diagonal of (J^T J)^-1; inf for a singular J^T J."""
+    n = jac.shape[1]
     try:
-        cov = (
-            np.linalg.inv(res.jac.T @ res.jac)
-            * np.mean(res.fun**2)
-            * len(res.fun)
-            / max(len(res.fun) - dof, 1)
-        )
-        sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+        cov = np.linalg.inv(jac.T @ jac) * np.sum(fun**2) / max(len(fun) - n, 1)
     except np.linalg.LinAlgError:
-        sd = np.full(dof, np.inf)
-    return BoneFit(
-        motion=BoneMotion(rotation_deg=rot, centre_mm=com_pre, translation_mm=trans),
-        com_shift_mm=shift,
-        rms_initial_mm=rms0,
-        rms_com_mm=rms_com,
-        rms_final_mm=rms(res.fun),
-        method=method,
-        dof=dof,
-        n_evaluations=int(res.nfev),
-        parameter_sd=sd,
-        fibula_slices=(int(has_pre.sum()), int(both.sum())) if use_fibula else (0, 0),
-    )
+        return np.full(n, np.inf)
+    return np.sqrt(np.clip(np.diag(cov), 0, None))
 
 
 def moved_section(

@@ -5,8 +5,8 @@ axial slices = constant K), and contour stacks ``(n_slices, n_points, 3)`` in wo
 The fluid column is found as the largest bright component outside the skin
 (:func:`find_fluid_component`), its axis is the inertia axis refined by a cylinder fit
 (:func:`refine_axis_cylinder`), the final tip is where the axis meets the deformed skin, refined by
-a fit of the indenter's head sphere (:func:`tip_end_mm`), and the start of the travel is where the
-axis meets the undeformed skin (:func:`skin_entry_mm`).
+a fit of the indenter's head sphere (:func:`tip_end_mm`); the start of the travel, where the axis meets
+the undeformed skin, is found by :mod:`.estimate` with :func:`line_triangle_hits`.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ import numpy as np
 from .result import PoseError, _where
 
 __all__ = [
+    "CylinderFit",
     "FluidComponent",
     "IndenterShape",
     "find_fluid_component",
@@ -28,8 +29,8 @@ __all__ = [
     "line_triangle_hits",
     "orient_axis",
     "refine_axis_cylinder",
-    "skin_entry_mm",
     "skin_triangles",
+    "TipSearch",
     "tip_end_mm",
     "voxel_centres_mm",
 ]
@@ -204,11 +205,9 @@ def find_fluid_component(
             vol,
             affine,
             pts_used,
-            com_mm=com,
-            axis=axis,
-            level=level,
+            (com, axis),
+            levels=(level, fluid_level),
             exclude_mask=exclude_mask,
-            fluid_level=fluid_level,
         )
     return FluidComponent(
         points_mm=pts_used,
@@ -222,84 +221,48 @@ def find_fluid_component(
     )
 
 
+@dataclass(frozen=True)
+class CylinderFit:
+    """Settings of :func:`refine_axis_cylinder`: edges within ``end_margin_mm`` of either end of the column
+    (head sphere, truncation) and within ``exclude_margin_mm`` in-plane of the leg are left out; a fitted
+    direction more than ``max_change_deg`` from the inertia axis is rejected."""
+
+    exclude_margin_mm: float = 0.5
+    end_margin_mm: float = 1.5
+    max_change_deg: float = 5.0
+
+
 def refine_axis_cylinder(
     volume: np.ndarray,
     affine: np.ndarray,
     points_mm: np.ndarray,
+    start: tuple[np.ndarray, np.ndarray],
     *,
-    com_mm: np.ndarray,
-    axis: np.ndarray,
-    level: float,
+    levels: tuple[float, float],
     exclude_mask: np.ndarray | None = None,
-    exclude_margin_mm: float = 0.5,
-    end_margin_mm: float = 1.5,
-    max_change_deg: float = 5.0,
-    fluid_level: float | None = None,
+    fit: CylinderFit = CylinderFit(),
 ) -> tuple[np.ndarray, np.ndarray]:
     """Axis (3,) of the fluid column refined by a cylinder fit to its in-plane edges, and the COM (3,)
     moved onto the fitted axis line.
 
     The inertia axis of voxels 1 mm thick is off by up to ~2 deg (the slices quantise the column
     across z). Within each axial slice the column's edge is known to a fraction of the 0.1 mm pixel:
-    sub-pixel iso-contours of ``volume`` at ``level`` (half-way between fluid and background) near the
-    component ``points_mm`` (n, 3) are points on a cylinder; the ones more than ``end_margin_mm`` from
-    both ends of the column (head sphere, truncation) and more than ``exclude_margin_mm`` in-plane
-    from ``exclude_mask`` (I, J, K) (the leg: there the edge is against tissue, not background) are
-    fitted by a cylinder (axis direction,
-    position, radius; robust soft-L1 loss). The fitted direction is returned if it is within
-    ``max_change_deg`` of ``axis``, else ``axis`` and ``com_mm`` unchanged (the sign of ``axis`` is
-    kept). The voxel COM is off the axis by up to ~0.2 mm across the slices (quantisation); its
+    sub-pixel iso-contours of ``volume`` at the edge level near the component ``points_mm`` (n, 3) are
+    points on a cylinder (:func:`_column_edges`); they are fitted by a cylinder (axis direction, position,
+    radius; robust soft-L1 loss). ``start`` is the inertia estimate (COM (3,) [mm], axis (3,)); ``levels``
+    the edge level (half-way between fluid and background) and the fluid's intensity; ``exclude_mask``
+    (I, J, K) the leg, where the edge is against tissue, not background. The fitted direction is returned
+    if it is within ``fit.max_change_deg`` of the start, else the start unchanged (the sign of the axis
+    is kept). The voxel COM is off the axis by up to ~0.2 mm across the slices (quantisation); its
     projection on the fitted line is returned instead.
-    Slices that only graze the column (95th-percentile intensity below 90 % of ``fluid_level``, the
-    fluid's intensity; partial volume) are left out: their edges depend on the slice profile.
     """
-    from scipy import ndimage
     from scipy.optimize import least_squares
-    from scipy.spatial import cKDTree
-    from skimage.measure import find_contours
 
-    a0 = np.asarray(axis, float) / np.linalg.norm(axis)
-    c0 = np.asarray(com_mm, float)
-    affine = np.asarray(affine, float)
-    pts = np.asarray(points_mm, float)
-    s = (pts - c0) @ a0
-    lo, hi = s.min() + end_margin_mm, s.max() - end_margin_mm
-    if hi - lo < 2.0:
-        return a0, c0
-    inv = np.linalg.inv(affine)
-    if fluid_level is None:
-        fluid_level = 2.0 * level  # background ~ 0
-    ks = np.unique(np.round((pts @ inv[:3, :3].T + inv[:3, 3])[:, 2]).astype(int))
-    edge = []
-    for k in ks:
-        if not 0 <= k < volume.shape[2]:
-            continue
-        in_k = pts[np.abs((pts @ inv[:3, :3].T + inv[:3, 3])[:, 2] - k) < 0.5]
-        if len(in_k) < 3:
-            continue
-        ijk_k = np.round(in_k @ inv[:3, :3].T + inv[:3, 3]).astype(int)
-        peak = float(np.percentile(volume[ijk_k[:, 0], ijk_k[:, 1], k], 95))
-        background = 2.0 * level - fluid_level
-        if peak < background + 0.9 * (
-            fluid_level - background
-        ):  # the slice only grazes the column
-            continue
-        tree = cKDTree(in_k)
-        near_leg = None
-        if exclude_mask is not None:
-            pixel = float(np.min(np.linalg.norm(affine[:3, :2], axis=0)))
-            n_dil = max(1, int(np.ceil(exclude_margin_mm / pixel)))
-            near_leg = ndimage.binary_dilation(exclude_mask[:, :, k], iterations=n_dil)
-        for c in find_contours(np.asarray(volume[:, :, k], float), level):
-            w = voxel_centres_mm(affine, np.column_stack([c, np.full(len(c), k)]))
-            d, _ = tree.query(w)
-            sw = (w - c0) @ a0
-            ok = (d <= 0.3) & (sw >= lo) & (sw <= hi)
-            if near_leg is not None:
-                ij = np.clip(np.round(c).astype(int), 0, np.array(near_leg.shape) - 1)
-                ok &= ~near_leg[ij[:, 0], ij[:, 1]]
-            edge.append(w[ok])
-    edge = np.concatenate(edge) if edge else np.zeros((0, 3))
+    c0 = np.asarray(start[0], float)
+    a0 = np.asarray(start[1], float) / np.linalg.norm(start[1])
+    edge = _column_edges(
+        volume, affine, np.asarray(points_mm, float), (c0, a0), levels, exclude_mask, fit
+    )
     if len(edge) < 20:
         return a0, c0
     e1, e2 = _perpendicular_basis(a0)
@@ -311,13 +274,67 @@ def refine_axis_cylinder(
         d = edge - (c0 + x[2] * e1 + x[3] * e2)
         return np.linalg.norm(d - np.outer(d @ a, a), axis=1) - x[4]
 
-    fit = least_squares(residual, np.array([0.0, 0.0, 0.0, 0.0, r0]), loss="soft_l1", f_scale=0.05)
-    a = a0 + fit.x[0] * e1 + fit.x[1] * e2
+    res = least_squares(residual, np.array([0.0, 0.0, 0.0, 0.0, r0]), loss="soft_l1", f_scale=0.05)
+    a = a0 + res.x[0] * e1 + res.x[1] * e2
     a /= np.linalg.norm(a)
-    if np.degrees(np.arccos(min(1.0, float(a @ a0)))) > max_change_deg:
+    if np.degrees(np.arccos(min(1.0, float(a @ a0)))) > fit.max_change_deg:
         return a0, c0
-    p = c0 + fit.x[2] * e1 + fit.x[3] * e2
+    p = c0 + res.x[2] * e1 + res.x[3] * e2
     return a, p + ((c0 - p) @ a) * a
+
+
+def _column_edges(
+    volume, affine, pts, start, levels, exclude_mask, fit: CylinderFit
+) -> np.ndarray:
+    """Sub-pixel in-plane edge points (n, 3) [mm] of the fluid column for :func:`refine_axis_cylinder`.
+
+    Iso-contours of each axial slice at ``levels[0]`` within 0.3 mm of the column's voxels ``pts``, more
+    than ``fit.end_margin_mm`` from both ends of the column along the axis of ``start`` (COM, axis) and
+    more than ``fit.exclude_margin_mm`` in-plane from ``exclude_mask``. Slices that only graze the column
+    (95th-percentile intensity below 90 % of the fluid's intensity ``levels[1]`` over the background;
+    partial volume) are left out: their edges depend on the slice profile.
+    """
+    from scipy import ndimage
+    from scipy.spatial import cKDTree
+    from skimage.measure import find_contours
+
+    c0, a0 = start
+    level, fluid_level = levels
+    affine = np.asarray(affine, float)
+    s = (pts - c0) @ a0
+    lo, hi = s.min() + fit.end_margin_mm, s.max() - fit.end_margin_mm
+    if hi - lo < 2.0:
+        return np.zeros((0, 3))
+    inv = np.linalg.inv(affine)
+    background = 2.0 * level - fluid_level
+    k_of = (pts @ inv[:3, :3].T + inv[:3, 3])[:, 2]
+    edge = []
+    for k in np.unique(np.round(k_of).astype(int)):
+        in_k = pts[np.abs(k_of - k) < 0.5]
+        if not 0 <= k < volume.shape[2] or len(in_k) < 3:
+            continue
+        ijk_k = np.round(in_k @ inv[:3, :3].T + inv[:3, 3]).astype(int)
+        peak = float(np.percentile(volume[ijk_k[:, 0], ijk_k[:, 1], k], 95))
+        if peak < background + 0.9 * (
+            fluid_level - background
+        ):  # the slice only grazes the column
+            continue
+        tree = cKDTree(in_k)
+        near_leg = None
+        if exclude_mask is not None:
+            pixel = float(np.min(np.linalg.norm(affine[:3, :2], axis=0)))
+            n_dil = max(1, int(np.ceil(fit.exclude_margin_mm / pixel)))
+            near_leg = ndimage.binary_dilation(exclude_mask[:, :, k], iterations=n_dil)
+        for c in find_contours(np.asarray(volume[:, :, k], float), level):
+            w = voxel_centres_mm(affine, np.column_stack([c, np.full(len(c), k)]))
+            d, _ = tree.query(w)
+            sw = (w - c0) @ a0
+            ok = (d <= 0.3) & (sw >= lo) & (sw <= hi)
+            if near_leg is not None:
+                ij = np.clip(np.round(c).astype(int), 0, np.array(near_leg.shape) - 1)
+                ok &= ~near_leg[ij[:, 0], ij[:, 1]]
+            edge.append(w[ok])
+    return np.concatenate(edge) if edge else np.zeros((0, 3))
 
 
 def orient_axis(axis: np.ndarray, *, from_mm: np.ndarray, toward_mm: np.ndarray) -> np.ndarray:
@@ -335,25 +352,33 @@ def _perpendicular_basis(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return u, np.cross(a, u)
 
 
+@dataclass(frozen=True)
+class TipSearch:
+    """Where :func:`tip_end_mm` looks for the deformed skin under the indenter.
+
+    The region of interest (ROI) is a cylinder of ``roi_diameter_mm`` about ``axis`` (3,) (into the leg),
+    from the fluid's centre of mass ``com_mm`` (3,) [mm] to ``reach_mm`` beyond the fluid's farthest extent
+    ``front_mm`` along the axis from ``com_mm``: it holds the skin under the head, not the far side of the leg.
+    """
+
+    axis: np.ndarray
+    com_mm: np.ndarray
+    front_mm: float
+    roi_diameter_mm: float = 5.0
+    reach_mm: float = 1.5
+
+
 def tip_end_mm(
     skin_during_mm: np.ndarray,
+    search: TipSearch,
     *,
-    axis: np.ndarray,
-    com_mm: np.ndarray,
-    front_mm: float,
-    roi_diameter_mm: float = 5.0,
-    reach_mm: float = 1.5,
     head_radius_mm: float = 1.5,
     cap_radius_mm: float = 1.2,
     max_fit_rms_mm: float = 0.05,
     method: str = "sphere",
     animal: str = "",
 ) -> tuple[np.ndarray, dict]:
-    """Final tip position [mm] from the deformed skin.
-
-    The region of interest (ROI) is a cylinder of ``roi_diameter_mm`` about the axis, from the fluid's
-    COM to ``reach_mm`` beyond the fluid front: it holds the skin under the head, not the far side of
-    the leg.
+    """Final tip position [mm] from the deformed skin in the region of interest of ``search``.
 
     ``method='vertex'``: the deepest ROI vertex along the axis, projected on the axis through the COM
     (the paper's method; it fails when the axis is oblique to the skin and the depth small: the
@@ -361,26 +386,16 @@ def tip_end_mm(
     ``method='sphere'`` (default): the first crossing of the axis with the deformed skin surface
     (within the ROI length) seeds the cap of skin vertices within ``cap_radius_mm``; where the skin
     conforms to the indenter head they lie on a sphere of ``head_radius_mm`` whose centre is on the
-    axis. Its position along the axis is fitted to them (robustly: vertices farther than
-    ``max_fit_rms_mm`` from the sphere, where the skin leaves the head, are dropped) and the tip is
-    the centre + radius * axis. This interpolates between the 1 mm slices, where the skin surface
-    triangulated between slices cuts a chord under the curved dimple (up to ~0.1 mm). The crossing
-    is kept (or the deepest vertex, if the axis misses the skin surface) if fewer than 8 cap
-    vertices lie on the head, or the fit's RMS exceeds ``max_fit_rms_mm``, or it moves the tip more
-    than 0.5 mm.
+    axis (:func:`_head_sphere_fit`). This interpolates between the 1 mm slices, where the skin surface
+    triangulated between slices cuts a chord under the curved dimple (up to ~0.1 mm). The crossing is
+    kept (or the deepest vertex, if the axis misses the skin surface) when the fit is rejected.
 
     Parameters
     ----------
     skin_during_mm : (n_slices, n_points, 3) array
         Deformed skin contours [mm].
-    axis : (3,) array
-        Indenter axis, into the leg (normalised here).
-    com_mm : (3,) array
-        The fluid's centre of mass [mm], a point of the axis.
-    front_mm : float
-        The fluid's farthest extent along the axis from ``com_mm`` [mm].
-    roi_diameter_mm, reach_mm : float
-        The ROI's diameter and its reach beyond the fluid front [mm].
+    search : TipSearch
+        The axis, the fluid's COM and front, and the ROI.
     head_radius_mm, cap_radius_mm : float
         Radius of the indenter's head sphere, and of the skin cap around the axis crossing fitted by it [mm].
     max_fit_rms_mm : float
@@ -403,26 +418,24 @@ def tip_end_mm(
     PoseError
         If no skin vertex lies in the ROI (the axis misses the leg).
     """
-    from scipy.optimize import least_squares
-
     if method not in ("sphere", "vertex"):
         raise ValueError(f"tip_end_mm: method must be 'sphere' or 'vertex', got {method!r}")
-    a = np.asarray(axis, float)
+    a = np.asarray(search.axis, float)
     a = a / np.linalg.norm(a)
-    c = np.asarray(com_mm, float)
+    c = np.asarray(search.com_mm, float)
     v = np.asarray(skin_during_mm, float).reshape(-1, 3)
     d = v - c
     s = d @ a
     r = np.linalg.norm(d - s[:, None] * a, axis=1)
-    roi = (r <= roi_diameter_mm / 2) & (s >= 0) & (s <= front_mm + reach_mm)
+    length = search.front_mm + search.reach_mm
+    roi = (r <= search.roi_diameter_mm / 2) & (s >= 0) & (s <= length)
     if not roi.any():
         raise PoseError(
             f"{_where(animal)}the indenter axis does not meet the deformed skin: no skin vertex within "
-            f"{roi_diameter_mm / 2:g} mm of the axis up to {reach_mm:g} mm beyond the fluid; "
+            f"{search.roi_diameter_mm / 2:g} mm of the axis up to {search.reach_mm:g} mm beyond the fluid; "
             "give pose_override.indenter_axis / tip_end_mm"
         )
-    s_deep = float(s[roi].max())
-    tip_vertex = c + s_deep * a
+    tip_vertex = c + float(s[roi].max()) * a
     info = {
         "tip_roi_vertices": int(roi.sum()),
         "tip_method": "deepest_vertex",
@@ -431,39 +444,57 @@ def tip_end_mm(
     if method == "vertex":
         return tip_vertex, info
     t_hit = line_triangle_hits(c, a, skin_triangles(skin_during_mm))
-    t_hit = t_hit[(t_hit >= 0) & (t_hit <= front_mm + reach_mm)]
+    t_hit = t_hit[(t_hit >= 0) & (t_hit <= length)]
     seed = c + t_hit[0] * a if t_hit.size else tip_vertex
     if t_hit.size:
         info.update(tip_method="axis_skin_crossing", tip_axis_crossing_mm=seed.tolist())
-    cap = np.linalg.norm(v - seed, axis=1) <= cap_radius_mm
-    if cap.sum() < 8:
+    cap = v[np.linalg.norm(v - seed, axis=1) <= cap_radius_mm]
+    fit = _head_sphere_fit(cap, seed, a, head_radius_mm=head_radius_mm, max_rms_mm=max_fit_rms_mm)
+    if fit is None:
         return seed, info
-    pts = v[cap]
-    s0 = float((seed - c) @ a) - head_radius_mm  # head centre on the axis: c + s a
+    tip, n_fit, rms_fit = fit
+    if n_fit < 8 or rms_fit > max_fit_rms_mm or np.linalg.norm(tip - seed) > 0.5:
+        info["tip_sphere_fit_rejected_rms_mm"] = rms_fit
+        return seed, info
+    info.update(tip_method="head_sphere_fit", tip_fit_vertices=n_fit, tip_fit_rms_mm=rms_fit)
+    return tip, info
+
+
+def _head_sphere_fit(
+    cap_mm: np.ndarray,
+    seed_mm: np.ndarray,
+    axis: np.ndarray,
+    *,
+    head_radius_mm: float,
+    max_rms_mm: float,
+) -> tuple[np.ndarray, int, float] | None:
+    """The tip of the head sphere fitted to the skin cap ``cap_mm`` (n, 3) around ``seed_mm``: the sphere of
+    ``head_radius_mm`` centred on the line through ``seed_mm`` along the unit ``axis``.
+
+    Its position along the axis is fitted to the cap vertices near the sphere (robustly: vertices farther
+    than ``max_rms_mm`` from it, where the skin leaves the head, are dropped and the fit repeated). Returns
+    (tip (3,), vertices fitted, RMS [mm]), or None with fewer than 8 cap vertices near the head.
+    """
+    from scipy.optimize import least_squares
+
+    if len(cap_mm) < 8:
+        return None
 
     def head_residual(x, p):
-        return np.linalg.norm(p - (c + x[0] * a), axis=1) - head_radius_mm
+        return np.linalg.norm(p - (seed_mm + x[0] * axis), axis=1) - head_radius_mm
 
-    keep = np.abs(head_residual([s0], pts)) <= 0.25  # near the head's sphere
+    x = np.array([-head_radius_mm])  # head centre on the axis: seed + x axis
+    keep = np.abs(head_residual(x, cap_mm)) <= 0.25  # near the head's sphere
     if keep.sum() < 8:
-        return seed, info
-    x = np.array([s0])
+        return None
     for _ in range(5):  # fit, drop vertices off the head (skin leaving the indenter), refit
-        fit = least_squares(head_residual, x, args=(pts[keep],))
-        x = fit.x
-        new_keep = np.abs(head_residual(x, pts)) <= max_fit_rms_mm
+        x = least_squares(head_residual, x, args=(cap_mm[keep],)).x
+        new_keep = np.abs(head_residual(x, cap_mm)) <= max_rms_mm
         if new_keep.sum() < 8 or np.array_equal(new_keep, keep):
             break
         keep = new_keep
-    tip = c + (x[0] + head_radius_mm) * a
-    rms_fit = float(np.sqrt(np.mean(head_residual(x, pts[keep]) ** 2)))
-    if keep.sum() < 8 or rms_fit > max_fit_rms_mm or np.linalg.norm(tip - seed) > 0.5:
-        info["tip_sphere_fit_rejected_rms_mm"] = rms_fit
-        return seed, info
-    info.update(
-        tip_method="head_sphere_fit", tip_fit_vertices=int(keep.sum()), tip_fit_rms_mm=rms_fit
-    )
-    return tip, info
+    rms = float(np.sqrt(np.mean(head_residual(x, cap_mm[keep]) ** 2)))
+    return seed_mm + (x[0] + head_radius_mm) * axis, int(keep.sum()), rms
 
 
 def skin_triangles(skin_mm: np.ndarray) -> np.ndarray:
@@ -502,23 +533,6 @@ def line_triangle_hits(
     t = np.einsum("ij,ij->i", e2, q) * inv
     hit = ok & (u >= 0) & (w >= 0) & (u + w <= 1)
     return np.sort(t[hit])
-
-
-def skin_entry_mm(
-    skin_pre_mm: np.ndarray, *, axis: np.ndarray, point_mm: np.ndarray, animal: str = ""
-) -> np.ndarray:
-    """Where the line through ``point_mm`` along ``axis`` meets the undeformed skin, nearest ``point_mm``.
-
-    ``skin_pre_mm`` (n_slices, n_points, 3). Raises :class:`PoseError` if the line misses the skin.
-    """
-    a = np.asarray(axis, float)
-    t = line_triangle_hits(point_mm, a, skin_triangles(skin_pre_mm))
-    if t.size == 0:
-        raise PoseError(
-            f"{_where(animal)}the indenter axis does not meet the undeformed (pre) skin surface; "
-            "give pose_override.tip_start_mm or indenter_axis"
-        )
-    return np.asarray(point_mm, float) + t[np.argmin(np.abs(t))] * a
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,21 @@ from .result import Pose
 if TYPE_CHECKING:
     from ..contours import Contours
 
-__all__ = ["plot_axis_qc", "plot_bone_qc", "plot_tip_qc"]
+__all__ = ["plot_axis_qc", "plot_bone_qc", "plot_tip_qc", "travel_marks_mm"]
+
+
+def travel_marks_mm(pose: Pose) -> dict:
+    """Where :func:`plot_tip_qc` draws the travel: depth [mm] along the axis below the skin entry (where the
+    axis meets the undeformed skin, ``pose.extra["skin_entry_mm"]``; the start of travel when absent) of
+    ``start`` (the start of travel, negative: above the skin), ``skin`` (0) and ``end`` (the tip end: the
+    pose's depth)."""
+    a = pose.indenter_axis
+    entry = np.asarray(pose.extra.get("skin_entry_mm", pose.tip_start_mm), float)
+    return {
+        "start": float((pose.tip_start_mm - entry) @ a),
+        "skin": 0.0,
+        "end": float((pose.tip_end_mm - entry) @ a),
+    }
 
 
 def plot_axis_qc(
@@ -94,7 +108,13 @@ def plot_tip_qc(
     roi_diameter_mm: float = 5.0,
     title: str = "",
 ) -> None:
-    """The skin ROI around the axis with the start and end points: depth along vs distance from the axis."""
+    """The skin around the axis with the travel: depth along vs distance from the axis, and the tip's slice.
+
+    Depths are measured along the axis from the skin entry (``pose.extra["skin_entry_mm"]``, where the axis
+    meets the undeformed skin; the start of travel when absent): the entry is at 0, the tip end at the
+    depth of the title, the start of travel ``start_backoff_mm`` above the skin. ``during_contours`` are
+    those the pose was measured on (after the leg's correction between the scans).
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -103,26 +123,30 @@ def plot_tip_qc(
     from ..io import atomic_path
 
     a = pose.indenter_axis
-    ref = pose.tip_start_mm
+    entry = np.asarray(pose.extra.get("skin_entry_mm", pose.tip_start_mm), float)
     fig, axs = plt.subplots(1, 2, figsize=(11, 5))
     for c, lab, col in [
         (pre.skin, "pre skin", "tab:blue"),
         (during_contours.skin, "during skin", "tab:orange"),
     ]:
-        v = c.reshape(-1, 3)
-        d = v - ref
+        d = c.reshape(-1, 3) - entry
         s = d @ a
         r = np.linalg.norm(d - s[:, None] * a, axis=1)
         sel = r <= roi_diameter_mm / 2
         axs[0].plot(r[sel], s[sel], ".", ms=3, color=col, label=f"{lab} in ROI")
-    axs[0].axhline(0, color="g", lw=1, label="tip start")
-    axs[0].axhline(float((pose.tip_end_mm - ref) @ a), color="r", lw=1, label="tip end")
-    s_end = float((pose.tip_end_mm - ref) @ a)
-    axs[0].set_ylim(s_end + 2.0, -1.0)  # the far side of the leg is outside the ROI's reach
+    marks = travel_marks_mm(pose)
+    s_start, s_end = marks["start"], marks["end"]
+    axs[0].axhline(s_start, color="g", lw=1, ls="--", label=f"start of travel ({s_start:+.2f} mm)")
+    axs[0].axhline(0.0, color="tab:blue", lw=1, label="undeformed skin on the axis (0)")
+    axs[0].axhline(s_end, color="r", lw=1, label=f"tip end ({s_end:.3f} mm)")
+    axs[0].set_ylim(
+        s_end + 2.0, min(s_start, 0.0) - 1.0
+    )  # the far side of the leg is outside the ROI
     axs[0].set(
         xlabel="distance from axis [mm]",
-        ylabel="depth along axis from tip start [mm]",
-        title=f"ROI (⌀ {roi_diameter_mm:g} mm), depth = {pose.depth_mm:.3f} mm",
+        ylabel="depth along axis below the undeformed skin [mm]",
+        title=f"ROI (⌀ {roi_diameter_mm:g} mm): depth = {pose.depth_mm:.3f} mm, "
+        f"travel = {pose.travel_mm:.3f} mm",
     )
     axs[0].legend(fontsize=8)
     k = int(np.argmin(np.abs(during_contours.z_mm - pose.tip_end_mm[2])))
@@ -135,7 +159,8 @@ def plot_tip_qc(
         )
     line = pose.tip_end_mm[None] + np.linspace(-6, 2, 2)[:, None] * a
     axs[1].plot(line[:, 0], line[:, 1], "r-", lw=0.8)
-    axs[1].plot(*pose.tip_start_mm[:2], "gx", ms=10, mew=2, label="tip start")
+    axs[1].plot(*pose.tip_start_mm[:2], "gx", ms=10, mew=2, label="start of travel")
+    axs[1].plot(*entry[:2], "o", mfc="none", mec="tab:blue", ms=8, label="skin entry")
     axs[1].plot(*pose.tip_end_mm[:2], "r+", ms=12, mew=2, label="tip end")
     axs[1].set(
         aspect="equal",
@@ -144,7 +169,7 @@ def plot_tip_qc(
         title=f"slice z = {during_contours.z_mm[k]:.1f} mm",
     )
     axs[1].legend(fontsize=8)
-    fig.suptitle(title + " — skin region of interest, start and end of travel")
+    fig.suptitle(title + " — skin under the indenter: start of travel, skin entry, tip end")
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110)
     plt.close(fig)

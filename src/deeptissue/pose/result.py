@@ -76,7 +76,10 @@ class Pose:
             object.__setattr__(
                 self, "indenter_com_mm", np.asarray(self.indenter_com_mm, dtype=float)
             )
-        object.__setattr__(self, "depth_mm", float(self.depth_mm))
+        depth = float(self.depth_mm)
+        if not np.isfinite(depth):
+            raise ValueError(f"pose.depth_mm: expected a finite number, got {self.depth_mm!r}")
+        object.__setattr__(self, "depth_mm", depth)
 
     @property
     def travel_mm(self) -> float:
