@@ -20,9 +20,12 @@ Per slice (arrays indexed [i, j] as in the NIfTI, converted to world mm by the a
 5. **Skin**: ``find_contours(N, skin_level)`` (marching squares, sub-pixel), the largest closed
    contour, tissue 8-connected. Automatic level: half the skin/subcutaneous plateau, the median
    of ``N`` in a one-pixel band 1.5 blur widths inside the edge — first the rough mask's edge,
-   then twice more inside the traced contour itself, so the band does not move with the noise.
+   then twice more inside the traced contour itself, so the band does not move with the noise. With
+   ``skin_close_mm`` the tissue's gaps narrower than twice it are bridged first (:func:`_closed_tissue`), so
+   the broken skin ring of a masked scan is one outline.
 6. **Tibia**, chosen in 3D (:func:`_choose_tibia`): of the closed contours of ``find_contours(N,
-   bone_level)`` around dark regions inside the skin, linked from slice to slice into tracks, the
+   bone_level)`` around dark regions inside the skin, and the thick cores that an opening by a disc of
+   ``bone_open_mm`` parts from dark layers and septa (:func:`_bone_candidates`, :func:`_open_cores`), linked from slice to slice into tracks, the
    one that runs through the slab: the largest (``bone_select: largest``) or the most anterior of
    those at least half as large (``anterior``). A slice without it is refused by number, never given
    another structure. Automatic level: half the median muscle value of ``N`` (cortical bone gives
@@ -47,8 +50,10 @@ Per slice (arrays indexed [i, j] as in the NIfTI, converted to world mm by the a
    about its own area centroid.
 
 Hand-drawn contours (a YAML file, see :func:`load_overrides`) replace the automatic result on
-the slices and structures they name. Where the legs touch, :func:`deeptissue.imaging.select_leg` keeps
-the one holding ``leg_point_mm`` before the contours are traced.
+the slices and structures they name. Where the legs touch, :func:`deeptissue.imaging.split_legs` keeps
+the one holding ``leg_point_mm`` before the contours are traced. Every slice that cannot be segmented is
+named in one :class:`SlicesFailed`; :func:`segment_files` then draws the failed run's QC figure, and runs
+the checks of :mod:`deeptissue.segment_checks` on a run that went through.
 """
 
 from __future__ import annotations
@@ -1256,7 +1261,7 @@ class SegmentJob:
     the QC figure (PNG) and the segmentation checks (CSV, :mod:`deeptissue.segment_checks`) to write.
     ``settings`` is the config ``segmentation`` mapping or :class:`SegmentationSettings`. ``crop_mm`` is a world
     box [[xmin, xmax], [ymin, ymax], [zmin, zmax]] [mm] to crop to; ``leg_point_mm`` a point [mm, world] inside
-    the leg to segment where the legs touch (:func:`deeptissue.imaging.select_leg`; the indenter is looked for in
+    the leg to segment where the legs touch (:func:`deeptissue.imaging.split_legs`; the indenter is looked for in
     the whole image). ``reference`` is the pre image a during ``image`` must match slice by slice,
     ``pre_contours`` its contour file (it fills the slices where the tibia touches the indenter), ``overrides``
     the manual-override YAML (:func:`load_overrides`), ``truth`` a phantom's true contour file (drawn, with the
@@ -1434,6 +1439,7 @@ def segment_files(job: SegmentJob) -> Contours:
             f"{message}. The QC figure with the failing slices marked: {failed_qc}; the checks: {failed_csv}"
         )
     failed_qc.unlink(missing_ok=True)
+    Path(job.checks_out or job.qc_out).with_name(failed_qc.stem + ".csv").unlink(missing_ok=True)
     if job.checks_out is not None:
         write_checks(job.checks_out, checks)
     save_contours(job.contours_out, contours)
