@@ -703,8 +703,8 @@ def _choose_tibia(
         f"the tibia ({'the most anterior' if select == 'anterior' else 'the largest'} dark structure along the "
         f"leg, near x {x:.1f} mm, y {y:.1f} mm) is not a closed dark region inside the skin on slice(s) "
         f"{_slice_list(missing, off)} of {n}: its dark region opens into another there (on a masked scan, the "
-        "cortex into the fat: a larger segmentation.bone_open_mm parts them) and another structure would be "
-        "taken for it"
+        "cortex into the fat: a larger segmentation.bone_open_mm parts them), or the slice lies beyond its shaft "
+        "(into the ankle or the knee), and another structure would be taken for it"
     )
     return out, dict.fromkeys(missing, msg)
 
