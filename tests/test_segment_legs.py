@@ -272,3 +272,40 @@ def test_a_dark_spot_where_the_fibula_is_missing_is_not_taken(monkeypatch):
     for k, cen in enumerate(cens):
         if k != 4:
             assert np.hypot(*(cen - FIBULA)) < PX_MM, f"slice {k}"
+
+
+def test_a_failed_check_stops_the_rule_naming_every_slice_and_leaves_its_figure(tmp_path):
+    # skin_level above the skin ring (0.5): the skin is traced on the muscle's edge, 0.7 mm inside the leg's edge
+    # on every slice; the check names them all at once, and the figure and checks of the failed run stay
+    one = masked_legs([Leg((0.0, 0.0))])
+    img = tmp_path / "leg.nii.gz"
+    write_nifti(img, one.data, one.affine)
+    job = SegmentJob(
+        image=img,
+        contours_out=tmp_path / "pre.npz",
+        qc_out=tmp_path / "qc.png",
+        checks_out=tmp_path / "checks.csv",
+        animal="one",
+        settings=SegmentationSettings(**{**MASKED.__dict__, "skin_level": 0.7}),
+    )
+    with pytest.raises(
+        SegmentationError,
+        match=r"animal one, file .*leg\.nii\.gz: failed segmentation check\(s\): skin_to_mask_mm on slice\(s\) "
+        r"0, 1, 2, 3, 4, 5, 6, 7 \(worst 0\.\d+, maximum 0\.25\): the skin lies off the edge of the leg.*"
+        r"qc_failed\.png; the checks: .*checks_failed\.csv",
+    ):
+        segment_files(job)
+    assert not (tmp_path / "pre.npz").exists() and not (tmp_path / "qc.png").exists()
+    assert (tmp_path / "qc_failed.png").stat().st_size > 10_000
+    rows = (tmp_path / "checks_failed.csv").read_text().splitlines()
+    assert (
+        sum(
+            ",skin_to_mask_mm," in r or r.startswith("skin_to_mask_mm,") and ",fail," in r
+            for r in rows
+        )
+        == 8
+    )
+    # the same scan at the right level passes, and the failed run's files are gone
+    segment_files(SegmentJob(**{**job.__dict__, "settings": MASKED}))
+    assert (tmp_path / "pre.npz").exists() and not (tmp_path / "qc_failed.png").exists()
+    assert not (tmp_path / "checks_failed.csv").exists()

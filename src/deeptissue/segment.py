@@ -1290,6 +1290,12 @@ class SegmentJob:
         q = Path(self.qc_out)
         return q.with_name(q.stem + "_failed" + q.suffix)
 
+    @property
+    def failed_checks(self) -> Path:
+        """The checks of a run whose checks failed, beside ``checks_out`` (or the QC figure without one)."""
+        c = Path(self.checks_out) if self.checks_out else Path(self.qc_out).with_name("checks.csv")
+        return c.with_name(c.stem + "_failed.csv")
+
 
 def _load_leg(job: SegmentJob):
     """``(vol, leg, split)``: the checked and cropped image, the leg to segment and the leg split (or None)."""
@@ -1430,7 +1436,7 @@ def segment_files(job: SegmentJob) -> Contours:
     if (
         message is not None
     ):  # the rule's outputs are removed on failure: the checks and figure go beside them
-        failed_csv = Path(job.checks_out or job.qc_out).with_name(Path(failed_qc).stem + ".csv")
+        failed_csv = job.failed_checks
         write_checks(failed_csv, checks)
         plot_segmentation(
             vol, contours, failed_qc, truth=true, failed=bad, split=split, title=title
@@ -1439,7 +1445,7 @@ def segment_files(job: SegmentJob) -> Contours:
             f"{message}. The QC figure with the failing slices marked: {failed_qc}; the checks: {failed_csv}"
         )
     failed_qc.unlink(missing_ok=True)
-    Path(job.checks_out or job.qc_out).with_name(failed_qc.stem + ".csv").unlink(missing_ok=True)
+    job.failed_checks.unlink(missing_ok=True)
     if job.checks_out is not None:
         write_checks(job.checks_out, checks)
     save_contours(job.contours_out, contours)
