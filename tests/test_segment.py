@@ -492,3 +492,33 @@ def test_rule_functions_write_whole_outputs(tmp_path):
     with np.load(tmp_path / "nofib.npz") as z:
         assert set(z.files) == {"skin", "bone"}
     assert load_contours(tmp_path / "nofib.npz").fibula is None
+
+
+def test_pre_and_during_swapped_are_named_as_such(ph, tmp_path):
+    # the scan with the indenter given as pre and the one without as during: the during scan has no fluid
+    # while its reference has, which is named, not reported as fluid missing
+    from deeptissue.contours import save_contours
+
+    scan_with, scan_without = tmp_path / "with.nii.gz", tmp_path / "without.nii.gz"
+    write_nifti(scan_with, ph.during, ph.affine)
+    write_nifti(scan_without, ph.pre, ph.affine)
+    vol = Volume(data=ph.during, affine=ph.affine, path=str(scan_with), animal="rat9")
+    given_pre, _ = segment_volume(vol, state="pre")
+    save_contours(tmp_path / "pre.npz", given_pre)
+    with pytest.raises(
+        SegmentationError,
+        match=r"animal rat9: the pre scan .*with\.nii\.gz holds the indenter's contrast fluid and the during "
+        r"scan .*without\.nii\.gz has none: pre and during are swapped",
+    ):
+        segment_files(
+            SegmentJob(
+                image=scan_without,
+                contours_out=tmp_path / "during.npz",
+                qc_out=tmp_path / "during.png",
+                animal="rat9",
+                state="during",
+                settings={},
+                reference=scan_with,
+                pre_contours=tmp_path / "pre.npz",
+            )
+        )
