@@ -201,6 +201,8 @@ def write_paravision(
     echo_time_ms: float = 12.0,
     repetition_time_ms: float = 2500.0,
     slope: float | None = None,
+    nucleus: str = "1H",
+    bf1_mhz: float = 300.300,
 ) -> Path:
     """Write ``data`` (ni, nj, nk) with its RAS ``affine`` as scan ``scan`` / reco ``reco`` of a ParaVision study.
 
@@ -212,6 +214,7 @@ def write_paravision(
     cosines and ``VisuCorePosition`` the first voxel of each slice, in the LPS patient coordinates
     that ParaVision also exports as DICOM ImageOrientationPatient / ImagePositionPatient. The
     2dseq is int16 in Fortran order (i fastest) with one slope for all frames (default :func:`slope_of`).
+    ``nucleus`` and ``bf1_mhz`` are the imaged nucleus and the base frequency of acqp (1H at 7.05 T by default).
     """
     study = Path(study)
     scan_dir = study / str(scan)
@@ -235,7 +238,8 @@ def write_paravision(
         {
             "ACQ_protocol_name": ("64", f"<{protocol}>"),
             "ACQ_scan_name": ("64", f"<{protocol}>"),
-            "BF1": 300.300,
+            "BF1": bf1_mhz,
+            "NUCLEUS1": f"<{nucleus}>",
             "BYTORDA": "little",
             "ACQ_word_size": "_32_BIT",
             "ACQ_scaling_phase": 1,

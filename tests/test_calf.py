@@ -21,7 +21,7 @@ from deeptissue.contours import (
     points_in_polygon,
     polygon_area_centroid,
 )
-from deeptissue.imaging import crop_volume, load_nifti, select_leg
+from deeptissue.imaging import crop_volume, load_nifti, split_legs
 from deeptissue.segment import SegmentationSettings, segment_volume
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -122,7 +122,7 @@ def test_a_point_in_the_leg_gives_the_crop_box_contours(calf):
     a, settings = _config()
     both = crop_volume(load_nifti(SCAN, animal="calf"), [[300.0, 700.0], *a["crop_mm"][1:]])
     picked, _ = segment_volume(
-        select_leg(both, [400.0, 460.0, 130.0]), settings=settings, state="pre"
+        split_legs(both, [400.0, 460.0, 130.0]).leg, settings=settings, state="pre"
     )
     np.testing.assert_allclose(picked.skin, c.skin, atol=1e-9)
     np.testing.assert_allclose(picked.bone, c.bone, atol=1e-9)
@@ -189,3 +189,49 @@ def test_the_readme_command_runs_through_snakemake(calf, tmp_path):
         "config key convergence.animals: null, and no configured animal has a during scan ['calf']"
         in r.stdout + r.stderr
     )
+
+
+ANKLE = SHARED / "data" / "calf_ankle" / "water.nii.gz"
+
+
+@pytest.mark.skipif(not ANKLE.is_file(), reason=f"calf_ankle scan not found at {ANKLE}")
+def test_calf_ankle_tibia_not_fibula_and_skin_on_the_masked_edge(tmp_path):
+    # config/calf_ankle.yaml: a masked Dixon scan whose tibia opens into zeroed fat, one leg picked by a point
+    from deeptissue.segment import SegmentationError, SegmentJob, segment_files
+
+    cfg = yaml.safe_load((ROOT / "config" / "calf_ankle.yaml").read_text())
+    cfg = validate_config(
+        cfg, ROOT / "workflow" / "schemas" / "config.schema.yaml", base_dir=SHARED
+    )
+    a = cfg["animals"]["calf_ankle"]
+    settings = {**cfg["segmentation"], **a["segmentation"]}
+    job = SegmentJob(
+        image=ANKLE,
+        contours_out=tmp_path / "pre.npz",
+        qc_out=tmp_path / "qc.png",
+        checks_out=tmp_path / "checks.csv",
+        animal="calf_ankle",
+        settings=settings,
+        crop_mm=a["crop_mm"],
+        leg_point_mm=a["leg_point_mm"],
+    )
+    c = segment_files(job)
+    assert c.n_slices == 19  # slices 12-30
+    for k in range(c.n_slices):
+        a_t, cen_t = polygon_area_centroid(c.bone[k, :, :2])
+        assert cen_t[0] < -40.0  # the picked leg (lower x)
+        if c.fibula is not None and np.isfinite(c.fibula[k]).all():
+            a_f, cen_f = polygon_area_centroid(c.fibula[k, :, :2])
+            assert cen_t[1] > cen_f[1] and a_t > 2 * a_f, k  # anterior and larger: the tibia
+    rows = [r.split(",") for r in (tmp_path / "checks.csv").read_text().splitlines()[1:]]
+    skin = [float(r[2]) for r in rows if r[0] == "skin_to_mask_mm"]
+    assert len(skin) == 19 and max(skin) <= 1.5, skin  # median per slice, one pixel
+    assert not [r for r in rows if r[4] == "fail"]
+    # without the z range the ankle slices are named in one refusal, with the figure of the failed run
+    full = SegmentJob(**{**job.__dict__, "crop_mm": None, "leg_point_mm": [-60.0, 0.0, 0.0]})
+    with pytest.raises(
+        SegmentationError,
+        match=r"3 of 31 slices cannot be segmented \(slices 1, 3, 4, z -87\.0 to -69\.0 mm\)",
+    ):
+        segment_files(full)
+    assert (tmp_path / "qc_failed.png").stat().st_size > 10_000

@@ -243,3 +243,51 @@ def test_phantom_without_fibula():
 def test_impossible_fibula_is_refused(bad, what):
     with pytest.raises(ValueError, match=f"phantom: .*fibula.*{what}"):
         _Scene(PhantomSpec(seed=1, **bad))
+
+
+@pytest.mark.parametrize(
+    "key, value",
+    [
+        ("bone_rotation_deg", (float("nan"), 0.0, 0.0)),
+        ("snr", float("nan")),
+        ("depth_mm", float("inf")),
+        ("tilt_deg", (0.0, float("-inf"))),
+    ],
+)
+def test_non_finite_parameters_are_refused_naming_the_key(key, value):
+    with pytest.raises(ValueError, match=rf"phantom: {key} .*: not a finite number"):
+        PhantomSpec(**{key: value})
+
+
+def test_the_tilt_range_check_indenter_advertises_keeps_the_fluid_column_in_the_image():
+    # the pose stage fails with less than 5 mm of fluid column (pose.checks.LIMITS): 60 deg leaves 1.8 mm of the
+    # fluid's axis in the 19 mm slab, so check_indenter refuses it and advertises a range that keeps 5 mm
+    import re
+
+    from deeptissue.phantom import (
+        _affine,
+        _Anatomy,
+        _fluid_in_image,
+        _indenter_entry,
+        check_indenter,
+    )
+
+    spec = PhantomSpec(tilt_deg=(60.0, 0.0))
+    with pytest.raises(ValueError, match=r"5 mm of its fluid column in the image") as exc:
+        check_indenter(spec)
+    lo, hi = map(float, re.search(r"works from (\S+) to (\S+) deg", str(exc.value)).groups())
+    assert -60.0 < lo < -45.0 and 45.0 < hi < 60.0
+    z = _affine(spec)[2, 2] * np.arange(spec.n_slices) + _affine(spec)[2, 3]
+    for tilt in (lo, hi):
+        s = PhantomSpec(tilt_deg=(tilt, 0.0))
+        check_indenter(s)
+        axis, skin = _indenter_entry(_Anatomy(s), s, s.tilt_deg)
+        front = skin + (s.depth_mm - s.indenter_wall_mm) * axis
+        # the column's axis from its front back to where it leaves the slab, by hand: dz / |axis_z|
+        dz = (z.max() - front[2]) if -axis[2] > 0 else (front[2] - z.min())
+        by_hand = dz / abs(axis[2])
+        # at these tilts the column leaves through the slab's end, not the in-plane field of view
+        assert _fluid_in_image(s, front, axis, (z.min(), z.max())) == pytest.approx(
+            by_hand, abs=1e-9
+        )
+        assert by_hand >= 5.0 - 1e-6

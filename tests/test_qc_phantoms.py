@@ -12,7 +12,7 @@ from deeptissue.imaging import write_nifti
 from deeptissue.io import read_json
 from deeptissue.phantom import PhantomSpec, make_phantom
 from deeptissue.pose import PoseError, PoseFiles, run_pose
-from deeptissue.segment import segment_files
+from deeptissue.segment import SegmentJob, segment_files
 
 # config/config.yaml's rat01 and rat02
 RAT01 = PhantomSpec(
@@ -52,22 +52,26 @@ def _run(tmp_path, pre_of, during_of, animal="ratQ"):
     write_nifti(dur_nii, dur_ph.during, dur_ph.affine)
     c = {st: tmp_path / f"{st}.npz" for st in ("pre", "during")}
     segment_files(
-        pre_nii,
-        contours_out=c["pre"],
-        qc_out=tmp_path / "pre.png",
-        animal=animal,
-        state="pre",
-        settings={},
+        SegmentJob(
+            image=pre_nii,
+            contours_out=c["pre"],
+            qc_out=tmp_path / "pre.png",
+            animal=animal,
+            state="pre",
+            settings={},
+        )
     )
     segment_files(
-        dur_nii,
-        contours_out=c["during"],
-        qc_out=tmp_path / "during.png",
-        animal=animal,
-        state="during",
-        settings={},
-        reference=pre_nii,
-        pre_contours=c["pre"],
+        SegmentJob(
+            image=dur_nii,
+            contours_out=c["during"],
+            qc_out=tmp_path / "during.png",
+            animal=animal,
+            state="during",
+            settings={},
+            reference=pre_nii,
+            pre_contours=c["pre"],
+        )
     )
     out = dict(
         pose_json=tmp_path / "pose.json",

@@ -572,3 +572,54 @@ def test_study_from_scanner_copies_matches_its_nifti_twin(tmp_path):
         pd.testing.assert_series_equal(
             voi.loc[animal, numeric], voi.loc["twin", numeric], check_names=False, rtol=1e-9
         )
+
+
+def test_refuses_a_single_slice_volume(ph, tmp_path):
+    write_series(tmp_path / "d", ph.pre, ph.affine, slices=[3])
+    with pytest.raises(
+        ImagingError,
+        match=r"animal rat, folder .*d: 1 slice\(s\); the segmentation needs at least 3 slices",
+    ):
+        read_dicom(tmp_path / "d", animal="rat")
+
+
+def test_duplicate_files_are_named_as_copies_not_volumes(ph, tmp_path):
+    import shutil
+
+    paths = write_series(tmp_path / "d", ph.pre, ph.affine)
+    for p in paths[:2]:
+        shutil.copy(p, p.with_name("copy_" + p.name))
+    with pytest.raises(
+        ImagingError,
+        match=r"folder .*d: 2 file\(s\) are copies of others \(the same SOPInstanceUID: ",
+    ):
+        read_dicom(tmp_path / "d")
+
+
+def test_twin_series_are_told_apart_by_their_uid(ph, tmp_path):
+    import pydicom.uid
+
+    uid_pre, uid_dur = pydicom.uid.generate_uid(), pydicom.uid.generate_uid()
+    write_series(tmp_path / "d", ph.pre, ph.affine, series_uid=uid_pre, name="A")
+    write_series(tmp_path / "d", ph.during, ph.affine, series_uid=uid_dur, name="B")
+    with pytest.raises(
+        ImagingError,
+        match=rf"2 DICOM series match series 'T2 RARE' \(.*uid {uid_pre}.*uid {uid_dur}|"
+        rf"2 DICOM series match series 'T2 RARE' \(.*uid {uid_dur}.*uid {uid_pre}",
+    ):
+        read_dicom(tmp_path / "d", series="T2 RARE")
+    vol, _ = read_dicom(tmp_path / "d", series=uid_dur)
+    assert_same_geometry(quantised(ph.during), ph.affine, vol.data, vol.affine)
+
+
+@pytest.mark.parametrize(
+    "nucleus, bf1_mhz, field_t",
+    [("1H", 500.13, 11.746), ("13C", 125.7707, 11.745), ("19F", 282.404, 7.046)],
+)
+def test_paravision_field_strength_from_the_nucleus(ph, tmp_path, nucleus, bf1_mhz, field_t):
+    # Larmor frequencies of an 11.7 T and a 7 T magnet (Bruker's 500 and 300 MHz systems) for each nucleus
+    study = tmp_path / "study"
+    write_paravision(study, 5, ph.pre, ph.affine, nucleus=nucleus, bf1_mhz=bf1_mhz)
+    _, meta = read_bruker(study, scan=5)
+    assert meta["nucleus"] == nucleus
+    assert meta["field_strength_t"] == pytest.approx(field_t, abs=0.002)

@@ -21,6 +21,7 @@ from deeptissue.phantom import PhantomSpec, _Scene, make_phantom
 from deeptissue.segment import (
     SegmentationError,
     SegmentationSettings,
+    SegmentJob,
     contour_accuracy,
     load_overrides,
     segment_files,
@@ -239,6 +240,33 @@ def test_override_bone_outside_skin_is_an_error(ph, tmp_path):
         segment_volume(vol, state="pre", overrides={"pre": {"bone": {5: np.array(far, float)}}})
 
 
+@pytest.mark.parametrize("k", [99, -1])
+def test_override_of_a_slice_that_does_not_exist_names_file_and_slice(tmp_path, k):
+    path = tmp_path / "ov.yaml"
+    path.write_text(f"pre:\n  bone:\n    {k}: [[0, 0], [1, 0], [1, 1], [0, 1]]\n")
+    with pytest.raises(
+        ValueError, match=rf"ov\.yaml: pre\.bone: slice {k} is not a slice of the 20"
+    ):
+        load_overrides(path, n_slices=20)
+
+
+def test_the_same_scan_as_pre_and_during_is_named(ph, tmp_path):
+    from deeptissue.imaging import check_not_same_scan
+
+    pre = tmp_path / "pre.nii.gz"
+    write_nifti(pre, ph.pre, ph.affine)
+    copy = tmp_path / "during.nii.gz"
+    write_nifti(copy, ph.pre, ph.affine)
+    a = load_nifti(pre, animal="rat9")
+    with pytest.raises(
+        ImagingError,
+        match=r"animal rat9: pre .*pre\.nii\.gz and during .*pre\.nii\.gz are the same file",
+    ):
+        check_not_same_scan(a, load_nifti(pre, animal="rat9"))
+    with pytest.raises(ImagingError, match=r"are the same voxels in two files"):
+        check_not_same_scan(a, load_nifti(copy, animal="rat9"))
+
+
 def test_override_slice_given_twice_names_file_and_key(tmp_path):
     pts = "[[0, 0], [1, 0], [1, 1], [0, 1]]"
     f = tmp_path / "ov.yaml"
@@ -315,26 +343,43 @@ def test_no_closed_contour_names_slice_and_writes_nothing(ph, tmp_path):
     out = tmp_path / "out" / "pre.npz"
     with pytest.raises(
         SegmentationError,
-        match=r"animal rat9, file .*pre\.nii\.gz, slice 7: no closed skin contour",
+        match=r"animal rat9, file .*pre\.nii\.gz: 1 of 20 slices cannot be segmented \(slices 7, .*\): "
+        r"slice\(s\) 7: no closed skin contour .*by hand in a file named by config key animals\.rat9\.overrides"
+        r".*QC figure with the failing slices marked: .*qc_failed\.png",
     ):
         segment_files(
-            img,
-            contours_out=out,
-            qc_out=tmp_path / "out" / "qc.png",
-            animal="rat9",
-            state="pre",
-            settings={},
+            SegmentJob(
+                image=img,
+                contours_out=out,
+                qc_out=tmp_path / "out" / "qc.png",
+                animal="rat9",
+                state="pre",
+                settings={},
+            )
         )
     assert not out.exists() and not (tmp_path / "out" / "qc.png").exists()
+    assert (tmp_path / "out" / "qc_failed.png").stat().st_size > 10_000
 
 
-def test_leg_cut_by_the_crop_has_no_closed_contour(ph):
+def test_leg_cut_by_the_crop_is_named_as_such(ph):
     vol = Volume(data=ph.pre, affine=ph.affine, path="pre.nii.gz", animal="rat9")
     cut = crop_volume(
         vol, [[-12.5, 12.5], [0.0, 12.5], [-10, 10]]
     )  # the posterior half is cut off
-    with pytest.raises(SegmentationError, match=r"slice 0: no closed skin contour"):
+    with pytest.raises(
+        SegmentationError,
+        match=r"slice\(s\) 0, 1, .*: the leg is cut at the image border.*widen crop_mm",
+    ):
         segment_volume(cut, state="pre")
+
+
+def test_a_skin_level_in_the_background_is_named_as_such(ph):
+    vol = Volume(data=ph.pre, affine=ph.affine, path="pre.nii.gz", animal="rat9")
+    with pytest.raises(
+        SegmentationError,
+        match=r"slice\(s\) 0, 1, .*: segmentation.skin_level 0.001 lies in the background",
+    ):
+        segment_volume(vol, settings=SegmentationSettings(skin_level=0.001), state="pre")
 
 
 def test_no_bone_is_an_error(ph):
@@ -346,7 +391,7 @@ def test_no_bone_is_an_error(ph):
     )  # fill the tibia
     vol = Volume(data=data, affine=ph.affine, path="pre.nii.gz", animal="rat9")
     with pytest.raises(
-        SegmentationError, match=r"slice 4: no closed bone contour inside the skin"
+        SegmentationError, match=r"slice\(s\) 4: no closed bone contour inside the skin"
     ):
         segment_volume(vol, state="pre")
 
@@ -414,15 +459,17 @@ def test_rule_functions_write_whole_outputs(tmp_path):
     )
     out = tmp_path / "contours" / "during.npz"
     segment_files(
-        m / "during.nii.gz",
-        contours_out=out,
-        qc_out=tmp_path / "qc" / "seg.png",
-        animal="ratW",
-        state="during",
-        settings={"n_points": 64},
-        reference=m / "pre.nii.gz",
-        overrides=ov,
-        truth=m / "truth_during.npz",
+        SegmentJob(
+            image=m / "during.nii.gz",
+            contours_out=out,
+            qc_out=tmp_path / "qc" / "seg.png",
+            animal="ratW",
+            state="during",
+            settings={"n_points": 64},
+            reference=m / "pre.nii.gz",
+            overrides=ov,
+            truth=m / "truth_during.npz",
+        )
     )
     c = load_contours(out)
     assert c.skin.shape == (4, 64, 3) and c.fibula.shape == (4, 64, 3)
@@ -445,3 +492,33 @@ def test_rule_functions_write_whole_outputs(tmp_path):
     with np.load(tmp_path / "nofib.npz") as z:
         assert set(z.files) == {"skin", "bone"}
     assert load_contours(tmp_path / "nofib.npz").fibula is None
+
+
+def test_pre_and_during_swapped_are_named_as_such(ph, tmp_path):
+    # the scan with the indenter given as pre and the one without as during: the during scan has no fluid
+    # while its reference has, which is named, not reported as fluid missing
+    from deeptissue.contours import save_contours
+
+    scan_with, scan_without = tmp_path / "with.nii.gz", tmp_path / "without.nii.gz"
+    write_nifti(scan_with, ph.during, ph.affine)
+    write_nifti(scan_without, ph.pre, ph.affine)
+    vol = Volume(data=ph.during, affine=ph.affine, path=str(scan_with), animal="rat9")
+    given_pre, _ = segment_volume(vol, state="pre")
+    save_contours(tmp_path / "pre.npz", given_pre)
+    with pytest.raises(
+        SegmentationError,
+        match=r"animal rat9: the pre scan .*with\.nii\.gz holds the indenter's contrast fluid and the during "
+        r"scan .*without\.nii\.gz has none: pre and during are swapped",
+    ):
+        segment_files(
+            SegmentJob(
+                image=scan_without,
+                contours_out=tmp_path / "during.npz",
+                qc_out=tmp_path / "during.png",
+                animal="rat9",
+                state="during",
+                settings={},
+                reference=scan_with,
+                pre_contours=tmp_path / "pre.npz",
+            )
+        )

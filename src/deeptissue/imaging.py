@@ -21,16 +21,22 @@ __all__ = [
     "check_matching",
     "crop_volume",
     "load_nifti",
-    "select_leg",
+    "LegSplit",
+    "check_not_same_scan",
+    "split_legs",
     "write_nifti",
     "body_mask",
 ]
 
-#: touching legs are parted by in-plane erosions of this step, as a fraction of the widest leg's inscribed radius,
-#: up to LEG_ERODE_MAX: at half the radius a convex leg keeps its core and a seam up to the leg's radius long is cut
-LEG_ERODE_STEP, LEG_ERODE_MAX = 0.05, 0.5
-#: a core is a leg if it holds at least this share of the largest core's volume (not a toe of tissue cut off)
-LEG_MIN_SHARE = 0.2
+#: the other leg's centre is a local maximum of the distance from the body's edge at least this deep, relative to
+#: the kept leg's centre: a leg of the same build is about as deep, a fold of skin or a toe of tissue is not
+LEG_OTHER_DEPTH = 0.5
+#: two centres are two legs when the deepest point of the line between their watershed regions (the pass) is
+#: shallower than this share of the shallower centre: two touching round legs meet at a pass of at most about
+#: half their depth, a leg's bulge (a calf muscle's lobe) joins its centre at nearly the full depth
+LEG_PASS_RATIO = 0.75
+#: gaps in the body narrower than twice this share of the deepest leg's depth are closed before the legs are parted
+LEG_CLOSE = 0.15
 #: pixels of the other leg kept along the cut: the cut is jagged by a pixel, and a gap in the leg's own skin
 #: would open its fat (0 in a masked scan) to the background and let the skin contour run inside
 LEG_CUT_MARGIN_PX = 2
@@ -143,6 +149,20 @@ def load_nifti(path: str | Path, *, animal: str = "") -> Volume:
     return Volume(data=data, affine=affine, path=str(path), animal=animal)
 
 
+def check_not_same_scan(pre: Volume, during: Volume) -> None:
+    """Raise :class:`ImagingError` if ``pre`` and ``during`` are the same scan (the same file, or the same voxels
+    under two names): a pre scan given as during has no indenter, which would be reported as missing fluid."""
+    same_file = Path(pre.path).resolve() == Path(during.path).resolve()
+    if same_file or (
+        pre.data.shape == during.data.shape and np.array_equal(pre.data, during.data)
+    ):
+        what = "the same file" if same_file else "the same voxels in two files"
+        raise ImagingError(
+            f"animal {during.animal or pre.animal or '?'}: pre {pre.path} and during {during.path} are {what}: "
+            "give the scan without the indenter as pre and the one with it as during"
+        )
+
+
 def check_matching(pre: Volume, during: Volume, *, atol_mm: float = 1e-3) -> None:
     """Raise :class:`ImagingError` unless ``during`` has the same slices (grid and position) as ``pre``."""
     where = f"animal {during.animal or pre.animal or '?'}, file {during.path} vs {pre.path}"
@@ -206,38 +226,90 @@ def body_mask(vol: Volume) -> np.ndarray:
     return np.stack([ndimage.binary_fill_holes(body[:, :, k]) for k in range(d.shape[2])], axis=-1)
 
 
-def select_leg(vol: Volume, point_mm) -> Volume:
-    """``vol`` with everything but the leg that holds ``point_mm`` set to the background, for legs that touch.
+@dataclass(frozen=True)
+class LegSplit:
+    """A body of legs parted at ``point_mm`` (:func:`split_legs`): ``leg`` is the image with everything but the
+    leg that holds the point set to the background; ``body`` and ``kept`` (same shape as the image, bool) the
+    body and the kept leg; ``centres`` per slice the (i, j) index of the kept leg's centre and of the other leg's
+    (None where the slice holds no second leg touching it), ``parted`` the slices where a touching body was cut."""
 
-    The body (:func:`body_mask`) is eroded in-plane ever deeper, in steps of :data:`LEG_ERODE_STEP` of its
-    largest in-plane distance from the edge (the widest leg's inscribed radius) up to :data:`LEG_ERODE_MAX`, until
-    its 3D connected cores (in-plane 8-connected, face to face through the slices) are two or more legs: parts of
-    at least :data:`LEG_MIN_SHARE` of the largest one's volume. Touching legs part there, where the bridge or the
-    seam between them is narrower than the eroded depth; one leg stays one core (a leg is about convex), and its
-    core runs through the slices. Each body voxel goes to the core it is reached from first by a watershed of the
-    distance from the edge (:func:`skimage.segmentation.watershed`), so the cut runs along the narrowest part
-    between the legs. The leg is the part that holds the point, with :data:`LEG_CUT_MARGIN_PX` pixels more along
-    the cut.
+    leg: Volume
+    body: np.ndarray
+    kept: np.ndarray
+    centres: list
+    parted: list
+    point_mm: tuple
 
-    Parameters
-    ----------
-    vol : Volume
-        The (cropped) image.
-    point_mm : (3,) array_like
-        A point inside the leg to keep [mm, world].
+    def describe(self) -> str:
+        """One line for the log: the point, the voxels kept, the slices where touching legs were parted."""
+        off = self.leg.index_offset[2]
+        parted = ", ".join(str(k + off) for k in self.parted) or "none"
+        return (
+            f"the leg at leg_point_mm {list(self.point_mm)} is segmented: {int(self.kept.sum())} of the body's "
+            f"{int(self.body.sum())} voxels; touching legs parted on slice(s) {parted}"
+        )
 
-    Returns
-    -------
-    Volume
-        The same grid; voxels outside the leg hold the median of the image's border frame (0 for a masked scan).
+
+def _climb(dist: np.ndarray, ij) -> tuple[int, int]:
+    """The local maximum of ``dist`` reached from ``ij`` by steepest ascent over the 8 neighbours."""
+    i, j = int(ij[0]), int(ij[1])
+    while True:
+        win = dist[max(i - 1, 0) : i + 2, max(j - 1, 0) : j + 2]
+        di, dj = np.unravel_index(int(np.argmax(win)), win.shape)
+        ni_, nj_ = max(i - 1, 0) + int(di), max(j - 1, 0) + int(dj)
+        if dist[ni_, nj_] <= dist[i, j]:
+            return i, j
+        i, j = ni_, nj_
+
+
+def _part_slice(body2d: np.ndarray, dist: np.ndarray, start, px_mm: float):
+    """``(kept, centre, other)`` on one slice: the leg reached from ``start`` (i, j), its centre, and the other
+    leg's centre where a second leg touches it (else None).
+
+    The leg's centre is the maximum of the distance from the body's edge (``dist``, mm) that ``start`` climbs to.
+    The other leg's centre is the deepest local maximum of ``dist`` of at least :data:`LEG_OTHER_DEPTH` of the
+    leg's depth outside the leg's inscribed disc. A watershed of ``-dist`` from the two centres parts the body
+    along its narrowest line; the two are two legs when that line's deepest point (the pass) is shallower than
+    :data:`LEG_PASS_RATIO` of the shallower centre, else one leg with a bulge, kept whole."""
+    from skimage.feature import peak_local_max
+    from skimage.segmentation import watershed
+
+    lab, _ = ndimage.label(body2d, structure=np.ones((3, 3)))
+    ci, cj = _climb(dist, start)
+    comp = lab == lab[ci, cj]
+    depth = dist[ci, cj]
+    peaks = peak_local_max(
+        np.where(comp, dist, 0),
+        min_distance=max(2, int(0.5 * depth / px_mm)),
+        threshold_abs=LEG_OTHER_DEPTH * depth,
+    )
+    far = [p for p in peaks if np.hypot(*(p - (ci, cj))) * px_mm > depth]
+    if not far:
+        return comp, (int(ci), int(cj)), None
+    oi, oj = max(far, key=lambda p: dist[p[0], p[1]])
+    markers = np.zeros(dist.shape, np.int32)
+    markers[ci, cj], markers[oi, oj] = 1, 2
+    ws = watershed(-dist, markers, mask=comp)
+    line = (ws == 1) & ndimage.binary_dilation(ws == 2, structure=np.ones((3, 3)))
+    if not line.any() or dist[line].max() >= LEG_PASS_RATIO * min(depth, dist[oi, oj]):
+        return comp, (int(ci), int(cj)), None  # a bulge of one leg, not a second leg
+    return ws == 1, (int(ci), int(cj)), (int(oi), int(oj))
+
+
+def split_legs(vol: Volume, point_mm) -> LegSplit:
+    """Part a body of two legs, touching or not, and keep the leg that holds ``point_mm``.
+
+    Slice by slice, from the point's slice outward, the kept leg's centre is the deepest point of the body
+    (the maximum of the in-plane distance from its edge) climbed to from the point, and on the next slices from
+    the previous slice's centre; a second leg touching it is parted by a watershed from the two legs' centres
+    (:func:`_part_slice`). The kept leg takes :data:`LEG_CUT_MARGIN_PX` pixels more along the cut, so its own skin
+    stays whole. Legs that stand apart are parted by their gap; a leg that touches nothing is kept whole.
 
     Raises
     ------
     ImagingError
         Naming animal and file, if the point lies outside the image or outside the body.
     """
-    from skimage.segmentation import watershed
-
     point = np.asarray(point_mm, float)
     ijk = vol.voxel(point)
     idx = np.round(ijk).astype(int)
@@ -253,48 +325,56 @@ def select_leg(vol: Volume, point_mm) -> Volume:
             "(in the background of the image): give a point inside the leg to segment"
         )
     px = vol.pixel_mm
-    dist = np.stack(
-        [ndimage.distance_transform_edt(body[:, :, k], sampling=px) for k in range(body.shape[2])],
-        -1,
-    )
-    structure = np.zeros((3, 3, 3), bool)
-    structure[:, :, 1] = True
-    structure[1, 1, :] = True
-    lab, n = ndimage.label(body, structure=structure)
-    for fraction in np.arange(LEG_ERODE_STEP, LEG_ERODE_MAX + 1e-9, LEG_ERODE_STEP):
-        core, m = ndimage.label(dist > fraction * dist.max(), structure=structure)
-        sizes = np.bincount(core.ravel(), minlength=m + 1)[1:]
-        if m >= 2 and np.sort(sizes)[-2] >= LEG_MIN_SHARE * sizes.max():
-            keep = sizes >= LEG_MIN_SHARE * sizes.max()
-            markers = np.where(np.isin(core, 1 + np.nonzero(keep)[0]), core, 0)
-            lab = np.stack(
-                [
-                    watershed(-dist[:, :, k], markers[:, :, k], mask=body[:, :, k])
-                    for k in range(body.shape[2])
-                ],
-                -1,
-            )
-            break
-    if (
-        lab[tuple(idx)] == 0
-    ):  # the point lies in a body part that no leg's core reaches on its slice
-        raise ImagingError(
-            f"{vol.where(int(idx[2]))}: leg_point_mm {point.tolist()} lies in a part of the body "
-            "that belongs to no leg; give a point nearer the leg's centre"
+    nk = vol.n_slices
+    # the skin ring of a masked scan, parted from the muscle by zeroed fat, belongs to its leg: the legs are parted
+    # on the body with gaps up to LEG_CLOSE of the deepest leg's depth closed
+    depth_px = max(ndimage.distance_transform_edt(body[:, :, k]).max() for k in range(nk))
+    r = max(1.0, LEG_CLOSE * float(depth_px))
+    y, x = np.mgrid[-int(r) : int(r) + 1, -int(r) : int(r) + 1]
+    disc = x**2 + y**2 <= r**2
+    pad = int(r) + 1
+    kept = np.zeros_like(body)
+    centres: list = [None] * nk
+    parted = []
+    k0 = int(idx[2])
+    order = [
+        (k, k + 1 if k < k0 else k - 1) for k in [k0, *range(k0 + 1, nk), *range(k0 - 1, -1, -1)]
+    ]
+    for k, prev in order:
+        raw = body[:, :, k]
+        if not raw.any():
+            continue
+        b = ndimage.binary_closing(np.pad(raw, pad), structure=disc)[pad:-pad, pad:-pad]
+        b = ndimage.binary_fill_holes(b | raw)
+        start = idx[:2] if k == k0 else (centres[prev][0] if centres[prev] is not None else None)
+        if start is None:
+            continue
+        if not b[tuple(start)]:  # the leg's centre of the slice before lies outside the body here
+            d_out, near = ndimage.distance_transform_edt(~b, return_indices=True)
+            start = (near[0][tuple(start)], near[1][tuple(start)])
+        # depth from the edge of the body as scanned where it is one piece (closing the notch between two touching
+        # legs would move their pass), from the closed body where a masked skin ring lies apart from the muscle
+        one_piece = ndimage.label(ndimage.binary_fill_holes(raw))[1] == 1
+        dist = ndimage.distance_transform_edt(
+            ndimage.binary_fill_holes(raw) if one_piece else b, sampling=px
         )
-    # LEG_CUT_MARGIN_PX more in-plane, so the cut, jagged by a pixel, leaves the leg's own skin whole
-    in_plane = np.zeros((3, 3, 3), bool)
-    in_plane[:, :, 1] = ndimage.generate_binary_structure(2, 1)
-    leg = (
-        ndimage.binary_dilation(
-            lab == lab[tuple(idx)], structure=in_plane, iterations=LEG_CUT_MARGIN_PX
-        )
-        & body
-    )
+        leg, centre, other = _part_slice(b, dist, start, float(np.sqrt(px[0] * px[1])))
+        centres[k] = (centre, other)
+        if other is not None:
+            parted.append(k)
+            leg = ndimage.binary_dilation(leg, iterations=LEG_CUT_MARGIN_PX) & b
+        kept[:, :, k] = leg & raw
     d = vol.data
     frame = np.concatenate([d[:3].ravel(), d[-3:].ravel(), d[:, :3].ravel(), d[:, -3:].ravel()])
-    data = np.where(leg, d, np.float32(np.median(frame))).astype(np.float32)
-    return replace(vol, data=data)
+    data = np.where(kept, d, np.float32(np.median(frame))).astype(np.float32)
+    return LegSplit(
+        leg=replace(vol, data=data),
+        body=body,
+        kept=kept,
+        centres=centres,
+        parted=sorted(parted),
+        point_mm=tuple(float(v) for v in point),
+    )
 
 
 def write_nifti(path: str | Path, data: np.ndarray, affine: np.ndarray) -> None:

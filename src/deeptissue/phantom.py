@@ -58,6 +58,7 @@ from scipy.optimize import brentq
 
 from .contours import Contours, polygon_area_centroid, resample_closed, save_contours
 from .pose import Pose, save_pose
+from .pose.checks import LIMITS
 from .rigid import rotation_matrix
 
 __all__ = ["Phantom", "PhantomSpec", "check_indenter", "make_phantom", "write_phantom"]
@@ -129,6 +130,22 @@ class PhantomSpec:
     n_slices: int = 20
     slice_mm: float = 1.0
     supersample: int = 8
+
+    def __post_init__(self):
+        """Refuse a parameter that is not a finite number (NaN passes every comparison, so it would pass the
+        bounds and end in a phantom of NaN voxels or a missing bone boundary)."""
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, bool):
+                continue
+            vals = v if isinstance(v, (tuple, list)) else (v,)
+            try:
+                finite = all(np.isfinite(float(x)) for x in vals)
+            except (TypeError, ValueError):
+                finite = False
+            if not finite:
+                shown = [*v] if isinstance(v, (tuple, list)) else v
+                raise ValueError(f"phantom: {f.name} {shown}: not a finite number; give a number")
 
     @classmethod
     def from_config(cls, cfg: dict) -> PhantomSpec:
@@ -381,12 +398,29 @@ def _tilt_x_range(an: _Anatomy, spec: PhantomSpec, inside) -> tuple[float, float
     return ends[0], ends[1]
 
 
+def _fluid_in_image(spec: PhantomSpec, front: np.ndarray, axis: np.ndarray, z_range) -> float:
+    """Length [mm] of the fluid column's axis, from its ``front`` back along ``-axis``, inside the image (the
+    in-plane field of view and the slab ``z_range``)."""
+    half = spec.fov_mm / 2.0
+    lo = np.array([-half, -half, z_range[0]])
+    hi = np.array([half, half, z_range[1]])
+    if np.any(front < lo) or np.any(front > hi):
+        return 0.0
+    back = -np.asarray(axis, float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(
+            back > 0, (hi - front) / back, np.where(back < 0, (lo - front) / back, np.inf)
+        )
+    return float(t.min())
+
+
 def check_indenter(spec: PhantomSpec) -> None:
     """Refuse an indenter the phantom cannot image, saying the range that works for this leg and slab.
 
     The indenter axis (``tilt_deg``) must leave the leg within 30 mm of the tibia centre, its skin point and
-    its tip at full depth must lie inside the imaged slab (the pose stage finds the indenter by its fluid
-    there), and ``depth_mm`` must be > 0 and stop short of the tibia and fibula along the axis (of the pre
+    its tip at full depth must lie inside the imaged slab, with at least the pose stage's fluid-column length
+    (:data:`deeptissue.pose.checks.LIMITS`, 5 mm) of the fluid's axis inside the image (the pose stage finds the
+    indenter's axis from it; a steeper tilt out of the slices leaves less), and ``depth_mm`` must be > 0 and stop short of the tibia and fibula along the axis (of the pre
     state; the rendering checks the moved bones again). It costs milliseconds, so a configuration is
     checked before anything runs.
 
@@ -402,6 +436,7 @@ def check_indenter(spec: PhantomSpec) -> None:
     an = _Anatomy(spec)
     z = _affine(spec)[2, 2] * np.arange(spec.n_slices) + _affine(spec)[2, 3]
     z_lo, z_hi = float(z.min()), float(z.max())
+    column = LIMITS["fluid_column_length_mm"].fail
 
     def inside(tilt) -> bool:
         entry = _indenter_entry(an, spec, tilt)
@@ -409,7 +444,11 @@ def check_indenter(spec: PhantomSpec) -> None:
             return False
         axis, skin = entry
         tip = skin + spec.depth_mm * axis
-        return all(z_lo <= p[2] <= z_hi for p in (skin, tip))
+        if not all(z_lo <= p[2] <= z_hi for p in (skin, tip)):
+            return False
+        return (
+            _fluid_in_image(spec, tip - spec.indenter_wall_mm * axis, axis, (z_lo, z_hi)) >= column
+        )
 
     if spec.depth_mm <= 0:
         raise ValueError(
@@ -422,11 +461,14 @@ def check_indenter(spec: PhantomSpec) -> None:
         works = (
             "no tilt about X works with this tilt about Z"
             if span is None
-            else f"tilt about X works from {span[0]:.1f} to {span[1]:.1f} deg (with this tilt about Z and depth)"
+            # rounded toward 0, so both ends shown work
+            else f"tilt about X works from {np.trunc(span[0] * 10) / 10:.1f} to "
+            f"{np.trunc(span[1] * 10) / 10:.1f} deg (with this tilt about Z and depth)"
         )
         raise ValueError(
             f"phantom: tilt_deg {tilt}: the indenter does not enter the leg with its skin point and tip "
-            f"inside the imaged slab (z {z_lo:g} to {z_hi:g} mm); {works}"
+            f"inside the imaged slab (z {z_lo:g} to {z_hi:g} mm) and {column:g} mm of its fluid column in the "
+            f"image (the pose stage finds the indenter's axis from it); {works}"
         )
     axis, skin = _indenter_entry(an, spec, spec.tilt_deg)
     reach = _depth_reach(an, spec, axis, skin, np.linspace(z_lo, z_hi, 21))

@@ -27,6 +27,8 @@ from .imaging import ImagingError, Volume, load_nifti, write_nifti
 from .io import atomic_path
 
 __all__ = [
+    "GAMMA_BAR_MHZ_PER_T",
+    "MIN_SLICES",
     "SLICE_TOL_MM",
     "dicom_series",
     "read_bruker",
@@ -39,6 +41,23 @@ __all__ = [
 #: slice positions must lie this close to an even grid along the slice normal [mm]: the geometry
 #: tolerance the converters are tested to (a missing slice is off by a whole spacing)
 SLICE_TOL_MM = 0.01
+#: a scan needs this many slices: the tibia is chosen from slice to slice along the leg and its motion fitted over
+#: slices, which a single slice (a localiser, a 2D scan) cannot give
+MIN_SLICES = 3
+#: gyromagnetic ratio over 2 pi [MHz/T] of the nuclei a preclinical scanner images (absolute values; CODATA 2018
+#: for 1H, the IUPAC table of nuclear properties for the others): the field is the base frequency BF1 over it
+GAMMA_BAR_MHZ_PER_T = {
+    "1H": 42.577478,
+    "2H": 6.535903,
+    "3He": 32.434100,
+    "13C": 10.708395,
+    "15N": 4.316,
+    "17O": 5.772,
+    "19F": 40.078,
+    "23Na": 11.262,
+    "31P": 17.235,
+    "129Xe": 11.777,
+}
 
 
 def scan_kind(spec: Any, *, base_dir: str | Path = ".") -> str:
@@ -105,9 +124,18 @@ def dicom_series(folder: str | Path) -> list[dict]:
 
 
 def _pick_series(table: dict, series, where: str) -> list:
+    """The files of the series ``series`` picks (SeriesNumber, SeriesDescription or SeriesInstanceUID); the
+    listings name a series' UID where its number and description do not tell it from another."""
     rows = {uid: files[0][1] for uid, files in table.items()}
+
+    def name(ds):
+        return (getattr(ds, "SeriesNumber", "?"), str(getattr(ds, "SeriesDescription", "")))
+
+    twins = Counter(name(ds) for ds in rows.values())
     listing = "; ".join(
-        f"series {getattr(ds, 'SeriesNumber', '?')} {str(getattr(ds, 'SeriesDescription', ''))!r} ({len(table[uid])} files)"
+        f"series {name(ds)[0]} {name(ds)[1]!r} ({len(table[uid])} files"
+        + (f", uid {uid}" if twins[name(ds)] > 1 else "")
+        + ")"
         for uid, ds in sorted(
             rows.items(), key=lambda t: int(getattr(t[1], "SeriesNumber", 0) or 0)
         )
@@ -127,8 +155,39 @@ def _pick_series(table: dict, series, where: str) -> list:
     ]
     if len(hits) != 1:
         what = "no" if not hits else f"{len(hits)}"
-        raise ImagingError(f"{where}: {what} DICOM series match series {series!r} ({listing})")
+        hint = (
+            "; pick one by its SeriesInstanceUID: {dicom: <folder>, series: '<uid>'}"
+            if len(hits) > 1
+            else ""
+        )
+        raise ImagingError(
+            f"{where}: {what} DICOM series match series {series!r} ({listing}){hint}"
+        )
     return table[hits[0]]
+
+
+def _check_duplicates(files: list, where: str) -> None:
+    """Refuse files that are copies of one image (the same SOPInstanceUID): they would be read as repetitions."""
+    by_uid: dict[str, list] = defaultdict(list)
+    for path, ds in files:
+        by_uid[str(getattr(ds, "SOPInstanceUID", path))].append(path)
+    copies = [paths for paths in by_uid.values() if len(paths) > 1]
+    if copies:
+        shown = "; ".join(" = ".join(p.name for p in paths) for paths in copies[:5])
+        raise ImagingError(
+            f"{where}: {sum(len(c) - 1 for c in copies)} file(s) are copies of others (the same "
+            f"SOPInstanceUID: {shown}{'; ...' if len(copies) > 5 else ''}), not echoes or repetitions; "
+            "remove the copies from the folder"
+        )
+
+
+def _check_slab(vol: Volume, where: str) -> None:
+    if vol.n_slices < MIN_SLICES:
+        raise ImagingError(
+            f"{where}: {vol.n_slices} slice(s); the segmentation needs at least {MIN_SLICES} slices "
+            "(the tibia is followed from slice to slice): pick the 3D or multi-slice scan of the leg, not a "
+            "localiser"
+        )
 
 
 def _volumes(files: list) -> list[list]:
@@ -368,6 +427,7 @@ def read_dicom(
     if not folder.is_dir():
         raise ImagingError(f"{where}: not a folder")
     files = _pick_series(_series_table(_headers(folder, where)), series, where)
+    _check_duplicates(files, where)
     vols = _volumes(files)
     if len(vols) > 1:
         if volume is None or not 1 <= volume <= len(vols):
@@ -390,6 +450,7 @@ def read_dicom(
         )
         vol = load_nifti(path, animal=animal)
     vol = _oriented(Volume(data=vol.data, affine=vol.affine, path=str(folder), animal=animal))
+    _check_slab(vol, where)
     meta = {
         "kind": "dicom",
         "source": str(folder),
@@ -525,9 +586,11 @@ def read_bruker(
         )
         vol = load_nifti(path, animal=animal)
     vol = _oriented(Volume(data=vol.data, affine=vol.affine, path=str(study), animal=animal))
+    _check_slab(vol, where)
     method = _param(sc, "method")
     acqp = _param(sc, "acqp")
     bf1 = _scalar(_param(acqp, "BF1")) if acqp is not None else None
+    nucleus = _nucleus(acqp, method)
     meta = {
         "kind": "bruker",
         "source": str(study),
@@ -538,9 +601,10 @@ def read_bruker(
         "converter_version": brkraw.__version__,
         "paravision_version": loader.sw_version,
         "subject": f"{_param(visu, 'VisuSubjectType')} {_param(visu, 'VisuSubjectPosition')}",
+        "nucleus": nucleus,
         "field_strength_t": None
-        if bf1 is None
-        else round(bf1 / 42.577478, 3),  # 1H Larmor frequency [MHz] / gamma-bar
+        if bf1 is None or nucleus not in GAMMA_BAR_MHZ_PER_T
+        else round(bf1 / GAMMA_BAR_MHZ_PER_T[nucleus], 3),  # Larmor frequency / gamma-bar
         "sequence": str(_param(method, "Method") or "") if method is not None else "",
         "protocol": _scan_label(sc),
         "echo_time_ms": _echo_time_ms(visu, method, picked),
@@ -549,6 +613,17 @@ def read_bruker(
         else None,
     }
     return vol, {**meta, **_geometry(vol)}
+
+
+def _nucleus(acqp, method) -> str:
+    """The imaged nucleus (``1H``, ``13C``, ...): acqp NUCLEUS1, else the method's PVM_Nucleus1, else 1H."""
+    for obj, key in ((acqp, "NUCLEUS1"), (method, "PVM_Nucleus1")):
+        v = _param(obj, key) if obj is not None else None
+        if v is not None:
+            text = str(np.ravel(np.asarray(v, dtype=object))[0]).strip("<> ")
+            if text:
+                return text
+    return "1H"
 
 
 def _echo_time_ms(visu, method, volume: int) -> float | None:

@@ -20,9 +20,12 @@ Per slice (arrays indexed [i, j] as in the NIfTI, converted to world mm by the a
 5. **Skin**: ``find_contours(N, skin_level)`` (marching squares, sub-pixel), the largest closed
    contour, tissue 8-connected. Automatic level: half the skin/subcutaneous plateau, the median
    of ``N`` in a one-pixel band 1.5 blur widths inside the edge — first the rough mask's edge,
-   then twice more inside the traced contour itself, so the band does not move with the noise.
+   then twice more inside the traced contour itself, so the band does not move with the noise. With
+   ``skin_close_mm`` the tissue's gaps narrower than twice it are bridged first (:func:`_closed_tissue`), so
+   the broken skin ring of a masked scan is one outline.
 6. **Tibia**, chosen in 3D (:func:`_choose_tibia`): of the closed contours of ``find_contours(N,
-   bone_level)`` around dark regions inside the skin, linked from slice to slice into tracks, the
+   bone_level)`` around dark regions inside the skin, and the thick cores that an opening by a disc of
+   ``bone_open_mm`` parts from dark layers and septa (:func:`_bone_candidates`, :func:`_open_cores`), linked from slice to slice into tracks, the
    one that runs through the slab: the largest (``bone_select: largest``) or the most anterior of
    those at least half as large (``anterior``). A slice without it is refused by number, never given
    another structure. Automatic level: half the median muscle value of ``N`` (cortical bone gives
@@ -47,31 +50,52 @@ Per slice (arrays indexed [i, j] as in the NIfTI, converted to world mm by the a
    about its own area centroid.
 
 Hand-drawn contours (a YAML file, see :func:`load_overrides`) replace the automatic result on
-the slices and structures they name. Where the legs touch, :func:`deeptissue.imaging.select_leg` keeps
-the one holding ``leg_point_mm`` before the contours are traced.
+the slices and structures they name. Where the legs touch, :func:`deeptissue.imaging.split_legs` keeps
+the one holding ``leg_point_mm`` before the contours are traced. Every slice that cannot be segmented is
+named in one :class:`SlicesFailed`; :func:`segment_files` then draws the failed run's QC figure, and runs
+the checks of :mod:`deeptissue.segment_checks` on a run that went through.
 """
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
+from skimage.draw import polygon as _polygon_px
+from skimage.measure import find_contours
 
 from .contours import (
     Contours,
+    load_contours,
     point_to_polygon_distance,
     points_in_polygon,
     polygon_area_centroid,
     resample_closed,
+    save_contours,
 )
-from .imaging import ImagingError, Volume
+from .imaging import (
+    ImagingError,
+    Volume,
+    check_matching,
+    check_not_same_scan,
+    crop_volume,
+    load_nifti,
+    split_legs,
+)
+from .qc import plot_segmentation
+from .segment_checks import failed_checks_message, segmentation_checks, write_checks
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "STRUCTURES",
     "SegmentationError",
+    "SegmentJob",
     "SegmentationSettings",
+    "SlicesFailed",
     "contour_accuracy",
     "find_indenter",
     "load_overrides",
@@ -88,6 +112,9 @@ _FIBULA_MIN_ROUNDNESS = 0.5
 # dark regions on neighbouring slices are one structure only if their areas differ by at most this factor: a bone's
 # section changes slowly along the leg, a tibia merged with the fat around it is several times larger
 _LINK_AREA_RATIO = 2.0
+# a given skin level above which more than this share of the image border lies is in the background: a leg that
+# touches the border covers a few of its pixels, the noise of an unmasked scan half of them at its median
+_BACKGROUND_SHARE = 0.2
 
 
 class SegmentationError(ImagingError):
@@ -108,6 +135,8 @@ class SegmentationSettings:
     bias_degree: int = 3
     bias_erode_mm: float = 0.6
     bone_min_area_mm2: float = 1.0
+    bone_open_mm: float | None = None  # None: a tenth of the skin's inscribed radius; 0: off
+    skin_close_mm: float = 0.0
     bone_select: str = "largest"
     fibula: bool = True
     fibula_min_area_mm2: float = 0.1
@@ -128,7 +157,7 @@ class SegmentationSettings:
         return cls(**kw)
 
 
-def load_overrides(path: str | Path) -> dict:
+def load_overrides(path: str | Path, *, n_slices: int | None = None) -> dict:
     """Read a manual-override YAML: ``{state: {structure: {slice: [[x, y], ...]}}}``.
 
     ``state`` is ``pre`` or ``during``, ``structure`` ``skin``, ``bone`` (the tibia) or ``fibula``, ``slice`` the axial
@@ -136,6 +165,8 @@ def load_overrides(path: str | Path) -> dict:
     in either orientation; it is resampled like an automatic contour). The file is read strictly
     (:func:`deeptissue.config.load_config_file`): a slice given twice for one structure, which YAML would
     silently reduce to the last, is a :class:`deeptissue.config.ConfigError` naming the file, the key and both lines.
+    With ``n_slices`` (the slices in the image file), a slice outside 0 .. n_slices - 1 is an error naming the file
+    and the slice: it would otherwise replace nothing without a word.
     """
     from .config import load_config_file
 
@@ -154,6 +185,22 @@ def load_overrides(path: str | Path) -> dict:
                         f"{path}: {state}.{structure}.{k}: expected at least 4 points [x, y]"
                     )
                 per_slice = out.setdefault(state, {}).setdefault(structure, {})
+                try:
+                    kk = int(k)
+                except (TypeError, ValueError):
+                    raise ValueError(
+                        f"{path}: {state}.{structure}: slice {k!r} is not a slice number"
+                    ) from None
+                if kk < 0 or (n_slices is not None and kk >= n_slices):
+                    has = (
+                        ""
+                        if n_slices is None
+                        else f" of the {n_slices} in the image (0 to {n_slices - 1})"
+                    )
+                    raise ValueError(
+                        f"{path}: {state}.{structure}: slice {kk} is not a slice{has}; give the slice "
+                        "index in the NIfTI file, counted from 0"
+                    )
                 if int(k) in per_slice:  # 9 and '09': one slice written twice
                     raise ValueError(
                         f"{path}: {state}.{structure}: slice {int(k)} is given twice (key {k!r})"
@@ -200,8 +247,6 @@ def _bias_field(img_minus_bg, mask, fit_mask, degree):
 
 
 def _closed_contours(img, level, fully_connected="low"):
-    from skimage.measure import find_contours
-
     cs = find_contours(img, level, fully_connected=fully_connected)
     return [c for c in cs if len(c) >= 5 and np.allclose(c[0], c[-1])]
 
@@ -267,6 +312,7 @@ class _SliceResult:
     trace: dict | None = (
         None  # what _finish_bones needs: the image the bones were traced on, dark contours, sd
     )
+    choice: int | None = None  # the tibia's index in bone_candidates, once set (finish)
 
     def finish(
         self, choice: int | None, *, px_mm: float, settings: SegmentationSettings
@@ -278,6 +324,7 @@ class _SliceResult:
         s = settings
         if choice is None:
             choice = _pick_per_slice(self.bone_candidates, s.bone_select)
+        self.choice = choice
         bone_a, bone = self.bone_candidates[choice]
         t = self.trace
         self.bone_ij = bone
@@ -308,22 +355,9 @@ def _pick_per_slice(cands: list, select: str) -> int:
     return max(range(len(cands)), key=lambda i: cands[i][0])
 
 
-def _segment_slice(
-    img,
-    *,
-    bg,
-    noise,
-    px_mm,
-    settings: SegmentationSettings,
-    where: str,
-    need_bone: bool = True,
-    indenter_sd=None,
-):
-    """Skin, tibia and fibula of one slice (steps in the module docstring). ``indenter_sd`` (same shape as
-    ``img``, mm): distance from the indenter's outer surface, negative inside; pixels closer than
-    ``indenter_guard_mm`` are set to muscle before the bones are traced, so the indenter's dark wall cannot
-    join the tibia's dark cortex. With it, a slice without a bone contour where the indenter reaches within
-    1 mm of the inside of the skin returns ``bone_ij`` None instead of raising (the tibia hidden against it)."""
+def _normalised(img, *, bg, noise, px_mm, settings: SegmentationSettings, where: str):
+    """``(N, rough, muscle)``: the coil-corrected image (steps 2-3 of the module docstring), the rough tissue mask
+    (largest component above the noise) and the median of ``N`` in muscle."""
     s = settings
     rough = img > bg + 6 * noise + 1e-6 * max(float(np.percentile(img, 99)) - bg, 1e-12)
     rough = ndimage.binary_fill_holes(rough)
@@ -341,6 +375,13 @@ def _segment_slice(
     B = _bias_field(img - bg, rough, fit, s.bias_degree)
     N = (img - bg) / B
     muscle = float(np.median(N[fit])) if fit.any() else 1.0
+    return N, rough, muscle
+
+
+def _skin_image(N, muscle, *, px_mm, settings: SegmentationSettings, indenter_sd):
+    """``N`` with the contrast fluid and its guard set to 0 (step 4) and the dark regions cut off by the indenter
+    filled (step 8), the image the skin is traced on."""
+    s = settings
     Ns = N
     if s.fluid_level is not None:
         fluid = N > s.fluid_level * muscle
@@ -359,16 +400,65 @@ def _segment_slice(
             px_mm=px_mm,
             min_area_px=s.bone_min_area_mm2 / px_mm**2,
         )
+    return Ns
+
+
+def _disk(radius_px: float) -> np.ndarray:
+    """The pixels within ``radius_px`` of a centre pixel (a digital disc, for morphology)."""
+    r = int(np.floor(radius_px))
+    y, x = np.mgrid[-r : r + 1, -r : r + 1]
+    return x**2 + y**2 <= radius_px**2 + 1e-9
+
+
+def _closed_tissue(Ns, level: float, close_px: float) -> np.ndarray:
+    """``Ns`` with the gaps of the tissue (above ``level``) narrower than ``2 close_px`` pixels bridged and the holes
+    so closed filled with ``2 level``: a masked scan's skin ring broken by zeroed fat is traced as one outline."""
+    tissue = Ns > level
+    pad = int(np.ceil(close_px)) + 1
+    closed = ndimage.binary_closing(np.pad(tissue, pad), structure=_disk(close_px))[
+        pad:-pad, pad:-pad
+    ]
+    lab, n = ndimage.label(closed)
+    if n:
+        sizes = ndimage.sum(closed, lab, index=np.arange(1, n + 1))
+        big = ndimage.binary_fill_holes(lab == 1 + int(np.argmax(sizes)))
+        closed = closed | big
+    return np.where(closed & ~tissue, 2.0 * level, Ns)
+
+
+def _trace_skin(Ns, rough, muscle, *, px_mm, settings: SegmentationSettings, where: str):
+    """``(skin (i, j) contour, skin_level)`` (step 5): the largest closed contour of ``Ns`` at the skin level,
+    with the tissue's gaps narrower than ``2 skin_close_mm`` bridged.
+
+    Raises :class:`SegmentationError` when the level lies in the background (a ``skin_level`` set too low), when
+    the tissue runs off the image (a leg cut at the image or crop border), or when there is no closed contour."""
+    s = settings
+    close_px = s.skin_close_mm / px_mm
+    if s.skin_level is not None:
+        frame = np.concatenate([Ns[0], Ns[-1], Ns[:, 0], Ns[:, -1]])
+        if float(np.mean(frame > s.skin_level)) > _BACKGROUND_SHARE:
+            raise SegmentationError(
+                f"{where}: segmentation.skin_level {s.skin_level:g} lies in the background (much of the image "
+                "border is above it), so the skin cannot be told from the noise; raise it or set it to null "
+                "(automatic)"
+            )
 
     def trace(level):
+        img = _closed_tissue(Ns, level, close_px) if close_px >= 1 else Ns
         # tissue (above the level) is 8-connected, background only 4-connected: single-pixel gaps
         # that touch the outside only diagonally do not cut channels into the skin
-        cs = _closed_contours(Ns, level, fully_connected="high")
-        if not cs:
-            raise SegmentationError(
-                f"{where}: no closed skin contour at level {level:.3g} (does the leg touch the image/crop border?)"
-            )
-        return max(cs, key=lambda c: abs(polygon_area_centroid(c)[0]))
+        cs = find_contours(img, level, fully_connected="high")
+        closed = [c for c in cs if len(c) >= 5 and np.allclose(c[0], c[-1])]
+        longest = max(cs, key=len) if cs else None
+        if longest is not None and not np.allclose(longest[0], longest[-1]):
+            if not closed or len(longest) > len(max(closed, key=len)):
+                raise SegmentationError(
+                    f"{where}: the leg is cut at the image border (its outline runs off the image); widen "
+                    "crop_mm, or scan the whole leg cross-section"
+                )
+        if not closed:
+            raise SegmentationError(f"{where}: no closed skin contour at level {level:.3g}")
+        return max(closed, key=lambda c: abs(polygon_area_centroid(c)[0]))
 
     def plateau(inside, d1):
         dist = ndimage.distance_transform_edt(inside)
@@ -378,62 +468,139 @@ def _segment_slice(
         return float(np.median(Ns[band]))
 
     if s.skin_level is not None:
-        skin_level = float(s.skin_level)
+        return trace(float(s.skin_level)), float(s.skin_level)
+    # the skin plateau is read in a band starting _BAND_SIGMAS blur widths inside the edge: first inside the
+    # rough (noise-threshold) edge, then, independent of the noise level, inside the traced contour itself
+    d1 = max(_BAND_SIGMAS * s.smooth_mm / px_mm, 1.0) + _BAND_PX
+    skin_level = 0.5 * plateau(rough, d1)
+    for _ in range(2):
         skin = trace(skin_level)
-    else:
-        # the skin plateau is read in a band starting _BAND_SIGMAS blur widths inside the edge:
-        # first inside the rough (noise-threshold) edge, then, independent of the noise level,
-        # inside the traced contour itself
-        from skimage.draw import polygon as _raster
+        skin_level = 0.5 * plateau(_raster(skin, rough.shape), d1)
+    return trace(skin_level), skin_level
 
-        d1 = max(_BAND_SIGMAS * s.smooth_mm / px_mm, 1.0) + _BAND_PX
-        skin_level = 0.5 * plateau(rough, d1)
-        for _ in range(2):
-            skin = trace(skin_level)
-            inside = np.zeros_like(rough)
-            rr, cc = _raster(skin[:, 0], skin[:, 1], shape=inside.shape)
-            inside[rr, cc] = True
-            skin_level = 0.5 * plateau(inside, d1)
-        skin = trace(skin_level)
-    bone_level = float(s.bone_level) if s.bone_level is not None else 0.5 * muscle
-    bone = fibula = None
-    touch = None
-    Nb = N
-    if need_bone and indenter_sd is not None:
-        Nb = N.copy()
-        Nb[indenter_sd < s.indenter_guard_mm] = muscle
-    if need_bone:
-        min_area_px = s.bone_min_area_mm2 / px_mm**2
-        dark = _closed_contours(Nb, bone_level)
-        cands = []
-        for c in dark:
+
+def _raster(c, shape) -> np.ndarray:
+    """Boolean mask of the pixels whose centres lie inside the closed (i, j) contour ``c``."""
+    out = np.zeros(shape, bool)
+    rr, cc = _polygon_px(c[:, 0], c[:, 1], shape=shape)
+    out[rr, cc] = True
+    return out
+
+
+def _open_cores(Nb, skin, level, fill, *, open_px: float) -> np.ndarray:
+    """``Nb`` with the dark regions inside the skin that are not closed holes parted into their thick cores.
+
+    Where a bone's dark marrow and cortex run into dark (masked) fat, the bone is no closed dark hole. The dark
+    pixels inside the skin (below ``level``) are opened by a disc of ``open_px`` pixels: the fat layer and any
+    channel narrower than the disc vanish, a bone wider than it stays. The dark parts the opening removed that
+    reach more than 1.5 pixels from what it kept (the fat, the channel) are set to ``fill``, and so is everything
+    outside the skin; the slivers of a bone's own edge that the digital disc shaved off stay. The bone's core is
+    then a closed dark region, bounded by its own edge and, where it opened, by the cut.
+    """
+    inside = _raster(skin, Nb.shape)
+    dark = (Nb < level) & inside
+    kept = ndimage.binary_opening(dark, structure=_disk(open_px))
+    removed = dark & ~kept
+    lab, n = ndimage.label(removed)
+    out = np.where(inside, Nb, fill)
+    if n == 0:
+        return out
+    reach = ndimage.maximum(ndimage.distance_transform_edt(~kept), lab, index=np.arange(1, n + 1))
+    out[np.isin(lab, 1 + np.nonzero(np.asarray(reach) > 1.5)[0])] = fill
+    return out
+
+
+def _bone_candidates(Nb, skin, level, muscle, *, px_mm, settings: SegmentationSettings):
+    """``(candidates, dark)``: the tibia's candidates ``(area [px], (i, j) contour)`` of one slice (step 6) and the
+    closed dark contours at ``level`` (for the fibula).
+
+    The candidates are the dark regions inside the skin of at least ``bone_min_area_mm2``: each closed dark region
+    whole, unless it is two or more thick parts joined by thin necks (the tibia and the fibula joined by a dark
+    septum), which are then candidates each; and the thick parts of the dark regions that open into the fat or
+    the background. The thick parts are the cores of :func:`_open_cores` with a disc of ``bone_open_mm`` (None: a
+    tenth of the skin's inscribed radius; 0: closed regions whole only)."""
+    s = settings
+    min_area_px = s.bone_min_area_mm2 / px_mm**2
+    dark = _closed_contours(Nb, level)
+
+    def regions(cs):
+        out = []
+        for c in cs:
             area = abs(polygon_area_centroid(c)[0])
             if area < min_area_px or not points_in_polygon(c, skin).all():
                 continue
-            if _contour_mean(Nb, c) >= bone_level:
+            if _contour_mean(Nb, c) >= level:
                 continue  # a bright island, not a dark hole
-            cands.append((area, c))
-        if not cands and indenter_sd is not None:
-            # the tibia may be hidden against the indenter only where the indenter reaches into the leg
-            near = np.argwhere(indenter_sd < 1.0)
-            if len(near) and points_in_polygon(near, skin).any():
-                return _SliceResult(skin, None, skin_level, bone_level, None, -np.inf)
-        if not cands:
-            raise SegmentationError(
-                f"{where}: no closed bone contour inside the skin at level {bone_level:.3g}"
-            )
-        # the tibia is chosen among the candidates in 3D (_choose_tibia), then _SliceResult.finish
-        return _SliceResult(
-            skin,
-            None,
-            skin_level,
-            bone_level,
-            None,
-            None,
-            bone_candidates=cands,
-            trace={"Nb": Nb, "dark": dark, "sd": indenter_sd},
+            out.append((area, c))
+        return out
+
+    whole = regions(dark)
+    if s.bone_open_mm is None:
+        inscribed = ndimage.distance_transform_edt(_raster(skin, Nb.shape)).max()
+        open_px = 0.1 * float(inscribed)
+    else:
+        open_px = s.bone_open_mm / px_mm
+    if open_px < 1:
+        return whole, dark
+    cores = regions(_closed_contours(_open_cores(Nb, skin, level, muscle, open_px=open_px), level))
+    cands, used = [], set()
+    for a, c in whole:
+        inner = [
+            j
+            for j, (_, d) in enumerate(cores)
+            if points_in_polygon(polygon_area_centroid(d)[1][None], c)[0]
+        ]
+        used.update(inner)
+        cands += [cores[j] for j in inner] if len(inner) >= 2 else [(a, c)]
+    return cands + [cc for j, cc in enumerate(cores) if j not in used], dark
+
+
+def _segment_slice(
+    img,
+    *,
+    bg,
+    noise,
+    px_mm,
+    settings: SegmentationSettings,
+    where: str,
+    need_bone: bool = True,
+    indenter_sd=None,
+):
+    """Skin, tibia and fibula of one slice (steps in the module docstring). ``indenter_sd`` (same shape as
+    ``img``, mm): distance from the indenter's outer surface, negative inside; pixels closer than
+    ``indenter_guard_mm`` are set to muscle before the bones are traced, so the indenter's dark wall cannot
+    join the tibia's dark cortex. With it, a slice without a bone contour where the indenter reaches within
+    1 mm of the inside of the skin returns ``bone_ij`` None instead of raising (the tibia hidden against it)."""
+    s = settings
+    N, rough, muscle = _normalised(img, bg=bg, noise=noise, px_mm=px_mm, settings=s, where=where)
+    Ns = _skin_image(N, muscle, px_mm=px_mm, settings=s, indenter_sd=indenter_sd)
+    skin, skin_level = _trace_skin(Ns, rough, muscle, px_mm=px_mm, settings=s, where=where)
+    bone_level = float(s.bone_level) if s.bone_level is not None else 0.5 * muscle
+    if not need_bone:
+        return _SliceResult(skin, None, skin_level, bone_level)
+    Nb = N
+    if indenter_sd is not None:
+        Nb = N.copy()
+        Nb[indenter_sd < s.indenter_guard_mm] = muscle
+    cands, dark = _bone_candidates(Nb, skin, bone_level, muscle, px_mm=px_mm, settings=s)
+    if not cands and indenter_sd is not None:
+        # the tibia may be hidden against the indenter only where the indenter reaches into the leg
+        near = np.argwhere(indenter_sd < 1.0)
+        if len(near) and points_in_polygon(near, skin).any():
+            return _SliceResult(skin, None, skin_level, bone_level, None, -np.inf)
+    if not cands:
+        raise SegmentationError(
+            f"{where}: no closed bone contour inside the skin at level {bone_level:.3g}"
         )
-    return _SliceResult(skin, bone, skin_level, bone_level, fibula, touch)
+    # the tibia is chosen among the candidates in 3D (_choose_tibia), then _SliceResult.finish
+    return _SliceResult(
+        skin,
+        None,
+        skin_level,
+        bone_level,
+        bone_candidates=cands,
+        trace={"Nb": Nb, "dark": dark, "sd": indenter_sd},
+    )
 
 
 def _track(candidates: list, *, overlap: bool = False) -> tuple[list[dict], dict]:
@@ -485,37 +652,37 @@ def _track(candidates: list, *, overlap: bool = False) -> tuple[list[dict], dict
     return tracks, geom
 
 
-def _choose_tibia(candidates: list, *, select: str, vol: Volume, flip_j: bool) -> list:
+def _choose_tibia(
+    candidates: list, *, select: str, vol: Volume, flip_j: bool
+) -> tuple[list, dict]:
     """The tibia's candidate on every slice, chosen in 3D: the index into each slice's ``candidates`` (None on the
-    slices given as None: not traced, drawn by hand, or hidden against the indenter).
+    slices given as None: not traced, drawn by hand, or hidden against the indenter), and ``{slice: message}`` of
+    the traced slices where it is missing.
 
-    Candidates are linked into tracks by :func:`_track`. Of the tracks on at least half of the traced slices, the
-    tibia is the largest (median area) or, with ``anterior``, the most anterior of those at least half as large.
-    It must be on every traced slice: a slice where it is missing has the tibia's dark region open into another
-    dark one (on a masked scan, its cortex into the fat) or no tibia at all, and another structure there would be
-    taken for the tibia without a word.
-
-    Raises
-    ------
-    SegmentationError
-        Naming animal, file and the slices (in the file) where the tibia is missing, or that no dark structure
-        runs through half of the slices.
+    Candidates are linked into tracks by :func:`_track`: a candidate that jumps between slices, or whose area
+    differs from its neighbour's by more than :data:`_LINK_AREA_RATIO`, starts a track of its own. Of the tracks on
+    at least half of the traced slices, the tibia is the largest (median area) or, with ``anterior``, the most
+    anterior of those at least half as large: a track a fraction of the other's area is not the tibia. It must be
+    on every traced slice: a slice where it is missing has the tibia's dark region open into another dark one
+    (on a masked scan, its cortex into the fat, wider than ``bone_open_mm`` parts) or no tibia at all, and
+    another structure there would be taken for the tibia without a word.
     """
     ks = [k for k, c in enumerate(candidates) if c is not None]
     out: list = [None] * len(candidates)
     if not ks:
-        return out
+        return out, {}
     tracks, geom = _track(candidates)
     n = len(ks)
     off = vol.index_offset[2]
     long = [t for t in tracks if 2 * len(t) >= n]
     if not long:
         best = max(tracks, key=len)
-        raise SegmentationError(
+        msg = (
             f"{vol.where()}: no dark structure runs through half of the {n} traced slices (the longest is on "
             f"{len(best)}: slices {_slice_list(sorted(best), off)}), so none is taken for the tibia; check "
             "segmentation.bone_level and crop_mm, or draw the tibia in an overrides file"
         )
+        return out, dict.fromkeys(ks, msg)
     area = [float(np.median([geom[(k, i)][0] for k, i in t.items()])) for t in long]
     if select == "anterior":
         big = [j for j in range(len(long)) if area[j] >= 0.5 * max(area)]
@@ -523,22 +690,23 @@ def _choose_tibia(candidates: list, *, select: str, vol: Volume, flip_j: bool) -
     else:
         j = int(np.argmax(area))
     tibia = long[j]
-    missing = [k for k in ks if k not in tibia]
-    if missing:
-        k0 = next(iter(tibia))
-        cen = geom[(k0, tibia[k0])][1]
-        ij = np.array([cen[0], vol.data.shape[1] - 1 - cen[1] if flip_j else cen[1], k0])
-        x, y = vol.world(ij)[:2]
-        raise SegmentationError(
-            f"{vol.where()}: the tibia ({'the most anterior' if select == 'anterior' else 'the largest'} dark "
-            f"structure along the leg, near x {x:.1f} mm, y {y:.1f} mm) is not a closed dark region inside the skin "
-            f"on slice(s) {_slice_list(missing, off)} of {n}: its dark region opens into another there (on a masked "
-            "scan, the cortex into the fat) and another structure would be taken for it; draw the tibia on those "
-            "slices in an overrides file, or crop them away"
-        )
     for k, i in tibia.items():
         out[k] = i
-    return out
+    missing = [k for k in ks if k not in tibia]
+    if not missing:
+        return out, {}
+    k0 = next(iter(tibia))
+    cen = geom[(k0, tibia[k0])][1]
+    ij = np.array([cen[0], vol.data.shape[1] - 1 - cen[1] if flip_j else cen[1], k0])
+    x, y = vol.world(ij)[:2]
+    msg = (
+        f"the tibia ({'the most anterior' if select == 'anterior' else 'the largest'} dark structure along the "
+        f"leg, near x {x:.1f} mm, y {y:.1f} mm) is not a closed dark region inside the skin on slice(s) "
+        f"{_slice_list(missing, off)} of {n}: its dark region opens into another there (on a masked scan, the "
+        "cortex into the fat: a larger segmentation.bone_open_mm parts them), or the slice lies beyond its shaft "
+        "(into the ankle or the knee), and another structure would be taken for it"
+    )
+    return out, dict.fromkeys(missing, msg)
 
 
 def _slice_list(ks, off: int) -> str:
@@ -597,6 +765,175 @@ def _choose_fibula(candidates: list, *, min_slices: int) -> tuple[list, list]:
     return out, []
 
 
+class SlicesFailed(SegmentationError):
+    """Slices that cannot be segmented, all named at once; ``failed`` maps the slice index in ``vol`` to its
+    message, ``partial`` holds what was traced (``{structure: [(n_points, 3) world mm or None per slice]}``) for
+    the QC figure of the failed run."""
+
+    def __init__(self, message: str, *, failed: dict, partial: dict):
+        super().__init__(message)
+        self.failed = failed
+        self.partial = partial
+
+
+@dataclass(frozen=True)
+class _Scan:
+    """What every slice of :func:`segment_volume` needs: the smoothed image, its background and noise."""
+
+    vol: Volume
+    smoothed: np.ndarray
+    bg: float
+    noise: float
+    px_mm: float
+    flip_j: (
+        bool  # the affine's y runs opposite to j: slices are traced with j reversed, so +j is +y
+    )
+    settings: SegmentationSettings
+    overrides: dict  # {structure: {slice in the file: (m, 2) world mm}} of the state
+    skin_only: bool = False
+
+
+def _scan(vol: Volume, settings: SegmentationSettings, overrides: dict, skin_only: bool) -> _Scan:
+    s = settings
+    px = vol.pixel_mm
+    data = vol.data.astype(float)
+    sig = (s.smooth_mm / px[0], s.smooth_mm / px[1], 0.0)
+    sm = ndimage.gaussian_filter(data, sig, mode="nearest") if s.smooth_mm > 0 else data
+    frame = np.concatenate(
+        [sm[:3].ravel(), sm[-3:].ravel(), sm[:, :3].ravel(), sm[:, -3:].ravel()]
+    )
+    bg = float(np.median(frame))
+    return _Scan(
+        vol=vol,
+        smoothed=sm,
+        bg=bg,
+        noise=float(1.4826 * np.median(np.abs(frame - bg))),
+        px_mm=float(np.sqrt(px[0] * px[1])),
+        flip_j=bool(vol.affine[1, 1] < 0),
+        settings=s,
+        overrides=overrides,
+        skin_only=skin_only,
+    )
+
+
+def _trace_slices(scan: _Scan, indenter) -> tuple[list, dict]:
+    """``(traced, failed)``: per slice ``(manual contours, _SliceResult or None)``, and ``{slice: message}`` of
+    the slices that cannot be traced (every one, not only the first)."""
+    vol, s = scan.vol, scan.settings
+    off = vol.index_offset[2]
+    traced, failed = [], {}
+    ii, jj = np.meshgrid(np.arange(vol.data.shape[0]), np.arange(vol.data.shape[1]), indexing="ij")
+    for k in range(vol.n_slices):
+        manual = {st: scan.overrides.get(st, {}).get(k + off) for st in STRUCTURES}
+        img = scan.smoothed[:, :, k]
+        if scan.flip_j:
+            img = img[:, ::-1]
+        if scan.skin_only:
+            manual["bone"] = manual["fibula"] = None
+        auto_fibula = s.fibula and manual["fibula"] is None and not scan.skin_only
+        sd = None
+        if indenter is not None and not scan.skin_only:
+            sd = indenter.signed_distance_mm(
+                vol.world(np.stack([ii, jj, np.full(ii.shape, k)], axis=-1))
+            )
+            sd = sd[:, ::-1] if scan.flip_j else sd
+        res = None
+        if manual["skin"] is None or manual["bone"] is None or auto_fibula:
+            try:
+                res = _segment_slice(
+                    img,
+                    bg=scan.bg,
+                    noise=scan.noise,
+                    px_mm=scan.px_mm,
+                    settings=s,
+                    where=vol.where(k),
+                    need_bone=(manual["bone"] is None or auto_fibula) and not scan.skin_only,
+                    indenter_sd=sd,
+                )
+            except SegmentationError as exc:
+                if manual["bone"] is None or manual["skin"] is None:
+                    failed[k] = str(exc)
+                # skin and tibia drawn by hand: no automatic fibula on this slice
+        traced.append((manual, res))
+    return traced, failed
+
+
+def _slice_contours(scan: _Scan, k: int, manual: dict, res) -> dict:
+    """World contours ``{structure: (n_points, 3) or None}`` of slice ``k``, resampled (step 9), bones inside the
+    skin; a manual contour replaces the automatic one."""
+    vol, s = scan.vol, scan.settings
+    where = vol.where(k)
+    z_c = float(vol.world([(vol.data.shape[0] - 1) / 2, (vol.data.shape[1] - 1) / 2, k])[2])
+    out = {}
+    for st in STRUCTURES:
+        if scan.skin_only and st != "skin":
+            out[st] = None
+            continue
+        xy = manual[st]
+        if xy is None:
+            ij = None if res is None else getattr(res, f"{st}_ij")
+            if (
+                ij is None
+            ):  # no fibula found (or not searched), or the tibia hidden by the indenter
+                out[st] = None
+                continue
+            if scan.flip_j:
+                ij = np.column_stack([ij[:, 0], vol.data.shape[1] - 1 - ij[:, 1]])
+            xy = vol.world(np.column_stack([ij, np.full(len(ij), k)]))[:, :2]
+        try:
+            r = resample_closed(xy, n_points=s.n_points, start_angle_deg=s.start_angle_deg)
+        except ValueError as exc:
+            if st == "fibula" and manual[st] is None:
+                out[st] = None  # an automatic candidate that is not a bone's outline
+                continue
+            raise SegmentationError(f"{where}: {st} contour: {exc}") from exc
+        out[st] = np.column_stack([r, np.full(s.n_points, z_c)])
+    for st in ("bone", "fibula"):
+        if out[st] is None:
+            continue
+        inside = points_in_polygon(out[st][:, :2], out["skin"][:, :2])
+        if not inside.all():
+            raise SegmentationError(
+                f"{where}: {st} contour outside the skin ({int((~inside).sum())} of {len(inside)} points)"
+            )
+    return out
+
+
+def _failure(scan: _Scan, traced: list, failed: dict) -> SlicesFailed:
+    """One error naming every failing slice with its reason, and what to do."""
+    vol = scan.vol
+    off = vol.index_offset[2]
+    partial: dict = {st: [None] * vol.n_slices for st in STRUCTURES}
+    for k, (manual, res) in enumerate(traced):
+        if k in failed:
+            continue
+        try:
+            out = _slice_contours(scan, k, manual, res)
+        except SegmentationError:
+            continue
+        for st in STRUCTURES:
+            partial[st][k] = out[st]
+    ks = sorted(failed)
+    z = [float(vol.world([0, 0, k])[2]) for k in ks]
+    reasons: dict = {}  # reason -> slices, the animal and file said once
+    for k in ks:
+        msg = failed[k]
+        for prefix in (vol.where(k) + ": ", vol.where() + ": "):
+            msg = msg.removeprefix(prefix)
+        reasons.setdefault(msg, []).append(k)
+    lines = "; ".join(
+        r if "slice" in r.split(":")[0] else f"slice(s) {_slice_list(v, off)}: {r}"
+        for r, v in reasons.items()
+    )
+    return SlicesFailed(
+        f"{vol.where()}: {len(ks)} of {vol.n_slices} slices cannot be segmented (slices "
+        f"{_slice_list(ks, off)}, z {min(z):.1f} to {max(z):.1f} mm): {lines}. Leave them out with the z range "
+        "of crop_mm, or draw them by hand",
+        failed=failed,
+        partial=partial,
+    )
+
+
 def segment_volume(
     vol: Volume,
     *,
@@ -640,14 +977,17 @@ def segment_volume(
         the file, ``z_mm``, ``skin_level`` / ``bone_level`` in N units, ``*_source`` auto / manual /
         none / hidden, and for the fibula dropped: on a track shorter than ``fibula_min_slices``),
         ``bone_touch_mm`` (distance from the indenter, with one), ``settings``,
-        ``fibula_slices`` (count), ``bone_hidden`` (slice indices in the file).
+        ``fibula_slices`` (count), ``bone_hidden`` (slice indices in the file), ``tibia_other_ratio`` (per
+        slice, the tibia's area over the largest other dark candidate's; NaN without one).
 
     Raises
     ------
+    SlicesFailed
+        Naming animal, file and every slice that has no closed skin or bone contour, or where the tibia chosen
+        in 3D is missing (:func:`_choose_tibia`), with the reason of each.
     SegmentationError
-        Naming animal, file and slice, if a slice has no closed skin or bone contour, or a bone or
-        fibula contour lies outside the skin, or the tibia is hidden by the indenter on more than half
-        the slices; naming the slices where the tibia chosen in 3D is missing (:func:`_choose_tibia`).
+        If a bone or fibula contour lies outside the skin, or the tibia is hidden by the indenter on more than
+        half the slices.
     ValueError
         For an unknown ``bone_select``.
     """
@@ -656,72 +996,43 @@ def segment_volume(
         raise ValueError(
             f"segmentation.bone_select: {s.bone_select!r} is not 'largest' or 'anterior'"
         )
-    px = vol.pixel_mm
-    px_mm = float(np.sqrt(px[0] * px[1]))
-    data = vol.data.astype(float)
-    sig = (s.smooth_mm / px[0], s.smooth_mm / px[1], 0.0)
-    sm = ndimage.gaussian_filter(data, sig, mode="nearest") if s.smooth_mm > 0 else data
-    frame = np.concatenate(
-        [sm[:3].ravel(), sm[-3:].ravel(), sm[:, :3].ravel(), sm[:, -3:].ravel()]
-    )
-    bg = float(np.median(frame))
-    noise = float(1.4826 * np.median(np.abs(frame - bg)))
-    ov = (overrides or {}).get(state, {})
-    off = vol.index_offset[2]
-    # +y direction in index space (for the 'anterior' choice): flip j if the affine's y runs opposite
-    flip_j = vol.affine[1, 1] < 0
-    skins, bones, fibulas, info_slices = [], [], [], []
-    hidden = np.zeros(vol.n_slices, bool)
-    traced = []  # (manual contours, _SliceResult or None) per slice
-    ii, jj = np.meshgrid(np.arange(vol.data.shape[0]), np.arange(vol.data.shape[1]), indexing="ij")
-    for k in range(vol.n_slices):
-        where = vol.where(k)
-        kf = k + off
-        manual = {st: ov.get(st, {}).get(kf) for st in STRUCTURES}
-        img = sm[:, :, k]
-        if flip_j:
-            img = img[:, ::-1]
-        if _skin_only:
-            manual["bone"] = manual["fibula"] = None
-        auto_fibula = s.fibula and manual["fibula"] is None and not _skin_only
-        need_auto = manual["skin"] is None or manual["bone"] is None or auto_fibula
-        sd = None
-        if indenter is not None and not _skin_only:
-            sd = indenter.signed_distance_mm(
-                vol.world(np.stack([ii, jj, np.full(ii.shape, k)], axis=-1))
-            )
-            sd = sd[:, ::-1] if flip_j else sd
-        res = None
-        if need_auto:
-            try:
-                res = _segment_slice(
-                    img,
-                    bg=bg,
-                    noise=noise,
-                    px_mm=px_mm,
-                    settings=s,
-                    where=where,
-                    need_bone=(manual["bone"] is None or auto_fibula) and not _skin_only,
-                    indenter_sd=sd,
-                )
-            except SegmentationError:
-                if manual["bone"] is None or manual["skin"] is None:
-                    raise
-                res = None  # skin and tibia drawn by hand: no automatic fibula on this slice
-        traced.append((manual, res))
-    # the tibia in 3D: the one dark structure that runs through every slice whose tibia is traced
-    choice = _choose_tibia(
-        [
-            res.bone_candidates if res is not None and manual["bone"] is None else None
-            for manual, res in traced
-        ],
-        select=s.bone_select,
-        vol=vol,
-        flip_j=flip_j,
-    )
-    for k, (manual, res) in enumerate(traced):
+    scan = _scan(vol, s, (overrides or {}).get(state, {}), _skin_only)
+    traced, failed = _trace_slices(scan, indenter)
+    choice = [None] * vol.n_slices
+    if not _skin_only:
+        # the tibia in 3D: the one dark structure that runs through every slice whose tibia is traced
+        choice, missing = _choose_tibia(
+            [
+                r.bone_candidates
+                if r is not None and m["bone"] is None and k not in failed
+                else None
+                for k, (m, r) in enumerate(traced)
+            ],
+            select=s.bone_select,
+            vol=vol,
+            flip_j=scan.flip_j,
+        )
+        failed.update(missing)
+    if failed:
+        raise _failure(scan, traced, failed)
+    for k, (_, res) in enumerate(traced):
         if res is not None:
-            res.finish(choice[k], px_mm=px_mm, settings=s)
+            res.finish(choice[k], px_mm=scan.px_mm, settings=s)
+    return _assemble(scan, traced, pre)
+
+
+def _other_ratio(res, choice) -> float:
+    """The tibia's area over the largest other candidate's on one slice (NaN: no other, or not traced)."""
+    if res is None or not res.bone_candidates or choice is None:
+        return float("nan")
+    others = [a for i, (a, _) in enumerate(res.bone_candidates) if i != choice]
+    return float(res.bone_candidates[choice][0] / max(others)) if others else float("nan")
+
+
+def _assemble(scan: _Scan, traced: list, pre: Contours | None) -> tuple[Contours, dict]:
+    """The contours and info of :func:`segment_volume` once every slice is traced and the tibia chosen."""
+    vol, s = scan.vol, scan.settings
+    off = vol.index_offset[2]
     # the fibula in 3D: the longest dark structure along the leg among the other round dark regions
     fib_choice, fib_short = _choose_fibula(
         [
@@ -730,73 +1041,45 @@ def segment_volume(
         ],
         min_slices=s.fibula_min_slices,
     )
+    skins, bones, fibulas, rows = [], [], [], []
+    hidden = np.zeros(vol.n_slices, bool)
     for k, (manual, res) in enumerate(traced):
-        where = vol.where(k)
-        kf = k + off
         if res is not None and fib_choice[k] is not None:
             res.fibula_ij = res.fibula_candidates[fib_choice[k]][1]
-        z_c = float(vol.world([(vol.data.shape[0] - 1) / 2, (vol.data.shape[1] - 1) / 2, k])[2])
-        out = {}
         touch = None if res is None else res.bone_touch_mm
-        if manual["bone"] is None and touch is not None and touch < s.indenter_guard_mm + px_mm:
+        if (
+            manual["bone"] is None
+            and touch is not None
+            and touch < s.indenter_guard_mm + scan.px_mm
+        ):
             hidden[k] = True
-        for st in STRUCTURES:
-            if _skin_only and st != "skin":
-                out[st] = None
-                continue
-            if manual[st] is not None:
-                xy = manual[st]
-            else:
-                ij = None if res is None else getattr(res, f"{st}_ij")
-                if ij is None:  # no fibula found (or not searched) on this slice
-                    out[st] = None
-                    continue
-                if flip_j:
-                    ij = np.column_stack([ij[:, 0], vol.data.shape[1] - 1 - ij[:, 1]])
-                xy = vol.world(np.column_stack([ij, np.full(len(ij), k)]))[:, :2]
-            try:
-                r = resample_closed(xy, n_points=s.n_points, start_angle_deg=s.start_angle_deg)
-            except ValueError as exc:
-                if (
-                    st == "fibula" and manual[st] is None
-                ):  # an automatic candidate that is not a bone's outline
-                    out[st] = None
-                    continue
-                raise SegmentationError(f"{where}: {st} contour: {exc}") from exc
-            out[st] = np.column_stack([r, np.full(s.n_points, z_c)])
-        for st in ("bone", "fibula"):
-            if out[st] is None:
-                continue
-            inside = points_in_polygon(out[st][:, :2], out["skin"][:, :2])
-            if not inside.all():
-                raise SegmentationError(
-                    f"{where}: {st} contour outside the skin ({int((~inside).sum())} of {len(inside)} points)"
-                )
+        out = _slice_contours(scan, k, manual, res)
         skins.append(out["skin"])
         bones.append(out["bone"])
         fibulas.append(out["fibula"])
-        info_slices.append(
+        rows.append(
             {
-                "slice": kf,
-                "z_mm": z_c,
+                "slice": k + off,
+                "z_mm": float(out["skin"][0, 2]),
                 "skin_level": None if res is None else res.skin_level,
                 "bone_level": None if res is None else res.bone_level,
                 "skin_source": "manual" if manual["skin"] is not None else "auto",
-                "bone_source": "manual" if manual["bone"] is not None else "auto",
+                "bone_source": "hidden"
+                if hidden[k]
+                else ("manual" if manual["bone"] is not None else "auto"),
                 "fibula_source": "manual"
                 if manual["fibula"] is not None
                 else ("auto" if out["fibula"] is not None else "none"),
                 "bone_touch_mm": touch,
+                "tibia_other_ratio": _other_ratio(res, None if res is None else res.choice),
             }
         )
-        if hidden[k]:
-            info_slices[-1]["bone_source"] = "hidden"
-    if _skin_only:
-        return Contours(skin=np.stack(skins), bone=np.stack(skins)), {"slices": info_slices}
+    if scan.skin_only:
+        return Contours(skin=np.stack(skins), bone=np.stack(skins)), {"slices": rows}
     if hidden.any():
         bones = _fill_hidden(vol, bones, fibulas, hidden, pre, s)
     for k in fib_short:  # a dark spot on a slice or two is not a bone that runs along the leg
-        info_slices[k]["fibula_source"] = "dropped"
+        rows[k]["fibula_source"] = "dropped"
     found = [f is not None for f in fibulas]
     fibula = None
     if any(found):
@@ -804,9 +1087,9 @@ def segment_volume(
             [f if f is not None else np.full((s.n_points, 3), np.nan) for f in fibulas]
         )
     info = {
-        "background": bg,
-        "noise": noise,
-        "slices": info_slices,
+        "background": scan.bg,
+        "noise": scan.noise,
+        "slices": rows,
         "settings": s.__dict__,
         "fibula_slices": int(sum(found)),
         "bone_hidden": [int(k + off) for k in np.nonzero(hidden)[0]],
@@ -969,110 +1252,111 @@ def contour_accuracy(seg: Contours, truth: Contours | dict) -> list[dict]:
     return rows
 
 
-def segment_files(
-    image,
-    *,
-    contours_out,
-    qc_out,
-    animal: str,
-    state: str,
-    settings: dict | SegmentationSettings,
-    crop_mm=None,
-    leg_point_mm=None,
-    reference=None,
-    overrides=None,
-    truth=None,
-    pre_contours=None,
-    pose_options: dict | None = None,
-) -> Contours:
-    """The rule ``segment``: load and check the image, segment, write contours and the QC figure.
+@dataclass(frozen=True)
+class SegmentJob:
+    """The files and settings of one run of the rule ``segment`` (:func:`segment_files`).
 
-    Parameters
-    ----------
-    image : str or Path
-        NIfTI to segment.
-    contours_out, qc_out : str or Path
-        Contour file (:func:`deeptissue.contours.save_contours`) and QC figure (PNG) to write.
-    animal : str
-        Animal name, for messages.
-    state : {'pre', 'during'}
-        State of ``image`` (selects the overrides).
-    settings : dict or SegmentationSettings
-        Config ``segmentation`` mapping (merged by :meth:`SegmentationSettings.from_config`) or settings.
-    crop_mm : (3, 2) array_like or None
-        World box [[xmin, xmax], [ymin, ymax], [zmin, zmax]] [mm] to crop to before segmenting.
-    leg_point_mm : (3,) array_like or None
-        A point inside the leg to segment [mm, world], for legs that touch: the skin and bones are traced on
-        :func:`deeptissue.imaging.select_leg` of the (cropped) image; the indenter is looked for in the whole image.
-    reference : str or Path or None
-        The pre image that a during ``image`` must match slice by slice.
-    overrides : str or Path or None
-        Manual-override YAML (:func:`load_overrides`).
-    truth : str or Path or None
-        Truth contour file (phantom), drawn in the QC figure with the distances to it in the title.
-    pre_contours : str or Path or None
-        The pre contour file of a during ``image``: it fills the slices where the tibia touches the indenter.
-    pose_options : dict or None
-        Config section ``pose``: how the contrast fluid is found, and the indenter's radius
-        (``head_radius_mm``), for the indenter mask of a during scan (``indenter_mask``).
-
-    Returns
-    -------
-    Contours
-        What was written to ``contours_out``.
+    ``image`` is the NIfTI to segment, of ``state`` (pre or during, which selects the overrides) of ``animal``;
+    ``contours_out``, ``qc_out`` and ``checks_out`` the contour file (:func:`deeptissue.contours.save_contours`),
+    the QC figure (PNG) and the segmentation checks (CSV, :mod:`deeptissue.segment_checks`) to write.
+    ``settings`` is the config ``segmentation`` mapping or :class:`SegmentationSettings`. ``crop_mm`` is a world
+    box [[xmin, xmax], [ymin, ymax], [zmin, zmax]] [mm] to crop to; ``leg_point_mm`` a point [mm, world] inside
+    the leg to segment where the legs touch (:func:`deeptissue.imaging.split_legs`; the indenter is looked for in
+    the whole image). ``reference`` is the pre image a during ``image`` must match slice by slice,
+    ``pre_contours`` its contour file (it fills the slices where the tibia touches the indenter), ``overrides``
+    the manual-override YAML (:func:`load_overrides`), ``truth`` a phantom's true contour file (drawn, with the
+    distances in the title), ``pose_options`` the config section ``pose`` (how the contrast fluid is found, and
+    the indenter's ``head_radius_mm``, for the indenter mask of a during scan).
     """
-    from .contours import load_contours, save_contours
-    from .imaging import check_matching, crop_volume, load_nifti, select_leg
-    from .qc import plot_segmentation
 
-    vol = load_nifti(image, animal=animal)
-    if reference is not None:
-        check_matching(load_nifti(reference, animal=animal), vol)
-    if crop_mm is not None:
-        vol = crop_volume(vol, crop_mm)
-    leg = vol if leg_point_mm is None else select_leg(vol, leg_point_mm)
-    if not isinstance(settings, SegmentationSettings):
-        settings = SegmentationSettings.from_config(settings)
-    ov = load_overrides(overrides) if overrides else None
-    import logging
+    image: str | Path
+    contours_out: str | Path
+    qc_out: str | Path
+    checks_out: str | Path | None = None
+    animal: str = ""
+    state: str = "pre"
+    settings: dict | SegmentationSettings | None = None
+    crop_mm: object = None
+    leg_point_mm: object = None
+    reference: str | Path | None = None
+    overrides: str | Path | None = None
+    truth: str | Path | None = None
+    pre_contours: str | Path | None = None
+    pose_options: dict | None = None
 
-    log = logging.getLogger(__name__)
-    if leg_point_mm is not None:
-        from .imaging import body_mask
+    @property
+    def failed_qc(self) -> Path:
+        """The QC figure of a failed run, beside ``qc_out``: the rule's outputs are removed when it fails."""
+        q = Path(self.qc_out)
+        return q.with_name(q.stem + "_failed" + q.suffix)
 
-        log.info(
-            "%s %s: the leg at leg_point_mm %s is segmented: %d of the body's %d voxels",
-            animal,
-            state,
-            list(leg_point_mm),
-            int(body_mask(leg).sum()),
-            int(body_mask(vol).sum()),
-        )
-    indenter = pre = None
-    if state == "during" and settings.indenter_mask:
-        skins, _ = segment_volume(
-            leg, settings=settings, state=state, overrides=ov, _skin_only=True
-        )
-        indenter = find_indenter(
-            vol,
-            skins.skin,
-            radius_mm=float((pose_options or {}).get("head_radius_mm", 1.5)),
-            pose_options=pose_options,
-        )
-        if indenter is not None:
-            log.info(
-                "%s %s: indenter masked: head centre %s mm, axis %s, fluid radius %.3f mm, wall %.3f mm",
-                animal,
-                state,
-                np.round(indenter.head_centre_mm, 3),
-                np.round(indenter.axis, 4),
-                indenter.fluid_radius_mm,
-                indenter.wall_mm,
-            )
-        pre = load_contours(pre_contours) if pre_contours else None
-    contours, info = segment_volume(
-        leg, settings=settings, state=state, overrides=ov, indenter=indenter, pre=pre
+    @property
+    def failed_checks(self) -> Path:
+        """The checks of a run whose checks failed, beside ``checks_out`` (or the QC figure without one)."""
+        c = Path(self.checks_out) if self.checks_out else Path(self.qc_out).with_name("checks.csv")
+        return c.with_name(c.stem + "_failed.csv")
+
+
+def _load_leg(job: SegmentJob):
+    """``(vol, leg, split)``: the checked and cropped image, the leg to segment and the leg split (or None)."""
+    vol = load_nifti(job.image, animal=job.animal)
+    if job.reference is not None:
+        ref = load_nifti(job.reference, animal=job.animal)
+        check_not_same_scan(ref, vol)
+        check_matching(ref, vol)
+    n_file = vol.n_slices
+    if job.crop_mm is not None:
+        vol = crop_volume(vol, job.crop_mm)
+    split = None
+    leg = vol
+    if job.leg_point_mm is not None:
+        split = split_legs(vol, job.leg_point_mm)
+        leg = split.leg
+        log.info("%s %s: %s", job.animal, job.state, split.describe())
+    return vol, leg, split, n_file
+
+
+def _find_indenter(job: SegmentJob, vol, leg, settings, ov):
+    if job.state != "during" or not settings.indenter_mask:
+        return None
+    skins, _ = segment_volume(
+        leg, settings=settings, state=job.state, overrides=ov, _skin_only=True
     )
+    indenter = find_indenter(
+        vol,
+        skins.skin,
+        radius_mm=float((job.pose_options or {}).get("head_radius_mm", 1.5)),
+        pose_options=job.pose_options,
+    )
+    if indenter is None and job.reference is not None and job.pre_contours:
+        # a during scan without fluid beside a pre scan with it: the two were given the wrong way round
+        ref = load_nifti(job.reference, animal=job.animal)
+        if job.crop_mm is not None:
+            ref = crop_volume(ref, job.crop_mm)
+        pre_skin = load_contours(job.pre_contours).skin
+        if pre_skin.shape[0] == ref.n_slices and find_indenter(
+            ref, pre_skin, pose_options=job.pose_options
+        ):
+            raise SegmentationError(
+                f"animal {job.animal}: the pre scan {job.reference} holds the indenter's contrast fluid and the "
+                f"during scan {job.image} has none: pre and during are swapped; give the scan with the indenter "
+                "as during"
+            )
+    if indenter is not None:
+        log.info(
+            "%s %s: indenter masked: head centre %s mm, axis %s, fluid radius %.3f mm, wall %.3f mm",
+            job.animal,
+            job.state,
+            np.round(indenter.head_centre_mm, 3),
+            np.round(indenter.axis, 4),
+            indenter.fluid_radius_mm,
+            indenter.wall_mm,
+        )
+    return indenter
+
+
+def _log_info(job: SegmentJob, settings: SegmentationSettings, info: dict) -> None:
+    animal, state = job.animal, job.state
     if info["bone_hidden"]:
         log.info(
             "%s %s: the tibia touches the indenter on slice(s) %s: their contour is the pre tibia moved by "
@@ -1107,10 +1391,67 @@ def segment_files(
             info["fibula_slices"],
             len(info["slices"]),
         )
-    true = load_contours(truth) if truth else None
+
+
+def segment_files(job: SegmentJob) -> Contours:
+    """The rule ``segment``: load and check the image, part the legs, segment, check, write contours, checks and
+    the QC figure.
+
+    Every slice that cannot be segmented, and every failed check (:mod:`deeptissue.segment_checks`), is named
+    in one :class:`SegmentationError`; the run then writes its QC figure with the failing slices marked to
+    ``job.failed_qc`` (and the checks, when they ran) before raising, and writes no contour file.
+    """
+    settings = job.settings
+    if not isinstance(settings, SegmentationSettings):
+        settings = SegmentationSettings.from_config(settings)
+    vol, leg, split, n_file = _load_leg(job)
+    ov = load_overrides(job.overrides, n_slices=n_file) if job.overrides else None
+    title = f"{job.animal} {job.state}"
+    indenter = _find_indenter(job, vol, leg, settings, ov)
+    pre = load_contours(job.pre_contours) if job.pre_contours and indenter is not None else None
+    failed_qc = job.failed_qc
+    try:
+        contours, info = segment_volume(
+            leg, settings=settings, state=job.state, overrides=ov, indenter=indenter, pre=pre
+        )
+    except SlicesFailed as exc:
+        plot_segmentation(vol, exc.partial, failed_qc, failed=exc.failed, split=split, title=title)
+        where = job.overrides or f"a file named by config key animals.{job.animal}.overrides"
+        raise SegmentationError(
+            f"{exc} in {where} ({job.state}: {{structure: {{slice: [[x, y], ...]}}}}). The QC figure with the "
+            f"failing slices marked: {failed_qc}"
+        ) from exc
+    _log_info(job, settings, info)
+    checks = segmentation_checks(
+        leg, contours, info, smooth_mm=settings.smooth_mm, n_file_slices=n_file
+    )
+    true = load_contours(job.truth) if job.truth else None
     rows = contour_accuracy(contours, true) if true is not None else None
-    save_contours(contours_out, contours)
-    plot_segmentation(vol, contours, qc_out, truth=true, accuracy=rows, title=f"{animal} {state}")
+    message = failed_checks_message(checks, vol.where())
+    bad = {
+        c.slice - vol.index_offset[2]: c.name
+        for c in checks
+        if c.status == "fail" and c.slice >= 0
+    }
+    if (
+        message is not None
+    ):  # the rule's outputs are removed on failure: the checks and figure go beside them
+        failed_csv = job.failed_checks
+        write_checks(failed_csv, checks)
+        plot_segmentation(
+            vol, contours, failed_qc, truth=true, failed=bad, split=split, title=title
+        )
+        raise SegmentationError(
+            f"{message}. The QC figure with the failing slices marked: {failed_qc}; the checks: {failed_csv}"
+        )
+    failed_qc.unlink(missing_ok=True)
+    job.failed_checks.unlink(missing_ok=True)
+    if job.checks_out is not None:
+        write_checks(job.checks_out, checks)
+    save_contours(job.contours_out, contours)
+    plot_segmentation(
+        vol, contours, job.qc_out, truth=true, accuracy=rows, split=split, title=title
+    )
     return contours
 
 

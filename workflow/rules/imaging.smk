@@ -25,8 +25,9 @@ rule phantom:
 
 
 rule segment:
-    """Skin, tibia and (where found) fibula contours of every slice of one state, and a QC figure; a during scan
-    after the pre one, whose tibia fills the slices where the bone touches the indenter.
+    """Skin, tibia and (where found) fibula contours of every slice of one state, their checks and a QC figure; a
+    during scan after the pre one, whose tibia fills the slices where the bone touches the indenter. A run that
+    fails names every failing slice and leaves its QC figure as segmentation_{state}_failed.png.
     """
     input:
         unpack(segment_inputs),
@@ -38,6 +39,8 @@ rule segment:
             category="Stage 1: segmentation",
             subcategory="{animal}",
         ),
+        # the segmentation checks of every animal, with or without an indenter (deeptissue.segment_checks)
+        checks="results/{animal}/qc/segmentation_checks_{state}.csv",
     log:
         "results/{animal}/logs/segment_{state}.log",
     priority: MODEL_PRIORITY
