@@ -254,6 +254,53 @@ def test_wall_time_budget_ends_the_solve_unconverged_with_its_reason(limb):
     assert r.load_reached < 4.0
 
 
+def _homogeneous_stretch(settings):
+    """A block stretched 10 % along x by its prescribed faces (no contact): every increment converges."""
+    m = block_mesh((2.0, 2.0, 2.0), h_mm=1.0)
+    F0 = np.diag([1.1, 1.0, 1.0])
+    return m, solve_prescribed(
+        m,
+        material=LAW,
+        bc_sets=list(m.facets),
+        displacement_mm=lambda X, s: s * X @ (F0 - np.eye(3)).T,
+        settings=settings,
+    )
+
+
+def test_a_solve_whose_load_creeps_stops_with_its_reason_load_and_last_state():
+    # increments of 0.01 of the step: over any 3 of them the load advances 0.03, below stall_load 0.05
+    inc = IncrementSettings(
+        initial_increment=0.01, max_increment=0.01, stall_increments=3, stall_load=0.05
+    )
+    m, r = _homogeneous_stretch(SolverSettings(increments=inc))
+    assert not r.converged and r.reason.startswith("stalled: the load advanced 0.03 in the last 3")
+    # stopped before its fifth increment, at the load of the fourth, with that increment's state
+    assert len(r.history) == 4 and all(h.converged for h in r.history)
+    assert r.load_reached == pytest.approx(3.04)
+    np.testing.assert_allclose(r.displacement_mm[:, 0], 0.004 * m.nodes_mm[:, 0], atol=1e-9)
+    # the same increments with a looser stall_load reach the end
+    ok = _homogeneous_stretch(SolverSettings(increments=replace(inc, stall_load=0.02)))[1]
+    assert ok.converged and len(ok.history) == 100
+
+
+def test_a_solve_that_stops_advancing_for_stall_wall_s_stops():
+    inc = IncrementSettings(
+        initial_increment=0.01, max_increment=0.01, stall_load=0.5, stall_wall_s=1e-9
+    )
+    r = _homogeneous_stretch(SolverSettings(increments=inc))[1]
+    assert not r.converged and "in the last 1e-09 s" in r.reason
+    assert len(r.history) == 1 and r.load_reached == pytest.approx(3.01)
+
+
+def test_stall_settings_do_not_keep_a_bone_state_from_being_used():
+    from deeptissue.fem.solver import _path
+
+    a = SolverSettings()
+    b = replace(a, max_wall_s=60.0, increments=replace(a.increments, stall_wall_s=None))
+    c = replace(a, increments=replace(a.increments, initial_increment=0.5))
+    assert _path(a) == _path(b) and _path(a) != _path(c)
+
+
 def test_indenter_ending_inside_the_bone_is_reported_infeasible_without_solving(limb):
     # the limb's rigid core has radius 0.8 mm about the z axis: a sphere (R 1.5 mm) whose tip ends at
     # x = 0.6 reaches 0.2 mm into it (less at the core's nodes, which are not all on the tip's line)
