@@ -156,11 +156,13 @@ class IncrementSettings:
 
     A solve that creeps stops by itself with its reason, the load reached and its last converged state: when the
     load (t, 0-4) has advanced by no more than stall_load over the last stall_increments attempted increments,
-    or over the last stall_wall_s seconds (None: no such window). 1e-3 of the indentation step is 3 um of a 3 mm
+    or over the last stall_wall_s seconds (None: no such window), or three times the slowest converged
+    increment's wall time where that is longer. 1e-3 of the indentation step is 3 um of a 3 mm
     travel; 12 attempts is more than the cuts from a full step down to min_increment (8), so a solve stops there
     only when it alternates tiny accepted increments with failed long ones; 300 s is ten times a demo variant's
     solve and twice the slowest base variant of config/paper.yaml (docs/performance.md), so a study never
-    spends more than that on a variant after it stops advancing."""
+    spends more than that on a variant after it stops advancing; on a fine mesh whose converged increments
+    take minutes each the window grows with them."""
 
     initial_increment: float = 0.25
     max_increment: float = 1.0
@@ -1269,6 +1271,7 @@ class _Run:
         self.history, self.n_iter, self.total_changes = [], 0, 0
         self.active_per_increment = []  # the nodes in contact after each converged increment
         self.progress = []  # (wall time [s], load t) after each attempted increment
+        self.longest_ok_s = 0.0  # wall time of the slowest converged increment [s]
         self.prev = (
             None  # (t, u, lam) before the last converged increment, for the secant predictor
         )
@@ -1361,11 +1364,13 @@ def _stop_reason(run: _Run) -> str:
                 f"stalled: the load advanced {advanced:.2g} in the last {inc.stall_increments} increments "
                 f"(stall_load {inc.stall_load:g}) at t = {run.t:.4f}"
             )
-    if inc.stall_wall_s is not None and now > inc.stall_wall_s:
-        then = [t for w, t in marks if w <= now - inc.stall_wall_s]
+    # a window of stall_wall_s, or longer where the converged increments themselves take that long (fine meshes)
+    window = None if inc.stall_wall_s is None else max(inc.stall_wall_s, 3.0 * run.longest_ok_s)
+    if window is not None and now > window:
+        then = [t for w, t in marks if w <= now - window]
         if then and run.t - then[-1] <= inc.stall_load:
             return (
-                f"stalled: the load advanced {run.t - then[-1]:.2g} in the last {inc.stall_wall_s:g} s "
+                f"stalled: the load advanced {run.t - then[-1]:.2g} in the last {window:.3g} s "
                 f"(stall_load {inc.stall_load:g}) at t = {run.t:.4f}"
             )
     return ""
@@ -1486,7 +1491,7 @@ def _increment(run: _Run, k: int, dt: float) -> tuple[bool, str, int, int]:
     """One increment of load step k from run.t by dt: solved, checked, recorded and, if it converged, taken as
     the new state. Returns (converged, reason, Newton iterations, entries whose contact state changed)."""
     t, t1, timers, contact = run.t, run.t + dt, run.p.timers, run.contact
-    t0c = dict(timers)
+    t0c, w0 = dict(timers), time.perf_counter()
     u, lam, target_d = _predicted(run, k, dt)
     run.set_time(t1)
     ok, why, iters, residuals, changes = _newton(run, u, lam, target_d, t1 >= 4.0 - 1e-12)
@@ -1536,6 +1541,7 @@ def _increment(run: _Run, k: int, dt: float) -> tuple[bool, str, int, int]:
         moved = int(np.count_nonzero((lam > 0) != (run.lam > 0)))
         run.prev = (t, run.u, run.lam) if k == 3 else None
         run.u, run.lam, run.t = u, lam, t1
+        run.longest_ok_s = max(run.longest_ok_s, time.perf_counter() - w0)
     else:
         run.prev = None
     run.progress.append((time.perf_counter() - run.t_wall, run.t))
