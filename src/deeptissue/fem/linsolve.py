@@ -103,10 +103,12 @@ def _has_cholmod() -> bool:
     return True
 
 
+_WORKS = {"pardiso": _has_mkl, "cholmod": _has_cholmod, "scipy": lambda: True}
+
+
 def available_backends() -> tuple[str, ...]:
     """The backends that work in this process, in :data:`BACKENDS` order ('scipy' always)."""
-    have = {"pardiso": _has_mkl, "cholmod": _has_cholmod, "scipy": lambda: True}
-    return tuple(b for b in BACKENDS if have[b]())
+    return tuple(b for b in BACKENDS if _WORKS[b]())
 
 
 def linear_backend() -> str:
@@ -114,12 +116,12 @@ def linear_backend() -> str:
     works here. ValueError for an unknown name, RuntimeError for a named backend this machine lacks."""
     name = os.environ.get(BACKEND_ENV, "").strip().lower()
     if not name:
-        return available_backends()[0]
+        return next(b for b in BACKENDS if _WORKS[b]())
     if name not in BACKENDS:
         raise ValueError(
             f"{BACKEND_ENV}={name!r}: expected one of {BACKENDS} (or unset: the fastest available)"
         )
-    if name not in available_backends():
+    if not _WORKS[name]():
         raise RuntimeError(
             f"{BACKEND_ENV}={name!r}, but it is not usable here (pardiso needs MKL on x86-64: pip install "
             "pypardiso mkl; cholmod needs scikit-sparse built against libsuitesparse-dev). Unset it to use "
