@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from packaging.markers import Marker
 from packaging.specifiers import SpecifierSet
 
 import deeptissue
@@ -28,14 +29,16 @@ def _pyproject() -> dict:
 
 
 def _pins(requirements: list[str], where: str) -> dict[str, str]:
-    """{normalised name: version} of `name==version` lines; anything else is a test failure."""
+    """{normalised name: "version; marker"} of `name==version[; marker]` lines; anything else is a test
+    failure (a platform marker, such as MKL's x86-64 only, must be the same in both files)."""
     pins = {}
     for req in requirements:
-        match = PIN.match(req.strip())
+        text, _, marker = req.partition(";")
+        match = PIN.match(text.strip())
         assert match, f"{where}: {req!r} is not pinned as name==version"
         name = re.sub(r"[-_.]+", "-", match.group(1)).lower()
         assert name not in pins, f"{where}: {name} is listed twice"
-        pins[name] = match.group(2)
+        pins[name] = match.group(2) + (f"; {Marker(marker.strip())}" if marker.strip() else "")
     return pins
 
 

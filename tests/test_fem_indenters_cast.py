@@ -147,3 +147,23 @@ def test_cast_gap_weighs_every_vertex_of_its_support_and_skips_the_hessian_on_re
     assert H2 is None and H.shape == (50, 3, 3)
     np.testing.assert_array_equal(g2, g)
     np.testing.assert_array_equal(n2, n)
+
+
+def test_a_cast_with_a_hole_has_a_finite_gap_beside_the_hole_without_warnings():
+    # a window cut out of a tube (its inner vertices then belong to no triangle: they have no normal) next to a
+    # point 0.1 mm inside the tube: the gap is the tube's, 0.1 mm to within the facets' sagitta, as on the
+    # whole tube, and the vertices without a triangle take no part
+    whole = _tube_cast(n=48, m=21)
+    c = whole.v[whole.t].mean(axis=1)
+    window = np.linalg.norm(c - [3.0, 0.0, 5.0], axis=1) < 1.2
+    th = np.radians([30.0, 60.0, 180.0])  # the window reaches 23 deg
+    x = np.stack([2.9 * np.cos(th), 2.9 * np.sin(th), np.full(3, 5.0)], axis=1)
+    with np.errstate(all="raise"):
+        holed = Cast(whole.v, whole.t[~window])
+        g, n, H = holed.gap(x)
+    assert np.all(np.isfinite(n)) and np.all(np.isfinite(H))
+    # 2.9 mm from the axis of a 3 mm tube, to within the sagitta of its 0.39 mm facets (0.026 mm)
+    np.testing.assert_allclose(g, 0.1, atol=0.026)
+    np.testing.assert_allclose(g[2], whole.gap(x[2:])[0][0], atol=1e-12)  # far from the window
+    # over the window itself there is no cast
+    assert np.isinf(holed.gap(np.array([[2.9, 0.0, 5.0]]))[0][0])

@@ -1,4 +1,5 @@
-"""FE core: the sparse symmetric solvers of the Newton tangent (PARDISO in mixed and double precision)."""
+"""FE core: the sparse symmetric solvers of the Newton tangent (PARDISO, CHOLMOD or SuperLU; mixed and double
+precision), each checked on every backend this machine has, and the choice of backend."""
 
 import os
 import subprocess
@@ -11,9 +12,21 @@ import pytest
 import scipy.sparse as sp
 
 from deeptissue.fem.assembly import Assembler, as_material_law
-from deeptissue.fem.linsolve import NotPositiveDefinite, PardisoSymmetric
+from deeptissue.fem.linsolve import (
+    BACKEND_ENV,
+    NotPositiveDefinite,
+    SymmetricSolver,
+    available_backends,
+    linear_backend,
+)
 from deeptissue.fem.material import Ogden
 from deeptissue.verification.shapes import block_mesh
+
+_ROOT = Path(__file__).resolve().parents[1]
+HERE = available_backends()
+needs_mkl = pytest.mark.skipif(
+    linear_backend() != "pardiso", reason="MKL's reproducible mode: only with the PARDISO backend"
+)
 
 
 def _full(U):
@@ -50,30 +63,35 @@ def elasticity():
     return U, b
 
 
-def test_mixed_precision_refines_to_the_double_precision_answer(elasticity):
+@pytest.mark.parametrize("backend", HERE)
+def test_mixed_precision_refines_to_the_double_precision_answer(elasticity, backend):
     U, b = elasticity
-    xd = PardisoSymmetric("double").solve(U, b)
-    s = PardisoSymmetric("mixed")
+    xd = SymmetricSolver("double", backend=backend).solve(U, b)
+    s = SymmetricSolver("mixed", backend=backend)
     xm = s.solve(U, b)
-    # one single-precision solve carries ~7 digits: the refinement steps are what make it exact
-    assert s.refinements >= 1 and s.double_fallbacks == 0 and s.last_mode == 2
+    # one single-precision solve carries ~7 digits: the refinement steps are what make it exact (CHOLMOD has
+    # no single precision: its 'mixed' is one double-precision Cholesky)
+    assert s.double_fallbacks == 0 and s.last_mode == 2
+    assert s.refinements >= 1 if backend != "cholmod" else s.refinements == 0
     assert _backward_error(U, xm, b) < 1e-14
     np.testing.assert_allclose(xm, xd, rtol=0, atol=1e-9 * np.abs(xd).max())
     # the factorisation is reused for a new matrix on the same pattern (values change, analysis kept)
     x2 = s.solve(U.multiply(2.0).tocsr(), b)
     np.testing.assert_allclose(x2, 0.5 * xd, rtol=0, atol=1e-9 * np.abs(xd).max())
     assert s.factorisations == 2
+    assert s.analyses == 1  # one pattern: analysed once
     s.close()
 
 
-def test_an_ill_conditioned_matrix_falls_back_to_double_precision():
+@pytest.mark.parametrize("backend", [b for b in HERE if b != "cholmod"])
+def test_an_ill_conditioned_matrix_falls_back_to_double_precision(backend):
     # 1D Laplacian, fixed at one end: condition ~ 16 n^2 / pi^2 = 6.5e8, beyond single precision's 7 digits
     n = 20000
     main = np.full(n, 2.0)
     main[-1] = 1.0
     U = sp.diags([main, -np.ones(n - 1)], [0, 1], format="csr")
     b = np.ones(n)
-    s = PardisoSymmetric("mixed")
+    s = SymmetricSolver("mixed", backend=backend)
     x = s.solve(U, b)
     assert s.double_fallbacks == 1
     assert _backward_error(U, x, b) < 1e-14
@@ -83,14 +101,17 @@ def test_an_ill_conditioned_matrix_falls_back_to_double_precision():
     assert np.abs(x - exact).max() < 1e-6 * exact.max()
 
 
+@pytest.mark.parametrize("backend", HERE)
 @pytest.mark.parametrize("precision", ["mixed", "double"])
-def test_an_indefinite_matrix_is_refused_in_spd_mode_and_solved_by_ldlt(elasticity, precision):
+def test_an_indefinite_matrix_is_refused_in_spd_mode_and_solved_by_ldlt(
+    elasticity, precision, backend
+):
     U, b = elasticity
     # shift the spectrum so that a few eigenvalues are negative
     K = _full(U)
     lam_min = sp.linalg.eigsh(K, k=1, sigma=0, which="LM", return_eigenvectors=False)[0]
     Ui = (U - 3.0 * lam_min * sp.eye(U.shape[0], format="csr")).tocsr()
-    s = PardisoSymmetric(precision)
+    s = SymmetricSolver(precision, backend=backend)
     with pytest.raises(NotPositiveDefinite):
         s.solve(Ui, b, spd_only=True)
     x = s.solve(Ui, b)
@@ -101,7 +122,7 @@ def test_an_indefinite_matrix_is_refused_in_spd_mode_and_solved_by_ldlt(elastici
 
 def test_precision_is_validated():
     with pytest.raises(ValueError, match="precision 'single'"):
-        PardisoSymmetric("single")
+        SymmetricSolver("single")
 
 
 def _saddle(U, G):
@@ -117,8 +138,9 @@ def _constraints(n, m, seed):
     return sp.csr_matrix((rng.standard_normal(6 * m), (rows, cols)), shape=(m, n))
 
 
+@pytest.mark.parametrize("backend", HERE)
 @pytest.mark.parametrize("shift", [0.0, 1.0], ids=["spd", "indefinite-off-the-constraints"])
-def test_solve_constrained_solves_the_saddle_point_system(elasticity, shift):
+def test_solve_constrained_solves_the_saddle_point_system(elasticity, shift, backend):
     U, b = elasticity
     n, m = U.shape[0], 40
     G = _constraints(n, m, 3)
@@ -135,47 +157,94 @@ def test_solve_constrained_solves_the_saddle_point_system(elasticity, shift):
     A = (Uk + sp.triu(G.T @ sp.diags(rho) @ G)).tocsr()
     A.sort_indices()
     s_ = np.random.default_rng(4).standard_normal(m) * 1e-2
-    solver = PardisoSymmetric()
+    solver = SymmetricSolver(backend=backend)
     x, lam = solver.solve_constrained(A, G, rho, b, s_)
     ref = sp.linalg.spsolve(_saddle(Uk, G), np.concatenate([b, s_]))
     assert np.allclose(x, ref[:n], rtol=0, atol=1e-9 * np.abs(ref[:n]).max())
     assert np.allclose(lam, ref[n:], rtol=0, atol=1e-9 * np.abs(ref[n:]).max())
-    # one single-precision factorisation, a handful of corrections
+    # one Cholesky factorisation (single precision where the backend has it), a handful of corrections
     assert (solver.factorisations, solver.double_fallbacks, solver.last_mode) == (1, 0, 2)
     assert solver.refinements <= 8
     solver.close()
 
 
-def test_solve_constrained_without_constraints_is_a_plain_solve(elasticity):
+@pytest.mark.parametrize("backend", HERE)
+def test_solve_constrained_without_constraints_is_a_plain_solve(elasticity, backend):
     U, b = elasticity
     G = sp.csr_matrix((0, U.shape[0]))
-    x, lam = PardisoSymmetric().solve_constrained(U, G, np.zeros(0), b, np.zeros(0))
+    x, lam = SymmetricSolver(backend=backend).solve_constrained(U, G, np.zeros(0), b, np.zeros(0))
     assert lam.shape == (0,)
     assert _backward_error(U, x, b) < 1e-13
 
 
-def test_solve_constrained_falls_back_to_an_indefinite_factorisation(elasticity):
+@pytest.mark.parametrize("backend", HERE)
+def test_solve_constrained_falls_back_to_an_indefinite_factorisation(elasticity, backend):
     U, b = elasticity
     n = U.shape[0]
     G = _constraints(n, 10, 5)
     rho = 1e3 * np.median(U.diagonal()) / np.asarray(G.multiply(G).sum(axis=1)).ravel()
     # an augmented matrix with a negative eigenvalue off the constraints: Cholesky fails, Bunch-Kaufman solves it
-    p0 = PardisoSymmetric("double").solve(U, b)
+    p0 = SymmetricSolver("double", backend=backend).solve(U, b)
     Ui = _plus_diagonal(U, -2.0 * float(p0 @ (_full(U) @ p0)) / float(p0 @ p0))
     A = (Ui + sp.triu(G.T @ sp.diags(rho) @ G)).tocsr()
     A.sort_indices()
-    solver = PardisoSymmetric()
+    solver = SymmetricSolver(backend=backend)
     x, lam = solver.solve_constrained(A, G, rho, b, np.zeros(10))
     ref = sp.linalg.spsolve(_saddle(Ui, G), np.concatenate([b, np.zeros(10)]))
     assert solver.last_mode == -2
     assert np.allclose(x, ref[:n], rtol=0, atol=1e-8 * np.abs(ref[:n]).max())
 
 
+# --------------------------------------------------------------------------- choice of backend
+
+
+def test_the_environment_variable_names_the_backend(monkeypatch):
+    monkeypatch.setenv(BACKEND_ENV, "scipy")
+    assert linear_backend() == "scipy" and SymmetricSolver().backend == "scipy"
+    monkeypatch.setenv(BACKEND_ENV, "umfpack")
+    with pytest.raises(ValueError, match=f"{BACKEND_ENV}='umfpack'"):
+        SymmetricSolver()
+    monkeypatch.delenv(BACKEND_ENV)
+    assert linear_backend() == HERE[0] and "scipy" in HERE
+
+
+def test_without_mkl_the_solver_chooses_another_backend_and_solves():
+    # pypardiso (and with it MKL) made unimportable, as on a machine that is not x86-64
+    env = dict(os.environ, PYTHONPATH=str(_ROOT / "src"))
+    env.pop(BACKEND_ENV, None)
+    code = """
+        import sys
+        sys.modules["pypardiso"] = None
+        import numpy as np, scipy.sparse as sp
+        from deeptissue.fem.linsolve import SymmetricSolver, available_backends, linear_backend
+        assert "pardiso" not in available_backends()
+        U = sp.triu(sp.diags([-1.0, 2.0, -1.0], [-1, 0, 1], shape=(50, 50))).tocsr()
+        x = SymmetricSolver().solve(U, np.ones(50))
+        k = np.arange(1, 51)
+        print(linear_backend(), np.abs(x - k * (51 - k) / 2).max())
+        """
+    p = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)], env=env, capture_output=True, text=True
+    )
+    assert p.returncode == 0, p.stderr[-3000:]
+    backend, err = p.stdout.split()
+    assert backend in ("cholmod", "scipy") and float(err) < 1e-10  # -x'' = 1, x(0) = x(51) = 0
+
+
+def test_pardiso_named_where_there_is_no_mkl_is_refused(monkeypatch):
+    import deeptissue.fem.linsolve as linsolve
+
+    monkeypatch.setitem(linsolve._WORKS, "pardiso", lambda: False)  # as on a machine without MKL
+    monkeypatch.setenv(BACKEND_ENV, "pardiso")
+    with pytest.raises(RuntimeError, match="not usable here"):
+        linear_backend()
+    monkeypatch.delenv(BACKEND_ENV)
+    assert linear_backend() in ("cholmod", "scipy")
+
+
 # --------------------------------------------------------------------------- reproducible mode
 # MKL's mode is per process and fixed by its first computation, so each check runs in its own process,
 # with two threads (the tests themselves run with one).
-
-_ROOT = Path(__file__).resolve().parents[1]
 
 
 def _run_two_threads(code: str) -> str:
@@ -192,11 +261,12 @@ def _run_two_threads(code: str) -> str:
     return p.stdout.strip().splitlines()[-1]
 
 
+@needs_mkl
 def test_pin_reproducible_is_refused_after_mkl_has_computed():
     out = _run_two_threads("""
         import numpy as np, scipy.sparse as sp
-        from deeptissue.fem.linsolve import PardisoSymmetric, pin_reproducible
-        PardisoSymmetric("double").solve(sp.identity(3, format="csr"), np.ones(3))
+        from deeptissue.fem.linsolve import SymmetricSolver, pin_reproducible
+        SymmetricSolver("double").solve(sp.identity(3, format="csr"), np.ones(3))
         try:
             pin_reproducible()
         except RuntimeError as e:
@@ -205,13 +275,14 @@ def test_pin_reproducible_is_refused_after_mkl_has_computed():
     assert out.startswith("refused:") and "before the first MKL computation" in out
 
 
+@needs_mkl
 @pytest.mark.slow
 def test_pinned_factorisations_of_one_matrix_are_bitwise_identical():
     # a 3-D Laplacian of 17 576 dofs: large enough for PARDISO to factorise with both threads, where
     # unpinned repetitions of this loop give two or three different answers in twenty
     out = _run_two_threads("""
         import numpy as np, scipy.sparse as sp
-        from deeptissue.fem.linsolve import PardisoSymmetric, pin_reproducible
+        from deeptissue.fem.linsolve import SymmetricSolver, pin_reproducible
         pin_reproducible()
         n = 26
         T, I = sp.diags([-1.0, 2.0, -1.0], [-1, 0, 1], shape=(n, n)), sp.identity(n)
@@ -223,7 +294,7 @@ def test_pinned_factorisations_of_one_matrix_are_bitwise_identical():
         answers = set()
         for precision in ("mixed", "double"):
             for _ in range(6):
-                s = PardisoSymmetric(precision)
+                s = SymmetricSolver(precision)
                 answers.add((precision, s.solve(U, b).tobytes()))
                 s.close()
         print(len(answers))
@@ -231,6 +302,7 @@ def test_pinned_factorisations_of_one_matrix_are_bitwise_identical():
     assert out == "2"  # one answer per precision
 
 
+@needs_mkl
 @pytest.mark.slow
 def test_two_reproducible_contact_solves_take_identical_newton_iterations():
     code = """

@@ -1,5 +1,6 @@
 """FE core solver: patch test, rigid bone motion, indentation, cast contact, bone and end states."""
 
+import time
 from dataclasses import replace
 
 import numpy as np
@@ -254,6 +255,77 @@ def test_wall_time_budget_ends_the_solve_unconverged_with_its_reason(limb):
     assert r.load_reached < 4.0
 
 
+def _homogeneous_stretch(settings):
+    """A block stretched 10 % along x by its prescribed faces (no contact): every increment converges."""
+    m = block_mesh((2.0, 2.0, 2.0), h_mm=1.0)
+    F0 = np.diag([1.1, 1.0, 1.0])
+    return m, solve_prescribed(
+        m,
+        material=LAW,
+        bc_sets=list(m.facets),
+        displacement_mm=lambda X, s: s * X @ (F0 - np.eye(3)).T,
+        settings=settings,
+    )
+
+
+def test_a_solve_whose_load_creeps_stops_with_its_reason_load_and_last_state():
+    # increments of 0.01 of the step: over any 3 of them the load advances 0.03, below stall_load 0.05
+    inc = IncrementSettings(
+        initial_increment=0.01, max_increment=0.01, stall_increments=3, stall_load=0.05
+    )
+    m, r = _homogeneous_stretch(SolverSettings(increments=inc))
+    assert not r.converged and r.reason.startswith("stalled: the load advanced 0.03 in the last 3")
+    # stopped before its fifth increment, at the load of the fourth, with that increment's state
+    assert len(r.history) == 4 and all(h.converged for h in r.history)
+    assert r.load_reached == pytest.approx(3.04)
+    np.testing.assert_allclose(r.displacement_mm[:, 0], 0.004 * m.nodes_mm[:, 0], atol=1e-9)
+    # the same increments with a looser stall_load reach the end
+    ok = _homogeneous_stretch(SolverSettings(increments=replace(inc, stall_load=0.02)))[1]
+    assert ok.converged and len(ok.history) == 100
+
+
+def test_a_solve_that_stops_advancing_for_stall_wall_s_stops():
+    inc = IncrementSettings(
+        initial_increment=0.01, max_increment=0.01, stall_load=0.5, stall_wall_s=1e-9
+    )
+    r = _homogeneous_stretch(SolverSettings(increments=inc))[1]
+    # the load advances 0.01 per increment, less than stall_load in any window of a few increments' time
+    assert not r.converged and r.reason.startswith("stalled: the load advanced ")
+    assert " s (stall_load 0.5)" in r.reason
+    assert 1 <= len(r.history) < 50 and all(h.converged for h in r.history)
+
+
+def test_the_stall_window_grows_with_the_slowest_converged_increment():
+    from types import SimpleNamespace
+
+    from deeptissue.fem.solver import _stop_reason
+
+    settings = SolverSettings(increments=IncrementSettings(stall_wall_s=300.0))
+
+    def run(longest_ok_s):  # 1000 s into a solve that last advanced 100 s after its start
+        return SimpleNamespace(
+            job=SimpleNamespace(settings=settings),
+            history=[None] * 5,
+            t_wall=time.perf_counter() - 1000.0,
+            progress=[(100.0, 3.5), (500.0, 3.5), (900.0, 3.5)],
+            t=3.5,
+            longest_ok_s=longest_ok_s,
+        )
+
+    assert "in the last 300 s" in _stop_reason(run(50.0))
+    assert "in the last 600 s" in _stop_reason(run(200.0))
+    assert _stop_reason(run(400.0)) == ""  # a 1200 s window: not yet
+
+
+def test_stall_settings_do_not_keep_a_bone_state_from_being_used():
+    from deeptissue.fem.solver import _path
+
+    a = SolverSettings()
+    b = replace(a, max_wall_s=60.0, increments=replace(a.increments, stall_wall_s=None))
+    c = replace(a, increments=replace(a.increments, initial_increment=0.5))
+    assert _path(a) == _path(b) and _path(a) != _path(c)
+
+
 def test_indenter_ending_inside_the_bone_is_reported_infeasible_without_solving(limb):
     # the limb's rigid core has radius 0.8 mm about the z axis: a sphere (R 1.5 mm) whose tip ends at
     # x = 0.6 reaches 0.2 mm into it (less at the core's nodes, which are not all on the tip's line)
@@ -444,6 +516,11 @@ def test_indenter_passing_between_the_skin_nodes_is_cut_back_not_accepted(limb, 
     assert r.load_reached < 4.0
     cut = [h.reason for h in r.history if not h.converged]
     assert cut and all("passes between the skin's nodes" in c for c in cut)
+    # no attempt after a cut is longer than the one that failed, unless an increment converged in between
+    length = [h.t_end - h.t_start for h in r.history]
+    after_cut = [i for i in range(1, len(length)) if not r.history[i - 1].converged]
+    assert len(after_cut) >= 3
+    assert all(length[i] <= 0.35 * length[i - 1] + 1e-12 for i in after_cut)
 
 
 def test_one_tangent_per_newton_direction(limb, monkeypatch):

@@ -1,10 +1,12 @@
 """Glue of rule adapt_variant: one animal x variant on adaptive meshes -> passes.csv, summary.json, result.vtu."""
 
 from deeptissue.adapt_limb import run_adaptive_variant
+from deeptissue.fem.heap import keep_freed_memory
 from deeptissue.fem.linsolve import pin_reproducible
 from deeptissue.io import script_log
 
 with script_log(snakemake.log[0], "adapt_variant"):  # noqa: F821
+    keep_freed_memory()  # this job's process keeps what it frees (deeptissue.fem.heap)
     if snakemake.params.fem.get("reproducible"):  # noqa: F821
         pin_reproducible()  # before the first MKL call of this process
     run_adaptive_variant(

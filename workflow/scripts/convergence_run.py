@@ -1,10 +1,12 @@
 """Glue of rule convergence_run: one animal x variant x setting -> one row (JSON)."""
 
 from deeptissue.convergence import run_convergence_job
+from deeptissue.fem.heap import keep_freed_memory
 from deeptissue.fem.linsolve import pin_reproducible
 from deeptissue.io import script_log
 
 with script_log(snakemake.log[0], "convergence_run"):
+    keep_freed_memory()  # this job's process keeps what it frees (deeptissue.fem.heap)
     if snakemake.params.fem.get("reproducible"):
         pin_reproducible()  # before the first MKL call of this process
     run_convergence_job(

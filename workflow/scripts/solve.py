@@ -1,10 +1,12 @@
 """Glue of rule solve: one animal x variant -> summary.json and result.vtu."""
 
+from deeptissue.fem.heap import keep_freed_memory
 from deeptissue.fem.linsolve import pin_reproducible
 from deeptissue.io import script_log
 from deeptissue.study import run_solve
 
 with script_log(snakemake.log[0], "solve"):
+    keep_freed_memory()  # this job's process keeps what it frees (deeptissue.fem.heap)
     if snakemake.params.fem.get("reproducible"):
         pin_reproducible()  # before the first MKL call of this process
     run_solve(

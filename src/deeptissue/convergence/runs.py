@@ -85,7 +85,7 @@ def linear_reference_solve(
     tangent (``linear_factor_solve_s``, symbolic analysis included). Returns the times [s] and the largest displacement [mm].
     """
     from ..fem.assembly import Assembler, as_material_law
-    from ..fem.linsolve import PardisoSymmetric
+    from ..fem.linsolve import SymmetricSolver
     from ..fem.skmesh import straighten_invalid
 
     s = solver_settings
@@ -109,7 +109,7 @@ def linear_reference_solve(
     rhs[(3 * loaded[:, None] + np.arange(3)).ravel()] = np.tile(
         d / max(len(loaded), 1), len(loaded)
     )
-    solver = PardisoSymmetric("mixed")
+    solver = SymmetricSolver("mixed")
     try:
         x = solver.solve(asm.csr(data), rhs[asm.free])
     finally:

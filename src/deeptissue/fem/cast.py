@@ -53,14 +53,19 @@ class Cast:
         vn = np.zeros_like(self.v)
         for i in range(3):
             np.add.at(vn, self.t[:, i], nrm)  # area-weighted
-        self.vertex_normal = vn / np.linalg.norm(vn, axis=1, keepdims=True)
+        # the moving-least-squares gap uses the vertices with a normal: one that no triangle uses (inside a hole
+        # cut out of the cast) has none
+        ln_v = np.linalg.norm(vn, axis=1)
+        with_normal = ln_v > 0
+        self.mls_vertices_mm = self.v[with_normal]
+        self.vertex_normal = vn[with_normal] / ln_v[with_normal, None]
         edges = np.concatenate(
             [self.v[self.t[:, i]] - self.v[self.t[:, (i + 1) % 3]] for i in range(3)]
         )
         self.radius_mm = 1.2 * float(
             np.linalg.norm(edges, axis=1).max()
         )  # support of the vertex weights
-        self.vtree = cKDTree(self.v)
+        self.vtree = cKDTree(self.mls_vertices_mm)
         self.centroid = (a + b + c) / 3.0
         self.tree = cKDTree(self.centroid)
         self.k = min(k_nearest, len(self.t))
@@ -133,15 +138,16 @@ class Cast:
         # the moving-least-squares gap and its exact gradient where vertices are within the support
         rr = self.radius_mm
         # the vertices within the support: 16 per point, more (doubled) only for the points whose 16th is inside
-        kv = min(16, len(self.v))
+        n_v = len(self.mls_vertices_mm)
+        kv = min(16, n_v)
         dist, idx = self.vtree.query(x, k=kv, distance_upper_bound=rr)
         dist, idx = dist.reshape(n, -1), idx.reshape(n, -1)
         more = np.flatnonzero(np.isfinite(dist[:, -1]))
-        while len(more) and kv < len(self.v):
-            kv = min(2 * kv, len(self.v))
+        while len(more) and kv < n_v:
+            kv = min(2 * kv, n_v)
             d_m, i_m = self.vtree.query(x[more], k=kv, distance_upper_bound=rr)
             dist = np.pad(dist, ((0, 0), (0, kv - dist.shape[1])), constant_values=np.inf)
-            idx = np.pad(idx, ((0, 0), (0, kv - idx.shape[1])), constant_values=len(self.v))
+            idx = np.pad(idx, ((0, 0), (0, kv - idx.shape[1])), constant_values=n_v)
             dist[more], idx[more] = d_m.reshape(len(more), -1), i_m.reshape(len(more), -1)
             more = more[np.isfinite(dist[more, -1])]
         width = max(
@@ -150,7 +156,7 @@ class Cast:
         dist, idx = dist[:, :width], idx[:, :width]
         ok = np.isfinite(dist)
         vi = np.where(ok, idx, 0)
-        dv = x[:, None, :] - self.v[vi]  # (n, k, 3)
+        dv = x[:, None, :] - self.mls_vertices_mm[vi]  # (n, k, 3)
         nv = self.vertex_normal[vi]
         s_ = np.where(ok, dist**2 / rr**2, 1.0)
         w = np.where(ok, (1.0 - s_) ** 4, 0.0)

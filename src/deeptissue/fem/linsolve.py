@@ -1,22 +1,34 @@
-"""Sparse symmetric solves (upper-triangle CSR) by MKL PARDISO (the library pypardiso ships, called through ctypes).
+"""Sparse symmetric solves (upper-triangle CSR) by one of three direct solvers, chosen per platform.
 
-:meth:`PardisoSymmetric.solve_constrained` solves the FE solver's Newton systems, symmetric saddle-point systems
+Backends (:data:`BACKENDS`), in the order :func:`linear_backend` prefers them when it chooses:
+
+- ``pardiso``: MKL PARDISO (the library pypardiso ships, called through ctypes). x86-64 only, where MKL exists.
+  Cholesky in single or double precision and Bunch-Kaufman (symmetric indefinite), METIS ordering, the symbolic
+  analysis kept per sparsity pattern. The fastest on the FE tangent (docs/solver.md).
+- ``cholmod``: SuiteSparse CHOLMOD through scikit-sparse (supernodal Cholesky in double precision, the symbolic
+  analysis kept per pattern); an indefinite matrix goes to SuperLU. Any platform with SuiteSparse.
+- ``scipy``: SciPy's SuperLU, always there: an LU with symmetric (diagonal) pivoting and a minimum-degree
+  ordering of A + A^T as the Cholesky-like factor (in single or double precision; positive definite when every
+  pivot is positive), partial pivoting for an indefinite matrix. Slower; correct everywhere.
+
+The environment variable ``DEEPTISSUE_LINEAR_SOLVER`` (one of the backends) overrides the choice, e.g. to run
+the tests as on a machine without MKL.
+
+:meth:`SymmetricSolver.solve_constrained` solves the FE solver's Newton systems, symmetric saddle-point systems
 of a tangent K and active contact constraints G, ``K x - G^T lam = r, G x = s``, without factorising the
 indefinite saddle-point matrix: it factorises the augmented matrix ``A = K + G^T diag(rho) G`` of the size of K
-(positive definite wherever K is on the constraints' kernel, so Cholesky in single precision) and iterates the
-augmented-Lagrangian correction on the saddle-point residual, in double precision. With rho a thousand times
-the stiffness a constraint meets, a correction gains about three digits: four to six triangular solves reach a
-relative residual of 1e-12. On a rat's limb (41.5 k free dofs, one core) that is 0.35-0.46 s for the
-single-precision Cholesky and 0.08 s of corrections; the tangent alone takes 0.57 s to factorise by Cholesky
-in double precision and 0.84 s by Bunch-Kaufman (docs/solver.md).
+(positive definite wherever K is on the constraints' kernel, so Cholesky, in single precision where the backend
+has it) and iterates the augmented-Lagrangian correction on the saddle-point residual, in double precision. With
+rho a thousand times the stiffness a constraint meets, a correction gains about three digits: four to six
+triangular solves reach a relative residual of 1e-12.
 
-:meth:`PardisoSymmetric.solve` solves a positive definite matrix (the linear-elastic reference of the
-convergence study) in SPD mode (mtype 2), with the symbolic analysis (fill-in reducing ordering) done once per
-sparsity pattern; it falls back to indefinite mode if the matrix is not positive definite. precision 'mixed'
-(default): the Cholesky factor in single precision, refined in double precision until the normwise backward
-error |b - K x|_inf / (|K|_inf |x|_inf + |b|_inf) is below refine_eta (1e-14); a matrix whose refinement does
-not halve that error at every step is factorised again in double. The single-precision factorisation takes
-55-60 % of the time of the double one on a rat's limb (41.6 k free dofs, one core).
+:meth:`SymmetricSolver.solve` solves a positive definite matrix (the linear-elastic reference of the
+convergence study) by Cholesky; it falls back to the indefinite factorisation if the matrix is not positive
+definite. precision 'mixed' (default): the Cholesky factor in single precision, refined in double precision
+until the normwise backward error |b - K x|_inf / (|K|_inf |x|_inf + |b|_inf) is below refine_eta (1e-14); a
+matrix whose refinement does not halve that error at every step is factorised again in double. The
+single-precision factorisation takes 55-60 % of the time of the double one on a rat's limb (PARDISO, 41.6 k
+free dofs, one core). CHOLMOD has no single precision: there 'mixed' is 'double'.
 
 With more than one thread, PARDISO's numerical factorisation schedules its work dynamically and its
 reductions follow the threads' timing, so repeated factorisations of one matrix differ in the last bits
@@ -29,25 +41,38 @@ from __future__ import annotations
 
 import ctypes
 import functools
+import importlib.util
 import logging
+import os
+import warnings
 
 import numpy as np
 import scipy.sparse as sp
+import scipy.sparse.linalg as sla
 
 _log = logging.getLogger(__name__)
 
-__all__ = ["PRECISIONS", "NotPositiveDefinite", "PardisoSymmetric", "pin_reproducible"]
+__all__ = [
+    "BACKENDS",
+    "PRECISIONS",
+    "NotPositiveDefinite",
+    "SymmetricSolver",
+    "available_backends",
+    "linear_backend",
+    "pin_reproducible",
+]
 
 
-PRECISIONS = ("mixed", "double")  # of PardisoSymmetric
+PRECISIONS = ("mixed", "double")  # of SymmetricSolver
+BACKENDS = ("pardiso", "cholmod", "scipy")
+BACKEND_ENV = "DEEPTISSUE_LINEAR_SOLVER"
 
 
 class NotPositiveDefinite(np.linalg.LinAlgError):
     """The Cholesky (SPD) factorisation failed."""
 
 
-_P = ctypes.POINTER
-_I32 = ctypes.c_int32
+# ------------------------------------------------------------------------------------------ choosing
 
 
 @functools.cache
@@ -58,30 +83,51 @@ def _mkl_rt():
     return pypardiso.PyPardisoSolver().libmkl
 
 
-@functools.cache
-def _mkl_pardiso():
-    """MKL's ``pardiso`` entry point."""
-    f = _mkl_rt().pardiso
-    f.argtypes = [
-        _P(ctypes.c_int64),
-        _P(_I32),
-        _P(_I32),
-        _P(_I32),
-        _P(_I32),
-        _P(_I32),
-        ctypes.c_void_p,
-        _P(_I32),
-        _P(_I32),
-        _P(_I32),
-        _P(_I32),
-        _P(_I32),
-        _P(_I32),
-        ctypes.c_void_p,
-        ctypes.c_void_p,
-        _P(_I32),
-    ]
-    f.restype = None
-    return f
+def _has_mkl() -> bool:
+    try:
+        _mkl_rt()
+    except Exception as exc:  # ImportError, OSError from ctypes, pypardiso's own errors
+        _log.debug("MKL PARDISO not usable: %s: %s", type(exc).__name__, exc)
+        return False
+    return True
+
+
+def _has_cholmod() -> bool:
+    if importlib.util.find_spec("sksparse") is None:
+        return False
+    try:
+        import sksparse.cholmod  # noqa: F401
+    except ImportError as exc:  # the extension is there but its SuiteSparse library is not
+        _log.debug("CHOLMOD not usable: %s", exc)
+        return False
+    return True
+
+
+_WORKS = {"pardiso": _has_mkl, "cholmod": _has_cholmod, "scipy": lambda: True}
+
+
+def available_backends() -> tuple[str, ...]:
+    """The backends that work in this process, in :data:`BACKENDS` order ('scipy' always)."""
+    return tuple(b for b in BACKENDS if _WORKS[b]())
+
+
+def linear_backend() -> str:
+    """The backend solves use: ``DEEPTISSUE_LINEAR_SOLVER`` if set, else the first of :data:`BACKENDS` that
+    works here. ValueError for an unknown name, RuntimeError for a named backend this machine lacks."""
+    name = os.environ.get(BACKEND_ENV, "").strip().lower()
+    if not name:
+        return next(b for b in BACKENDS if _WORKS[b]())
+    if name not in BACKENDS:
+        raise ValueError(
+            f"{BACKEND_ENV}={name!r}: expected one of {BACKENDS} (or unset: the fastest available)"
+        )
+    if not _WORKS[name]():
+        raise RuntimeError(
+            f"{BACKEND_ENV}={name!r}, but it is not usable here (pardiso needs MKL on x86-64: pip install "
+            "pypardiso mkl; cholmod needs scikit-sparse built against libsuitesparse-dev). Unset it to use "
+            f"{available_backends()[0]!r}"
+        )
+    return name
 
 
 _MKL_CBWR_COMPATIBLE = 3  # mkl_cbwr.h: SSE2 code path without approximation instructions
@@ -92,7 +138,11 @@ def pin_reproducible() -> None:
     reductions and static scheduling) with a fixed number of threads, so that PARDISO solves are bitwise
     identical from run to run with the same thread count, on any x86-64 CPU. COMPATIBLE rather than AUTO
     because a cluster's nodes may differ in instruction set. MKL allows this only before its first
-    computation in the process: RuntimeError after that."""
+    computation in the process: RuntimeError after that. Where the backend is not PARDISO it does nothing
+    (CHOLMOD and SuperLU factorise in a fixed order)."""
+    if linear_backend() != "pardiso":
+        _log.info("reproducible mode: nothing to pin for the %s backend", linear_backend())
+        return
     lib = _mkl_rt()
     lib.MKL_CBWR_Set.argtypes = lib.MKL_Set_Dynamic.argtypes = [ctypes.c_int]
     status = lib.MKL_CBWR_Set(_MKL_CBWR_COMPATIBLE)
@@ -116,23 +166,43 @@ def _symmetric_matvec(U: sp.csr_matrix, diag: np.ndarray, v: np.ndarray) -> np.n
     return U @ v + U.T @ v - diag * v
 
 
-class _Factor:
-    """One PARDISO handle for a sparsity pattern (upper triangle, 0-based CSR), matrix type and precision."""
+# ------------------------------------------------------------------------------------------ factors
+# A factor is made for one sparsity pattern (upper triangle U, sorted CSR) and one kind: 'spd32' (Cholesky in
+# single precision), 'spd64' (in double), 'indefinite' (symmetric indefinite or LU). factor(U) -> bool (False:
+# this kind does not factorise U, e.g. not positive definite); solve(b) -> x float64; free().
 
-    def __init__(self, call, U: sp.csr_matrix, mtype: int, single: bool, key: tuple):
-        self._call = call
-        self.mtype, self.dtype = mtype, (np.float32 if single else np.float64)
+_P = ctypes.POINTER
+_I32 = ctypes.c_int32
+
+
+@functools.cache
+def _mkl_pardiso():
+    """MKL's ``pardiso`` entry point."""
+    f = _mkl_rt().pardiso
+    f.argtypes = [_P(ctypes.c_int64)] + [_P(_I32)] * 5 + [ctypes.c_void_p] + [_P(_I32)] * 6
+    f.argtypes += [ctypes.c_void_p, ctypes.c_void_p, _P(_I32)]
+    f.restype = None
+    return f
+
+
+class _PardisoFactor:
+    """One PARDISO handle: symbolic analysis (METIS ordering) at construction, numerical factorisation by
+    :meth:`factor`."""
+
+    def __init__(self, U: sp.csr_matrix, kind: str):
+        self._call = _mkl_pardiso()
+        self.mtype = -2 if kind == "indefinite" else 2
+        self.dtype = np.float32 if kind == "spd32" else np.float64
         self.pt = np.zeros(64, np.int64)
         ip = self.iparm = np.zeros(64, np.int32)
         ip[0] = 1  # the settings below, not PARDISO's defaults
         ip[1] = 2  # METIS nested dissection
-        ip[9] = 8 if mtype == -2 else 13  # pivot perturbation 1e-8 (symmetric indefinite)
+        ip[9] = 8 if self.mtype == -2 else 13  # pivot perturbation 1e-8 (symmetric indefinite)
         ip[20] = 1  # Bunch-Kaufman pivoting (symmetric indefinite)
-        ip[27] = 1 if single else 0
+        ip[27] = 1 if kind == "spd32" else 0
         ip[34] = 1  # 0-based indices
         self.n = U.shape[0]
         self.ia, self.ja = U.indptr.astype(np.int32), U.indices.astype(np.int32)
-        self.key = key  # _pattern_key(U)
         self.a = None
         self._pardiso(11, U.data.astype(self.dtype), np.zeros(self.n, self.dtype))
 
@@ -164,7 +234,6 @@ class _Factor:
         return x
 
     def factor(self, U: sp.csr_matrix) -> bool:
-        """Numerical factorisation; False if it failed (mtype 2: not positive definite)."""
         self.a = np.ascontiguousarray(U.data, dtype=self.dtype)
         try:
             self._pardiso(22, self.a, np.zeros(self.n, self.dtype))
@@ -174,10 +243,8 @@ class _Factor:
         return True
 
     def solve(self, b: np.ndarray) -> np.ndarray:
-        """x (n,) float64 from the current factor (phase 33)."""
-        return self._pardiso(33, self.a, np.ascontiguousarray(b, dtype=self.dtype)).astype(
-            np.float64
-        )
+        x = self._pardiso(33, self.a, np.ascontiguousarray(b, dtype=self.dtype))
+        return x.astype(np.float64)
 
     def free(self):
         """Release PARDISO's memory of this handle (phase -1)."""
@@ -186,46 +253,145 @@ class _Factor:
         self.a = None
 
 
-class PardisoSymmetric:
-    """Symmetric sparse solves by PARDISO: :meth:`solve` (K x = b, precision 'mixed': single-precision
-    Cholesky + refinement in double, or 'double') and :meth:`solve_constrained` (a saddle-point system through
-    its augmented matrix). Counters: factorisations, double_fallbacks (a single-precision factor whose
-    refinement was too slow, factorised again in double), refinements (solve steps after the first)."""
+def _lower_csc(U: sp.csr_matrix) -> sp.csc_matrix:
+    """The lower triangle of K = U + triu(U, 1)^T as CSC: U's own arrays, read transposed."""
+    return sp.csc_matrix((U.data, U.indices, U.indptr), shape=U.shape)
+
+
+class _CholmodFactor:
+    """CHOLMOD's supernodal Cholesky in double precision; the symbolic analysis at construction."""
+
+    def __init__(self, U: sp.csr_matrix, kind: str):
+        from sksparse import cholmod
+
+        self._cholmod = cholmod
+        self._f = cholmod.analyze(_lower_csc(U), mode="supernodal")
+        self._ok = False
+
+    def factor(self, U: sp.csr_matrix) -> bool:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", self._cholmod.CholmodWarning)
+            try:
+                self._f.cholesky_inplace(_lower_csc(U))
+            except (self._cholmod.CholmodError, self._cholmod.CholmodWarning):
+                self._ok = False
+                return False
+        self._ok = True
+        return True
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        return np.asarray(self._f(np.asarray(b, np.float64)), np.float64)
+
+    def free(self):
+        self._f = None
+
+
+class _SuperLUFactor:
+    """SciPy's SuperLU of K = U + triu(U, 1)^T. 'spd32' / 'spd64': symmetric mode (a minimum-degree ordering of
+    A + A^T, diagonal pivots only), accepted as a Cholesky when no pivot left the diagonal and every pivot is
+    positive (then K = L D L^T with D > 0); 'indefinite': partial pivoting."""
+
+    def __init__(self, U: sp.csr_matrix, kind: str):
+        self.kind = kind
+        self.dtype = np.float32 if kind == "spd32" else np.float64
+        self._lu = None
+
+    def factor(self, U: sp.csr_matrix) -> bool:
+        K = (U + sp.triu(U, 1).T).tocsc().astype(self.dtype)
+        try:
+            if self.kind == "indefinite":
+                lu = sla.splu(K, permc_spec="MMD_AT_PLUS_A")
+            else:
+                lu = sla.splu(
+                    K,
+                    permc_spec="MMD_AT_PLUS_A",
+                    diag_pivot_thresh=0.0,
+                    options=dict(SymmetricMode=True),
+                )
+        except RuntimeError:  # exactly singular
+            self._lu = None
+            return False
+        if self.kind != "indefinite" and not (
+            np.array_equal(lu.perm_r, lu.perm_c) and np.all(lu.U.diagonal() > 0)
+        ):
+            self._lu = None
+            return False
+        self._lu = lu
+        return True
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        return self._lu.solve(np.ascontiguousarray(b, dtype=self.dtype)).astype(np.float64)
+
+    def free(self):
+        self._lu = None
+
+
+# the factor of each kind a backend has (a kind it lacks is skipped: CHOLMOD has no single precision, and its
+# indefinite matrices go to SuperLU)
+_FACTORS = {
+    "pardiso": {"spd32": _PardisoFactor, "spd64": _PardisoFactor, "indefinite": _PardisoFactor},
+    "cholmod": {"spd64": _CholmodFactor, "indefinite": _SuperLUFactor},
+    "scipy": {"spd32": _SuperLUFactor, "spd64": _SuperLUFactor, "indefinite": _SuperLUFactor},
+}
+_MODE = {"spd32": 2, "spd64": 2, "indefinite": -2}  # ``last_mode``: PARDISO's matrix type
+
+
+class SymmetricSolver:
+    """Symmetric sparse solves by a backend (:func:`linear_backend` unless named): :meth:`solve` (K x = b,
+    precision 'mixed': single-precision Cholesky + refinement in double, or 'double') and
+    :meth:`solve_constrained` (a saddle-point system through its augmented matrix). Counters: analyses
+    (symbolic analyses: one per sparsity pattern and kind of factor), factorisations, double_fallbacks (a
+    single-precision factor whose refinement was too slow, or that failed, factorised again), refinements
+    (solve steps after the first). ``last_mode``: 2 (Cholesky) or -2 (indefinite) for the last solve."""
 
     def __init__(
-        self, precision: str = "mixed", *, refine_eta: float = 1e-14, max_refinements: int = 8
+        self,
+        precision: str = "mixed",
+        *,
+        backend: str | None = None,
+        refine_eta: float = 1e-14,
+        max_refinements: int = 8,
     ):
         if precision not in PRECISIONS:
             raise ValueError(
                 f"linear solver precision {precision!r}: expected one of {PRECISIONS}"
             )
-        self._call = _mkl_pardiso()
-        self.precision, self.refine_eta, self.max_refinements = (
-            precision,
-            refine_eta,
-            max_refinements,
-        )
-        self._factors: dict = {}
+        self.backend = backend or linear_backend()
+        if self.backend not in BACKENDS:
+            raise ValueError(f"linear solver backend {self.backend!r}: expected one of {BACKENDS}")
+        self._kinds = _FACTORS[self.backend]
+        self.precision, self.refine_eta = precision, refine_eta
+        self.max_refinements = max_refinements
+        self._factors: dict = {}  # kind -> (pattern key, factor)
         self.last_mode = None
-        self.factorisations = self.double_fallbacks = self.refinements = 0
+        self.analyses = self.factorisations = self.double_fallbacks = self.refinements = 0
 
     @property
     def counters(self) -> dict:
         """The counters of the class docstring, by name."""
-        return {k: getattr(self, k) for k in ("factorisations", "double_fallbacks", "refinements")}
+        names = ("analyses", "factorisations", "double_fallbacks", "refinements")
+        return {k: getattr(self, k) for k in names}
 
-    def _factor(
-        self, name: str, U: sp.csr_matrix, mtype: int, single: bool, key: tuple
-    ) -> _Factor:
-        """The handle of this name, analysed again (and the old one freed) if U's pattern (key) changed."""
-        f = self._factors.get(name)
-        if f is None or f.key != key:
-            if f is not None:
-                f.free()
-            f = self._factors[name] = _Factor(self._call, U, mtype, single, key)
-        return f
+    def _kinds_to_try(self, spd_only: bool) -> list[str]:
+        kinds = ["spd32"] if self.precision == "mixed" else []
+        kinds += ["spd64"] + ([] if spd_only else ["indefinite"])
+        return [k for k in kinds if k in self._kinds]
 
-    def _refined(self, f: _Factor, U: sp.csr_matrix, b: np.ndarray) -> np.ndarray | None:
+    def _factor(self, kind: str, U: sp.csr_matrix):
+        """The factor of this kind, analysed again (the old one freed) if U's pattern changed, then
+        factorised; None if that fails."""
+        key = _pattern_key(U)
+        old = self._factors.get(kind)
+        if old is None or old[0] != key:
+            if old is not None:
+                old[1].free()
+            self._factors[kind] = (key, self._kinds[kind](U, kind))
+            self.analyses += 1
+        f = self._factors[kind][1]
+        self.factorisations += 1
+        return f if f.factor(U) else None
+
+    def _refined(self, f, U: sp.csr_matrix, b: np.ndarray) -> np.ndarray | None:
         """Iterative refinement with K = U + triu(U, 1)^T applied in double, until the normwise backward
         error |b - K x|_inf / (|K|_inf |x|_inf + |b|_inf) is below refine_eta; None if it stalls."""
         x = f.solve(b)
@@ -253,31 +419,23 @@ class PardisoSymmetric:
 
         spd_only: raise NotPositiveDefinite instead of falling back to the indefinite factorisation."""
         b = np.asarray(b, dtype=np.float64).ravel()
-        mtypes = (2,) if spd_only else (2, -2)
-        key = _pattern_key(U)
-        if self.precision == "mixed":
-            f = self._factor("spd32", U, 2, True, key)
-            self.factorisations += 1
-            if f.factor(U):
-                x = self._refined(f, U, b)
-                if x is not None:
-                    self.last_mode = 2
-                    return x
-                self.double_fallbacks += 1
-            else:  # not positive definite: not retried as SPD in double (that would cost a second
-                mtypes = mtypes[1:]  # factorisation that fails the same way): indefinite mode next
-        for mtype in mtypes:
-            f = self._factor(f"{mtype}", U, mtype, False, key)
-            self.factorisations += 1
-            if not f.factor(U):
+        not_spd = False
+        kinds = self._kinds_to_try(spd_only)
+        for kind in kinds:
+            if kind == "spd64" and not_spd:
+                continue  # the single-precision Cholesky found K indefinite: double fails the same way
+            self.double_fallbacks += kind == "spd64" and kind != kinds[0]
+            f = self._factor(kind, U)
+            if f is None:
+                not_spd = not_spd or kind == "spd32"
                 continue
-            x = f.solve(b)
-            if np.all(np.isfinite(x)):
-                self.last_mode = mtype
+            x = self._refined(f, U, b) if kind == "spd32" else f.solve(b)
+            if x is not None and np.all(np.isfinite(x)):
+                self.last_mode = _MODE[kind]
                 return x
         if spd_only:
-            raise NotPositiveDefinite("PARDISO: the matrix is not positive definite")
-        raise np.linalg.LinAlgError("PARDISO failed in SPD and symmetric-indefinite mode")
+            raise NotPositiveDefinite(f"{self.backend}: the matrix is not positive definite")
+        raise np.linalg.LinAlgError(f"{self.backend}: no factorisation solves the matrix")
 
     def solve_constrained(
         self,
@@ -289,7 +447,6 @@ class PardisoSymmetric:
         *,
         rtol: float = 1e-12,
         accept_rtol: float = 1e-8,
-        max_corrections: int = 40,
     ):
         """Solve the saddle-point system ``K x - G^T lam = r``, ``G x = s`` for (x (n,), lam (m,)).
 
@@ -300,10 +457,11 @@ class PardisoSymmetric:
         ``e_s = s - G x`` (K x = A x - G^T rho G x), so the iteration converges to the saddle point's solution
         whatever the factor's precision, as long as it converges. The residual's size is
         ``sqrt(|e_r|^2 + |d e_s|^2)`` with d the median of A's diagonal (a constraint residual as the force
-        that would close it). A is factorised by Cholesky in single precision; if that fails (A not positive
-        definite) or the corrections stop halving the residual, by Cholesky in double precision, then by
-        Bunch-Kaufman (symmetric indefinite). Returns once the residual is below rtol times that of the right
-        side; a residual that no factor brings below rtol is accepted below accept_rtol; LinAlgError otherwise."""
+        that would close it). A is factorised by Cholesky in single precision (where the backend has it); if
+        that fails (A not positive definite) or the corrections stop halving the residual, by Cholesky in
+        double precision, then by the indefinite factorisation. Returns once the residual is below rtol times
+        that of the right side; a residual that no factor brings below rtol is accepted below accept_rtol;
+        LinAlgError otherwise."""
         r = np.asarray(r, dtype=np.float64).ravel()
         s = np.asarray(s, dtype=np.float64).ravel()
         rho = np.asarray(rho, dtype=np.float64).ravel()
@@ -311,49 +469,51 @@ class PardisoSymmetric:
         diag = A.diagonal()
         d = float(np.median(diag)) if len(diag) else 1.0
         b_norm = float(np.sqrt(r @ r + d * d * (s @ s)))
-        x, lam = np.zeros(A.shape[0]), np.zeros(G.shape[0])
         if b_norm == 0.0:
-            return x, lam
-        key = _pattern_key(A)
-        best, indefinite = np.inf, False
-        for name, mtype, single in (("spd32", 2, True), ("spd64", 2, False), ("-2", -2, False)):
-            if name == "spd64" and indefinite:
+            return np.zeros(A.shape[0]), np.zeros(G.shape[0])
+        system = (A, diag, G, rho, r, s, d * d, b_norm)
+        best, not_spd = np.inf, False
+        kinds = self._kinds_to_try(spd_only=False)
+        for kind in kinds:
+            if kind == "spd64" and not_spd:
                 continue  # single precision found A indefinite: a double Cholesky fails the same way
-            f = self._factor(name, A, mtype, single, key)
-            self.factorisations += 1
-            if not f.factor(A):
-                indefinite = True
+            f = self._factor(kind, A)
+            if f is None:
+                not_spd = not_spd or kind == "spd32"
                 continue
-            if name != "spd32":
-                self.double_fallbacks += 1
-            prev = np.inf
-            for k in range(max_corrections):
-                Gx = G @ x
-                e_s = s - Gx
-                e_r = r - (_symmetric_matvec(A, diag, x) - G.T @ (rho * Gx)) + G.T @ lam
-                err = float(np.sqrt(e_r @ e_r + d * d * (e_s @ e_s))) / b_norm
-                best = min(best, err)
-                if err <= rtol:
-                    self.last_mode = mtype
-                    return x, lam
-                if not np.isfinite(err) or err > 0.5 * prev:
-                    break
-                prev = err
-                if k:
-                    self.refinements += 1
-                dx = f.solve(e_r + G.T @ (rho * e_s))
-                x = x + dx
-                lam = lam - rho * (G @ dx - e_s)
-            if np.isfinite(err) and err <= accept_rtol:
-                self.last_mode = mtype
+            self.double_fallbacks += kind != kinds[0]
+            x, lam, err = self._corrected(f, system, rtol)
+            best = min(best, err)
+            if err <= accept_rtol:
+                self.last_mode = _MODE[kind]
                 return x, lam
-            x, lam = np.zeros(A.shape[0]), np.zeros(G.shape[0])
         raise np.linalg.LinAlgError(
-            f"PARDISO: the constrained system is not solved (best relative residual {best:.1e})"
+            f"{self.backend}: the constrained system is not solved (best relative residual {best:.1e})"
         )
+
+    def _corrected(self, f, system, rtol: float, max_corrections: int = 40):
+        """The augmented-Lagrangian corrections of :meth:`solve_constrained` with factor f, from zero, until the
+        relative residual is below rtol or stops halving: (x, lam, the last relative residual computed)."""
+        A, diag, G, rho, r, s, d2, b_norm = system
+        x, lam = np.zeros(A.shape[0]), np.zeros(G.shape[0])
+        prev = err = np.inf
+        for k in range(max_corrections):
+            Gx = G @ x
+            e_s = s - Gx
+            e_r = r - (_symmetric_matvec(A, diag, x) - G.T @ (rho * Gx)) + G.T @ lam
+            err = float(np.sqrt(e_r @ e_r + d2 * (e_s @ e_s))) / b_norm
+            if err <= rtol or not np.isfinite(err) or err > 0.5 * prev:
+                break
+            prev = err
+            if k:
+                self.refinements += 1
+            dx = f.solve(e_r + G.T @ (rho * e_s))
+            x = x + dx
+            lam = lam - rho * (G @ dx - e_s)
+        return x, lam, (err if np.isfinite(err) else np.inf)
 
     def close(self):
         """Free every factor."""
-        for f in self._factors.values():
+        for _, f in self._factors.values():
             f.free()
         self._factors = {}

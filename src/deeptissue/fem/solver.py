@@ -20,7 +20,7 @@ is closed, ``gw_j + G_j du = 0``, an inactive node's force is zero. Displacement
 come from one symmetric saddle-point system ``[[K - sum_q A p N N H, G_A^T], [G_A, 0]]`` over the free dofs
 and the active entries, solved through its augmented matrix ``K~ + G_A^T rho G_A`` of the size of the tangent
 (a single-precision Cholesky factor and a few augmented-Lagrangian corrections in double precision,
-:meth:`deeptissue.fem.linsolve.PardisoSymmetric.solve_constrained`); they converge together,
+:meth:`deeptissue.fem.linsolve.SymmetricSolver.solve_constrained`); they converge together,
 superlinearly near the solution, with no penalty and no multiplier update loop. A non-monotone backtracking
 line search on the merit 0.5 (|R|^2 + |C|^2) globalises each step; where the obstacles' curvature term makes
 the consistent matrix useless (a pinch), the direction without it is tried.
@@ -49,9 +49,10 @@ from ..rigid import BoneMotion, euler_xyz_deg
 from .assembly import Assembler, as_material_law
 from .cast import Cast
 from .contact import ContactSurface, WeightedContact
-from .heap import keep_freed_memory
 from .indenters import Indenter
-from .linsolve import PardisoSymmetric
+from .linsolve import SymmetricSolver
+from .progress import Progress, format_progress
+from .skmesh import straighten_invalid
 
 log = logging.getLogger(__name__)
 
@@ -151,7 +152,17 @@ class IncrementSettings:
     touches advances it at most this far past the first contact [mm]; start_clearance_mm: an indenter that
     touches the skin at its start is moved back along its axis until this clear [mm]; turn_initial_increment:
     the first increment of a turn from a base variant's end state (:func:`solve_turned`), a fraction of the
-    turn (1: the whole turn at once, cut back where it fails)."""
+    turn (1: the whole turn at once, cut back where it fails).
+
+    A solve that creeps stops by itself with its reason, the load reached and its last converged state: when the
+    load (t, 0-4) has advanced by no more than stall_load over the last stall_increments attempted increments,
+    or over the last stall_wall_s seconds (None: no such window), or three times the slowest converged
+    increment's wall time where that is longer. 1e-3 of the indentation step is 3 um of a 3 mm
+    travel; 12 attempts is more than the cuts from a full step down to min_increment (8), so a solve stops there
+    only when it alternates tiny accepted increments with failed long ones; 300 s is ten times a demo variant's
+    solve and twice the slowest base variant of config/paper.yaml (docs/performance.md), so a study never
+    spends more than that on a variant after it stops advancing; on a fine mesh whose converged increments
+    take minutes each the window grows with them."""
 
     initial_increment: float = 0.25
     max_increment: float = 1.0
@@ -160,15 +171,22 @@ class IncrementSettings:
     first_touch_mm: float = 0.1
     start_clearance_mm: float = 0.1
     turn_initial_increment: float = 1.0
+    stall_increments: int = 12
+    stall_load: float = 1e-3
+    stall_wall_s: float | None = 300.0
 
     def __post_init__(self):
         if not (
             0 < self.min_increment <= self.initial_increment <= self.max_increment <= 1
             and self.min_increment <= self.turn_initial_increment <= 1
+            and self.stall_increments >= 1
+            and self.stall_load >= 0
+            and (self.stall_wall_s is None or self.stall_wall_s > 0)
         ):
             raise ValueError(
-                "IncrementSettings: need 0 < min_increment <= initial_increment <= max_increment <= 1 and "
-                f"min_increment <= turn_initial_increment <= 1, got {self}"
+                "IncrementSettings: need 0 < min_increment <= initial_increment <= max_increment <= 1, "
+                "min_increment <= turn_initial_increment <= 1, stall_increments >= 1, stall_load >= 0 and "
+                f"stall_wall_s > 0 or None, got {self}"
             )
 
 
@@ -275,7 +293,8 @@ class SolveResult:
     'active_set_changes', 'node_penetration_rel' (deepest weighted gap over its facet size),
     'contact_entries' (per node and obstacle: node, obstacle, lam_N, weighted_gap_mm, h_mm),
     'contact_state' (per obstacle name: (nodes, lam_N)), 'min_force_N', 'infeasible', 'bone_clearance_mm',
-    'start_backoff_mm', 'started_from_bone_state', 'straightened_tets'.
+    'start_backoff_mm', 'started_from_bone_state', 'straightened_tets', 'linear_solver' (the backend and its
+    counters: symbolic analyses, factorisations, double-precision fallbacks, refinements).
     """
 
     converged: bool
@@ -614,23 +633,27 @@ def solve_indentation(
             f"solve_indentation: the bone state has {start.displacement_mm.size} displacement dofs, "
             f"the mesh {3 * len(mesh.nodes_mm)}: not this mesh's state"
         )
-    use = (
-        start
-        if start is not None
-        and replace(start.settings, max_wall_s=None) == replace(settings, max_wall_s=None)
-        else None
-    )
+    use = start if start is not None and _path(start.settings) == _path(settings) else None
     return _solve(
-        mesh,
-        material=material,
-        indenter=indenter,
-        schedule=_Schedule(bone_motion, indenter),
-        bc_sets=(sets.bone,),
-        cast=cast,
-        settings=settings,
-        sets=sets,
-        start=use,
+        _SolveJob(
+            mesh,
+            material=material,
+            indenter=indenter,
+            schedule=_Schedule(bone_motion, indenter),
+            bc_sets=(sets.bone,),
+            cast=cast,
+            settings=settings,
+            sets=sets,
+            start=use,
+        )
     )
+
+
+def _path(s: SolverSettings) -> SolverSettings:
+    """The settings that decide a solve's path: without its budgets (wall time, stall guards), which only
+    decide where it stops."""
+    inc = replace(s.increments, stall_increments=1, stall_load=0.0, stall_wall_s=None)
+    return replace(s, max_wall_s=None, increments=inc)
 
 
 def solve_bone_rotation(
@@ -646,15 +669,17 @@ def solve_bone_rotation(
     did not converge. Every variant on this mesh with these settings can start from the state
     (``solve_indentation(..., start=state)``) and takes the same path as if it had solved them itself."""
     r = _solve(
-        mesh,
-        material=material,
-        indenter=None,
-        schedule=_Schedule(bone_motion, None),
-        bc_sets=(sets.bone,),
-        cast=cast,
-        settings=settings,
-        sets=sets,
-        rotation_only=True,
+        _SolveJob(
+            mesh,
+            material=material,
+            indenter=None,
+            schedule=_Schedule(bone_motion, None),
+            bc_sets=(sets.bone,),
+            cast=cast,
+            settings=settings,
+            sets=sets,
+            rotation_only=True,
+        )
     )
     if not r.converged:
         return r, None
@@ -715,15 +740,17 @@ def solve_turned(
         inc = replace(inc, initial_increment=min(inc.turn_initial_increment, inc.max_increment))
     turn = replace(settings, increments=inc)
     r = _solve(
-        mesh,
-        material=material,
-        indenter=indenter,
-        schedule=_TurnSchedule(base.bone_motion, a, b),
-        bc_sets=(sets.bone,),
-        cast=cast,
-        settings=turn,
-        sets=sets,
-        start=base,
+        _SolveJob(
+            mesh,
+            material=material,
+            indenter=indenter,
+            schedule=_TurnSchedule(base.bone_motion, a, b),
+            bc_sets=(sets.bone,),
+            cast=cast,
+            settings=turn,
+            sets=sets,
+            start=base,
+        )
     )
     return replace(r, extra={**r.extra, "turned": True})
 
@@ -797,14 +824,16 @@ def solve_prescribed(
     Used for patch tests and homogeneous deformations.
     """
     return _solve(
-        mesh,
-        material=material,
-        indenter=None,
-        schedule=_Prescribed(displacement_mm),
-        bc_sets=tuple(bc_sets),
-        cast=None,
-        settings=settings,
-        sets=FacetSets(),
+        _SolveJob(
+            mesh,
+            material=material,
+            indenter=None,
+            schedule=_Prescribed(displacement_mm),
+            bc_sets=tuple(bc_sets),
+            cast=None,
+            settings=settings,
+            sets=FacetSets(),
+        )
     )
 
 
@@ -833,7 +862,7 @@ class _Problem:
             asm.n_dofs, -1, np.int64
         )  # dof -> row of the free dofs (-1: prescribed)
         self.fmap[asm.free] = np.arange(asm.n_free)
-        self.solver = PardisoSymmetric()
+        self.solver = SymmetricSolver()
         self.timers = dict(assembly=0.0, solve=0.0, contact=0.0)
         self.last = None  # (f, gw, fc) of the last finite merit evaluation
 
@@ -947,6 +976,7 @@ def _solve_increment(p: _Problem, u, lam, target_d, rtol, atol, gap_tol):
         if data is None:
             _, f, data, Ke_bc = _tangent(p, u)
             gw, G, geo, fc = p.weighted(u, lam)
+        lin = _Linearisation(data=data, Ke_bc=Ke_bc, f=f, gw=gw, G=G, geo=geo)
         new_act = (
             contact.cand
             & np.isfinite(gw)
@@ -964,7 +994,7 @@ def _solve_increment(p: _Problem, u, lam, target_d, rtol, atol, gap_tol):
         # fails, the direction without the obstacles' curvature (which can make the tangent indefinite in a pinch)
         step = None
         for curvature in (1.0, 0.0):
-            du, lam_new = _direction(p, data, Ke_bc, f, du_d, act, gw, G, geo, curvature=curvature)
+            du, lam_new = _direction(p, lin, du_d, act, curvature=curvature)
             if du is None:
                 if curvature and geo:
                     continue
@@ -1009,18 +1039,33 @@ def _tangent(p: _Problem, u):
     return out
 
 
-def _direction(p: _Problem, data, Ke_bc, f, du_d, act, gw, G, geo, curvature=1.0):
+@dataclass(frozen=True)
+class _Linearisation:
+    """The solve's linearisation at one point: the tangent's data and Dirichlet blocks (Assembler.tangent), the
+    internal force f (n_dofs,) [N], the candidates' weighted gaps gw (E,) [mm], their derivative G (COO triple)
+    and the obstacles' curvature blocks geo (WeightedContact.weighted)."""
+
+    data: object
+    Ke_bc: object
+    f: np.ndarray
+    gw: np.ndarray
+    G: tuple
+    geo: list
+
+
+def _direction(p: _Problem, lin: _Linearisation, du_d, act, curvature=1.0):
     """One semi-smooth Newton direction for active set ``act``: (du (n_dofs,), new multipliers (E,)), or
     (None, None) if the linear solve failed.
 
     Solves the saddle-point system of the free dofs and the active entries, ``K~ du - G_A^T lam_A = -(f + K_fd
     du_d)``, ``G_A du = -gw_A`` (K~ = K - curvature sum_q A p N N H), through its augmented matrix
-    ``K~ + G_A^T diag(rho) G_A`` (:meth:`PardisoSymmetric.solve_constrained`), rho_j = _AUGMENTATION times the
+    ``K~ + G_A^T diag(rho) G_A`` (:meth:`SymmetricSolver.solve_constrained`), rho_j = _AUGMENTATION times the
     median diagonal stiffness over |G_j|^2. The inactive candidates enter that matrix's pattern with zero values,
     so PARDISO's analysis is shared by every active set of an increment. An inactive entry's multiplier is zero.
     """
     asm, contact = p.asm, p.contact
     free, n_free, fmap = asm.free, asm.n_free, p.fmap
+    data, Ke_bc, f, gw, G, geo = lin.data, lin.Ke_bc, lin.f, lin.gw, lin.G, lin.geo
     Kc = asm.csr(data)
     Ku = Kc.tocoo()
     r_parts, c_parts, v_parts = [Ku.row], [Ku.col], [Ku.data]
@@ -1144,277 +1189,390 @@ def _penetration(surfaces, contact, u, which=None):
     return max(pen_mm, 0.0), max(pen_rel, 0.0)
 
 
-def _solve(
-    mesh,
-    *,
-    material,
-    indenter,
-    schedule,
-    bc_sets,
-    cast,
-    settings: SolverSettings,
-    sets: FacetSets,
-    start: BoneState | EndState | None = None,
-    rotation_only: bool = False,
-) -> SolveResult:
-    """The increment loop: load steps, increments sized by the last one's Newton count and active-set changes."""
-    t_wall = time.perf_counter()
-    keep_freed_memory()
-    s, inc = settings, settings.increments
+@dataclass(frozen=True)
+class _SolveJob:
+    """What :func:`_solve` solves: the mesh and material, the indenter (None: none) and the load schedule of the
+    rigid bodies, the facet sets held by the schedule (``bc_sets``) and in contact (``sets``), the cast, the
+    settings, a start state (a BoneState at t = 3 or an EndState to turn from) and whether only the
+    bone-rotation steps are solved."""
+
+    mesh: TetMesh
+    material: object
+    indenter: Indenter | None
+    schedule: object
+    bc_sets: tuple
+    cast: Cast | None
+    settings: SolverSettings
+    sets: FacetSets
+    start: BoneState | EndState | None = None
+    rotation_only: bool = False
+
+
+def _check_sets(job: _SolveJob) -> None:
+    mesh, sets = job.mesh, job.sets
     for name, need in [
-        *((b, True) for b in bc_sets),
-        (sets.indenter, indenter is not None),
-        (sets.cast, cast is not None),
+        *((b, True) for b in job.bc_sets),
+        (sets.indenter, job.indenter is not None),
+        (sets.cast, job.cast is not None),
     ]:
         if need and (name not in mesh.facets or len(mesh.facets[name]) == 0):
             raise ValueError(
                 f"solve_indentation: mesh has no facet set {name!r} (sets: {sorted(mesh.facets)})"
             )
-    from .skmesh import straighten_invalid
 
-    mesh, n_straightened = straighten_invalid(mesh, order=s.quadrature_order)
-    if n_straightened:
-        log.warning(
-            "straightened the edges of %d curved tets with a non-positive Jacobian", n_straightened
+
+class _Run:
+    """The state of one solve as its increments advance: the fixed problem (assembler, contact, linear solver),
+    the current converged state (u, lam at load t), the history and the counters."""
+
+    def __init__(self, job: _SolveJob):
+        self.t_wall = time.perf_counter()
+        self.job, s = job, job.settings
+        _check_sets(job)
+        mesh, self.n_straightened = straighten_invalid(job.mesh, order=s.quadrature_order)
+        if self.n_straightened:
+            log.warning(
+                "straightened the edges of %d curved tets with a non-positive Jacobian",
+                self.n_straightened,
+            )
+        law = as_material_law(job.material)
+        X = self.X = mesh.nodes_mm
+        self.bone_nodes = np.unique(np.concatenate([mesh.facets[b].ravel() for b in job.bc_sets]))
+        constrained = np.zeros(X.size, bool)
+        constrained[(3 * self.bone_nodes[:, None] + np.arange(3)).ravel()] = True
+        self.asm = Assembler(mesh, law, constrained=constrained, intorder=s.quadrature_order)
+        self.sched = job.schedule
+        pair_sets = [
+            (n, mesh.facets[fs])
+            for n, fs, on in (
+                ("indenter", job.sets.indenter, job.indenter is not None),
+                ("cast", job.sets.cast, job.cast is not None),
+            )
+            if on
+        ]
+        contact = self.contact = WeightedContact(X, pair_sets, self.bone_nodes, law.young_mpa)
+        self.surfaces = {
+            n: ContactSurface(X, f, order=_REPORT_QUADRATURE_ORDER) for n, f in pair_sets
+        }
+        self.k_ind = contact.names.index("indenter") if job.indenter is not None else None
+        self.k_cast = contact.names.index("cast") if job.cast is not None else None
+        if self.k_cast is not None:
+            contact.gapfns[self.k_cast] = job.cast.gap
+        h_max = float(contact.h.max()) if len(contact.h) else 1.0
+        self.cand_dist = np.where(
+            contact.obstacle == self.k_cast,
+            s.contact.cast_candidate_distance_mm,
+            s.contact.candidate_distance_rel * h_max,
         )
-    law = as_material_law(material)
-    X = mesh.nodes_mm
-    bone_nodes = np.unique(np.concatenate([mesh.facets[b].ravel() for b in bc_sets]))
-    constrained = np.zeros(X.size, bool)
-    constrained[(3 * bone_nodes[:, None] + np.arange(3)).ravel()] = True
-    asm = Assembler(mesh, law, constrained=constrained, intorder=s.quadrature_order)
-    sched = schedule
-    pair_sets = [
-        (n, mesh.facets[fs])
-        for n, fs, on in (
-            ("indenter", sets.indenter, indenter is not None),
-            ("cast", sets.cast, cast is not None),
+        force_unit = law.mu_mpa * self.asm.volume_mm3 ** (2.0 / 3.0)
+        self.p = _Problem(s, self.asm, contact, constrained, force_unit)
+        self.u = np.zeros(self.asm.n_dofs)
+        self.lam = np.zeros(len(contact.node))
+        self.history, self.n_iter, self.total_changes = [], 0, 0
+        self.active_per_increment = []  # the nodes in contact after each converged increment
+        self.progress = []  # (wall time [s], load t) after each attempted increment
+        self.longest_ok_s = 0.0  # wall time of the slowest converged increment [s]
+        self.prev = (
+            None  # (t, u, lam) before the last converged increment, for the secant predictor
         )
-        if on
-    ]
-    contact = WeightedContact(X, pair_sets, bone_nodes, law.young_mpa)
-    surfaces = {n: ContactSurface(X, f, order=_REPORT_QUADRATURE_ORDER) for n, f in pair_sets}
-    k_ind = contact.names.index("indenter") if indenter is not None else None
-    k_cast = contact.names.index("cast") if cast is not None else None
-    if k_cast is not None:
-        contact.gapfns[k_cast] = cast.gap
-    h_max = float(contact.h.max()) if len(contact.h) else 1.0
-    cand_dist = np.where(
-        contact.obstacle == k_cast,
-        s.contact.cast_candidate_distance_mm,
-        s.contact.candidate_distance_rel * h_max,
-    )
-    p = _Problem(s, asm, contact, constrained, law.mu_mpa * asm.volume_mm3 ** (2.0 / 3.0))
-    timers = p.timers
+        self.steps = self.sched.active_steps()
+        if job.rotation_only:
+            self.steps = [k for k in self.steps if k < 3]
+        self._take_start(job.start)
+        self.Xb = X[self.bone_nodes]
+        self.axis = job.indenter.unit_axis if job.indenter is not None else np.zeros(3)
+        self.done, self.reason, self.t = True, "", 0.0
+        self.start_backoff_mm, self.travel, self.end_overlap_mm = 0.0, 0.0, 0.0
+        self.bone_clearance_mm = _bone_clearance_mm(self.sched, self.Xb)
+        self.infeasible = (
+            self.bone_clearance_mm is not None and self.bone_clearance_mm < s.min_bone_clearance_mm
+        )
+        if self.infeasible:
+            c = self.bone_clearance_mm
+            where = (
+                f"{-c:.3f} mm inside the moved bone"
+                if c < 0
+                else f"{c:.3f} mm from the moved bone"
+            )
+            self.fail(
+                f"infeasible: the indenter ends {where} (min_bone_clearance_mm "
+                f"{s.min_bone_clearance_mm:g}): no tissue state fits between them"
+            )
+            log.warning(self.reason)
 
-    def set_time(t):
-        if k_ind is not None:
-            tip, ind = sched.tip(t), sched.indenter(t)
-            contact.gapfns[k_ind] = lambda x, hessian=True: ind.gap(x, tip, hessian=hessian)
-
-    u = np.zeros(asm.n_dofs)
-    lam = np.zeros(len(contact.node))
-    history, n_iter, total_changes = [], 0, 0
-    active_per_increment = []  # the nodes in contact after each converged increment
-    steps = sched.active_steps()
-    if rotation_only:
-        steps = [k for k in steps if k < 3]
-    if start is not None:
-        # a bone state (t = 3, every variant of the mesh) or a base variant's end state (a turn)
-        steps = [k for k in steps if k >= 3]
-        u = start.displacement_mm.astype(float).copy()
-        lam = _start_multipliers(contact, start.contact)
+    def _take_start(self, start) -> None:
+        """Start from a bone state (t = 3, every variant of the mesh) or a base variant's end state (a turn)."""
+        self.carried = isinstance(start, EndState) and not start.contact  # mapped_end_state
+        if start is None:
+            return
+        self.steps = [k for k in self.steps if k >= 3]
+        self.u = start.displacement_mm.astype(float).copy()
+        self.lam = _start_multipliers(self.contact, start.contact)
         if isinstance(start, BoneState):
-            history, n_iter = list(start.history), start.newton_iterations
+            self.history, self.n_iter = list(start.history), start.newton_iterations
             for name, v in (
                 ("assembly", start.assembly_s),
                 ("solve", start.linear_solve_s),
                 ("contact", start.contact_s),
             ):
-                timers[name] += v
-    carried = (
-        isinstance(start, EndState) and not start.contact
-    )  # mapped_end_state: no contact forces
-    Xb = X[bone_nodes]
-    axis = indenter.unit_axis if indenter is not None else np.zeros(3)
-    done, reason_fail, t = True, "", 0.0
-    start_backoff_mm = 0.0
-    bone_clearance_mm = _bone_clearance_mm(sched, Xb)
-    infeasible = bone_clearance_mm is not None and bone_clearance_mm < s.min_bone_clearance_mm
-    if infeasible:
-        done = False
-        where = (
-            f"{-bone_clearance_mm:.3f} mm inside the moved bone"
-            if bone_clearance_mm < 0
-            else f"{bone_clearance_mm:.3f} mm from the moved bone"
+                self.p.timers[name] += v
+
+    def fail(self, reason: str) -> None:
+        self.done, self.reason = False, reason
+
+    def set_time(self, t: float) -> None:
+        """The indenter's gap function at load t."""
+        if self.k_ind is not None:
+            tip, ind = self.sched.tip(t), self.sched.indenter(t)
+            self.contact.gapfns[self.k_ind] = lambda x, hessian=True: ind.gap(
+                x, tip, hessian=hessian
+            )
+
+    def elapsed_s(self) -> float:
+        start = self.job.start
+        return (
+            time.perf_counter()
+            - self.t_wall
+            + (start.wall_s if isinstance(start, BoneState) else 0.0)
         )
-        reason_fail = (
-            f"infeasible: the indenter ends {where} (min_bone_clearance_mm {s.min_bone_clearance_mm:g}): "
-            "no tissue state fits between them"
+
+
+def _solve(job: _SolveJob) -> SolveResult:
+    """The load steps in turn, each a loop of increments (:func:`_load_step`); then the result."""
+    run = _Run(job)
+    if not run.infeasible:
+        for k in run.steps:
+            if not _load_step(run, k):
+                break
+    return _result(run)
+
+
+def _stop_reason(run: _Run) -> str:
+    """Why the solve must stop before its next increment ('' if it need not): the increment count, the wall-time
+    budget, or a load that has stopped advancing (:class:`IncrementSettings`' stall settings)."""
+    s, inc = run.job.settings, run.job.settings.increments
+    if len(run.history) >= inc.max_increments:
+        return f"more than {inc.max_increments} increments"
+    now = time.perf_counter() - run.t_wall
+    if s.max_wall_s is not None and now > s.max_wall_s:
+        return f"wall-time budget of {s.max_wall_s:g} s spent at t = {run.t:.4f}"
+    marks = run.progress
+    if len(marks) > inc.stall_increments:
+        advanced = run.t - marks[-inc.stall_increments - 1][1]
+        if advanced <= inc.stall_load:
+            return (
+                f"stalled: the load advanced {advanced:.2g} in the last {inc.stall_increments} increments "
+                f"(stall_load {inc.stall_load:g}) at t = {run.t:.4f}"
+            )
+    # a window of stall_wall_s, or longer where the converged increments themselves take that long (fine meshes)
+    window = None if inc.stall_wall_s is None else max(inc.stall_wall_s, 3.0 * run.longest_ok_s)
+    if window is not None and now > window:
+        then = [t for w, t in marks if w <= now - window]
+        if then and run.t - then[-1] <= inc.stall_load:
+            return (
+                f"stalled: the load advanced {run.t - then[-1]:.2g} in the last {window:.3g} s "
+                f"(stall_load {inc.stall_load:g}) at t = {run.t:.4f}"
+            )
+    return ""
+
+
+def _load_step(run: _Run, k: int) -> bool:
+    """Load step k (0-2: the bone's rotations, 3: translation and indentation) by increments; False if the
+    solve stops in it (the reason in ``run.reason``)."""
+    job, inc = run.job, run.job.settings.increments
+    run.t = float(k)
+    if k == 3 and job.indenter is not None:
+        contact = run.contact
+        if not isinstance(run.sched, _TurnSchedule):
+            run.start_backoff_mm = _clear_start(
+                run.sched, contact, run.k_ind, run.u, inc.start_clearance_mm
+            )
+            run.travel = float(
+                np.linalg.norm(np.subtract(run.sched.ind.end_mm, run.sched.ind.start_mm))
+            )
+        skin = contact.node[contact.obstacle == run.k_ind]
+        run.end_overlap_mm = _skin_overlap_mm(
+            run.sched, run.X[skin], run.u.reshape(-1, 3)[skin], run.t
         )
-        log.warning(reason_fail)
-    travel, end_overlap_mm = 0.0, 0.0
-    for k in () if infeasible else steps:
-        t = float(k)
-        if k == 3 and indenter is not None and not isinstance(sched, _TurnSchedule):
-            start_backoff_mm = _clear_start(sched, contact, k_ind, u, inc.start_clearance_mm)
-            travel = float(np.linalg.norm(np.subtract(sched.ind.end_mm, sched.ind.start_mm)))
-        if k == 3 and indenter is not None:
-            skin = contact.node[contact.obstacle == k_ind]
-            end_overlap_mm = _skin_overlap_mm(sched, X[skin], u.reshape(-1, 3)[skin], t)
-        dt = inc.max_increment if k < 3 else inc.initial_increment
-        prev = None  # (t, u, lam) before the last converged increment, for the secant predictor
-        while t < k + 1 - 1e-12:
-            if len(history) >= inc.max_increments:
-                done, reason_fail = False, f"more than {inc.max_increments} increments"
-                break
-            if s.max_wall_s is not None and time.perf_counter() - t_wall > s.max_wall_s:
-                done, reason_fail = (
-                    False,
-                    f"wall-time budget of {s.max_wall_s:g} s spent at t = {t:.4f}",
-                )
-                break
-            dt = min(dt, inc.max_increment, k + 1 - t)
-            if (
-                k == 3
-                and k_ind is not None
-                and travel > 0
-                and not np.any(lam[contact.obstacle == k_ind] > 0)
-            ):
-                # first touch (no indenter force yet): do not jump deep into contact
-                set_time(t)
-                sel = contact.obstacle == k_ind
-                gmin = max(float(np.min(contact.node_gaps(u, sel)[sel])), 0.0)
-                if travel * dt > gmin + inc.first_touch_mm:
-                    dt = max((gmin + inc.first_touch_mm) / travel, inc.min_increment)
-            t1 = t + dt
-            t0c = dict(timers)
-            if k == 3 and prev is not None:
-                # in contact the last increment's change, scaled, is a far better guess than a rigid move
-                w = dt / (t - prev[0])
-                u_try, lam_try = u + w * (u - prev[1]), np.maximum(lam + w * (lam - prev[2]), 0.0)
-            else:
-                u_try = (sched.predict(X, X + u.reshape(-1, 3), t, t1) - X).ravel()
-                lam_try = lam.copy()
-            target = np.zeros(asm.n_dofs)
-            target.reshape(-1, 3)[bone_nodes] = sched.bone(Xb, t1) - Xb
-            set_time(t1)
-            g0 = contact.node_gaps(u_try, np.ones(len(contact.node), bool))
-            contact.cand = g0 < cand_dist
-            lam_try[~contact.cand] = 0.0
-            if carried and t <= 3.0:
-                # a state carried from another mesh has no contact forces: the entries within a fraction of a facet
-                # of touching start active, and the first Newton iteration finds their forces
-                gw0 = contact.weighted(u_try, contact.cand)[0]
-                near = (
-                    contact.cand & np.isfinite(gw0) & (gw0 < _CARRIED_ACTIVE_GAP_REL * contact.h)
-                )
-                lam_try[near] = contact.c[near] * _CARRIED_ACTIVE_GAP_REL * contact.h[near]
-            # only the end of the load is reported (path independent: the ends of the bone-rotation steps only
-            # start the next one)
-            end = t1 >= 4.0 - 1e-12
-            rtol, atol, gap_tol = (
-                (s.newton.rtol, p.atol, p.gap_tol)
-                if end
-                else (s.newton.rtol_intermediate, p.atol_intermediate, p.gap_tol_intermediate)
-            )
-            iters, residuals, changes = 0, [], 0
-            while True:
-                ok, why, it, res, ch = _solve_increment(
-                    p, u_try, lam_try, target[constrained], rtol, atol, gap_tol
-                )
-                iters, residuals, changes = iters + it, residuals + res, changes + ch
-                if not ok:
-                    break
-                # nodes outside the candidates that now penetrate: add them and go on
-                g_all = contact.node_gaps(u_try, ~contact.cand)
-                missed = np.isfinite(g_all) & (g_all < -gap_tol)
-                if not np.any(missed):
-                    break
-                contact.cand |= g_all < cand_dist
-            n_iter += iters
-            total_changes += changes
-            # between the nodes, on the facets of the candidates (the others are too far from an obstacle)
-            pen = _penetration(surfaces, contact, u_try, contact.cand) if ok else (np.nan, np.nan)
-            if ok and pen[1] > _MAX_PENETRATION_REL:
-                ok, why = (
-                    False,
-                    f"the indenter passes between the skin's nodes ({pen[1]:.0%} of a facet deep)",
-                )
-            force = (
-                _forces(contact, u_try, lam_try, k_ind, k_cast)
-                if ok
-                else (np.zeros(3), np.zeros(3))
-            )
-            history.append(
-                IncrementRecord(
-                    step=k + 1,
-                    t_start=t,
-                    t_end=t1,
-                    converged=ok,
-                    reason=why,
-                    iterations=iters,
-                    active_set_changes=changes,
-                    residuals=tuple(residuals),
-                    tip_mm=tuple(sched.tip(t1)) if indenter is not None else (),
-                    indenter_force_N=float(force[0] @ axis),
-                    max_penetration_mm=pen[0],
-                    assembly_s=timers["assembly"] - t0c["assembly"],
-                    linear_solve_s=timers["solve"] - t0c["solve"],
-                    contact_s=timers["contact"] - t0c["contact"],
-                )
-            )
-            log.info(
-                "step %d t %.4f->%.4f %s it %d changes %d F %.4g N pen %.3g mm",
-                k + 1,
-                t,
-                t1,
-                "ok" if ok else f"cut ({why})",
-                iters,
-                changes,
-                history[-1].indenter_force_N,
-                pen[0],
-            )
-            if ok:
-                active_per_increment.append(np.unique(contact.node[lam_try > 0]))
-                # the entries whose contact state the increment changed, from its start to its end
-                moved = int(np.count_nonzero((lam_try > 0) != (lam > 0)))
-                prev = (t, u, lam) if k == 3 else None
-                u, lam, t = u_try, lam_try, t1
-                if iters == 0:
-                    dt = (
-                        inc.max_increment
-                    )  # the rigid predictor was exact: finish the step at once
-                elif iters <= _EASY_ITERATIONS and max(changes, moved) <= _EASY_CHANGES_REL * max(
-                    np.count_nonzero(lam), 1
-                ):
-                    dt *= _GROW
-                elif iters > _HARD_ITERATIONS:
-                    dt *= _SHRINK
-            else:
-                dt *= _CUT
-                prev = None
-                if dt < inc.min_increment:
-                    done, reason_fail = (
-                        False,
-                        f"increment below {inc.min_increment} at t = {t:.4f} ({why})",
-                    )
-                    break
-        if not done:
-            break
-    p.solver.close()
-    set_time(t)
+    dt = inc.max_increment if k < 3 else inc.initial_increment
+    run.prev = None
+    while run.t < k + 1 - 1e-12:
+        why = _stop_reason(run)
+        if why:
+            run.fail(why)
+            log.warning(why)
+            return False
+        dt = _first_touch(run, k, min(dt, inc.max_increment, k + 1 - run.t))
+        ok, why, iters, changes = _increment(run, k, dt)
+        if not ok:
+            dt *= _CUT
+            if dt < inc.min_increment:
+                run.fail(f"increment below {inc.min_increment} at t = {run.t:.4f} ({why})")
+                return False
+        elif iters == 0:
+            dt = inc.max_increment  # the rigid predictor was exact: finish the step at once
+        elif iters <= _EASY_ITERATIONS and changes <= _EASY_CHANGES_REL * max(
+            np.count_nonzero(run.lam), 1
+        ):
+            dt *= _GROW
+        elif iters > _HARD_ITERATIONS:
+            dt *= _SHRINK
+    return True
+
+
+def _first_touch(run: _Run, k: int, dt: float) -> float:
+    """dt, shortened where the indenter has no force yet so that it advances at most first_touch_mm past the
+    first contact (it would jump deep into the skin)."""
+    inc, contact = run.job.settings.increments, run.contact
+    if k != 3 or run.k_ind is None or run.travel <= 0:
+        return dt
+    sel = contact.obstacle == run.k_ind
+    if np.any(run.lam[sel] > 0):
+        return dt
+    run.set_time(run.t)
+    gmin = max(float(np.min(contact.node_gaps(run.u, sel)[sel])), 0.0)
+    if run.travel * dt > gmin + inc.first_touch_mm:
+        dt = max((gmin + inc.first_touch_mm) / run.travel, inc.min_increment)
+    return dt
+
+
+def _predicted(run: _Run, k: int, dt: float):
+    """The start (u, lam) of the increment t -> t + dt and its target displacement of the constrained dofs."""
+    t, t1, X = run.t, run.t + dt, run.X
+    if k == 3 and run.prev is not None:
+        # in contact the last increment's change, scaled, is a far better guess than a rigid move
+        t_prev, u_prev, lam_prev = run.prev
+        w = dt / (t - t_prev)
+        u_try = run.u + w * (run.u - u_prev)
+        lam_try = np.maximum(run.lam + w * (run.lam - lam_prev), 0.0)
+    else:
+        u_try = (run.sched.predict(X, X + run.u.reshape(-1, 3), t, t1) - X).ravel()
+        lam_try = run.lam.copy()
+    target = np.zeros(run.asm.n_dofs)
+    target.reshape(-1, 3)[run.bone_nodes] = run.sched.bone(run.Xb, t1) - run.Xb
+    return u_try, lam_try, target[run.p.constrained]
+
+
+def _newton(run: _Run, u, lam, target_d, end: bool):
+    """Newton on the increment from (u, lam) in place, with the nodes that penetrate outside the candidates
+    added and the increment solved on: (ok, reason, iterations, residuals, active-set changes)."""
+    s, p, contact = run.job.settings, run.p, run.contact
+    g0 = contact.node_gaps(u, np.ones(len(contact.node), bool))
+    contact.cand = g0 < run.cand_dist
+    lam[~contact.cand] = 0.0
+    if run.carried and run.t <= 3.0:
+        # a state carried from another mesh has no contact forces: the entries within a fraction of a facet of
+        # touching start active, and the first Newton iteration finds their forces
+        gw0 = contact.weighted(u, contact.cand)[0]
+        near = contact.cand & np.isfinite(gw0) & (gw0 < _CARRIED_ACTIVE_GAP_REL * contact.h)
+        lam[near] = contact.c[near] * _CARRIED_ACTIVE_GAP_REL * contact.h[near]
+    # only the end of the load is reported (path independent: the ends of the bone-rotation steps only start
+    # the next one)
+    tol = (
+        (s.newton.rtol, p.atol, p.gap_tol)
+        if end
+        else (s.newton.rtol_intermediate, p.atol_intermediate, p.gap_tol_intermediate)
+    )
+    iters, residuals, changes = 0, [], 0
+    while True:
+        ok, why, it, res, ch = _solve_increment(p, u, lam, target_d, *tol)
+        iters, residuals, changes = iters + it, residuals + res, changes + ch
+        if not ok:
+            return ok, why, iters, residuals, changes
+        # nodes outside the candidates that now penetrate: add them and go on
+        g_all = contact.node_gaps(u, ~contact.cand)
+        missed = np.isfinite(g_all) & (g_all < -tol[2])
+        if not np.any(missed):
+            return ok, why, iters, residuals, changes
+        contact.cand |= g_all < run.cand_dist
+
+
+def _increment(run: _Run, k: int, dt: float) -> tuple[bool, str, int, int]:
+    """One increment of load step k from run.t by dt: solved, checked, recorded and, if it converged, taken as
+    the new state. Returns (converged, reason, Newton iterations, entries whose contact state changed)."""
+    t, t1, timers, contact = run.t, run.t + dt, run.p.timers, run.contact
+    t0c, w0 = dict(timers), time.perf_counter()
+    u, lam, target_d = _predicted(run, k, dt)
+    run.set_time(t1)
+    ok, why, iters, residuals, changes = _newton(run, u, lam, target_d, t1 >= 4.0 - 1e-12)
+    run.n_iter += iters
+    run.total_changes += changes
+    # between the nodes, on the facets of the candidates (the others are too far from an obstacle)
+    pen = _penetration(run.surfaces, contact, u, contact.cand) if ok else (np.nan, np.nan)
+    if ok and pen[1] > _MAX_PENETRATION_REL:
+        ok, why = (
+            False,
+            f"the indenter passes between the skin's nodes ({pen[1]:.0%} of a facet deep)",
+        )
+    force = _forces(contact, u, lam, run.k_ind, run.k_cast) if ok else (np.zeros(3), np.zeros(3))
+    run.history.append(
+        IncrementRecord(
+            step=k + 1,
+            t_start=t,
+            t_end=t1,
+            converged=ok,
+            reason=why,
+            iterations=iters,
+            active_set_changes=changes,
+            residuals=tuple(residuals),
+            tip_mm=tuple(run.sched.tip(t1)) if run.job.indenter is not None else (),
+            indenter_force_N=float(force[0] @ run.axis),
+            max_penetration_mm=pen[0],
+            assembly_s=timers["assembly"] - t0c["assembly"],
+            linear_solve_s=timers["solve"] - t0c["solve"],
+            contact_s=timers["contact"] - t0c["contact"],
+        )
+    )
+    log.info(
+        "step %d t %.4f->%.4f %s it %d changes %d F %.4g N pen %.3g mm",
+        k + 1,
+        t,
+        t1,
+        "ok" if ok else f"cut ({why})",
+        iters,
+        changes,
+        run.history[-1].indenter_force_N,
+        pen[0],
+    )
+    moved = 0
+    if ok:
+        run.active_per_increment.append(np.unique(contact.node[lam > 0]))
+        # the entries whose contact state the increment changed, from its start to its end
+        moved = int(np.count_nonzero((lam > 0) != (run.lam > 0)))
+        run.prev = (t, run.u, run.lam) if k == 3 else None
+        run.u, run.lam, run.t = u, lam, t1
+        run.longest_ok_s = max(run.longest_ok_s, time.perf_counter() - w0)
+    else:
+        run.prev = None
+    run.progress.append((time.perf_counter() - run.t_wall, run.t))
+    _log_progress(run)
+    return ok, why, iters, max(changes, moved)
+
+
+def _log_progress(run: _Run) -> None:
+    """One line per attempted increment (:mod:`deeptissue.fem.progress`, read by ``python -m
+    deeptissue.status``): the load reached, the increments, the Newton iterations and the elapsed time."""
+    done = sum(1 for h in run.history if h.converged)
+    p = Progress(run.t, done, len(run.history), run.n_iter, run.elapsed_s())
+    log.info("%s", format_progress(p))
+
+
+def _result(run: _Run) -> SolveResult:
+    """The SolveResult of the state reached: forces, penetrations, element deformation gradients, contact."""
+    contact, asm, u, lam = run.contact, run.asm, run.u, run.lam
+    linear_solver = {"backend": run.p.solver.backend, **run.p.solver.counters}
+    run.p.solver.close()
+    run.set_time(run.t)
     gw_end = contact.weighted(u, contact.cand)[0]
-    ft, fcast = _forces(contact, u, lam, k_ind, k_cast)
-    force_N = float(ft @ axis)
-    if done and end_overlap_mm > _THROUGH_OVERLAP_MM and not force_N > 0:
-        done = False
-        reason_fail = (
+    ft, fcast = _forces(contact, u, lam, run.k_ind, run.k_cast)
+    force_N = float(ft @ run.axis)
+    if run.done and run.end_overlap_mm > _THROUGH_OVERLAP_MM and not force_N > 0:
+        run.fail(
             f"the tissue passed through the indenter: its end overlaps the rigidly moved skin by "
-            f"{end_overlap_mm:.2f} mm, yet it pushes with {force_N:.3g} N"
+            f"{run.end_overlap_mm:.2f} mm, yet it pushes with {force_N:.3g} N"
         )
-        log.warning(reason_fail)
-    pen_mm, pen_rel = _penetration(surfaces, contact, u)
+        log.warning(run.reason)
+    pen_mm, pen_rel = _penetration(run.surfaces, contact, u)
     node_pen = float(
         np.max(np.where(np.isfinite(gw_end), -gw_end / contact.h, -np.inf), initial=0.0)
     )
@@ -1435,18 +1593,19 @@ def _solve(
         )
         for j, name in enumerate(contact.names)
     }
-    wall = time.perf_counter() - t_wall + (start.wall_s if isinstance(start, BoneState) else 0.0)
+    wall, timers, history = run.elapsed_s(), run.p.timers, run.history
+    # the end line deeptissue.fem.progress.parse_end reads
     log.info(
         "solve %s in %.1f s: %d increments, %d Newton iterations, %d active-set changes",
-        "converged" if done else f"not converged ({reason_fail})",
+        "converged" if run.done else f"not converged ({run.reason})",
         wall,
         len(history),
-        n_iter,
-        total_changes,
+        run.n_iter,
+        run.total_changes,
     )
     return SolveResult(
-        converged=done,
-        reason=reason_fail,
+        converged=run.done,
+        reason=run.reason,
         displacement_mm=u.reshape(-1, 3).copy(),
         deformation_gradient=Fe,
         history=tuple(history),
@@ -1459,23 +1618,24 @@ def _solve(
         n_dofs=asm.n_dofs,
         n_free_dofs=asm.n_free,
         increments=sum(1 for h in history if h.converged),
-        newton_iterations=n_iter,
-        load_reached=t,
+        newton_iterations=run.n_iter,
+        load_reached=run.t,
         wall_s=wall,
         assembly_s=timers["assembly"],
         linear_solve_s=timers["solve"],
         contact_s=timers["contact"],
         extra={
-            "straightened_tets": n_straightened,
-            "start_backoff_mm": start_backoff_mm,
-            "bone_clearance_mm": bone_clearance_mm,
-            "infeasible": infeasible,
+            "straightened_tets": run.n_straightened,
+            "linear_solver": linear_solver,
+            "start_backoff_mm": run.start_backoff_mm,
+            "bone_clearance_mm": run.bone_clearance_mm,
+            "infeasible": run.infeasible,
             "active_nodes": active,
-            "active_nodes_per_increment": tuple(active_per_increment),
-            "active_set_changes": total_changes,
+            "active_nodes_per_increment": tuple(run.active_per_increment),
+            "active_set_changes": run.total_changes,
             "node_penetration_rel": max(node_pen, 0.0),
             "min_force_N": float(lam.min(initial=0.0)),
-            "started_from_bone_state": isinstance(start, BoneState),
+            "started_from_bone_state": isinstance(run.job.start, BoneState),
             "contact_state": state,
             "contact_entries": {
                 "nodes": contact.node.copy(),
