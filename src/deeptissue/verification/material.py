@@ -165,92 +165,89 @@ def small_strain_tangent(material: Ogden) -> np.ndarray:
     )
 
 
-def material_point_checks(
-    material: Ogden, *, rng: np.random.Generator | None = None
-) -> pd.DataFrame:
-    """All material-point checks as rows: case, quantity, max_error, tolerance, pass."""
-    rng = np.random.default_rng(7) if rng is None else rng
-    rows = []
+def _reference_rows(material: Ogden, sets: dict) -> list:
+    """The reference state F = I and a rigid rotation: no energy, no stress, the small-strain tangent."""
     mu = material.mu_mpa
-    energy = lambda F: ogden_energy(F, material)  # noqa: E731
-    stress = lambda F: ogden_stress(F, material)  # noqa: E731
-    sets = deformation_cases(rng)
-    h1, h2 = fd_steps(material)
-
-    # reference state
     W0, P0, A0 = ogden_stress_tangent(np.eye(3), material)
-    rows.append(_row("reference F=I", "|W| / mu", abs(W0) / mu, TOL_EXACT))
-    rows.append(_row("reference F=I", "|P| / mu", np.max(np.abs(P0)) / mu, TOL_EXACT))
     C0 = small_strain_tangent(material)
-    rows.append(
+    Wr, Pr, _ = ogden_stress_tangent(sets["rigid rotation"], material)
+    return [
+        _row("reference F=I", "|W| / mu", abs(W0) / mu, TOL_EXACT),
+        _row("reference F=I", "|P| / mu", np.max(np.abs(P0)) / mu, TOL_EXACT),
         _row(
             "reference F=I",
             "A vs small-strain elasticity (mu, K=2/D)",
             _rel(A0, C0, np.max(np.abs(C0))),
             TOL_EXACT,
-        )
-    )
-    Wr, Pr, _ = ogden_stress_tangent(sets["rigid rotation"], material)
-    rows.append(
+        ),
         _row(
             "rigid rotation",
             "|W|, |P| / mu",
             max(np.max(np.abs(Wr)), np.max(np.abs(Pr))) / mu,
             TOL_EXACT,
-        )
-    )
+        ),
+    ]
 
-    # energy against the independent principal-stretch form (singular values by SVD)
+
+def _energy_rows(material: Ogden, sets: dict) -> list:
+    """W against the independent principal-stretch form (singular values by SVD)."""
     allF = np.concatenate(list(sets.values()))
     sv = np.linalg.svd(allF, compute_uv=False)
     W_ref = np.array([analytic.principal_energy(*s, material) for s in sv])
-    rows.append(
+    return [
         _row(
             "all",
             "W vs principal-stretch energy (analytic)",
-            _rel(energy(allF), W_ref, mu),
+            _rel(ogden_energy(allF, material), W_ref, material.mu_mpa),
             TOL_EXACT,
         )
-    )
+    ]
 
-    # finite differences, per case
+
+def _finite_difference_rows(material: Ogden, sets: dict) -> list:
+    """P and A against finite differences of W and P, per case; A's major symmetry."""
+    mu = material.mu_mpa
+    h1, h2 = fd_steps(material)
+
+    def energy(F):
+        return ogden_energy(F, material)
+
+    def stress(F):
+        return ogden_stress(F, material)
+
+    rows = []
     for case, F in sets.items():
         W, P, A = ogden_stress_tangent(F, material)
         p_scale = max(np.max(np.abs(P)), mu)
         a_scale = np.max(np.abs(A))
-        rows.append(
-            _row(case, "P vs FD of W", _rel(P, fd_gradient(energy, F, h1), p_scale), TOL_FD)
-        )
-        rows.append(
-            _row(case, "A vs FD of P", _rel(A, fd_gradient(stress, F, h1), a_scale), TOL_FD)
-        )
-        rows.append(
+        rows += [
+            _row(case, "P vs FD of W", _rel(P, fd_gradient(energy, F, h1), p_scale), TOL_FD),
+            _row(case, "A vs FD of P", _rel(A, fd_gradient(stress, F, h1), a_scale), TOL_FD),
             _row(
                 case,
                 "A vs second FD of W",
                 _rel(A, fd_hessian(energy, F, h2), a_scale),
                 TOL_FD_SECOND,
-            )
-        )
-        rows.append(
+            ),
             _row(
                 case,
                 "A major symmetry A[iJkL] - A[kLiJ]",
                 _rel(A, A.transpose(0, 3, 4, 1, 2), a_scale),
                 TOL_EXACT,
-            )
-        )
-        # W and P(F) agree with the combined call
-        rows.append(
+            ),
+            # W and P(F) agree with the combined call
             _row(
                 case,
                 "ogden_energy/ogden_stress vs ogden_stress_tangent",
                 max(_rel(energy(F), W, mu), _rel(stress(F), P, p_scale)),
                 TOL_EXACT,
-            )
-        )
+            ),
+        ]
+    return rows
 
-    # continuity across coalescence: nearly equal stretches vs exactly equal
+
+def _coalescence_rows(material: Ogden, sets: dict) -> list:
+    """Continuity across coalescence: nearly equal principal stretches against exactly equal ones."""
     F_eq = sets["two equal stretches"]
     U, s, Vt = np.linalg.svd(F_eq)
     s_near = s.copy()
@@ -260,71 +257,71 @@ def material_point_checks(
     F_near = np.einsum("nia,na,naj->nij", U, s_near, Vt)
     _, P_eq, A_eq = ogden_stress_tangent(F_eq, material)
     _, P_ne, A_ne = ogden_stress_tangent(F_near, material)
-    # A changes to first order by ~ (|alpha| + 2) 1e-9 / lam relative: tolerance 2e-8 at alpha = 5 (a naive divided difference is off by ~1e-7)
-    rows.append(
+    # A changes to first order by ~ (|alpha| + 2) 1e-9 / lam relative: tolerance 2e-8 at alpha = 5
+    # (a naive divided difference is off by ~1e-7)
+    return [
         _row(
             "two equal vs 1e-9 apart",
             "A continuity",
             _rel(A_eq, A_ne, np.max(np.abs(A_eq))),
             TOL_CONTINUITY * (abs(material.alpha) + 2.0) / 7.0,
         )
-    )
+    ]
 
-    # objectivity and isotropy
+
+def _frame_rows(material: Ogden, sets: dict, rng: np.random.Generator) -> list:
+    """Objectivity (F -> QF) and isotropy (F -> FQ) of W, P and A for random rotations Q."""
+    mu = material.mu_mpa
     F = sets["random F"]
     Q = random_rotations(len(F), rng)
     W, P, A = ogden_stress_tangent(F, material)
     a_scale, p_scale = np.max(np.abs(A)), max(np.max(np.abs(P)), mu)
     Wq, Pq, Aq = ogden_stress_tangent(np.einsum("nij,njk->nik", Q, F), material)
-    rows.append(_row("objectivity F -> QF", "W(QF) - W(F)", _rel(Wq, W, mu), TOL_EXACT))
-    rows.append(
+    Wm, Pm, Am = ogden_stress_tangent(np.einsum("nij,njk->nik", F, Q), material)
+    return [
+        _row("objectivity F -> QF", "W(QF) - W(F)", _rel(Wq, W, mu), TOL_EXACT),
         _row(
             "objectivity F -> QF",
             "P(QF) - Q P(F)",
             _rel(Pq, np.einsum("nia,naJ->niJ", Q, P), p_scale),
             TOL_EXACT,
-        )
-    )
-    rows.append(
+        ),
         _row(
             "objectivity F -> QF",
             "A(QF) - Q A(F) Q",
             _rel(Aq, np.einsum("nia,nkb,naJbL->niJkL", Q, Q, A), a_scale),
             TOL_EXACT,
-        )
-    )
-    Wm, Pm, Am = ogden_stress_tangent(np.einsum("nij,njk->nik", F, Q), material)
-    rows.append(_row("isotropy F -> FQ", "W(FQ) - W(F)", _rel(Wm, W, mu), TOL_EXACT))
-    rows.append(
+        ),
+        _row("isotropy F -> FQ", "W(FQ) - W(F)", _rel(Wm, W, mu), TOL_EXACT),
         _row(
             "isotropy F -> FQ",
             "P(FQ) - P(F) Q",
             _rel(Pm, np.einsum("niM,nMJ->niJ", P, Q), p_scale),
             TOL_EXACT,
-        )
-    )
-    rows.append(
+        ),
         _row(
             "isotropy F -> FQ",
             "A(FQ) - A(F) Q Q",
             _rel(Am, np.einsum("niMkN,nMJ,nNL->niJkL", A, Q, Q), a_scale),
             TOL_EXACT,
-        )
-    )
+        ),
+    ]
 
-    # inverted elements
+
+def _inverted_and_homogeneous_rows(material: Ogden) -> list:
+    """W = +inf for det F <= 0; the homogeneous responses against their closed forms, summarised."""
     F_inv = np.array([np.diag([1.0, 1.0, -1.0]), np.zeros((3, 3))])
     W_inv = ogden_energy(F_inv, material)
-    rows.append(
+    rows = [
         _row(
             "det F <= 0", "W = +inf (count of violations)", float(np.sum(~np.isposinf(W_inv))), 0.0
         )
-    )
-
-    # homogeneous responses, summarised
+    ]
     hom = homogeneous_responses(material)
     for (case, quantity), g in hom.groupby(["case", "quantity"], sort=False):
-        scale = max(np.max(np.abs(g["analytic"])), 1.0 if "stretch" in quantity else 1e3 * mu)
+        scale = max(
+            np.max(np.abs(g["analytic"])), 1.0 if "stretch" in quantity else 1e3 * material.mu_mpa
+        )
         rows.append(
             _row(
                 case,
@@ -333,6 +330,23 @@ def material_point_checks(
                 TOL_HOMOGENEOUS,
             )
         )
+    return rows
+
+
+def material_point_checks(
+    material: Ogden, *, rng: np.random.Generator | None = None
+) -> pd.DataFrame:
+    """All material-point checks as rows: case, quantity, max_error, tolerance, pass."""
+    rng = np.random.default_rng(7) if rng is None else rng
+    sets = deformation_cases(rng)
+    rows = (
+        _reference_rows(material, sets)
+        + _energy_rows(material, sets)
+        + _finite_difference_rows(material, sets)
+        + _coalescence_rows(material, sets)
+        + _frame_rows(material, sets, rng)
+        + _inverted_and_homogeneous_rows(material)
+    )
     return pd.DataFrame(rows, columns=["case", "quantity", "max_error", "tolerance", "pass"])
 
 
