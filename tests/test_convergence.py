@@ -13,6 +13,7 @@ import pytest
 from deeptissue.convergence import (
     ROW_COLUMNS,
     Discretisation,
+    RunJob,
     aggregate_convergence,
     convergence_table,
     default_ladder,
@@ -393,14 +394,11 @@ def test_run_discretisation_on_a_tiny_synthetic_leg():
     s = Discretisation(name="p2_h2.5", family="P2 uniform", element_size_mm=2.5)
     study = {"variants": ["sphere"], "threshold": 0.05, "bin_edges": [0.05, 0.1, 0.2]}
     row = run_discretisation(
-        animal="synth",
-        variant="sphere",
-        setting=s,
+        RunJob(animal="synth", variant="sphere", setting=s, is_default=True),
         contours=c,
         pose=pose,
         cast=False,
         study_cfg=study,
-        is_default=True,
     )
     assert set(ROW_COLUMNS) <= set(row)
     assert row["converged"], row["reason"]

@@ -306,6 +306,7 @@ def test_run_discretisation_runs_a_p1_setting():
     from deeptissue.convergence import (
         ROW_COLUMNS,
         Discretisation,
+        RunJob,
         default_ladder,
         run_discretisation,
     )
@@ -331,9 +332,7 @@ def test_run_discretisation_runs_a_p1_setting():
     assert s.model_settings({})["element_order"] == 1
     study = {"variants": ["sphere"], "threshold": 0.05, "bin_edges": [0.05, 0.1, 0.2]}
     row = run_discretisation(
-        animal="synth",
-        variant="sphere",
-        setting=s,
+        RunJob(animal="synth", variant="sphere", setting=s),
         contours=c,
         pose=pose,
         cast=False,

@@ -42,7 +42,13 @@ from .report import (
     summary_markdown,
     write_summary_md,
 )
-from .runs import ROW_COLUMNS, linear_reference_solve, run_convergence_job, run_discretisation
+from .runs import (
+    ROW_COLUMNS,
+    RunJob,
+    linear_reference_solve,
+    run_convergence_job,
+    run_discretisation,
+)
 
 __all__ = [
     # ladder
@@ -55,6 +61,7 @@ __all__ = [
     # runs
     "ROW_COLUMNS",
     "linear_reference_solve",
+    "RunJob",
     "run_convergence_job",
     "run_discretisation",
     # analysis

@@ -229,22 +229,7 @@ def convergence_table(rows, *, goal: AccuracyGoal = AccuracyGoal(), measure: str
 
     rows = [dict(r) for r in rows]
     refs = reference_rows(rows)
-    rich = richardson_by_family(rows, measure=measure)
-    rich_ref: dict = {}
-    for run, ref in refs.items():
-        cands = [
-            x for x in rich if (x["animal"], x["variant"]) == run and x["extrapolated"] is not None
-        ]
-        for q in ("voi_mm3", "voi_sampled_mm3", "voi_centroid_mm3", "indenter_force_N"):
-            qc = [x for x in cands if x["quantity"] == q]
-            same = [
-                x
-                for x in qc
-                if x["family"] == ref["family"] and x["tolerance"] == ref.get("tolerance")
-            ]
-            pick = same[0] if same else (max(qc, key=lambda x: x["n_sizes"]) if qc else None)
-            if pick is not None:
-                rich_ref[(*run, q)] = pick
+    rich_ref = _richardson_references(rows, refs, measure=measure)
     labels = []
     for r in rows:
         for k in r.get("bins_percent") or {}:
@@ -253,80 +238,9 @@ def convergence_table(rows, *, goal: AccuracyGoal = AccuracyGoal(), measure: str
     for r in rows:
         ref = refs.get(_run(r))
         ok = _ok(r) and ref is not None
-        r["reference_setting"] = ref["setting"] if ref is not None else None
-        r["is_reference"] = ref is not None and r["setting"] == ref["setting"]
-        r["voi_rel_error"] = _rel(r["voi_mm3"], ref["voi_mm3"]) if ok else float("nan")
-        r["bin_max_error_pp"] = (
-            _bin_error(r.get("bins_percent"), ref.get("bins_percent")) if ok else float("nan")
-        )
-        r["force_rel_error"] = (
-            _rel(r["indenter_force_N"], ref["indenter_force_N"]) if ok else float("nan")
-        )
-        r["goal_error"] = (
-            goal_error(r["voi_rel_error"], r["bin_max_error_pp"], r["force_rel_error"], goal)
-            if ok
-            else float("nan")
-        )
-        r["meets_goal"] = bool(ok and r["goal_error"] <= 1.0)
-        rv, rf = rich_ref.get((*_run(r), "voi_mm3")), rich_ref.get((*_run(r), "indenter_force_N"))
-        r["voi_rel_error_richardson"] = (
-            _rel(r["voi_mm3"], rv["extrapolated"]) if (ok and rv) else float("nan")
-        )
-        r["force_rel_error_richardson"] = (
-            _rel(r["indenter_force_N"], rf["extrapolated"]) if (ok and rf) else float("nan")
-        )
-        if ok and rv and rf:
-            r["meets_goal_richardson"] = bool(
-                goal_error(
-                    r["voi_rel_error_richardson"],
-                    r["bin_max_error_pp"],
-                    r["force_rel_error_richardson"],
-                    goal,
-                )
-                <= 1.0
-            )
-        else:
-            r["meets_goal_richardson"] = None
-        for k in labels:
-            r[f"bin_{k}"] = (r.get("bins_percent") or {}).get(k)
-        # the run's own error estimate against its error from the reference: effectivity = estimate / error
-        # (the estimate bounds the error within 2 x where the effectivity is 0.5 or more)
-        est_bins = [v for v in (r.get("bins_err_pp") or {}).values() if v is not None]
-        r["bin_err_max_pp"] = max(est_bins) if est_bins else float("nan")
-        voi_err = r.get("voi_err_mm3")
-        voi_abs = abs(r["voi_mm3"] - ref["voi_mm3"]) if ok else float("nan")
-        r["voi_effectivity"] = (
-            voi_err / voi_abs if (ok and voi_err is not None and voi_abs > 0) else float("nan")
-        )
-        r["bin_effectivity"] = (
-            r["bin_err_max_pp"] / r["bin_max_error_pp"]
-            if ok and r["bin_max_error_pp"] > 0
-            else float("nan")
-        )
+        _add_reference_errors(r, ref, ok=ok, rich_ref=rich_ref, goal=goal, labels=labels)
         for est in ESTIMATES:  # the errors of both γ samplings, whichever voi_mm3 is
-            voi, bins = f"voi_{est}_mm3", f"bins_{est}_percent"
-            ok_e = ok and r.get(voi) is not None and ref.get(voi) is not None
-            r[f"voi_{est}_rel_error"] = _rel(r.get(voi), ref[voi]) if ok_e else float("nan")
-            r[f"bin_{est}_max_error_pp"] = (
-                _bin_error(r.get(bins), ref.get(bins)) if ok_e else float("nan")
-            )
-            r[f"goal_error_{est}"] = (
-                goal_error(
-                    r[f"voi_{est}_rel_error"],
-                    r[f"bin_{est}_max_error_pp"],
-                    r["force_rel_error"],
-                    goal,
-                )
-                if ok_e
-                else float("nan")
-            )
-            r[f"meets_goal_{est}"] = bool(ok_e and r[f"goal_error_{est}"] <= 1.0)
-            rs = rich_ref.get((*_run(r), voi))
-            r[f"voi_{est}_rel_error_richardson"] = (
-                _rel(r.get(voi), rs["extrapolated"]) if (ok_e and rs) else float("nan")
-            )
-            for k in labels:
-                r[f"bin_{est}_{k}"] = (r.get(bins) or {}).get(k)
+            _add_sampling_errors(r, ref, est, ok=ok, rich_ref=rich_ref, goal=goal, labels=labels)
     df = pd.DataFrame(rows)
     df = df.drop(
         columns=[
@@ -344,6 +258,111 @@ def convergence_table(rows, *, goal: AccuracyGoal = AccuracyGoal(), measure: str
         )
         df.loc[idx, "pareto"] = m
     return df
+
+
+def _richardson_references(rows, refs: dict, *, measure: str) -> dict:
+    """Per (animal, variant, quantity) the Richardson extrapolation the errors are taken against: that
+    of the reference's family and tolerance, else that of the family with the most sizes."""
+    rich = richardson_by_family(rows, measure=measure)
+    rich_ref: dict = {}
+    for run, ref in refs.items():
+        cands = [
+            x for x in rich if (x["animal"], x["variant"]) == run and x["extrapolated"] is not None
+        ]
+        for q in ("voi_mm3", "voi_sampled_mm3", "voi_centroid_mm3", "indenter_force_N"):
+            qc = [x for x in cands if x["quantity"] == q]
+            same = [
+                x
+                for x in qc
+                if x["family"] == ref["family"] and x["tolerance"] == ref.get("tolerance")
+            ]
+            pick = same[0] if same else (max(qc, key=lambda x: x["n_sizes"]) if qc else None)
+            if pick is not None:
+                rich_ref[(*run, q)] = pick
+    return rich_ref
+
+
+def _add_reference_errors(r: dict, ref, *, ok: bool, rich_ref: dict, goal, labels) -> None:
+    """Add to row ``r`` its errors against ``ref`` and the Richardson extrapolation, its bins
+    (``bin_<label>``) and the effectivity of its own error estimate; NaN where not ``ok``."""
+    r["reference_setting"] = ref["setting"] if ref is not None else None
+    r["is_reference"] = ref is not None and r["setting"] == ref["setting"]
+    r["voi_rel_error"] = _rel(r["voi_mm3"], ref["voi_mm3"]) if ok else float("nan")
+    r["bin_max_error_pp"] = (
+        _bin_error(r.get("bins_percent"), ref.get("bins_percent")) if ok else float("nan")
+    )
+    r["force_rel_error"] = (
+        _rel(r["indenter_force_N"], ref["indenter_force_N"]) if ok else float("nan")
+    )
+    r["goal_error"] = (
+        goal_error(r["voi_rel_error"], r["bin_max_error_pp"], r["force_rel_error"], goal)
+        if ok
+        else float("nan")
+    )
+    r["meets_goal"] = bool(ok and r["goal_error"] <= 1.0)
+    rv, rf = rich_ref.get((*_run(r), "voi_mm3")), rich_ref.get((*_run(r), "indenter_force_N"))
+    r["voi_rel_error_richardson"] = (
+        _rel(r["voi_mm3"], rv["extrapolated"]) if (ok and rv) else float("nan")
+    )
+    r["force_rel_error_richardson"] = (
+        _rel(r["indenter_force_N"], rf["extrapolated"]) if (ok and rf) else float("nan")
+    )
+    if ok and rv and rf:
+        r["meets_goal_richardson"] = bool(
+            goal_error(
+                r["voi_rel_error_richardson"],
+                r["bin_max_error_pp"],
+                r["force_rel_error_richardson"],
+                goal,
+            )
+            <= 1.0
+        )
+    else:
+        r["meets_goal_richardson"] = None
+    for k in labels:
+        r[f"bin_{k}"] = (r.get("bins_percent") or {}).get(k)
+    # the run's own error estimate against its error from the reference: effectivity = estimate / error
+    # (the estimate bounds the error within 2 x where the effectivity is 0.5 or more)
+    est_bins = [v for v in (r.get("bins_err_pp") or {}).values() if v is not None]
+    r["bin_err_max_pp"] = max(est_bins) if est_bins else float("nan")
+    voi_err = r.get("voi_err_mm3")
+    voi_abs = abs(r["voi_mm3"] - ref["voi_mm3"]) if ok else float("nan")
+    r["voi_effectivity"] = (
+        voi_err / voi_abs if (ok and voi_err is not None and voi_abs > 0) else float("nan")
+    )
+    r["bin_effectivity"] = (
+        r["bin_err_max_pp"] / r["bin_max_error_pp"]
+        if ok and r["bin_max_error_pp"] > 0
+        else float("nan")
+    )
+
+
+def _add_sampling_errors(
+    r: dict, ref, est: str, *, ok: bool, rich_ref: dict, goal, labels
+) -> None:
+    """Add to row ``r`` the errors of γ sampling ``est`` (a key of :data:`ESTIMATES`) against ``ref``
+    and its bins (``bin_<est>_<label>``); NaN where not ``ok`` or the sampling is missing."""
+    voi, bins = f"voi_{est}_mm3", f"bins_{est}_percent"
+    ok_e = ok and r.get(voi) is not None and ref.get(voi) is not None
+    r[f"voi_{est}_rel_error"] = _rel(r.get(voi), ref[voi]) if ok_e else float("nan")
+    r[f"bin_{est}_max_error_pp"] = _bin_error(r.get(bins), ref.get(bins)) if ok_e else float("nan")
+    r[f"goal_error_{est}"] = (
+        goal_error(
+            r[f"voi_{est}_rel_error"],
+            r[f"bin_{est}_max_error_pp"],
+            r["force_rel_error"],
+            goal,
+        )
+        if ok_e
+        else float("nan")
+    )
+    r[f"meets_goal_{est}"] = bool(ok_e and r[f"goal_error_{est}"] <= 1.0)
+    rs = rich_ref.get((*_run(r), voi))
+    r[f"voi_{est}_rel_error_richardson"] = (
+        _rel(r.get(voi), rs["extrapolated"]) if (ok_e and rs) else float("nan")
+    )
+    for k in labels:
+        r[f"bin_{est}_{k}"] = (r.get(bins) or {}).get(k)
 
 
 def setting_table(df, *, goal: AccuracyGoal = AccuracyGoal()):

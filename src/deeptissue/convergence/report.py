@@ -354,144 +354,131 @@ def write_summary_md(
     return text
 
 
-def plot_error_vs_time(
-    path, df, *, goal: AccuracyGoal = AccuracyGoal(), passes=None, cylinder=None
-) -> None:
-    """Log–log error against wall time, three panels per row (VOI, largest bin error, force), one row per
-    animal and one for the cylinder scene. A limb row has one line per ladder family and variant and,
-    with ``passes`` (:func:`adaptive_pass_errors`), each adaptive run's passes (black, the wall time of
-    the loop so far; dotted to a cross: passes after the last converged one, which did not converge); the
-    cylinder row (``cylinder``: the table of rule ``verify_cylinder_adaptive``) has the fixed mesh per
-    depth (squares) and the adaptive passes per depth. The goal is a dotted line;
-    references (error 0) are not drawn; a star marks the configured default."""
-    import matplotlib
+_MARKERS = ["o", "s", "^", "D", "v", "P"]  # one per variant of a row of the figure
+# the cylinder table's true error of each panel's column
+_CYLINDER_TRUE = {
+    "voi_rel_error": "true_voi_percent",
+    "bin_max_error_pp": "true_bins_pp",
+    "force_rel_error": "true_force_percent",
+}
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+
+def _line(handles: dict, ax, x, y, label, **kw) -> None:
+    """Plot the positive finite points of ``y`` against ``x``; the first line of a label is its legend handle."""
+    y = np.asarray(y, float)
+    m = (y > 0) & np.isfinite(y)
+    if m.any():
+        (h,) = ax.plot(np.asarray(x, float)[m], y[m], **kw)
+        handles.setdefault(label, h)
+
+
+def _plot_ladder(ax, mine, col, scale, *, families, variants, colours, handles) -> None:
+    """One panel of an animal's row: a line per ladder family and variant, a star on the default."""
+    for i, fam in enumerate(families):
+        mk = set(mine.loc[mine["family"] == fam, "mesh_key"])
+        for j, var in enumerate(variants):
+            sel = mine[
+                (mine["variant"] == var)
+                & (
+                    (mine["family"] == fam)
+                    | (mine["mesh_key"].isin(mk) & fam.endswith("tolerance"))
+                )
+            ]
+            sel = sel.sort_values("wall_s")
+            _line(
+                handles,
+                ax,
+                sel["wall_s"],
+                sel[col].astype(float) * scale,
+                f"{fam}, {var}",
+                marker=_MARKERS[j % len(_MARKERS)],
+                color=colours[i % len(colours)],
+                ls="-" if j == 0 else "--",
+            )
+            default = sel[sel["is_default"].astype(bool)]
+            _line(
+                handles,
+                ax,
+                default["wall_s"],
+                default[col].astype(float) * scale,
+                "configured default",
+                marker="*",
+                ms=16,
+                mfc="none",
+                mec="k",
+                ls="none",
+            )
+
+
+def _plot_passes(ax, passes, animal, col, scale, *, variants, handles) -> None:
+    """One panel of an animal's row: each adaptive run's passes, dotted to a cross after its answer."""
+    for j, var in enumerate(variants):
+        a = passes[(passes["animal"] == animal) & (passes["variant"] == var)].sort_values("wall_s")
+        _line(
+            handles,
+            ax,
+            a["wall_s"],
+            a[col].astype(float) * scale,
+            f"adaptive, {var}",
+            marker=_MARKERS[j % len(_MARKERS)],
+            color="k",
+            ls="-" if j == 0 else "--",
+            mfc="none",
+        )
+        done = a[a["converged"].astype(bool)]
+        if (
+            len(done) and a["wall_s"].max() > done["wall_s"].iloc[-1]
+        ):  # passes spent after the answer
+            y = float(done[col].iloc[-1]) * scale
+            _line(
+                handles,
+                ax,
+                [done["wall_s"].iloc[-1], a["wall_s"].max()],
+                [y, y],
+                "adaptive: a pass that did not converge",
+                color="k",
+                ls=":",
+                marker="x",
+                markevery=[1],
+            )
+
+
+def _plot_cylinder(axes_row, cyl, panels, *, colours, handles) -> None:
+    """The cylinder row: per depth the fixed meshes (squares) and the adaptive passes, true errors."""
+    for ax, (col, label, _, g) in zip(axes_row, panels):
+        for j, d in enumerate(sorted(cyl["depth_mm"].unique())):
+            at = cyl[cyl["depth_mm"] == d].sort_values("wall_s")
+            f, a = at[at["kind"] == "fixed"], at[at["kind"] == "adaptive"]
+            _line(
+                handles,
+                ax,
+                f["wall_s"],
+                f[_CYLINDER_TRUE[col]].astype(float).abs(),
+                f"cylinder {d:g} mm, fixed mesh",
+                marker="s",
+                ms=8,
+                mfc="none",
+                color=colours[(j + 3) % len(colours)],
+                ls="none",
+            )
+            _line(
+                handles,
+                ax,
+                a["wall_s"],
+                a[_CYLINDER_TRUE[col]].astype(float).abs(),
+                f"cylinder {d:g} mm, adaptive",
+                marker="o",
+                color=colours[(j + 3) % len(colours)],
+                ls="-",
+            )
+        ax.set_title(f"cylinder scene: {label}", fontsize=9)
+
+
+def _finish_figure(fig, axes, panels, handles: dict) -> None:
+    """Log axes, goal lines, labels, the legend below the panels and the title."""
     from matplotlib.ticker import NullFormatter
 
-    from ..io import atomic_path
-
-    panels = [
-        ("voi_rel_error", "VOI error [%]", 100.0, 100 * goal.voi_rel_error),
-        ("bin_max_error_pp", "largest bin error [pp]", 1.0, goal.bin_error_pp),
-        ("force_rel_error", "force error [%]", 100.0, 100 * goal.force_rel_error),
-    ]
-    animals = list(dict.fromkeys(df["animal"]))
-    n_rows = len(animals) + (cylinder is not None and len(cylinder) > 0)
-    fig, axes = plt.subplots(n_rows, 3, figsize=(14, 3.9 * n_rows + 0.9), squeeze=False)
-    ok = df[df["converged"].astype(bool) & (df["family"] != ADAPTIVE_FAMILY)]
-    families = list(dict.fromkeys(ok["family"]))
-    variants = list(dict.fromkeys(df["variant"]))
-    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    markers = ["o", "s", "^", "D", "v", "P"]
-    handles = {}
-
-    def line(ax, x, y, label, **kw):
-        y = np.asarray(y, float)
-        m = (y > 0) & np.isfinite(y)
-        if m.any():
-            (h,) = ax.plot(np.asarray(x, float)[m], y[m], **kw)
-            handles.setdefault(label, h)
-
-    for row, animal in enumerate(animals):
-        mine = ok[ok["animal"] == animal]
-        for ax, (col, label, scale, g) in zip(axes[row], panels):
-            for i, fam in enumerate(families):
-                mk = set(mine.loc[mine["family"] == fam, "mesh_key"])
-                for j, var in enumerate(variants):
-                    sel = mine[
-                        (mine["variant"] == var)
-                        & (
-                            (mine["family"] == fam)
-                            | (mine["mesh_key"].isin(mk) & fam.endswith("tolerance"))
-                        )
-                    ]
-                    sel = sel.sort_values("wall_s")
-                    line(
-                        ax,
-                        sel["wall_s"],
-                        sel[col].astype(float) * scale,
-                        f"{fam}, {var}",
-                        marker=markers[j % len(markers)],
-                        color=colours[i % len(colours)],
-                        ls="-" if j == 0 else "--",
-                    )
-                    default = sel[sel["is_default"].astype(bool)]
-                    line(
-                        ax,
-                        default["wall_s"],
-                        default[col].astype(float) * scale,
-                        "configured default",
-                        marker="*",
-                        ms=16,
-                        mfc="none",
-                        mec="k",
-                        ls="none",
-                    )
-            if passes is not None and len(passes):
-                for j, var in enumerate(variants):
-                    a = passes[
-                        (passes["animal"] == animal) & (passes["variant"] == var)
-                    ].sort_values("wall_s")
-                    line(
-                        ax,
-                        a["wall_s"],
-                        a[col].astype(float) * scale,
-                        f"adaptive, {var}",
-                        marker=markers[j % len(markers)],
-                        color="k",
-                        ls="-" if j == 0 else "--",
-                        mfc="none",
-                    )
-                    done = a[a["converged"].astype(bool)]
-                    if (
-                        len(done) and a["wall_s"].max() > done["wall_s"].iloc[-1]
-                    ):  # passes spent after the answer
-                        y = float(done[col].iloc[-1]) * scale
-                        line(
-                            ax,
-                            [done["wall_s"].iloc[-1], a["wall_s"].max()],
-                            [y, y],
-                            "adaptive: a pass that did not converge",
-                            color="k",
-                            ls=":",
-                            marker="x",
-                            markevery=[1],
-                        )
-            ax.set_title(f"{animal}: {label}", fontsize=9)
-    if n_rows > len(animals):
-        cyl = cylinder
-        true = {
-            "voi_rel_error": "true_voi_percent",
-            "bin_max_error_pp": "true_bins_pp",
-            "force_rel_error": "true_force_percent",
-        }
-        for ax, (col, label, _, g) in zip(axes[-1], panels):
-            for j, d in enumerate(sorted(cyl["depth_mm"].unique())):
-                at = cyl[cyl["depth_mm"] == d].sort_values("wall_s")
-                f, a = at[at["kind"] == "fixed"], at[at["kind"] == "adaptive"]
-                line(
-                    ax,
-                    f["wall_s"],
-                    f[true[col]].astype(float).abs(),
-                    f"cylinder {d:g} mm, fixed mesh",
-                    marker="s",
-                    ms=8,
-                    mfc="none",
-                    color=colours[(j + 3) % len(colours)],
-                    ls="none",
-                )
-                line(
-                    ax,
-                    a["wall_s"],
-                    a[true[col]].astype(float).abs(),
-                    f"cylinder {d:g} mm, adaptive",
-                    marker="o",
-                    color=colours[(j + 3) % len(colours)],
-                    ls="-",
-                )
-            ax.set_title(f"cylinder scene: {label}", fontsize=9)
+    n_rows = axes.shape[0]
     for ax, (_, label, _, g) in zip(axes.ravel(), panels * n_rows):
         ax.axhline(g, color="k", ls=":", lw=1)
         ax.set_xscale("log")
@@ -516,6 +503,57 @@ def plot_error_vs_time(
     )
     legend_rows = (len(handles) + 3) // 4
     fig.tight_layout(rect=(0, min(0.35, 0.025 * legend_rows * 4 / n_rows), 1, 0.97))
+
+
+def plot_error_vs_time(
+    path, df, *, goal: AccuracyGoal = AccuracyGoal(), passes=None, cylinder=None
+) -> None:
+    """Log–log error against wall time, three panels per row (VOI, largest bin error, force), one row per
+    animal and one for the cylinder scene. A limb row has one line per ladder family and variant and,
+    with ``passes`` (:func:`adaptive_pass_errors`), each adaptive run's passes (black, the wall time of
+    the loop so far; dotted to a cross: passes after the last converged one, which did not converge); the
+    cylinder row (``cylinder``: the table of rule ``verify_cylinder_adaptive``) has the fixed mesh per
+    depth (squares) and the adaptive passes per depth. The goal is a dotted line;
+    references (error 0) are not drawn; a star marks the configured default."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..io import atomic_path
+
+    panels = [
+        ("voi_rel_error", "VOI error [%]", 100.0, 100 * goal.voi_rel_error),
+        ("bin_max_error_pp", "largest bin error [pp]", 1.0, goal.bin_error_pp),
+        ("force_rel_error", "force error [%]", 100.0, 100 * goal.force_rel_error),
+    ]
+    animals = list(dict.fromkeys(df["animal"]))
+    n_rows = len(animals) + (cylinder is not None and len(cylinder) > 0)
+    fig, axes = plt.subplots(n_rows, 3, figsize=(14, 3.9 * n_rows + 0.9), squeeze=False)
+    ok = df[df["converged"].astype(bool) & (df["family"] != ADAPTIVE_FAMILY)]
+    families = list(dict.fromkeys(ok["family"]))
+    variants = list(dict.fromkeys(df["variant"]))
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    handles: dict = {}
+    for row, animal in enumerate(animals):
+        mine = ok[ok["animal"] == animal]
+        for ax, (col, label, scale, g) in zip(axes[row], panels):
+            _plot_ladder(
+                ax,
+                mine,
+                col,
+                scale,
+                families=families,
+                variants=variants,
+                colours=colours,
+                handles=handles,
+            )
+            if passes is not None and len(passes):
+                _plot_passes(ax, passes, animal, col, scale, variants=variants, handles=handles)
+            ax.set_title(f"{animal}: {label}", fontsize=9)
+    if n_rows > len(animals):
+        _plot_cylinder(axes[-1], cylinder, panels, colours=colours, handles=handles)
+    _finish_figure(fig, axes, panels, handles)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)

@@ -2,7 +2,8 @@
 
 :func:`run_discretisation` meshes, solves and post-processes, times each part, and adds one
 linear-elastic reference solve on the same mesh (:func:`linear_reference_solve`; ``cost_ratio``).
-Its row has the columns :data:`ROW_COLUMNS`; :func:`run_convergence_job` is rule ``convergence_run``.
+A :class:`RunJob` names the animal, variant and setting of a run. Its row has the columns
+:data:`ROW_COLUMNS`; :func:`run_convergence_job` is rule ``convergence_run``.
 
 Units: mm, N, s, MB (resident memory, 2**20 bytes).
 """
@@ -12,6 +13,8 @@ from __future__ import annotations
 import logging
 import resource
 import time
+from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -124,29 +127,137 @@ def linear_reference_solve(
     )
 
 
+@dataclass(frozen=True)
+class RunJob:
+    """One run of the ladder: the animal x variant solved at ``setting``, and what the run records.
+
+    ``mesh_variants``: variants whose travel the mesh is refined around; None: those sharing the
+    variant's study mesh (``model.mesh_groups`` of ``study.variants``), so the mesh is the study's
+    mesh; the solved variant is always included. ``linear_reference``: also time one linear-elastic
+    solve on the same mesh (:func:`linear_reference_solve`). ``is_default``: recorded in the row, the
+    setting is the configured default.
+    """
+
+    animal: str
+    variant: str
+    setting: Discretisation
+    mesh_variants: Sequence[str] | None = None
+    is_default: bool = False
+    linear_reference: bool = True
+
+
+def _blank_row(job: RunJob, start_rss_mb: float) -> dict:
+    """A row with the keys :data:`ROW_COLUMNS`: the job and its setting filled in, not converged."""
+    s = job.setting
+    row: dict = {k: None for k in ROW_COLUMNS}
+    row.update(
+        animal=job.animal,
+        variant=job.variant,
+        setting=s.name,
+        family=s.family,
+        element_order=s.element_order,
+        element_size_mm=s.element_size_mm,
+        refine_size_mm=s.refine_size_mm,
+        tolerance=s.tolerance,
+        rtol=s.rtol,
+        gap_tol_rel=s.gap_tol_rel,
+        mesh_key=s.mesh_key,
+        is_default=bool(job.is_default),
+        converged=False,
+        start_rss_mb=start_rss_mb,
+    )
+    return row
+
+
+def _mesh_variants(job: RunJob, model_cfg: dict | None, study_cfg: dict) -> list:
+    """The variants the mesh is refined around (:attr:`RunJob.mesh_variants`), the solved one included."""
+    from ..model import ModelSettings
+    from ..variants import mesh_groups
+
+    if job.mesh_variants:
+        variants = list(job.mesh_variants)
+    else:  # the variants of the variant's study mesh
+        groups = mesh_groups(
+            study_cfg.get("variants") or [job.variant],
+            by=(model_cfg or {}).get("mesh_groups", ModelSettings.mesh_groups),
+        )
+        variants = next((list(m) for m in groups.values() if job.variant in m), [])
+    if job.variant not in variants:
+        variants.append(job.variant)
+    return variants
+
+
+def _solution_columns(summary, run_s: float) -> dict:
+    """The row's columns from the solve's summary; ``run_s``: solve + post-processing wall time [s]."""
+    d = summary.to_dict()
+    solve_s = float(d.get("solver_wall_s") or 0.0)
+    parts = {k: float(d.get(k) or 0.0) for k in ("assembly_s", "linear_solve_s", "contact_s")}
+    return dict(
+        converged=bool(summary.converged),
+        reason=summary.reason,
+        n_dofs=d.get("n_dofs"),
+        increments=d.get("increments"),
+        newton_iterations=d.get("newton_iterations"),
+        voi_mm3=summary.voi_mm3,
+        bins_percent=summary.bins_percent,
+        gamma_sampling=summary.gamma_sampling,
+        voi_sampled_mm3=summary.voi_sampled_mm3,
+        bins_sampled_percent=summary.bins_sampled_percent,
+        voi_centroid_mm3=summary.voi_centroid_mm3,
+        bins_centroid_percent=summary.bins_centroid_percent,
+        voi_err_mm3=summary.voi_err_mm3,
+        bins_err_pp=summary.bins_err_pp,
+        peak_gamma=summary.peak_gamma,
+        indenter_force_N=summary.indenter_force_N,
+        solve_s=solve_s,
+        solver_other_s=max(solve_s - sum(parts.values()), 0.0),
+        post_s=max(run_s - solve_s, 0.0),
+        **parts,
+    )
+
+
+def _add_linear_reference(
+    row: dict, job: RunJob, mesh, *, pose, material, settings, bar_mm
+) -> None:
+    """Time the linear-elastic reference on ``mesh`` into ``row`` (``linear_*``, ``cost_ratio``); a
+    failure is logged and recorded as ``linear_error``."""
+    from ..study import variant_indenter
+
+    variant = job.variant
+    axis = variant_indenter(pose, variant, bar_length_mm=bar_mm).axis
+    patch = f"patch_{variant}" if f"patch_{variant}" in mesh.facets else "patch"
+    try:
+        lin = linear_reference_solve(
+            mesh, material=material, solver_settings=settings, load_set=patch, direction=axis
+        )
+        row.update({k: v for k, v in lin.items() if k in ROW_COLUMNS})
+        row["cost_ratio"] = (
+            row["solve_s"] / lin["linear_wall_s"] if lin["linear_wall_s"] > 0 else None
+        )
+    except Exception as exc:
+        log.exception(
+            "%s/%s/%s: linear reference solve failed", job.animal, variant, job.setting.name
+        )
+        row["linear_error"] = f"{type(exc).__name__}: {exc}"
+
+
 def run_discretisation(
+    job: RunJob,
     *,
-    animal: str,
-    variant: str,
-    setting: Discretisation,
     contours,
     pose,
     cast=None,
     model_cfg: dict | None = None,
     fem_cfg: dict | None = None,
     study_cfg: dict | None = None,
-    mesh_variants=None,
-    linear_reference: bool = True,
-    is_default: bool = False,
 ) -> dict:
     """Mesh, solve and summarise one animal x variant at one setting, timing each part.
 
     Parameters
     ----------
-    animal, variant : str
-        The animal and the variant (``study.variants``) solved.
-    setting : Discretisation
-        Sizes, element order and tolerances; they override those of ``model_cfg`` and ``fem_cfg``.
+    job : RunJob
+        The animal, the variant (``study.variants``) and the setting solved; the setting's sizes,
+        element order and tolerances override those of ``model_cfg`` and ``fem_cfg``.
     contours : deeptissue.contours.Contours
         The pre-state contours.
     pose : deeptissue.pose.Pose
@@ -156,14 +267,6 @@ def run_discretisation(
         contact in the solve.
     model_cfg, fem_cfg, study_cfg : dict, optional
         The config sections ``model``, ``fem`` and ``study``.
-    mesh_variants : list of str, optional
-        Variants whose travel the mesh is refined around; default: those sharing the variant's study
-        mesh (``model.mesh_groups`` of ``study.variants``), so the mesh is the study's mesh. The solved
-        variant is always included.
-    linear_reference : bool
-        Also time one linear-elastic solve on the same mesh (:func:`linear_reference_solve`).
-    is_default : bool
-        Recorded in the row: the setting is the configured default.
 
     Returns
     -------
@@ -183,10 +286,10 @@ def run_discretisation(
     from ..fem.cast import Cast as FemCast
     from ..fem.material import Ogden
     from ..fem.solver import solver_settings_from_config
-    from ..model import ModelSettings, build_cast, build_model
-    from ..study import StudySettings, solve_variant, variant_indenter
-    from ..variants import mesh_groups
+    from ..model import build_cast, build_model
+    from ..study import StudySettings, solve_variant
 
+    animal, variant, setting = job.animal, job.variant, job.setting
     if setting.element_order not in SUPPORTED_ELEMENT_ORDERS:
         raise ValueError(
             f"setting {setting.name}: element order {setting.element_order} is not supported by the mesh/FE "
@@ -194,34 +297,8 @@ def run_discretisation(
         )
     fem_cfg = dict(fem_cfg or {})
     study_cfg = dict(study_cfg or {})
-    start_rss = _rss_mb()
-    row: dict = {k: None for k in ROW_COLUMNS}
-    row.update(
-        animal=animal,
-        variant=variant,
-        setting=setting.name,
-        family=setting.family,
-        element_order=setting.element_order,
-        element_size_mm=setting.element_size_mm,
-        refine_size_mm=setting.refine_size_mm,
-        tolerance=setting.tolerance,
-        rtol=setting.rtol,
-        gap_tol_rel=setting.gap_tol_rel,
-        mesh_key=setting.mesh_key,
-        is_default=bool(is_default),
-        converged=False,
-        start_rss_mb=start_rss,
-    )
-    if mesh_variants:
-        variants = list(mesh_variants)
-    else:  # the variants of the variant's study mesh
-        groups = mesh_groups(
-            study_cfg.get("variants") or [variant],
-            by=(model_cfg or {}).get("mesh_groups", ModelSettings.mesh_groups),
-        )
-        variants = next((list(m) for m in groups.values() if variant in m), [])
-    if variant not in variants:
-        variants.append(variant)
+    row = _blank_row(job, _rss_mb())
+    variants = _mesh_variants(job, model_cfg, study_cfg)
     msettings = setting.model_settings(model_cfg)
     msettings.setdefault("bar_length_mm", float(fem_cfg.get("bar_length_mm", 10.0)))
     use_cast = cast is not False
@@ -268,46 +345,12 @@ def run_discretisation(
         row.update(reason=f"{type(exc).__name__}: {exc}", peak_rss_mb=_rss_mb())
         return row
     run_s = time.perf_counter() - t1  # solve + post-processing (strain, VOI, bins)
-    d = summary.to_dict()
-    solve_s = float(d.get("solver_wall_s") or 0.0)
-    parts = {k: float(d.get(k) or 0.0) for k in ("assembly_s", "linear_solve_s", "contact_s")}
-    row.update(
-        converged=bool(summary.converged),
-        reason=summary.reason,
-        n_dofs=d.get("n_dofs"),
-        increments=d.get("increments"),
-        newton_iterations=d.get("newton_iterations"),
-        voi_mm3=summary.voi_mm3,
-        bins_percent=summary.bins_percent,
-        gamma_sampling=summary.gamma_sampling,
-        voi_sampled_mm3=summary.voi_sampled_mm3,
-        bins_sampled_percent=summary.bins_sampled_percent,
-        voi_centroid_mm3=summary.voi_centroid_mm3,
-        bins_centroid_percent=summary.bins_centroid_percent,
-        voi_err_mm3=summary.voi_err_mm3,
-        bins_err_pp=summary.bins_err_pp,
-        peak_gamma=summary.peak_gamma,
-        indenter_force_N=summary.indenter_force_N,
-        solve_s=solve_s,
-        solver_other_s=max(solve_s - sum(parts.values()), 0.0),
-        post_s=max(run_s - solve_s, 0.0),
-        **parts,
-    )
+    row.update(_solution_columns(summary, run_s))
     row["wall_s"] = row["mesh_s"] + run_s
-    if linear_reference:
-        axis = variant_indenter(pose, variant, bar_length_mm=bar).axis
-        patch = f"patch_{variant}" if f"patch_{variant}" in mesh.facets else "patch"
-        try:
-            lin = linear_reference_solve(
-                mesh, material=material, solver_settings=settings, load_set=patch, direction=axis
-            )
-            row.update({k: v for k, v in lin.items() if k in ROW_COLUMNS})
-            row["cost_ratio"] = (
-                solve_s / lin["linear_wall_s"] if lin["linear_wall_s"] > 0 else None
-            )
-        except Exception as exc:
-            log.exception("%s/%s/%s: linear reference solve failed", animal, variant, setting.name)
-            row["linear_error"] = f"{type(exc).__name__}: {exc}"
+    if job.linear_reference:
+        _add_linear_reference(
+            row, job, mesh, pose=pose, material=material, settings=settings, bar_mm=bar
+        )
     row["peak_rss_mb"] = _rss_mb()
     log.info(
         "%s/%s/%s: converged %s, %s tets, %s dofs, solve %.1f s, linear %.2f s, peak %.0f MB",
@@ -317,7 +360,7 @@ def run_discretisation(
         row["converged"],
         row["n_elements"],
         row["n_dofs"],
-        solve_s,
+        row["solve_s"],
         row["linear_wall_s"] or float("nan"),
         row["peak_rss_mb"],
     )
@@ -325,10 +368,8 @@ def run_discretisation(
 
 
 def run_convergence_job(
+    job: RunJob,
     *,
-    animal: str,
-    variant: str,
-    setting: dict,
     contours_path,
     pose_path,
     cast_path,
@@ -336,31 +377,22 @@ def run_convergence_job(
     model_cfg: dict,
     fem_cfg: dict,
     study_cfg: dict,
-    mesh_variants=None,
-    is_default: bool = False,
-    linear_reference: bool = True,
 ) -> dict:
     """Rule ``convergence_run``: read the animal's pre contours, pose and cast, run
-    :func:`run_discretisation` with ``setting`` (a :meth:`Discretisation.to_dict`) and write the row
-    to ``row_path`` as JSON; returns the row."""
+    :func:`run_discretisation` on ``job`` and write the row to ``row_path`` as JSON; returns the row."""
     from ..contours import load_contours
     from ..io import write_json
     from ..model import load_cast
     from ..pose import load_pose
 
     row = run_discretisation(
-        animal=animal,
-        variant=variant,
-        setting=Discretisation.from_dict(setting),
+        job,
         contours=load_contours(contours_path),
         pose=load_pose(pose_path),
         cast=load_cast(cast_path) if cast_path else None,
         model_cfg=model_cfg,
         fem_cfg=fem_cfg,
         study_cfg=study_cfg,
-        mesh_variants=mesh_variants,
-        is_default=is_default,
-        linear_reference=linear_reference,
     )
     write_json(row_path, row)
     return row
