@@ -12,6 +12,8 @@ import pytest
 
 from deeptissue.convergence import (
     ROW_COLUMNS,
+    ConvergenceInputs,
+    ConvergenceOutputs,
     Discretisation,
     RunJob,
     aggregate_convergence,
@@ -322,11 +324,12 @@ def test_aggregate_writes_csv_figure_and_summary_with_benchmarks(tmp_path):
         benches.append(b)
     out = tmp_path / "out"
     df = aggregate_convergence(
-        row_paths=paths,
-        benchmark_paths=benches,
-        csv_path=out / "convergence.csv",
-        png_path=out / "error_vs_time.png",
-        md_path=out / "summary.md",
+        ConvergenceInputs(row_paths=paths, benchmark_paths=benches),
+        ConvergenceOutputs(
+            csv_path=out / "convergence.csv",
+            png_path=out / "error_vs_time.png",
+            md_path=out / "summary.md",
+        ),
         default_name="p2_n27000",
     )
     back = pd.read_csv(out / "convergence.csv")
@@ -598,12 +601,16 @@ def test_adaptive_runs_are_measured_against_the_ladders_reference_and_never_are_
     cyl.to_csv(tmp_path / "cylinder.csv", index=False)
     out = tmp_path / "out"
     df = aggregate_convergence(
-        row_paths=paths,
-        adaptive_paths=[tmp_path / "passes.csv"],
-        cylinder_path=tmp_path / "cylinder.csv",
-        csv_path=out / "convergence.csv",
-        png_path=out / "error_vs_time.png",
-        md_path=out / "summary.md",
+        ConvergenceInputs(
+            row_paths=paths,
+            adaptive_paths=[tmp_path / "passes.csv"],
+            cylinder_path=tmp_path / "cylinder.csv",
+        ),
+        ConvergenceOutputs(
+            csv_path=out / "convergence.csv",
+            png_path=out / "error_vs_time.png",
+            md_path=out / "summary.md",
+        ),
         default_name="p2_n27000",
     )
     assert "adaptive" in set(df["setting"])

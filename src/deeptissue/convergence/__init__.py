@@ -36,6 +36,8 @@ from .ladder import (
     setting_name,
 )
 from .report import (
+    ConvergenceInputs,
+    ConvergenceOutputs,
     aggregate_convergence,
     plot_error_vs_time,
     read_benchmark,
@@ -82,6 +84,8 @@ __all__ = [
     "setting_table",
     "size_measure",
     # report
+    "ConvergenceInputs",
+    "ConvergenceOutputs",
     "aggregate_convergence",
     "plot_error_vs_time",
     "read_benchmark",

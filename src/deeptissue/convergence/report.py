@@ -8,6 +8,8 @@ convergence.csv (:func:`deeptissue.convergence.analysis.convergence_table`), err
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -54,7 +56,29 @@ def summary_markdown(
     beside the estimate) and the cylinder scene (``cylinder``, rule ``verify_cylinder_adaptive``'s
     table), the Richardson orders and the fitted scaling exponents."""
     st = setting_table(df, goal=goal)
-    rows = df.to_dict("records")
+    lines = _head_lines(df, st, goal)
+    lines += _sampling_lines(df, st)
+    lines += _pareto_lines(st)
+    lines += _default_lines(st, default_name, max_cost_ratio)
+    lines += _effectivity_lines(df)
+    lines += _adaptive_lines(df, goal)
+    lines += _cylinder_lines(cylinder, goal)
+    lines += _richardson_lines(df.to_dict("records"), measure)
+    lines += _scaling_lines(df)
+    failed = df[~df["converged"].astype(bool)]
+    if len(failed):
+        lines.append("Runs that did not converge:")
+        lines.append("")
+        for _, r in failed.iterrows():
+            lines.append(f"- `{r['setting']}` / {r['animal']} {r['variant']}: {r['reason']}")
+        lines.append("")
+    for n in notes:
+        lines.append(f"Note: {n}")
+    return "\n".join(lines).rstrip() + "\n"
+
+
+def _head_lines(df, st, goal: AccuracyGoal) -> list:
+    """summary.md's title, the runs, the goal, the references and the cheapest setting meeting the goal."""
     lines = ["# Speed against error", ""]
     lines.append(
         f"Animals {', '.join(dict.fromkeys(df['animal'].astype(str)))}; variants "
@@ -86,6 +110,11 @@ def summary_markdown(
             "**No setting other than the reference meets the goal in every animal and variant.**"
         )
     lines.append("")
+    return lines
+
+
+def _sampling_lines(df, st) -> list:
+    """summary.md's cheapest setting meeting the goal by each γ sampling of :data:`ESTIMATES`."""
     sampling = (
         ", ".join(sorted(df["gamma_sampling"].dropna().astype(str).unique()))
         if "gamma_sampling" in df
@@ -103,21 +132,24 @@ def summary_markdown(
             )
             each.append(f"- {what} (`voi_{e}_mm3`): {best}")
     if sampling and each:
-        lines += [
+        return [
             f"The errors above are those of the configured γ sampling (`study.gamma_sampling`: {sampling}). "
             "Each sampling:",
             "",
             *each,
             "",
         ]
-    lines.append(
-        "Pareto front (total wall time of all variants against the largest error as a multiple of its goal):"
-    )
-    lines.append("")
-    lines.append(
-        "| setting | family | wall [s] | error / goal | meets goal | error / goal: points, centroid | cost ratio | peak RSS [MB] |"
-    )
-    lines.append("| --- | --- | --- | --- | --- | --- | --- | --- |")
+    return []
+
+
+def _pareto_lines(st) -> list:
+    """summary.md's table of the settings on the Pareto front."""
+    lines = [
+        "Pareto front (total wall time of all variants against the largest error as a multiple of its goal):",
+        "",
+        "| setting | family | wall [s] | error / goal | meets goal | error / goal: points, centroid | cost ratio | peak RSS [MB] |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
     for _, r in st[st["pareto"]].iterrows():
         lines.append(
             f"| `{r['setting']}`{' (default)' if r['is_default'] else ''}{' (reference)' if r['is_reference'] else ''} "
@@ -127,7 +159,12 @@ def summary_markdown(
             f"{_fmt(r['cost_ratio'], '.1f')} | {_fmt(r['peak_rss_mb'], '.0f')} |"
         )
     lines.append("")
-    lines.append("Configured default:")
+    return lines
+
+
+def _default_lines(st, default_name: str | None, max_cost_ratio: float) -> list:
+    """summary.md's verdict on the configured default: goal, Pareto front and cost ratio."""
+    lines = ["Configured default:"]
     d = st[st["setting"] == default_name] if default_name else st.iloc[0:0]
     if len(d) and bool(d.iloc[0]["is_reference"]):
         d = d.iloc[0]
@@ -147,46 +184,44 @@ def summary_markdown(
     else:
         lines.append(f"`{default_name}` was not run.")
     lines.append("")
-    lines += _effectivity_lines(df)
-    lines += _adaptive_lines(df, goal)
-    lines += _cylinder_lines(cylinder, goal)
+    return lines
+
+
+def _richardson_lines(rows, measure: str) -> list:
+    """summary.md's table of the Richardson orders and extrapolations per family (:func:`richardson_by_family`)."""
     rich = richardson_by_family(rows, measure=measure)
-    if rich:
+    if not rich:
+        return []
+    lines = [
+        f"Richardson extrapolation (three finest sizes of a family, h = {'n_dofs^(-1/3)' if measure == 'dofs' else 'element size'}):",
+        "",
+        "| animal | variant | family | quantity | order p | extrapolated | settings |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for x in rich:
         lines.append(
-            f"Richardson extrapolation (three finest sizes of a family, h = {'n_dofs^(-1/3)' if measure == 'dofs' else 'element size'}):"
+            f"| {x['animal']} | {x['variant']} | {x['family']} | {x['quantity']} | {_fmt(x['order_p'], '.2f')} | "
+            f"{_fmt(x['extrapolated'], '.4g')} | {', '.join(x['settings'])} |"
         )
-        lines.append("")
-        lines.append(
-            "| animal | variant | family | quantity | order p | extrapolated | settings |"
-        )
-        lines.append("| --- | --- | --- | --- | --- | --- | --- |")
-        for x in rich:
-            lines.append(
-                f"| {x['animal']} | {x['variant']} | {x['family']} | {x['quantity']} | {_fmt(x['order_p'], '.2f')} | "
-                f"{_fmt(x['extrapolated'], '.4g')} | {', '.join(x['settings'])} |"
-            )
-        lines.append("")
+    lines.append("")
+    return lines
+
+
+def _scaling_lines(df) -> list:
+    """summary.md's fitted growth of time and memory with n_dofs (:func:`scaling_fits`)."""
     fits = scaling_fits(df)
-    if fits:
+    if not fits:
+        return []
+    lines = [
+        "Growth with n_dofs (log–log least squares over the converged runs at the default tolerance):",
+        "",
+    ]
+    for f in fits:
         lines.append(
-            "Growth with n_dofs (log–log least squares over the converged runs at the default tolerance):"
+            f"- `{f.quantity}` ∝ n_dofs^{f.exponent:.2f} (R² {f.r2:.2f}, {f.n_points} runs)"
         )
-        lines.append("")
-        for f in fits:
-            lines.append(
-                f"- `{f.quantity}` ∝ n_dofs^{f.exponent:.2f} (R² {f.r2:.2f}, {f.n_points} runs)"
-            )
-        lines.append("")
-    failed = df[~df["converged"].astype(bool)]
-    if len(failed):
-        lines.append("Runs that did not converge:")
-        lines.append("")
-        for _, r in failed.iterrows():
-            lines.append(f"- `{r['setting']}` / {r['animal']} {r['variant']}: {r['reason']}")
-        lines.append("")
-    for n in notes:
-        lines.append(f"Note: {n}")
-    return "\n".join(lines).rstrip() + "\n"
+    lines.append("")
+    return lines
 
 
 def _within(true, estimate) -> str:
@@ -576,15 +611,39 @@ def read_benchmark(path) -> dict:
     return out
 
 
+@dataclass(frozen=True)
+class ConvergenceInputs:
+    """The files rule ``convergence_aggregate`` reads.
+
+    ``row_paths``: JSON rows of rule ``convergence_run``. ``benchmark_paths``: Snakemake ``benchmark:``
+    TSVs ``<animal>/<variant>_<setting>.tsv``; their time, memory and CPU time join the row of that
+    animal, variant and setting (an unreadable one is logged and left out). ``adaptive_paths``:
+    passes.csv of rule ``adapt_variant`` for animals and variants of the ladder: one row each
+    (:func:`adaptive_rows`) and their passes on the figure. ``cylinder_path``: the cylinder scene on
+    fixed and adaptive meshes (rule ``verify_cylinder_adaptive``'s table), a row of the figure and a
+    table of summary.md; None: left out.
+    """
+
+    row_paths: Sequence
+    benchmark_paths: Sequence = ()
+    adaptive_paths: Sequence = ()
+    cylinder_path: str | Path | None = None
+
+
+@dataclass(frozen=True)
+class ConvergenceOutputs:
+    """Where rule ``convergence_aggregate`` writes convergence.csv (:func:`convergence_table`),
+    error_vs_time.png (:func:`plot_error_vs_time`) and summary.md (:func:`summary_markdown`)."""
+
+    csv_path: str | Path
+    png_path: str | Path
+    md_path: str | Path
+
+
 def aggregate_convergence(
+    inputs: ConvergenceInputs,
+    outputs: ConvergenceOutputs,
     *,
-    row_paths,
-    benchmark_paths=(),
-    adaptive_paths=(),
-    cylinder_path=None,
-    csv_path,
-    png_path,
-    md_path,
     default_name: str | None,
     goal: dict | None = None,
     notes=(),
@@ -595,20 +654,10 @@ def aggregate_convergence(
 
     Parameters
     ----------
-    row_paths : list of path
-        JSON rows of rule ``convergence_run``.
-    benchmark_paths : list of path
-        Snakemake ``benchmark:`` TSVs ``<animal>/<variant>_<setting>.tsv``; their time, memory and CPU
-        time join the row of that animal, variant and setting (an unreadable one is logged and left out).
-    adaptive_paths : list of path
-        passes.csv of rule ``adapt_variant`` for animals and variants of the ladder: one row each
-        (:func:`adaptive_rows`) and their passes on the figure.
-    cylinder_path : path, optional
-        The cylinder scene on fixed and adaptive meshes (rule ``verify_cylinder_adaptive``'s table): a
-        row of the figure and a table of summary.md.
-    csv_path, png_path, md_path : path
-        Where convergence.csv (:func:`convergence_table`), error_vs_time.png
-        (:func:`plot_error_vs_time`) and summary.md (:func:`summary_markdown`) go.
+    inputs : ConvergenceInputs
+        The rows, benchmarks, adaptive runs and cylinder scene read.
+    outputs : ConvergenceOutputs
+        Where the table, the figure and the summary go.
     default_name : str or None
         Name of the configured default setting.
     goal : dict, optional
@@ -623,7 +672,7 @@ def aggregate_convergence(
     Returns
     -------
     DataFrame
-        The table written to ``csv_path``.
+        The table written to ``outputs.csv_path``.
     """
     import pandas as pd
 
@@ -631,31 +680,31 @@ def aggregate_convergence(
 
     g = AccuracyGoal(**(goal or {}))
     bench = {}
-    for p in benchmark_paths:
+    for p in inputs.benchmark_paths:
         try:
             bench[f"{Path(p).parent.name}/{Path(p).stem}"] = read_benchmark(p)
         except Exception as exc:  # a missing or empty benchmark is not a reason to lose the table
             log.warning("benchmark %s unreadable: %s", p, exc)
     rows = []
-    for p in row_paths:
+    for p in inputs.row_paths:
         r = read_json(p)
         r.update(bench.get(f"{r['animal']}/{r['variant']}_{r['setting']}", {}))
         rows.append(r)
     passes = (
-        pd.concat([pd.read_csv(p) for p in adaptive_paths], ignore_index=True)
-        if adaptive_paths
+        pd.concat([pd.read_csv(p) for p in inputs.adaptive_paths], ignore_index=True)
+        if inputs.adaptive_paths
         else None
     )
     if passes is not None:
         rows += adaptive_rows(passes)
         passes = adaptive_pass_errors(passes, reference_rows(rows))
-    cylinder = pd.read_csv(cylinder_path) if cylinder_path else None
+    cylinder = pd.read_csv(inputs.cylinder_path) if inputs.cylinder_path else None
     df = convergence_table(rows, goal=g, measure=measure)
-    with atomic_path(csv_path) as tmp:
+    with atomic_path(outputs.csv_path) as tmp:
         df.to_csv(tmp, index=False)
-    plot_error_vs_time(png_path, df, goal=g, passes=passes, cylinder=cylinder)
+    plot_error_vs_time(outputs.png_path, df, goal=g, passes=passes, cylinder=cylinder)
     write_summary_md(
-        md_path,
+        outputs.md_path,
         df,
         default_name=default_name,
         goal=g,
