@@ -203,7 +203,7 @@ def test_a_strain_jump_across_the_threshold_is_estimated_in_the_summary_and_voi_
 
 def test_cylinder_scene_on_a_coarse_mesh_gives_the_curve_and_the_estimated_voi():
     from deeptissue.fem.material import Ogden
-    from deeptissue.verification.cylinder import CylinderMesh, cylinder_scene
+    from deeptissue.verification.cylinder import CylinderMesh, CylinderScene, cylinder_scene
 
     coarse = CylinderMesh(
         element_size_mm=4.0,
@@ -217,8 +217,7 @@ def test_cylinder_scene_on_a_coarse_mesh_gives_the_curve_and_the_estimated_voi()
         coarse,
         curve_depths_mm=[0.25],
         voi_depths_mm=[0.5],
-        threshold=0.05,
-        bin_edges=(0.05, 0.1, 0.2),
+        scene=CylinderScene(threshold=0.05, bin_edges=(0.05, 0.1, 0.2)),
     )
     assert list(curve["depth_mm"]) == [0.25, 0.5] and curve["converged"].all()
     assert 0 < curve["force_N"].iloc[0] < curve["force_N"].iloc[1]

@@ -241,6 +241,22 @@ def _add_linear_reference(
         row["linear_error"] = f"{type(exc).__name__}: {exc}"
 
 
+def _log_row(row: dict) -> None:
+    """One log line of a solved row: convergence, size, solve and linear-reference times, memory."""
+    log.info(
+        "%s/%s/%s: converged %s, %s tets, %s dofs, solve %.1f s, linear %.2f s, peak %.0f MB",
+        row["animal"],
+        row["variant"],
+        row["setting"],
+        row["converged"],
+        row["n_elements"],
+        row["n_dofs"],
+        row["solve_s"],
+        row["linear_wall_s"] or float("nan"),
+        row["peak_rss_mb"],
+    )
+
+
 def run_discretisation(
     job: RunJob,
     *,
@@ -352,18 +368,7 @@ def run_discretisation(
             row, job, mesh, pose=pose, material=material, settings=settings, bar_mm=bar
         )
     row["peak_rss_mb"] = _rss_mb()
-    log.info(
-        "%s/%s/%s: converged %s, %s tets, %s dofs, solve %.1f s, linear %.2f s, peak %.0f MB",
-        animal,
-        variant,
-        setting.name,
-        row["converged"],
-        row["n_elements"],
-        row["n_dofs"],
-        row["solve_s"],
-        row["linear_wall_s"] or float("nan"),
-        row["peak_rss_mb"],
-    )
+    _log_row(row)
     return row
 
 

@@ -37,6 +37,7 @@ __all__ = [
     "ADAPTIVE_START",
     "CURVE_DEPTHS_MM",
     "CylinderMesh",
+    "CylinderScene",
     "ESTIMATES",
     "REFERENCE_MESH",
     "VOI_DEPTHS_MM",
@@ -187,15 +188,33 @@ def _other_estimates(mesh, u, summary, threshold, edges) -> dict:
     return out
 
 
+@dataclass(frozen=True)
+class CylinderScene:
+    """The cylinder's height and the VOI measured in it, shared by the fixed and the adaptive meshes.
+
+    ``height_mm``: the height of :func:`cylinder_mesh`, 8 mm like its radius, so the 3 mm deepest
+    indentation stays far from the fixed bottom face; ``threshold``: the VOI's max-shear-strain
+    threshold, 0.3 as in the study; ``bin_edges``: the VOI's bin edges, None: the study's
+    :data:`deeptissue.strain.DEFAULT_BIN_EDGES`.
+    """
+
+    height_mm: float = 8.0
+    threshold: float = 0.3
+    bin_edges: tuple[float, ...] | None = None
+
+    @property
+    def edges(self) -> tuple[float, ...]:
+        """The bin edges used: ``bin_edges`` or the study's default."""
+        return DEFAULT_BIN_EDGES if self.bin_edges is None else tuple(self.bin_edges)
+
+
 def cylinder_scene(
     material,
     sizes: CylinderMesh = CylinderMesh(),
     *,
     curve_depths_mm: Sequence[float] = CURVE_DEPTHS_MM,
     voi_depths_mm: Sequence[float] = VOI_DEPTHS_MM,
-    height_mm: float = 8.0,
-    threshold: float = 0.3,
-    bin_edges=None,
+    scene: CylinderScene = CylinderScene(),
     settings: SolverSettings | None = None,
     mesh: TetMesh | None = None,
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
@@ -203,7 +222,7 @@ def cylinder_scene(
 
     Each depth is its own solve to that depth with the solver's defaults (no cast, zero bone motion),
     so every number is a converged end state; the VOI, bins and their error estimate are those of
-    the study (:func:`deeptissue.summary.summarize_solution`).
+    the study (:func:`deeptissue.summary.summarize_solution`) at ``scene``'s threshold and bins.
 
     Returns
     -------
@@ -215,7 +234,7 @@ def cylinder_scene(
         bins_err_pp.<bin> and voi_centroid_mm3 (:func:`deeptissue.summary.summarize_solution`).
     """
 
-    edges = DEFAULT_BIN_EDGES if bin_edges is None else tuple(bin_edges)
+    edges, height_mm, threshold = scene.edges, scene.height_mm, scene.threshold
     m = cylinder_mesh(sizes, height_mm=height_mm) if mesh is None else mesh
     st = SolverSettings() if settings is None else settings
     rows, vois = [], []
@@ -381,18 +400,17 @@ def adaptive_cylinder(
     settings=None,
     *,
     start: CylinderMesh = ADAPTIVE_START,
-    height_mm: float = 8.0,
-    threshold: float = 0.3,
-    bin_edges=None,
+    scene: CylinderScene = CylinderScene(),
     solver_settings: SolverSettings | None = None,
     log=None,
 ):
     """The cylinder scene at one depth on adaptive meshes (:func:`deeptissue.adapt.adapt`): the first
     pass on ``start`` (uniform 1.6 mm: 10 809 DOFs, a quarter of the default mesh's solve), each next one remeshed from the previous solution's
     estimate (:func:`cylinder_estimate`) until it meets the goal of ``settings``
-    (:class:`deeptissue.adapt.AdaptSettings`) or its budget is spent. Returns the AdaptResult."""
+    (:class:`deeptissue.adapt.AdaptSettings`) or its budget is spent; the height, VOI threshold and
+    bins are ``scene``'s. Returns the AdaptResult."""
 
-    ind = _indenter(depth_mm, height_mm)
+    ind = _indenter(depth_mm, scene.height_mm)
     st = SolverSettings() if solver_settings is None else solver_settings
 
     def solve(m, previous):  # from the previous pass's solution carried to this mesh
@@ -413,9 +431,11 @@ def adaptive_cylinder(
         )
 
     return adapt(
-        lambda field: cylinder_mesh(start, height_mm=height_mm, size_field=field),
+        lambda field: cylinder_mesh(start, height_mm=scene.height_mm, size_field=field),
         solve,
-        lambda m, r: cylinder_estimate(m, r, ind, threshold=threshold, bin_edges=bin_edges),
+        lambda m, r: cylinder_estimate(
+            m, r, ind, threshold=scene.threshold, bin_edges=scene.bin_edges
+        ),
         AdaptSettings() if settings is None else settings,
         log=log,
     )
