@@ -1,4 +1,4 @@
-"""The SLURM profile: every rule that runs a job asks for its resources, and the README's commands work as written."""
+"""The SLURM profile: every rule that runs a job asks for its resources, and the user guide's commands work as written."""
 
 import os
 import re
@@ -50,8 +50,8 @@ def test_job_states_come_from_squeue_which_needs_no_accounting():
     assert 3 * PROFILE["slurm-init-seconds-before-status-checks"] <= 300
 
 
-def _readme_cluster_commands() -> list[str]:
-    text = (ROOT / "README.md").read_text()
+def _guide_cluster_commands() -> list[str]:
+    text = (ROOT / "docs" / "usage.md").read_text()
     section = text.split("## On a SLURM cluster", 1)[1].split("\n## ", 1)[0]
     return [
         line.split("#")[0].strip()
@@ -61,8 +61,8 @@ def _readme_cluster_commands() -> list[str]:
 
 
 @pytest.mark.slow
-def test_the_readmes_cluster_commands_plan_every_job_with_its_resources():
-    commands = _readme_cluster_commands()
+def test_the_user_guides_cluster_commands_plan_every_job_with_its_resources():
+    commands = _guide_cluster_commands()
     assert any("--default-resources slurm_account=" in c for c in commands)
     job_rules = _job_rules()
     exe = Path(sys.executable).with_name("snakemake")
