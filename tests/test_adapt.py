@@ -16,6 +16,7 @@ from deeptissue.adapt import (
     element_sizes,
     estimated_tets,
     fit_budget,
+    goal_verdict,
     node_sizes,
     target_sizes,
 )
@@ -83,6 +84,9 @@ def test_estimated_tets_counts_gmsh_elements(coarse_cylinder):
     assert estimated_tets(m0, graded) == pytest.approx(remeshed.n_tets, rel=0.15)
     ungraded = np.sum(_volumes(m0) / (GMSH_TET_VOLUME * np.where(near, 0.25, h) ** 3))
     assert ungraded < 0.75 * remeshed.n_tets  # what counting the element sizes alone would say
+    # an element whose corner sizes stay as the mesh was made counts as itself
+    now = node_sizes(m0, h, grading=0.4, current_mm=h)
+    assert estimated_tets(m0, now, current_mm=now) == m0.n_tets
     with pytest.raises(ValueError, match="size > 0"):
         estimated_tets(m0, np.zeros(len(m0.nodes_mm)))
 
@@ -613,3 +617,22 @@ def test_a_scene_without_a_voi_meets_the_voi_goal_only_if_its_estimate_agrees(co
     # no VOI in the solution, but the recovered field crosses the threshold: a VOI the mesh may not resolve
     r = run(0.01)
     assert r.stop_reason == "passes" and np.isinf(r.passes[0].voi_err_percent)
+
+
+def test_goal_verdict_says_which_number_misses_its_goal_and_by_how_much():
+    st = AdaptSettings()  # VOI 2 %, bins 1 pp, force 2 %
+    ok = goal_verdict(1.9, 0.5, 1.0, "estimated", st)
+    assert (
+        ok["within_goal"] and ok["outside_goal"] == "" and ok["goal_ratio"] == pytest.approx(0.95)
+    )
+    off = goal_verdict(8.0, 1.5, 1.0, "estimated", st)
+    assert not off["within_goal"] and off["goal_ratio"] == pytest.approx(4.0)
+    assert off["outside_goal"] == "VOI ±8 % > 2 %; bins ±1.5 pp > 1 pp"
+    # an unknown force estimate misses its goal, with the reason; the known ones still give the ratio
+    one = goal_verdict(1.0, 0.2, np.nan, "one mesh", st)
+    assert not one["within_goal"] and one["outside_goal"] == "force not estimated (one mesh)"
+    assert one["goal_ratio"] == pytest.approx(0.5)
+    assert goal_verdict(1.0, 0.2, np.nan, "no goal", AdaptSettings(force_goal_percent=None))[
+        "within_goal"
+    ]
+    assert goal_verdict(np.inf, 0.0, 1.0, "estimated", st)["goal_ratio"] == np.inf

@@ -35,6 +35,8 @@ __all__ = [
     "element_sizes",
     "estimated_tets",
     "fit_budget",
+    "goal_verdict",
+    "voi_error_percent",
     "node_sizes",
     "target_sizes",
 ]
@@ -138,17 +140,26 @@ def _volumes(mesh: TetMesh) -> np.ndarray:
     return np.abs(np.linalg.det(X[:, 1:] - X[:, :1])) / 6.0
 
 
-def estimated_tets(mesh: TetMesh, node_size_mm) -> float:
+def estimated_tets(mesh: TetMesh, node_size_mm, *, current_mm=None) -> float:
     """Number of tetrahedra gmsh makes of ``mesh``'s domain meshed to the background size ``node_size_mm``
     (n_nodes,) [mm] at its corner nodes (:func:`node_sizes`, :class:`deeptissue.mesh.SizeField`): the
     integral of 1 / (:data:`GMSH_TET_VOLUME` h³) with h interpolated linearly in every element, as gmsh
     interpolates it, times :data:`GMSH_GRADED_EXCESS`. The graded sizes around a refined region count:
-    a region refined to 0.2 mm brings a halo of elements growing by ``grading`` per mm."""
+    a region refined to 0.2 mm brings a halo of elements growing by ``grading`` per mm.
+
+    With ``current_mm`` (n_nodes,), the node sizes ``mesh`` itself was made to, an element none of whose
+    corners changes size counts as itself: gmsh remeshes an unchanged region as it did (a coarse limb
+    has 40 % more elements than the integral, its surface's share).
+    """
     hn = np.asarray(node_size_mm, float)[mesh.tets[:, :4]]
     if not np.all(hn > 0):
         raise ValueError("estimated_tets: every corner node needs a size > 0")
-    density = np.mean((hn @ _SIZE_N.T) ** -3.0, axis=1)
-    return float(GMSH_GRADED_EXCESS * np.sum(_volumes(mesh) * density) / GMSH_TET_VOLUME)
+    count = GMSH_GRADED_EXCESS * _volumes(mesh) * np.mean((hn @ _SIZE_N.T) ** -3.0, axis=1)
+    count /= GMSH_TET_VOLUME
+    if current_mm is not None:
+        same = np.all(np.isclose(hn, np.asarray(current_mm, float)[mesh.tets[:, :4]]), axis=1)
+        count[same] = 1.0
+    return float(count.sum())
 
 
 def target_sizes(
@@ -434,13 +445,8 @@ def adapt(
             )
         elif force_status != "held" or not force_err <= st.force_goal_percent:
             held = None
-        voi_pc = _voi_error_percent(est.voi_mm3, est.voi_err_mm3)
-        force_ok = (
-            st.force_goal_percent is None or force_err <= st.force_goal_percent
-        )  # NaN: not known, not met
-        met = bool(
-            voi_pc <= st.voi_goal_percent and est.bins_err_pp <= st.bins_goal_pp and force_ok
-        )
+        voi_pc = voi_error_percent(est.voi_mm3, est.voi_err_mm3)
+        met = goal_verdict(voi_pc, est.bins_err_pp, force_err, force_status, st)["within_goal"]
         p = AdaptPass(
             k,
             3 * len(mesh.nodes_mm),
@@ -486,7 +492,50 @@ def adapt(
     return AdaptResult(tuple(passes), mesh, sol, est, reason)
 
 
-def _voi_error_percent(voi_mm3: float, voi_err_mm3: float) -> float:
+def goal_verdict(
+    voi_err_percent: float,
+    bins_err_pp: float,
+    force_err_percent: float,
+    force_status: str,
+    settings: AdaptSettings = AdaptSettings(),
+) -> dict:
+    """Whether one solution's estimates meet the accuracy goal of ``settings``, and by how much they miss.
+
+    ``voi_err_percent`` [%] and ``bins_err_pp`` (the largest bin's) [pp] are the estimates of the VOI and
+    bins; ``force_err_percent`` [%] the force's (NaN: not known, ``force_status`` says why, as
+    :class:`AdaptPass`'s). An unknown estimate does not meet its goal: a single mesh (the preview's) has
+    none for the force. Returns the summary keys ``within_goal``; ``goal_ratio``, the largest estimate
+    over its goal among the known ones (> 1: outside the goal by that factor; NaN if none is known);
+    ``voi_err_percent``, ``bins_err_max_pp``, ``force_err_percent``, ``force_err_status``; and
+    ``outside_goal``, the numbers that miss their goal and why ('' within the goal).
+    """
+    st = settings
+    checks = [
+        ("VOI", voi_err_percent, st.voi_goal_percent, "%"),
+        ("bins", bins_err_pp, st.bins_goal_pp, "pp"),
+    ]
+    if st.force_goal_percent is not None:
+        checks.append(("force", force_err_percent, st.force_goal_percent, "%"))
+    ratios, missed = [], []
+    for name, err, goal, unit in checks:
+        if np.isnan(err):
+            missed.append(f"{name} not estimated ({force_status})")
+            continue
+        ratios.append(err / goal)
+        if not err <= goal:
+            missed.append(f"{name} ±{err:.3g} {unit} > {goal:g} {unit}")
+    return dict(
+        within_goal=not missed,
+        goal_ratio=float(max(ratios)) if ratios else np.nan,
+        voi_err_percent=float(voi_err_percent),
+        bins_err_max_pp=float(bins_err_pp),
+        force_err_percent=float(force_err_percent),
+        force_err_status=force_status,
+        outside_goal="; ".join(missed),
+    )
+
+
+def voi_error_percent(voi_mm3: float, voi_err_mm3: float) -> float:
     """The VOI's estimated error over the VOI [%]: 0 where both are zero (no element near the threshold
     in either field: a scene strained below it everywhere has nothing to refine for the VOI), infinite
     where only the VOI is (a VOI may exist that the mesh does not resolve)."""
@@ -553,14 +602,18 @@ def fit_budget(
     """``new_h_mm`` (n_tets,) [mm] with every refined size (below the present sizes ``h_mm``) scaled by
     the smallest common factor λ >= 1, never past ``h_mm``, for which the mesh of its graded node sizes
     (:func:`node_sizes` with ``current_mm=h_mm``) has at most ``max_tets`` tetrahedra by
-    :func:`estimated_tets` (``new_h_mm`` itself if it fits; ``h_mm`` if even λ → ∞ does not)."""
+    :func:`estimated_tets`, the unchanged elements counted as they are (``new_h_mm`` itself if it fits;
+    ``h_mm`` if even λ → ∞ does not)."""
     h, nh = np.asarray(h_mm, float), np.asarray(new_h_mm, float)
 
     def sized(lam):
         return np.where(nh < h, np.minimum(h, lam * nh), nh)
 
+    now = node_sizes(mesh, h, grading=grading, current_mm=h)
+
     def count(lam):
-        return estimated_tets(mesh, node_sizes(mesh, sized(lam), grading=grading, current_mm=h))
+        sizes = node_sizes(mesh, sized(lam), grading=grading, current_mm=h)
+        return estimated_tets(mesh, sizes, current_mm=now)
 
     if count(1.0) <= max_tets:
         return nh

@@ -32,7 +32,7 @@ from .mesh import SizeField, TetMesh
 from .model import Cast, ModelSettings, build_model
 from .pose import Pose
 from .strain import ElementStrain
-from .study import StudySettings, solve_variant, variant_indenter
+from .study import StudySettings, accuracy_fields, solve_variant, variant_indenter
 from .summary import SAMPLING_LEVELS, Summary
 
 __all__ = [
@@ -277,8 +277,8 @@ def run_adaptive_variant(
     """Rule ``adapt_variant``: read the pre contours, pose, cast and during contours, run
     :func:`adaptive_limb` and write ``passes_csv`` (one row per pass, :meth:`deeptissue.adapt.AdaptResult.table`
     with animal, variant and stop_reason), ``summary_path`` (the last converged pass's summary, as
-    the rule ``solve`` writes it, with ``adapt_passes``, ``adapt_stop_reason``, ``adapt_goal_met`` and
-    ``adapt_wall_s`` [s]; the failed pass's summary if none converged) and ``vtu_path`` (that pass's
+    the rule ``solve`` writes it, with ``adapt_passes``, ``adapt_stop_reason``, ``adapt_wall_s`` [s] and the last converged pass's
+    verdict (:func:`deeptissue.study.accuracy_fields`, ``within_goal``); the failed pass's summary if none converged) and ``vtu_path`` (that pass's
     ``result.vtu``, :func:`deeptissue.summary.write_result_vtu`). A run that raises (its passes table then
     has no rows), or whose first pass does not converge, writes a summary with ``converged = False`` and
     the reason and the first pass's mesh undeformed, so that the study goes on without this variant (as
@@ -364,6 +364,16 @@ def run_adaptive_variant(
         )
         u = None if mesh is None else np.zeros_like(mesh.nodes_mm)
         strain = None if mesh is None else element_strain(mesh, u)
+    # the last converged pass's verdict: its summary's VOI and bin estimates, the loop's force estimate
+    solved = [p for p in result.passes if p.converged] if result is not None else []
+    accuracy = accuracy_fields(
+        summary,
+        mesh="adaptive",
+        force_err_percent=solved[-1].force_err_percent if solved else np.nan,
+        force_status=solved[-1].force_status if solved else "no solve",
+        goal=settings,
+    )
+    summary = replace(summary, extra={**summary.extra, **accuracy})
     if result is not None:
         summary = replace(
             summary,
@@ -371,7 +381,6 @@ def run_adaptive_variant(
                 **summary.extra,
                 "adapt_passes": len(result.passes),
                 "adapt_stop_reason": result.stop_reason,
-                "adapt_goal_met": result.goal_met,
                 "adapt_wall_s": float(result.passes[-1].wall_s) if result.passes else None,
             },
         )
