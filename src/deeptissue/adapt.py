@@ -403,10 +403,8 @@ def adapt(
     st = settings
     t_start = time.perf_counter()
     passes, field_, previous_force, last = [], initial, None, None
-    held, plan = (
-        None,
-        "",
-    )  # the force's verdict in force; why the last remeshing left the contact zone alone
+    # the force's verdict in force; why the last remeshing left the contact zone alone
+    held, plan = None, ""
     reason = "passes"
     for k in range(st.max_passes):
         t0 = time.perf_counter()
@@ -418,27 +416,7 @@ def adapt(
             not sol.converged
         ):  # a solve stopped by the loop's budget (the solver's max_wall_s) spent it
             reason = "wall" if t2 - t_start >= st.max_wall_s else "not converged"
-            passes.append(
-                AdaptPass(
-                    k,
-                    3 * len(mesh.nodes_mm),
-                    int(mesh.n_tets),
-                    False,
-                    t1 - t0,
-                    t2 - t1,
-                    0.0,
-                    t2 - t_start,
-                    np.nan,
-                    np.nan,
-                    np.nan,
-                    np.nan,
-                    np.nan,
-                    np.nan,
-                    "no solve",
-                    float(element_sizes(mesh).min()),
-                    False,
-                )
-            )
+            passes.append(_unsolved_pass(k, mesh, (t1 - t0, t2 - t1, t2 - t_start)))
             break
         est = estimate(mesh, sol)
         t3 = time.perf_counter()
@@ -502,6 +480,27 @@ def adapt(
         )
     mesh, sol, est = last if last is not None else (None, None, None)
     return AdaptResult(tuple(passes), mesh, sol, est, reason)
+
+
+def _unsolved_pass(k: int, mesh: TetMesh, times_s: tuple) -> AdaptPass:
+    """Pass ``k`` whose solve did not converge on ``mesh``: its (mesh, solve, since the start) times [s]
+    and no estimates."""
+    mesh_s, solve_s, wall_s = times_s
+    nan = np.nan
+    return AdaptPass(
+        k,
+        3 * len(mesh.nodes_mm),
+        int(mesh.n_tets),
+        False,
+        mesh_s,
+        solve_s,
+        0.0,
+        wall_s,
+        *(nan,) * 6,
+        "no solve",
+        float(element_sizes(mesh).min()),
+        False,
+    )
 
 
 def goal_verdict(
