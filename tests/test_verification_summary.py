@@ -399,7 +399,7 @@ def test_adaptive_cylinder_rows_hold_each_last_pass_to_the_finest_fixed_mesh():
             cylinder_curve=curve,
             cylinder_voi=voi,
             cylinder_adaptive=_adaptive(
-                curve, voi, force_error=0.006, voi_error=0.03, goal_met=False
+                curve, voi, force_error=0.03, voi_error=0.03, goal_met=False
             ),
         )
     )
@@ -481,7 +481,7 @@ def test_the_adaptive_cylinder_rows_are_read_from_their_csv_file(tmp_path):
         **_tables(hard_30_converged=True),
         "cylinder_curve": curve,
         "cylinder_voi": voi,
-        "cylinder_adaptive": _adaptive(curve, voi, force_error=0.006),
+        "cylinder_adaptive": _adaptive(curve, voi, force_error=0.03),
     }
     for name, df in tables.items():
         paths[name] = tmp_path / f"{name}.csv"
