@@ -9,20 +9,13 @@ from model_synth import leg_contours, leg_pose
 from study_meshes import boundary_tri6, box_tet10
 
 from deeptissue.adapt import AdaptSettings, element_sizes, node_sizes
-from deeptissue.adapt_limb import (
-    AdaptFiles,
-    TurnStart,
-    contact_tets,
-    limb_mesher,
-    run_adaptive_variant,
-)
+from deeptissue.adapt_limb import AdaptFiles, contact_tets, limb_mesher, run_adaptive_variant
 from deeptissue.contours import save_contours
 from deeptissue.fem.indenters import Indenter
 from deeptissue.mesh import SizeField, TetMesh
 from deeptissue.model import build_cast, build_model, save_cast
 from deeptissue.pose import save_pose
-from deeptissue.strain import element_strain
-from deeptissue.summary import read_result_vtu, read_summary, write_result_vtu
+from deeptissue.summary import read_result_vtu, read_summary
 
 # a short phantom limb (12 slices, 11 x 8.6 mm across), the study's sizes but the quality gate's, which is
 # the model stage's business
@@ -47,7 +40,7 @@ def _centroids(mesh: TetMesh) -> np.ndarray:
     return mesh.nodes_mm[mesh.tets[:, :4]].mean(axis=1)
 
 
-def _files(d, name, base_vtu=None) -> AdaptFiles:
+def _files(d, name) -> AdaptFiles:
     return AdaptFiles(
         contours=d / "pre.npz",
         pose=d / "pose.json",
@@ -56,7 +49,6 @@ def _files(d, name, base_vtu=None) -> AdaptFiles:
         passes_csv=d / name / "passes.csv",
         summary=d / name / "summary.json",
         vtu=d / name / "result.vtu",
-        base_vtu=base_vtu,
     )
 
 
@@ -163,56 +155,6 @@ def test_two_adaptive_passes_on_a_phantom_limb_refine_under_the_indenter(limb, t
         np.allclose(cells["gamma_gl"], result.solution.strain.gamma_gl)
         and cells["converged"].all()
     )
-
-
-@pytest.mark.slow
-def test_a_turned_variant_starts_from_its_base_variants_last_pass(limb, tmp_path):
-    c, p, cast = limb
-    save_contours(tmp_path / "pre.npz", c)
-    save_pose(tmp_path / "pose.json", p)
-    save_cast(
-        tmp_path / "cast.npz",
-        build_cast(c, p, variants=["sphere", "sphere_rx+15"], settings=MODEL),
-    )
-    kw = dict(model_cfg=MODEL, fem_cfg={}, study_cfg={"threshold": 0.3})
-    base = run_adaptive_variant(
-        animal="leg",
-        variant="sphere",
-        files=_files(tmp_path, "sphere"),
-        settings=AdaptSettings(max_passes=2, max_tets=2200),
-        **kw,
-    )
-    one = AdaptSettings(max_passes=1)
-    turned = run_adaptive_variant(
-        animal="leg",
-        variant="sphere_rx+15",
-        files=_files(tmp_path, "turned", base_vtu=tmp_path / "sphere/result.vtu"),
-        base_variant="sphere",
-        settings=one,
-        **kw,
-    )
-    alone = run_adaptive_variant(
-        animal="leg", variant="sphere_rx+15", files=_files(tmp_path, "alone"), settings=one, **kw
-    )
-    s, a = (
-        read_summary(tmp_path / "turned/summary.json"),
-        read_summary(tmp_path / "alone/summary.json"),
-    )
-    assert s.converged and a.converged
-    # turned from the sphere's end state, on a mesh with the sphere's final sizes: fewer Newton iterations
-    # than from the start on the model's element size, and the same answer on the finer mesh
-    assert s.extra["turned_from"] == "sphere" and a.extra["turned_from"] is None
-    assert s.newton_iterations < a.newton_iterations
-    assert turned.mesh.n_tets == pytest.approx(base.mesh.n_tets, rel=0.2)
-    assert turned.mesh.n_tets > 1.2 * alone.mesh.n_tets
-    assert s.indenter_force_N == pytest.approx(a.indenter_force_N, rel=0.1)
-    # a base that did not converge: the turned variant is solved from the start
-    failed = tmp_path / "failed.vtu"
-    mesh, u, cells = read_result_vtu(tmp_path / "sphere/result.vtu")
-    write_result_vtu(
-        failed, mesh, u, element_strain(mesh, u), cell_data={"converged": 0 * cells["converged"]}
-    )
-    assert TurnStart.from_result_vtu(failed, "sphere") is None
 
 
 def test_a_failed_adaptive_run_is_recorded_and_the_study_goes_on(limb, tmp_path):

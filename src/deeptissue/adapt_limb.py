@@ -5,10 +5,11 @@ first pass at the model's element size everywhere, the next ones from the backgr
 previous pass), solves the bone rotation and the indentation on that mesh
 (:func:`deeptissue.fem.solver.solve_bone_rotation`, :func:`deeptissue.study.solve_variant`; the cast
 contacts the new mesh's skin facets, the indenter its patch) and estimates the discretisation error of
-the VOI, its bins and the force (:func:`limb_estimate`). A turned variant ('sphere_rx+15') starts from
-its base variant's last pass (:class:`TurnStart`): its first mesh has the base's final sizes and its first
-solve turns the indenter from the base's end state. :func:`run_adaptive_variant` is the rule
-``adapt_variant``.
+the VOI, its bins and the force (:func:`limb_estimate`). Every variant, turned ones too, starts from
+the model's element size and its bone rotation: a turn from the base variant's last pass, carried to
+another mesh, finds its contact set anew (rat03's ``sphere_rz+15`` on its sphere's final sizes: 922 and
+1 035 active-set changes in its first two increments, 1 192 s for its first pass, where a first pass
+from the start takes 40-90 s on the same loaded machine). :func:`run_adaptive_variant` is the rule ``adapt_variant``.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .adapt import AdaptResult, AdaptSettings, PassEstimate, adapt, element_sizes, node_sizes
+from .adapt import AdaptResult, AdaptSettings, PassEstimate, adapt
 from .contours import Contours, load_contours
 from .errorest import voi_error_estimate
 from .fem.cast import Cast as SolverCast
@@ -42,7 +43,6 @@ from .summary import (
     Summary,
     failed_summary,
     qc_warnings_of,
-    read_result_vtu,
     write_result_vtu,
     write_summary,
 )
@@ -51,7 +51,6 @@ __all__ = [
     "AdaptFiles",
     "LimbJob",
     "LimbSolve",
-    "TurnStart",
     "adaptive_limb",
     "contact_tets",
     "limb_estimate",
@@ -82,37 +81,9 @@ class LimbJob:
     skin_contours_mm: np.ndarray | None = None
     bar_length_mm: float = 10.0
 
-    def indenter(self, variant: str | None = None) -> Indenter:
-        """The rigid indenter of ``variant`` (this job's by default) on this animal's pose."""
-        return variant_indenter(
-            self.pose, variant or self.variant, bar_length_mm=self.bar_length_mm
-        )
-
-
-@dataclass(frozen=True)
-class TurnStart:
-    """The last pass of the variant a turned one is turned from (:func:`deeptissue.variants.turn_base`):
-    its name, mesh [mm] and converged displacement (n_nodes, 3) [mm], as its ``result.vtu`` holds them."""
-
-    base_variant: str
-    mesh: TetMesh
-    displacement_mm: np.ndarray
-
-    @classmethod
-    def from_result_vtu(cls, path, base_variant: str) -> TurnStart | None:
-        """The base's ``result.vtu`` (rule ``adapt_variant``), None if that run did not converge (its cells
-        say so): the turned variant then starts from the model's element size and the bone state."""
-        mesh, u, cells = read_result_vtu(path)
-        if not np.all(cells.get("converged", 0)):
-            log.warning("%s: %s did not converge: solving from the start", path, base_variant)
-            return None
-        return cls(base_variant, mesh, u)
-
-    def size_field(self) -> SizeField:
-        """The base's final element sizes as a background size: the first mesh of the turned variant,
-        whose VOI lies about the same final tip."""
-        h = element_sizes(self.mesh)
-        return SizeField.from_mesh(self.mesh, node_sizes(self.mesh, h, current_mm=h))
+    def indenter(self) -> Indenter:
+        """The variant's rigid indenter on this animal's pose."""
+        return variant_indenter(self.pose, self.variant, bar_length_mm=self.bar_length_mm)
 
 
 @dataclass(frozen=True)
@@ -159,30 +130,19 @@ def limb_mesher(
 
 
 def limb_solver(
-    job: LimbJob, *, deadline_s: float | None = None, turn_from: TurnStart | None = None
+    job: LimbJob, *, deadline_s: float | None = None
 ) -> Callable[[TetMesh, tuple | None], LimbSolve]:
     """``solve(mesh, previous) -> LimbSolve`` of :func:`deeptissue.adapt.adapt`. The first pass solves the
     bone-rotation steps on the mesh (:func:`deeptissue.fem.solver.solve_bone_rotation`), then the variant
     from that state as the rule ``solve`` does (:func:`deeptissue.study.solve_variant`, which solves the
-    rotation itself if those steps did not converge); with ``turn_from``, the first pass instead turns
-    the indenter from the base variant's end state carried to its mesh (``turned_from`` the base's name),
-    and solves the whole path only if that fails. A later pass starts from the previous pass's solution
-    carried to its mesh (:func:`deeptissue.fem.transfer.mapped_end_state`, ``turned_from`` "previous
-    pass") and solves the whole path only if that state folds tets or does not converge. ``deadline_s``
-    (``time.perf_counter()`` seconds) ends every solve there, as the solver's ``max_wall_s`` (the smaller
-    of the two): a pass that cannot finish within the loop's budget is stopped instead of running on."""
+    rotation itself if those steps did not converge). A later pass starts from the previous pass's
+    solution carried to its mesh (:func:`deeptissue.fem.transfer.mapped_end_state`, ``turned_from``
+    "previous pass") and solves the whole path only if that state folds tets or does not converge.
+    ``deadline_s`` (``time.perf_counter()`` seconds) ends every solve there, as the solver's
+    ``max_wall_s`` (the smaller of the two): a pass that cannot finish within the loop's budget is
+    stopped instead of running on."""
     indenter = job.indenter()
     cast = SolverCast(job.cast.vertices_mm, job.cast.triangles)
-
-    def carried(src: TetMesh, u, mesh: TetMesh, from_indenter: Indenter, settings):
-        return mapped_end_state(
-            src,
-            u,
-            mesh,
-            indenter=from_indenter,
-            bone_motion=job.pose.bone_motion,
-            settings=settings,
-        )
 
     def solve(mesh: TetMesh, previous: tuple | None) -> LimbSolve:
         settings = job.solver
@@ -190,24 +150,21 @@ def limb_solver(
             left = max(deadline_s - time.perf_counter(), 1.0)
             settings = replace(settings, max_wall_s=min(settings.max_wall_s or np.inf, left))
         start = base = None
-        base_variant = "previous pass"
-        if previous is not None:
-            base = carried(previous[0], previous[1].displacement_mm, mesh, indenter, settings)
-        elif turn_from is not None:
-            base_variant = turn_from.base_variant
-            base = carried(
-                turn_from.mesh,
-                turn_from.displacement_mm,
-                mesh,
-                job.indenter(base_variant),
-                settings,
-            )
-        if previous is None and base is None:
+        if previous is None:
             _, start = solve_bone_rotation(
                 mesh,
                 material=job.material,
                 bone_motion=job.pose.bone_motion,
                 cast=cast,
+                settings=settings,
+            )
+        else:
+            base = mapped_end_state(
+                previous[0],
+                previous[1].displacement_mm,
+                mesh,
+                indenter=indenter,
+                bone_motion=job.pose.bone_motion,
                 settings=settings,
             )
         summary, u, strain = solve_variant(
@@ -223,7 +180,7 @@ def limb_solver(
             bar_length_mm=job.bar_length_mm,
             start=start,
             base=base,
-            base_variant=base_variant,
+            base_variant="previous pass",
         )
         force = summary.indenter_force_N
         return LimbSolve(
@@ -291,14 +248,12 @@ def adaptive_limb(
     job: LimbJob,
     settings: AdaptSettings = AdaptSettings(),
     *,
-    turn_from: TurnStart | None = None,
     log_pass: Callable[[str], None] | None = None,
 ) -> AdaptResult:
     """One limb variant on adaptive meshes: :func:`deeptissue.adapt.adapt` with :func:`limb_mesher`,
     :func:`limb_solver` and :func:`limb_estimate` until the estimates meet the goals of ``settings`` or
-    its budget is spent. With ``turn_from`` the first mesh has the base variant's final sizes and its
-    solve starts from the base's end state. Returns the AdaptResult (``solution``: the last converged
-    pass's :class:`LimbSolve`)."""
+    its budget is spent. Returns the AdaptResult (``solution``: the last converged pass's
+    :class:`LimbSolve`)."""
     indenter = job.indenter()
     deadline_s = time.perf_counter() + settings.max_wall_s
     return adapt(
@@ -310,10 +265,9 @@ def adaptive_limb(
             settings=job.model,
             animal=job.animal,
         ),
-        limb_solver(job, deadline_s=deadline_s, turn_from=turn_from),
+        limb_solver(job, deadline_s=deadline_s),
         lambda mesh, sol: limb_estimate(mesh, sol, indenter, job.study),
         settings,
-        initial=None if turn_from is None else turn_from.size_field(),
         log=log_pass,
     )
 
@@ -321,9 +275,8 @@ def adaptive_limb(
 @dataclass(frozen=True)
 class AdaptFiles:
     """The files of rule ``adapt_variant``: inputs ``contours`` (pre), ``pose``, ``cast``,
-    ``during_contours`` (None: no skin agreement) and ``base_vtu`` (the ``result.vtu`` of the variant
-    this one is turned from; None: none); outputs ``passes_csv``, ``summary`` and ``vtu`` (None: not
-    written)."""
+    ``during_contours`` (None: no skin agreement); outputs ``passes_csv``, ``summary`` and ``vtu``
+    (None: not written)."""
 
     contours: str | Path
     pose: str | Path
@@ -332,7 +285,6 @@ class AdaptFiles:
     passes_csv: str | Path
     summary: str | Path
     vtu: str | Path | None = None
-    base_vtu: str | Path | None = None
 
 
 def run_adaptive_variant(
@@ -343,12 +295,10 @@ def run_adaptive_variant(
     model_cfg: dict | None,
     fem_cfg: dict,
     study_cfg: dict,
-    base_variant: str | None = None,
     settings: AdaptSettings = AdaptSettings(),
 ) -> AdaptResult | None:
     """Rule ``adapt_variant``: read the pre contours, pose, cast and during contours, run
-    :func:`adaptive_limb` (from ``base_variant``'s last pass in ``files.base_vtu`` if given and
-    converged, :class:`TurnStart`) and write ``files.passes_csv`` (one row per pass,
+    :func:`adaptive_limb` and write ``files.passes_csv`` (one row per pass,
     :meth:`deeptissue.adapt.AdaptResult.table` with animal, variant and stop_reason), ``files.summary``
     (the last converged pass's summary, as the rule ``solve`` writes it, with ``adapt_passes``,
     ``adapt_stop_reason``, ``adapt_wall_s`` [s] and the last converged pass's verdict,
@@ -381,15 +331,9 @@ def run_adaptive_variant(
             else None,
             bar_length_mm=float(fem_cfg.get("bar_length_mm", 10.0)),
         )
-        turn_from = (
-            TurnStart.from_result_vtu(files.base_vtu, base_variant)
-            if files.base_vtu and base_variant
-            else None
-        )
         result = adaptive_limb(
             job,
             settings,
-            turn_from=turn_from,
             log_pass=lambda line: log.info("%s/%s adaptive %s", animal, variant, line),
         )
     except Exception as exc:  # recorded, never lost: the study goes on without this variant

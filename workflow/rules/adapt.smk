@@ -7,20 +7,13 @@
 
 rule adapt_variant:
     """One animal x variant on adaptive meshes: every pass meshes the limb with the variant's patch,
-    solves the bone rotation and the indentation with the cast, and estimates the errors. A turned
-    variant's first pass has its base variant's final sizes and turns the indenter from its end state.
+    solves the bone rotation and the indentation with the cast, and estimates the errors.
     """
     input:
         contours="results/{animal}/contours/pre.npz",
         pose="results/{animal}/pose.json",
         cast="results/{animal}/model/cast.npz",
         during_contours="results/{animal}/contours/during.npz",
-        # the variant this one is turned from (study.turn_from_base): its last pass starts this one
-        base_vtu=lambda wc: (
-            f"results/{wc.animal}/adaptive/{turn_base_of(wc.variant)}/result.vtu"
-            if turn_base_of(wc.variant)
-            else []
-        ),
     output:
         passes="results/{animal}/adaptive/{variant}/passes.csv",
         summary="results/{animal}/adaptive/{variant}/summary.json",
@@ -42,6 +35,5 @@ rule adapt_variant:
         ),
         fem=config["fem"],
         study=STUDY,
-        base_variant=lambda wc: turn_base_of(wc.variant),
     script:
         "../scripts/adapt_variant.py"
