@@ -67,6 +67,14 @@ def test_solve_job_writes_a_converged_summary_and_result(model_files, tmp_path):
     top = np.argmin(np.linalg.norm(mesh.nodes_mm - [0, R, L / 2], axis=1))
     assert u[top, 1] == pytest.approx(-0.4, abs=0.08)
     assert np.all(cells["converged"] == 1)
+    # one mesh: its own VOI and bin estimates, no force estimate, so never within the goal, and it says why
+    x = back.extra
+    assert x["mesh_kind"] == "fixed" and x["within_goal"] is False
+    assert x["voi_err_percent"] == pytest.approx(100 * back.voi_err_mm3 / back.voi_mm3)
+    assert x["bins_err_max_pp"] == pytest.approx(max(back.bins_err_pp.values()))
+    assert x["goal_ratio"] == pytest.approx(max(x["voi_err_percent"] / 2.0, x["bins_err_max_pp"]))
+    assert "force not estimated (one mesh)" in x["outside_goal"]
+    assert np.isnan(x["force_err_percent"]) and x["force_err_status"] == "one mesh"
 
 
 @pytest.mark.slow
@@ -248,6 +256,7 @@ def test_failed_job_is_recorded_with_its_reason(model_files, tmp_path):
     assert not s.converged
     back = read_summary(tmp_path / "summary.json")
     assert not back.converged and "pose.json" in back.reason and "not valid JSON" in back.reason
+    assert back.extra["within_goal"] is False and back.extra["outside_goal"] == "not converged"
     _, u, cells = read_result_vtu(tmp_path / "result.vtu")
     assert np.all(u == 0) and np.all(cells["converged"] == 0)
 

@@ -67,6 +67,11 @@ def test_test_config_and_study_defaults():
         _load("config.yaml")["model"]["element_size_mm"],
         _load("config.yaml")["model"]["refine_size_mm"],
     ) == (1.6, 0.8)
+    # the default is the accurate answer: adaptive meshes; the fixed mesh is the preview overlay's (and CI's)
+    assert _load("config.yaml")["study"]["mesh"] == "adaptive"
+    preview = yaml.safe_load((ROOT / "config" / "preview.yaml").read_text())
+    assert preview == {"study": {"mesh": "fixed"}}
+    assert c["study"]["mesh"] == "fixed"
     for key, value in (("strain_measure", "hencky"), ("gamma_sampling", "nodes")):
         bad = yaml.safe_load((ROOT / "config" / "test.yaml").read_text())
         bad["study"][key] = value

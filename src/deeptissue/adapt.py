@@ -17,7 +17,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
 
+from .elements import tet_subdivision
 from .mesh import SizeField, TetMesh
 
 __all__ = [
@@ -25,12 +28,15 @@ __all__ = [
     "AdaptResult",
     "AdaptSettings",
     "GMSH_EDGE_RATIO",
+    "GMSH_GRADED_EXCESS",
     "GMSH_TET_VOLUME",
     "PassEstimate",
     "adapt",
     "element_sizes",
     "estimated_tets",
     "fit_budget",
+    "goal_verdict",
+    "voi_error_percent",
     "node_sizes",
     "target_sizes",
 ]
@@ -41,6 +47,14 @@ _TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
 # meshes of 1.6 to 0.4 mm) and mean volume 0.21 h³ (0.19 to 0.22), against 0.118 h³ for the regular one
 GMSH_EDGE_RATIO = 1.3
 GMSH_TET_VOLUME = 0.21
+# where a background size varies, gmsh makes more tetrahedra than its integral of 1/(0.21 h³): 12-20 %
+# more on the 1.6 mm cylinder refined to 0.2-0.5 mm within 1-3 mm of the top (and on its uniform 1.6 mm
+# remesh), 2 % less on uniform 1 and 0.6 mm remeshes; the count is an upper estimate for the budget
+GMSH_GRADED_EXCESS = 1.2
+# points per element at which the linear size field is integrated (tet_subdivision(2): 64; within 3 % of
+# the converged integral for a size falling from 1.6 to 0.2 mm across one element)
+_SIZE_POINTS, _ = tet_subdivision(2)
+_SIZE_N = np.column_stack([1.0 - _SIZE_POINTS.sum(axis=1), _SIZE_POINTS])
 
 
 @dataclass(frozen=True)
@@ -53,17 +67,26 @@ class AdaptSettings:
     goal at pass 3 with 0.1 mm, 114 480 DOFs, 147 s on one core); with every pass started from the
     previous one's solution the overshoot elsewhere costs little (rat01's sphere: 142 323 DOFs, 209 s,
     against 84 639 DOFs, 115 s with 0.2 mm; the cylinder at 2 mm: 77 433 DOFs, 38 s). ``h_max_mm`` 1.6 mm is
-    the study's default element size. One pass shrinks an element at most by ``max_shrink`` (0.5: 8 times the
-    elements in that region) and grows it at most by ``max_growth`` (1: no coarsening, since the loop
-    starts from a coarse mesh and the field outside the indicator's elements is not estimated).
+    the study's default element size. One pass shrinks an element at most by ``max_shrink`` and grows
+    it at most by ``max_growth`` (1: no coarsening, since the loop starts from a coarse mesh and the
+    field outside the indicator's elements is not estimated). ``max_shrink`` 0.25 lets the first
+    refinement reach the sizes its estimate predicts with the estimate's order (h²): the first pass's
+    estimates are 10-40 times their goals on the cylinder and the demo, which asks for a fifth to a
+    third of the size; by halves that took two refinements. On the cylinder the loop meets its goal at
+    pass 2 instead of 3 (2 mm: 79 566 DOFs against 77 415; 0.5 mm: 23 013 against 32 709).
     ``safety`` 0.7 aims each remeshing at that fraction of the goal: the indicator follows the size
     rule closely (on the cylinder at 2 mm, a pass aimed at 1.4 % gave 1.36 %), so a small margin
     makes the next pass meet the goal without refining further than needed. ``grading`` bounds the
     size's growth away from a small element [mm/mm] (gmsh honours a background size only where it
-    varies gently). The force's estimate is the change from the previous pass, valid where the
-    contact elements' mean size shrank to at most ``force_valid_shrink`` of the previous pass's (a
-    barely changed contact zone changes the force by nothing, whatever its error; a change of its
-    mean size within that factor either way is the mesher's scatter). Once such an estimate is within
+    varies gently). The force's estimate extrapolates the change from the previous pass with the
+    force's order of convergence ``force_order``: with the contact elements' mean size shrunk by f, an
+    error ∝ h^p shrinks by r = f^p, so this pass's error is |ΔF| r / (1 − r) (Richardson). On the
+    cylinder the force's true error falls as h^1.9-2.0 at 0.5 mm, h^2.4-2.0 at 2 mm and h^2.9 at 3 mm;
+    1.75 puts the estimate at 1.0 to 2.8 times the true error on those passes (the change alone: 1.1 to
+    7.8 times). The estimate is valid where the contact elements' mean size shrank to at most
+    ``force_valid_shrink`` of the previous pass's (a barely changed contact zone changes the force by
+    nothing, whatever its error; a change of its mean size within that factor either way is the
+    mesher's scatter). Once such an estimate is within
     ``force_goal_percent``, the verdict holds for the later passes while their contact zone is not
     coarsened past that scatter: a finer contact zone has no larger force error, so passes that only
     refine the VOI or the bins stop on their goals; the held estimate is the larger of the verdict's
@@ -71,9 +94,10 @@ class AdaptSettings:
     the contact zone is refined to at most ``force_valid_shrink`` of its size, unless ``h_min_mm`` or
     the element budget keep it from shrinking that far: such a refinement cannot give an estimate, so
     the budget goes to the VOI and bins, and the pass records why (:class:`AdaptPass`).
-    ``max_tets`` caps the next mesh's estimated size (:func:`estimated_tets`; 20 000 quadratic
-    tetrahedra are about 90 000 DOFs, a few minutes per solve on one core): the refined sizes are
-    scaled up together until it fits.
+    ``max_tets`` caps the next mesh's size (:func:`estimated_tets` of the graded node sizes, an upper
+    estimate of gmsh's count; 20 000 quadratic tetrahedra are about 90 000 DOFs, a few minutes per
+    solve on one core and under 4 GB): the refined sizes are scaled up together until it fits
+    (:func:`fit_budget`).
     """
 
     voi_goal_percent: float = 2.0
@@ -83,11 +107,12 @@ class AdaptSettings:
     max_wall_s: float = 3600.0
     h_min_mm: float = 0.1
     h_max_mm: float = 1.6
-    max_shrink: float = 0.5
+    max_shrink: float = 0.25
     max_growth: float = 1.0
     safety: float = 0.7
     grading: float = 0.4
     force_valid_shrink: float = 0.85
+    force_order: float = 1.75
     max_tets: int = 20000
 
     def __post_init__(self):
@@ -104,9 +129,11 @@ class AdaptSettings:
             or self.max_wall_s <= 0
             or not 0 < self.safety <= 1
             or self.grading <= 0
+            or self.force_order <= 0
         ):
             raise ValueError(
-                "AdaptSettings: need max_passes >= 1, max_wall_s > 0, 0 < safety <= 1, grading > 0"
+                "AdaptSettings: need max_passes >= 1, max_wall_s > 0, 0 < safety <= 1, grading > 0, "
+                "force_order > 0"
             )
 
 
@@ -125,12 +152,26 @@ def _volumes(mesh: TetMesh) -> np.ndarray:
     return np.abs(np.linalg.det(X[:, 1:] - X[:, :1])) / 6.0
 
 
-def estimated_tets(volume_mm3, h_mm) -> float:
-    """Number of tetrahedra gmsh makes of regions of volume ``volume_mm3`` (n,) [mm³] meshed at sizes
-    ``h_mm`` (n,) [mm]: the sum of each volume over gmsh's mean tetrahedron volume :data:`GMSH_TET_VOLUME` h³."""
-    return float(
-        np.sum(np.asarray(volume_mm3, float) / (GMSH_TET_VOLUME * np.asarray(h_mm, float) ** 3))
-    )
+def estimated_tets(mesh: TetMesh, node_size_mm, *, current_mm=None) -> float:
+    """Number of tetrahedra gmsh makes of ``mesh``'s domain meshed to the background size ``node_size_mm``
+    (n_nodes,) [mm] at its corner nodes (:func:`node_sizes`, :class:`deeptissue.mesh.SizeField`): the
+    integral of 1 / (:data:`GMSH_TET_VOLUME` h³) with h interpolated linearly in every element, as gmsh
+    interpolates it, times :data:`GMSH_GRADED_EXCESS`. The graded sizes around a refined region count:
+    a region refined to 0.2 mm brings a halo of elements growing by ``grading`` per mm.
+
+    With ``current_mm`` (n_nodes,), the node sizes ``mesh`` itself was made to, an element none of whose
+    corners changes size counts as itself: gmsh remeshes an unchanged region as it did (a coarse limb
+    has 40 % more elements than the integral, its surface's share).
+    """
+    hn = np.asarray(node_size_mm, float)[mesh.tets[:, :4]]
+    if not np.all(hn > 0):
+        raise ValueError("estimated_tets: every corner node needs a size > 0")
+    count = GMSH_GRADED_EXCESS * _volumes(mesh) * np.mean((hn @ _SIZE_N.T) ** -3.0, axis=1)
+    count /= GMSH_TET_VOLUME
+    if current_mm is not None:
+        same = np.all(np.isclose(hn, np.asarray(current_mm, float)[mesh.tets[:, :4]]), axis=1)
+        count[same] = 1.0
+    return float(count.sum())
 
 
 def target_sizes(
@@ -194,16 +235,16 @@ def node_sizes(
         out = np.divide(num, den, out=np.full(n_nodes, np.inf), where=den > 0)
         shrink = s < cur
         np.minimum.at(out, corners[shrink].ravel(), np.repeat(s[shrink], 4))
+    # out_i = min_j (out_j + grading × path length from j to i along the edges): the shortest path from a
+    # source joined to every node j by an edge of length out_j
     edges = np.unique(np.sort(corners[:, _TET_EDGES].reshape(-1, 2), axis=1), axis=0)
     length = np.linalg.norm(mesh.nodes_mm[edges[:, 1]] - mesh.nodes_mm[edges[:, 0]], axis=1)
-    for _ in range(
-        200
-    ):  # relax along the edges until no size changes (a sweep per graph distance)
-        before = out.copy()
-        np.minimum.at(out, edges[:, 0], out[edges[:, 1]] + grading * length)
-        np.minimum.at(out, edges[:, 1], out[edges[:, 0]] + grading * length)
-        if np.array_equal(out, before):
-            break
+    seeded = np.flatnonzero(np.isfinite(out))
+    rows = np.concatenate([edges[:, 0], edges[:, 1], np.full(len(seeded), n_nodes)])
+    cols = np.concatenate([edges[:, 1], edges[:, 0], seeded])
+    w = np.concatenate([grading * length, grading * length, out[seeded]])
+    graph = coo_matrix((w, (rows, cols)), shape=(n_nodes + 1, n_nodes + 1)).tocsr()
+    out = dijkstra(graph, directed=True, indices=n_nodes)[:n_nodes]
     out[~np.isfinite(out)] = np.nan
     return out
 
@@ -307,7 +348,11 @@ def _force_estimate(
     if st.force_goal_percent is None:
         return np.nan, "no goal", shrink
     if not shrink > st.force_valid_shrink:  # shrunk enough, or no contact zone to check
-        return 100.0 * abs(force_N - f0) / max(abs(force_N), 1e-300), "estimated", shrink
+        change = 100.0 * abs(force_N - f0) / max(abs(force_N), 1e-300)
+        if not np.isfinite(shrink):
+            return change, "estimated", shrink
+        r = shrink**st.force_order  # the error's ratio to the previous pass's
+        return change * r / (1.0 - r), "estimated", shrink
     if held is not None:
         err, f_held, h_held = held
         if not contact_h > h_held / st.force_valid_shrink:
@@ -362,10 +407,8 @@ def adapt(
     st = settings
     t_start = time.perf_counter()
     passes, field_, previous_force, last = [], initial, None, None
-    held, plan = (
-        None,
-        "",
-    )  # the force's verdict in force; why the last remeshing left the contact zone alone
+    # the force's verdict in force; why the last remeshing left the contact zone alone
+    held, plan = None, ""
     reason = "passes"
     for k in range(st.max_passes):
         t0 = time.perf_counter()
@@ -377,27 +420,7 @@ def adapt(
             not sol.converged
         ):  # a solve stopped by the loop's budget (the solver's max_wall_s) spent it
             reason = "wall" if t2 - t_start >= st.max_wall_s else "not converged"
-            passes.append(
-                AdaptPass(
-                    k,
-                    3 * len(mesh.nodes_mm),
-                    int(mesh.n_tets),
-                    False,
-                    t1 - t0,
-                    t2 - t1,
-                    0.0,
-                    t2 - t_start,
-                    np.nan,
-                    np.nan,
-                    np.nan,
-                    np.nan,
-                    np.nan,
-                    np.nan,
-                    "no solve",
-                    float(element_sizes(mesh).min()),
-                    False,
-                )
-            )
+            passes.append(_unsolved_pass(k, mesh, (t1 - t0, t2 - t1, t2 - t_start)))
             break
         est = estimate(mesh, sol)
         t3 = time.perf_counter()
@@ -416,13 +439,8 @@ def adapt(
             )
         elif force_status != "held" or not force_err <= st.force_goal_percent:
             held = None
-        voi_pc = _voi_error_percent(est.voi_mm3, est.voi_err_mm3)
-        force_ok = (
-            st.force_goal_percent is None or force_err <= st.force_goal_percent
-        )  # NaN: not known, not met
-        met = bool(
-            voi_pc <= st.voi_goal_percent and est.bins_err_pp <= st.bins_goal_pp and force_ok
-        )
+        voi_pc = voi_error_percent(est.voi_mm3, est.voi_err_mm3)
+        met = goal_verdict(voi_pc, est.bins_err_pp, force_err, force_status, st)["within_goal"]
         p = AdaptPass(
             k,
             3 * len(mesh.nodes_mm),
@@ -459,7 +477,7 @@ def adapt(
         if time.perf_counter() - t_start >= st.max_wall_s:
             reason = "wall"
             break
-        new_h, plan = _next_sizes(h, _volumes(mesh), est, voi_pc, force_err, st)
+        new_h, plan = _next_sizes(mesh, h, est, voi_pc, force_err, st)
         previous_force = (est.force_N, contact_h)
         field_ = SizeField.from_mesh(
             mesh, node_sizes(mesh, new_h, grading=st.grading, current_mm=h)
@@ -468,7 +486,71 @@ def adapt(
     return AdaptResult(tuple(passes), mesh, sol, est, reason)
 
 
-def _voi_error_percent(voi_mm3: float, voi_err_mm3: float) -> float:
+def _unsolved_pass(k: int, mesh: TetMesh, times_s: tuple) -> AdaptPass:
+    """Pass ``k`` whose solve did not converge on ``mesh``: its (mesh, solve, since the start) times [s]
+    and no estimates."""
+    mesh_s, solve_s, wall_s = times_s
+    nan = np.nan
+    return AdaptPass(
+        k,
+        3 * len(mesh.nodes_mm),
+        int(mesh.n_tets),
+        False,
+        mesh_s,
+        solve_s,
+        0.0,
+        wall_s,
+        *(nan,) * 6,
+        "no solve",
+        float(element_sizes(mesh).min()),
+        False,
+    )
+
+
+def goal_verdict(
+    voi_err_percent: float,
+    bins_err_pp: float,
+    force_err_percent: float,
+    force_status: str,
+    settings: AdaptSettings = AdaptSettings(),
+) -> dict:
+    """Whether one solution's estimates meet the accuracy goal of ``settings``, and by how much they miss.
+
+    ``voi_err_percent`` [%] and ``bins_err_pp`` (the largest bin's) [pp] are the estimates of the VOI and
+    bins; ``force_err_percent`` [%] the force's (NaN: not known, ``force_status`` says why, as
+    :class:`AdaptPass`'s). An unknown estimate does not meet its goal: a single mesh (the preview's) has
+    none for the force. Returns the summary keys ``within_goal``; ``goal_ratio``, the largest estimate
+    over its goal among the known ones (> 1: outside the goal by that factor; NaN if none is known);
+    ``voi_err_percent``, ``bins_err_max_pp``, ``force_err_percent``, ``force_err_status``; and
+    ``outside_goal``, the numbers that miss their goal and why ('' within the goal).
+    """
+    st = settings
+    checks = [
+        ("VOI", voi_err_percent, st.voi_goal_percent, "%"),
+        ("bins", bins_err_pp, st.bins_goal_pp, "pp"),
+    ]
+    if st.force_goal_percent is not None:
+        checks.append(("force", force_err_percent, st.force_goal_percent, "%"))
+    ratios, missed = [], []
+    for name, err, goal, unit in checks:
+        if np.isnan(err):
+            missed.append(f"{name} not estimated ({force_status})")
+            continue
+        ratios.append(err / goal)
+        if not err <= goal:
+            missed.append(f"{name} ±{err:.3g} {unit} > {goal:g} {unit}")
+    return dict(
+        within_goal=not missed,
+        goal_ratio=float(max(ratios)) if ratios else np.nan,
+        voi_err_percent=float(voi_err_percent),
+        bins_err_max_pp=float(bins_err_pp),
+        force_err_percent=float(force_err_percent),
+        force_err_status=force_status,
+        outside_goal="; ".join(missed),
+    )
+
+
+def voi_error_percent(voi_mm3: float, voi_err_mm3: float) -> float:
     """The VOI's estimated error over the VOI [%]: 0 where both are zero (no element near the threshold
     in either field: a scene strained below it everywhere has nothing to refine for the VOI), infinite
     where only the VOI is (a VOI may exist that the mesh does not resolve)."""
@@ -478,13 +560,13 @@ def _voi_error_percent(voi_mm3: float, voi_err_mm3: float) -> float:
 
 
 def _next_sizes(
-    h, volume_mm3, est: PassEstimate, voi_pc: float, force_err: float, st: AdaptSettings
+    mesh: TetMesh, h, est: PassEstimate, voi_pc: float, force_err: float, st: AdaptSettings
 ) -> tuple[np.ndarray, str]:
     """The next pass's element sizes, and why the contact zone is not refined (``'budget'``, ``'h_min'``
     or ``''``): for the VOI and for the bins, each missing its goal, the elements of its indicator by
     :func:`target_sizes`, aiming its total at ``safety`` over its ratio of estimate to goal (one
     indicator and the worse ratio where the estimator does not split them); the contact zone shrunk by
-    (safety goal / estimate)^(1/2) while the force misses its goal (by max_shrink^(1/2) while its
+    (safety goal / estimate)^(1/force_order) while the force misses its goal (by max_shrink^(1/2) while its
     estimate is not known), at most to ``force_valid_shrink``; then the refined sizes scaled up
     together until the estimated element count fits ``max_tets``. A contact zone whose mean size would
     not shrink to ``force_valid_shrink`` is left to the VOI and bins (its change would not estimate
@@ -510,11 +592,15 @@ def _next_sizes(
         or not c.any()
         or force_err <= st.force_goal_percent
     ):
-        return fit_budget(h, new_h, volume_mm3, st.max_tets), ""
+        return fit_budget(mesh, h, new_h, st.max_tets, grading=st.grading), ""
     f = (
         np.sqrt(st.max_shrink)
         if not np.isfinite(force_err)
-        else np.clip((st.safety * st.force_goal_percent / force_err) ** 0.5, st.max_shrink, 1.0)
+        else np.clip(
+            (st.safety * st.force_goal_percent / force_err) ** (1.0 / st.force_order),
+            st.max_shrink,
+            1.0,
+        )
     )
     refined = new_h.copy()
     refined[c] = np.minimum(
@@ -522,28 +608,38 @@ def _next_sizes(
     )
     enough = st.force_valid_shrink * h[c].mean()
     if refined[c].mean() > enough:
-        return fit_budget(h, new_h, volume_mm3, st.max_tets), "h_min"
-    fitted = fit_budget(h, refined, volume_mm3, st.max_tets)
+        return fit_budget(mesh, h, new_h, st.max_tets, grading=st.grading), "h_min"
+    fitted = fit_budget(mesh, h, refined, st.max_tets, grading=st.grading)
     if fitted[c].mean() > enough:
-        return fit_budget(h, new_h, volume_mm3, st.max_tets), "budget"
+        return fit_budget(mesh, h, new_h, st.max_tets, grading=st.grading), "budget"
     return fitted, ""
 
 
-def fit_budget(h_mm, new_h_mm, volume_mm3, max_tets: float) -> np.ndarray:
-    """``new_h_mm`` with every refined size (below ``h_mm``) scaled by the smallest common factor
-    λ >= 1, never past ``h_mm``, for which :func:`estimated_tets` is at most ``max_tets``
-    (``new_h_mm`` itself if it fits; ``h_mm`` if even λ → ∞ does not)."""
+def fit_budget(
+    mesh: TetMesh, h_mm, new_h_mm, max_tets: float, *, grading: float = AdaptSettings.grading
+) -> np.ndarray:
+    """``new_h_mm`` (n_tets,) [mm] with every refined size (below the present sizes ``h_mm``) scaled by
+    the smallest common factor λ >= 1, never past ``h_mm``, for which the mesh of its graded node sizes
+    (:func:`node_sizes` with ``current_mm=h_mm``) has at most ``max_tets`` tetrahedra by
+    :func:`estimated_tets`, the unchanged elements counted as they are (``new_h_mm`` itself if it fits;
+    ``h_mm`` if even λ → ∞ does not)."""
     h, nh = np.asarray(h_mm, float), np.asarray(new_h_mm, float)
 
     def sized(lam):
         return np.where(nh < h, np.minimum(h, lam * nh), nh)
 
-    if estimated_tets(volume_mm3, nh) <= max_tets:
+    now = node_sizes(mesh, h, grading=grading, current_mm=h)
+
+    def count(lam):
+        sizes = node_sizes(mesh, sized(lam), grading=grading, current_mm=h)
+        return estimated_tets(mesh, sizes, current_mm=now)
+
+    if count(1.0) <= max_tets:
         return nh
     lo, hi = 1.0, float(np.max(h / nh))
-    if estimated_tets(volume_mm3, sized(hi)) > max_tets:
+    if count(hi) > max_tets:
         return sized(hi)
-    for _ in range(40):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if estimated_tets(volume_mm3, sized(mid)) > max_tets else (lo, mid)
+    while hi / lo > 1.01:  # λ within 1 %: the count within about 3 %
+        mid = np.sqrt(lo * hi)
+        lo, hi = (mid, hi) if count(mid) > max_tets else (lo, mid)
     return sized(hi)

@@ -5,14 +5,18 @@ first pass at the model's element size everywhere, the next ones from the backgr
 previous pass), solves the bone rotation and the indentation on that mesh
 (:func:`deeptissue.fem.solver.solve_bone_rotation`, :func:`deeptissue.study.solve_variant`; the cast
 contacts the new mesh's skin facets, the indenter its patch) and estimates the discretisation error of
-the VOI, its bins and the force (:func:`limb_estimate`). :func:`run_adaptive_variant` is the rule
-``adapt_variant``.
+the VOI, its bins and the force (:func:`limb_estimate`). Every variant, turned ones too, starts from
+the model's element size and its bone rotation: a turn from the base variant's last pass, carried to
+another mesh, finds its contact set anew (rat03's ``sphere_rz+15`` on its sphere's final sizes: 922 and
+1 035 active-set changes in its first two increments, 1 192 s for its first pass, where a first pass
+from the start takes 40-90 s on the same loaded machine). :func:`run_adaptive_variant` is the rule ``adapt_variant``.
 """
 
 from __future__ import annotations
 
 import logging
 import time
+import traceback
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -21,21 +25,31 @@ import numpy as np
 import pandas as pd
 
 from .adapt import AdaptResult, AdaptSettings, PassEstimate, adapt
-from .contours import Contours
+from .contours import Contours, load_contours
 from .errorest import voi_error_estimate
 from .fem.cast import Cast as SolverCast
 from .fem.indenters import Indenter
 from .fem.material import Ogden
-from .fem.solver import SolverSettings, solve_bone_rotation
+from .fem.solver import SolverSettings, solve_bone_rotation, solver_settings_from_config
 from .fem.transfer import mapped_end_state
+from .io import atomic_path
 from .mesh import SizeField, TetMesh
-from .model import Cast, ModelSettings, build_model
-from .pose import Pose
-from .strain import ElementStrain
-from .study import StudySettings, solve_variant, variant_indenter
-from .summary import SAMPLING_LEVELS, Summary
+from .model import Cast, ModelSettings, build_model, load_cast
+from .pose import Pose, load_pose
+from .strain import ElementStrain, element_strain
+from .study import StudySettings, accuracy_fields, solve_variant, variant_indenter
+from .summary import (
+    SAMPLING_LEVELS,
+    Summary,
+    failed_summary,
+    qc_warnings_of,
+    write_result_vtu,
+    write_summary,
+)
 
 __all__ = [
+    "AdaptFiles",
+    "LimbJob",
     "LimbSolve",
     "adaptive_limb",
     "contact_tets",
@@ -46,6 +60,30 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class LimbJob:
+    """One limb variant to solve on adaptive meshes: the animal's pre contours, pose and model cast
+    (:func:`deeptissue.model.load_cast`, contacted by every pass's skin facets), the tissue law, the
+    solver's, model's and study's settings, the during scan's skin contour points [mm] (None: no skin
+    agreement) and the bar's length end to end [mm]."""
+
+    animal: str
+    variant: str
+    contours: Contours
+    pose: Pose
+    cast: Cast
+    material: Ogden
+    solver: SolverSettings
+    model: ModelSettings | dict | None = None
+    study: StudySettings = StudySettings()
+    skin_contours_mm: np.ndarray | None = None
+    bar_length_mm: float = 10.0
+
+    def indenter(self) -> Indenter:
+        """The variant's rigid indenter on this animal's pose."""
+        return variant_indenter(self.pose, self.variant, bar_length_mm=self.bar_length_mm)
 
 
 @dataclass(frozen=True)
@@ -92,42 +130,33 @@ def limb_mesher(
 
 
 def limb_solver(
-    *,
-    animal: str,
-    variant: str,
-    pose: Pose,
-    cast: SolverCast | None,
-    material: Ogden,
-    settings: SolverSettings,
-    study: StudySettings = StudySettings(),
-    skin_contours_mm=None,
-    bar_length_mm: float = 10.0,
-    deadline_s: float | None = None,
+    job: LimbJob, *, deadline_s: float | None = None
 ) -> Callable[[TetMesh, tuple | None], LimbSolve]:
     """``solve(mesh, previous) -> LimbSolve`` of :func:`deeptissue.adapt.adapt`. The first pass solves the
     bone-rotation steps on the mesh (:func:`deeptissue.fem.solver.solve_bone_rotation`), then the variant
     from that state as the rule ``solve`` does (:func:`deeptissue.study.solve_variant`, which solves the
-    rotation itself if those steps did not converge). A later pass starts from the previous pass's solution
-    carried to its mesh (:func:`deeptissue.fem.transfer.mapped_end_state`, ``turned_from`` "previous pass")
-    and solves the whole path only if that state folds tets or does not converge. ``deadline_s``
-    (``time.perf_counter()`` seconds) ends every solve there, as the solver's ``max_wall_s`` (the smaller
-    of the two): a pass that cannot finish within the loop's budget is stopped instead of running on.
-    Other keywords as in :func:`deeptissue.study.solve_variant`."""
-    indenter = variant_indenter(pose, variant, bar_length_mm=bar_length_mm)
+    rotation itself if those steps did not converge). A later pass starts from the previous pass's
+    solution carried to its mesh (:func:`deeptissue.fem.transfer.mapped_end_state`, ``turned_from``
+    "previous pass") and solves the whole path only if that state folds tets or does not converge.
+    ``deadline_s`` (``time.perf_counter()`` seconds) ends every solve there, as the solver's
+    ``max_wall_s`` (the smaller of the two): a pass that cannot finish within the loop's budget is
+    stopped instead of running on."""
+    indenter = job.indenter()
+    cast = SolverCast(job.cast.vertices_mm, job.cast.triangles)
 
     def solve(mesh: TetMesh, previous: tuple | None) -> LimbSolve:
-        settings_ = settings
+        settings = job.solver
         if deadline_s is not None:
             left = max(deadline_s - time.perf_counter(), 1.0)
-            settings_ = replace(settings, max_wall_s=min(settings.max_wall_s or np.inf, left))
+            settings = replace(settings, max_wall_s=min(settings.max_wall_s or np.inf, left))
         start = base = None
         if previous is None:
             _, start = solve_bone_rotation(
                 mesh,
-                material=material,
-                bone_motion=pose.bone_motion,
+                material=job.material,
+                bone_motion=job.pose.bone_motion,
                 cast=cast,
-                settings=settings_,
+                settings=settings,
             )
         else:
             base = mapped_end_state(
@@ -135,20 +164,20 @@ def limb_solver(
                 previous[1].displacement_mm,
                 mesh,
                 indenter=indenter,
-                bone_motion=pose.bone_motion,
-                settings=settings_,
+                bone_motion=job.pose.bone_motion,
+                settings=settings,
             )
         summary, u, strain = solve_variant(
-            animal=animal,
-            variant=variant,
+            animal=job.animal,
+            variant=job.variant,
             mesh=mesh,
-            pose=pose,
+            pose=job.pose,
             cast=cast,
-            material=material,
-            settings=settings_,
-            study=study,
-            skin_contours_mm=skin_contours_mm,
-            bar_length_mm=bar_length_mm,
+            material=job.material,
+            settings=settings,
+            study=job.study,
+            skin_contours_mm=job.skin_contours_mm,
+            bar_length_mm=job.bar_length_mm,
             start=start,
             base=base,
             base_variant="previous pass",
@@ -216,115 +245,139 @@ def limb_estimate(
 
 
 def adaptive_limb(
-    *,
-    animal: str,
-    variant: str,
-    contours: Contours,
-    pose: Pose,
-    cast: Cast,
-    material: Ogden,
-    solver_settings: SolverSettings,
-    model_settings: ModelSettings | dict | None = None,
-    study: StudySettings = StudySettings(),
-    skin_contours_mm=None,
-    bar_length_mm: float = 10.0,
+    job: LimbJob,
     settings: AdaptSettings = AdaptSettings(),
+    *,
     log_pass: Callable[[str], None] | None = None,
 ) -> AdaptResult:
     """One limb variant on adaptive meshes: :func:`deeptissue.adapt.adapt` with :func:`limb_mesher`,
     :func:`limb_solver` and :func:`limb_estimate` until the estimates meet the goals of ``settings`` or
-    its budget is spent. ``cast`` is the model's cast (:func:`deeptissue.model.load_cast`), contacted by
-    every pass's skin facets. Returns the AdaptResult (``solution``: the last converged pass's
+    its budget is spent. Returns the AdaptResult (``solution``: the last converged pass's
     :class:`LimbSolve`)."""
-    indenter = variant_indenter(pose, variant, bar_length_mm=bar_length_mm)
+    indenter = job.indenter()
     deadline_s = time.perf_counter() + settings.max_wall_s
     return adapt(
-        limb_mesher(contours, pose, variant, cast=cast, settings=model_settings, animal=animal),
-        limb_solver(
-            animal=animal,
-            variant=variant,
-            pose=pose,
-            cast=SolverCast(cast.vertices_mm, cast.triangles),
-            material=material,
-            settings=solver_settings,
-            study=study,
-            skin_contours_mm=skin_contours_mm,
-            bar_length_mm=bar_length_mm,
-            deadline_s=deadline_s,
+        limb_mesher(
+            job.contours,
+            job.pose,
+            job.variant,
+            cast=job.cast,
+            settings=job.model,
+            animal=job.animal,
         ),
-        lambda mesh, sol: limb_estimate(mesh, sol, indenter, study),
+        limb_solver(job, deadline_s=deadline_s),
+        lambda mesh, sol: limb_estimate(mesh, sol, indenter, job.study),
         settings,
         log=log_pass,
     )
+
+
+@dataclass(frozen=True)
+class AdaptFiles:
+    """The files of rule ``adapt_variant``: inputs ``contours`` (pre), ``pose``, ``cast``,
+    ``during_contours`` (None: no skin agreement); outputs ``passes_csv``, ``summary`` and ``vtu``
+    (None: not written)."""
+
+    contours: str | Path
+    pose: str | Path
+    cast: str | Path
+    during_contours: str | Path | None
+    passes_csv: str | Path
+    summary: str | Path
+    vtu: str | Path | None = None
 
 
 def run_adaptive_variant(
     *,
     animal: str,
     variant: str,
-    contours_path,
-    pose_path,
-    cast_path,
-    during_contours_path,
-    passes_csv,
-    summary_path,
+    files: AdaptFiles,
     model_cfg: dict | None,
     fem_cfg: dict,
     study_cfg: dict,
-    vtu_path=None,
     settings: AdaptSettings = AdaptSettings(),
 ) -> AdaptResult | None:
     """Rule ``adapt_variant``: read the pre contours, pose, cast and during contours, run
-    :func:`adaptive_limb` and write ``passes_csv`` (one row per pass, :meth:`deeptissue.adapt.AdaptResult.table`
-    with animal, variant and stop_reason), ``summary_path`` (the last converged pass's summary, as
-    the rule ``solve`` writes it, with ``adapt_passes``, ``adapt_stop_reason``, ``adapt_goal_met`` and
-    ``adapt_wall_s`` [s]; the failed pass's summary if none converged) and ``vtu_path`` (that pass's
-    ``result.vtu``, :func:`deeptissue.summary.write_result_vtu`). A run that raises (its passes table then
-    has no rows), or whose first pass does not converge, writes a summary with ``converged = False`` and
-    the reason and the first pass's mesh undeformed, so that the study goes on without this variant (as
-    rule ``solve`` does); returns None if it raised.
+    :func:`adaptive_limb` and write ``files.passes_csv`` (one row per pass,
+    :meth:`deeptissue.adapt.AdaptResult.table` with animal, variant and stop_reason), ``files.summary``
+    (the last converged pass's summary, as the rule ``solve`` writes it, with ``adapt_passes``,
+    ``adapt_stop_reason``, ``adapt_wall_s`` [s] and the last converged pass's verdict,
+    :func:`deeptissue.study.accuracy_fields`; the failed pass's summary if none converged) and
+    ``files.vtu`` (that pass's ``result.vtu``, :func:`deeptissue.summary.write_result_vtu`). A run that
+    raises (its passes table then has no rows), or whose first pass does not converge, writes a summary
+    with ``converged = False`` and the reason and the first pass's mesh undeformed, so that the study goes
+    on without this variant (as rule ``solve`` does); returns None if it raised.
 
     ``model_cfg``, ``fem_cfg`` and ``study_cfg`` are the config sections ``model`` (with
     ``bar_length_mm``, as the rule ``mesh`` gets it), ``fem`` and ``study``.
     """
-    import traceback
-
-    from .contours import load_contours
-    from .fem.solver import solver_settings_from_config
-    from .io import atomic_path
-    from .model import load_cast
-    from .pose import load_pose
-    from .strain import element_strain
-    from .summary import failed_summary, qc_warnings_of, write_result_vtu, write_summary
-
     study = StudySettings.from_config(study_cfg)
-    pose = load_pose(pose_path)
-    contours, cast = load_contours(contours_path), load_cast(cast_path)
-
-    def solver_log(line: str) -> None:
-        log.info("%s/%s adaptive %s", animal, variant, line)
-
+    pose = load_pose(files.pose)
+    contours, cast = load_contours(files.contours), load_cast(files.cast)
+    reason = ""
     try:
-        result = adaptive_limb(
+        job = LimbJob(
             animal=animal,
             variant=variant,
             contours=contours,
             pose=pose,
             cast=cast,
             material=Ogden(**fem_cfg.get("material", {})),
-            solver_settings=solver_settings_from_config(fem_cfg.get("solver")),
-            model_settings=model_cfg,
+            solver=solver_settings_from_config(fem_cfg.get("solver")),
+            model=model_cfg,
             study=study,
-            skin_contours_mm=load_contours(during_contours_path).skin
-            if during_contours_path
+            skin_contours_mm=load_contours(files.during_contours).skin
+            if files.during_contours
             else None,
             bar_length_mm=float(fem_cfg.get("bar_length_mm", 10.0)),
-            settings=settings,
-            log_pass=solver_log,
+        )
+        result = adaptive_limb(
+            job,
+            settings,
+            log_pass=lambda line: log.info("%s/%s adaptive %s", animal, variant, line),
         )
     except Exception as exc:  # recorded, never lost: the study goes on without this variant
         log.error("%s/%s adaptive run failed:\n%s", animal, variant, traceback.format_exc())
         result, reason = None, f"{type(exc).__name__}: {exc}"
+    _write_passes(files.passes_csv, result, animal, variant)
+    mesher = limb_mesher(contours, pose, variant, cast=cast, settings=model_cfg, animal=animal)
+    summary, mesh, u, strain = _answer(
+        result, reason, study, animal, variant, mesher if files.vtu is not None else None
+    )
+    solved = [p for p in result.passes if p.converged] if result is not None else []
+    # the last converged pass's verdict: its summary's VOI and bin estimates, the loop's force estimate
+    extra = accuracy_fields(
+        summary,
+        mesh="adaptive",
+        force_err_percent=solved[-1].force_err_percent if solved else np.nan,
+        force_status=solved[-1].force_status if solved else "no solve",
+        goal=settings,
+    )
+    if result is not None:
+        extra.update(
+            adapt_passes=len(result.passes),
+            adapt_stop_reason=result.stop_reason,
+            adapt_wall_s=float(result.passes[-1].wall_s) if result.passes else None,
+        )
+    summary = replace(summary, extra={**summary.extra, **extra})
+    if files.vtu is not None:
+        write_result_vtu(
+            files.vtu,
+            mesh,
+            u,
+            strain,
+            cell_data={"converged": np.full(mesh.n_tets, int(summary.converged))},
+        )
+    try:
+        summary = replace(summary, qc_warnings=qc_warnings_of(files.pose))
+    except (OSError, ValueError) as exc:
+        log.warning("%s: QC warnings not read (%s)", files.pose, exc)
+    write_summary(files.summary, summary)
+    return result
+
+
+def _write_passes(path, result: AdaptResult | None, animal: str, variant: str) -> None:
+    """passes.csv: one row per pass with animal, variant and stop_reason (no rows if the run raised)."""
     if result is not None:
         table = result.table().assign(
             animal=animal, variant=variant, stop_reason=result.stop_reason
@@ -334,58 +387,41 @@ def run_adaptive_variant(
     table = table[
         ["animal", "variant", *[c for c in table.columns if c not in ("animal", "variant")]]
     ]
-    Path(passes_csv).parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(passes_csv) as tmp:
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
         table.to_csv(tmp, index=False)
+
+
+def _answer(
+    result: AdaptResult | None,
+    reason: str,
+    study: StudySettings,
+    animal: str,
+    variant: str,
+    mesher: Callable[[SizeField | None], TetMesh] | None,
+):
+    """(summary, mesh, displacement, strain) of the run: its last converged pass, or a failed summary
+    with the first pass's mesh (``mesher(None)``) undeformed (None for the mesh and fields without a
+    mesher)."""
     if result is not None and result.solution is not None:
-        summary, mesh = result.solution.summary, result.mesh
-        u, strain = result.solution.displacement_mm, result.solution.strain
+        sol = result.solution
+        return sol.summary, result.mesh, sol.displacement_mm, sol.strain
+    if result is not None:  # the first solve did not converge
+        reason = f"adaptive pass 0: {result.stop_reason}"
+        n_tets = result.passes[-1].n_tets if result.passes else None
     else:
-        if result is not None:  # the first solve did not converge
-            reason = f"adaptive pass 0: {result.stop_reason}"
-            n_tets = result.passes[-1].n_tets if result.passes else None
-        else:
-            reason, n_tets = f"adaptive run: {reason}", None
-        summary = failed_summary(
-            animal=animal,
-            variant=variant,
-            reason=reason,
-            strain_measure=study.strain_measure,
-            threshold=study.threshold,
-            gamma_sampling=study.gamma_sampling,
-            n_elements=n_tets,
-        )
-        mesh = (
-            limb_mesher(contours, pose, variant, cast=cast, settings=model_cfg, animal=animal)(
-                None
-            )
-            if vtu_path
-            else None
-        )
-        u = None if mesh is None else np.zeros_like(mesh.nodes_mm)
-        strain = None if mesh is None else element_strain(mesh, u)
-    if result is not None:
-        summary = replace(
-            summary,
-            extra={
-                **summary.extra,
-                "adapt_passes": len(result.passes),
-                "adapt_stop_reason": result.stop_reason,
-                "adapt_goal_met": result.goal_met,
-                "adapt_wall_s": float(result.passes[-1].wall_s) if result.passes else None,
-            },
-        )
-    if vtu_path is not None:
-        write_result_vtu(
-            vtu_path,
-            mesh,
-            u,
-            strain,
-            cell_data={"converged": np.full(mesh.n_tets, int(summary.converged))},
-        )
-    try:
-        summary = replace(summary, qc_warnings=qc_warnings_of(pose_path))
-    except (OSError, ValueError) as exc:
-        log.warning("%s: QC warnings not read (%s)", pose_path, exc)
-    write_summary(summary_path, summary)
-    return result
+        reason, n_tets = f"adaptive run: {reason}", None
+    summary = failed_summary(
+        animal=animal,
+        variant=variant,
+        reason=reason,
+        strain_measure=study.strain_measure,
+        threshold=study.threshold,
+        gamma_sampling=study.gamma_sampling,
+        n_elements=n_tets,
+    )
+    if mesher is None:
+        return summary, None, None, None
+    mesh = mesher(None)
+    u = np.zeros_like(mesh.nodes_mm)
+    return summary, mesh, u, element_strain(mesh, u)

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .adapt import AdaptSettings, goal_verdict, voi_error_percent
 from .contours import load_contours
 from .fem.cast import Cast
 from .fem.indenters import Indenter
@@ -50,12 +51,20 @@ from .variants import parse_variant, variant_travel
 
 log = logging.getLogger(__name__)
 
-__all__ = ["StudySettings", "run_bone_state", "run_solve", "solve_variant", "variant_indenter"]
+__all__ = [
+    "StudySettings",
+    "accuracy_fields",
+    "run_bone_state",
+    "run_solve",
+    "solve_variant",
+    "variant_indenter",
+]
 
 
 @dataclass(frozen=True)
 class StudySettings:
-    """Post-processing settings of the study (config ``study``)."""
+    """Post-processing settings of the study (config ``study``). Which mesh a variant is solved on
+    (``study.mesh``) picks the rule: ``solve`` on the model's mesh, ``adapt_variant`` on adaptive ones."""
 
     threshold: float = 0.3
     bin_edges: tuple = tuple(DEFAULT_BIN_EDGES)
@@ -72,6 +81,30 @@ class StudySettings:
             strain_measure=d.get("strain_measure", "green_lagrange"),
             gamma_sampling=d.get("gamma_sampling", "points"),
         )
+
+
+def accuracy_fields(
+    summary: Summary,
+    *,
+    mesh: str,
+    force_err_percent: float = np.nan,
+    force_status: str = "one mesh",
+    goal: AdaptSettings = AdaptSettings(),
+) -> dict:
+    """The summary keys that say whether a variant's numbers are within the accuracy goal by their own
+    estimates (:func:`deeptissue.adapt.goal_verdict`: ``within_goal``, ``goal_ratio``, ``outside_goal``
+    and the estimates), and ``mesh_kind`` (``mesh``: 'fixed' or 'adaptive'). The VOI's and bins'
+    estimates are the summary's (``voi_err_mm3``, ``bins_err_pp``); the force's is given (a single
+    mesh has none: ``force_status`` 'one mesh'). A variant that did not converge is outside the goal."""
+    if not summary.converged:
+        return dict(
+            mesh_kind=mesh, within_goal=False, goal_ratio=np.nan, outside_goal="not converged"
+        )
+    voi_pc = voi_error_percent(summary.voi_mm3, summary.voi_err_mm3)
+    bins = max((summary.bins_err_pp or {}).values(), default=0.0)
+    return dict(
+        mesh_kind=mesh, **goal_verdict(voi_pc, bins, force_err_percent, force_status, goal)
+    )
 
 
 def variant_indenter(
@@ -444,6 +477,7 @@ def run_solve(
             n_elements=int(mesh.n_tets),
         )
         strain = element_strain(mesh, u)
+    summary = replace(summary, extra={**summary.extra, **accuracy_fields(summary, mesh="fixed")})
     if end_state_path is not None and not Path(end_state_path).exists():
         save_npz(end_state_path, failed=np.array(summary.reason or "not converged"))
     write_result_vtu(

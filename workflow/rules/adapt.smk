@@ -1,7 +1,7 @@
 # Solution-driven refinement of single limb variants: mesh, solve, estimate the VOI, bins and force
 # error, remesh where the estimate says, until the goals are met or the budget is spent
 # (deeptissue.adapt_limb, deeptissue.adapt.AdaptSettings' goals and budget). The study's tables read it for
-# every variant with study.mesh: adaptive; the target `convergence` runs it on its animals and variants and
+# every variant with study.mesh: adaptive (the default); the target `convergence` runs it on its animals and variants and
 # measures it against the ladder; any one: results/{animal}/adaptive/{variant}/.
 
 
@@ -26,7 +26,7 @@ rule adapt_variant:
     conda:
         "../envs/deeptissue.yaml"
     resources:
-        mem_mb=8000,  # 6.9 GB for the demo's rat02 bar (175 248 DOFs at its last pass)
+        mem_mb=4000,  # AdaptSettings.max_tets: 20 000 tetrahedra (about 90 000 DOFs), gmsh's count graded
         runtime=120,  # AdaptSettings.max_wall_s (an hour) and one more pass
     params:
         model=dict(

@@ -16,6 +16,7 @@ import matplotlib
 import numpy as np
 import pandas as pd
 
+from ..adapt import AdaptSettings
 from ..fem.assembly import as_material_law
 from ..fem.indenters import Indenter
 from ..fem.solver import (
@@ -506,6 +507,9 @@ KNOWN_FAILURES = {"hard case: sphere pinched 0.1 mm from the bone": _PINCH}
 # of the study's numbers (force within 0.5 % from 0.5 to 3 mm; VOI within 2 % and every bin within 1 pp
 # at 1.5, 2 and 3 mm), and the error estimate's goal (the true VOI error within 2 x the estimate)
 CYLINDER_FORCE_LIMIT = 0.005
+# an adaptive run stops when its own estimates meet the study's goal, so it is held to that goal in truth:
+# its force within 2 % (deeptissue.adapt.AdaptSettings); the VOI and bins have the same limits as above
+ADAPTIVE_FORCE_LIMIT = AdaptSettings().force_goal_percent / 100
 CYLINDER_VOI_LIMIT = 0.02
 CYLINDER_BINS_LIMIT_PP = 1.0
 ESTIMATE_FACTOR = 2.0
@@ -532,6 +536,29 @@ KNOWN_FAILURES.update(
     {
         f"cylinder: 1.6 / 0.8 mm mesh: VOI at {d:g} mm: |VOI / VOI_finest - 1|": _CYLINDER_MESH_REASON
         for d in (1.5, 2.0)
+    }
+)
+
+# effectivity of the adaptive passes' own estimates (estimate / true error against the finest fixed mesh):
+# the goal is 1 to 3 and never below 0.8 (a little under the error is within the reference's own; above 3 the
+# loop refines further than the goal needs). Only where the true error is above what the reference
+# resolves: the force 0.1 % (the finest adaptive passes and the 1.2 / 0.4 mm mesh differ by 0.05-0.07 % at
+# 2 to 3 mm), the VOI 0.5 % and the bins 0.25 pp (the reference's own VOI estimate is 0.27-0.49 mm³, 1-5 %)
+EFFECTIVITY_MIN, EFFECTIVITY_MAX = 0.8, 3.0
+_EFFECTIVITY_FLOORS = {
+    "force": ("est_force_percent", "true_force_percent", 0.1, "%"),
+    "VOI": ("est_voi_percent", "true_voi_percent", 0.5, "%"),
+    "bins": ("est_bins_pp", "true_bins_pp", 0.25, "pp"),
+}
+_LOOSE_VOI_ESTIMATE = (
+    "the VOI and bin estimates compare the recovered γ* with γh (the volume on different sides of "
+    "each edge), whose errors of both signs add up; a sharper estimate is open (issue 54)"
+)
+KNOWN_FAILURES.update(
+    {
+        f"cylinder: adaptive mesh: {q} estimate at {d:g} mm: estimate / true error": _LOOSE_VOI_ESTIMATE
+        for q in ("VOI", "bins")
+        for d in (1.5, 2.0, 3.0)
     }
 )
 
@@ -756,7 +783,7 @@ def _cylinder_checks(curve: pd.DataFrame, voi: pd.DataFrame) -> list[dict]:
 def _cylinder_adaptive_checks(table: pd.DataFrame) -> list[dict]:
     """cylinder_adaptive.csv (:func:`deeptissue.verification.cylinder.adaptive_comparison`): at every depth the
     adaptive run's last pass meets the study's goal by its own estimate, and against the finest fixed
-    mesh its force is within CYLINDER_FORCE_LIMIT, its VOI within CYLINDER_VOI_LIMIT and its bins within
+    mesh its force is within ADAPTIVE_FORCE_LIMIT, its VOI within CYLINDER_VOI_LIMIT and its bins within
     CYLINDER_BINS_LIMIT_PP (the VOI and bins at the depths the reference has them)."""
     rows = []
     runs = table[table["kind"] == "adaptive"]
@@ -778,8 +805,8 @@ def _cylinder_adaptive_checks(table: pd.DataFrame) -> list[dict]:
             _check(
                 f"cylinder: adaptive mesh: force at {d:g} mm: |F / F_finest - 1|",
                 err,
-                CYLINDER_FORCE_LIMIT,
-                err <= CYLINDER_FORCE_LIMIT,
+                ADAPTIVE_FORCE_LIMIT,
+                err <= ADAPTIVE_FORCE_LIMIT,
                 f"{where}; estimate {last['est_force_percent']:.2f} %",
             )
         )
@@ -801,6 +828,34 @@ def _cylinder_adaptive_checks(table: pd.DataFrame) -> list[dict]:
                     CYLINDER_BINS_LIMIT_PP,
                     last["true_bins_pp"] <= CYLINDER_BINS_LIMIT_PP,
                     f"{where}; estimate {last['est_bins_pp']:.2f} pp",
+                )
+            )
+    return rows
+
+
+def _cylinder_effectivity_checks(table: pd.DataFrame) -> list[dict]:
+    """cylinder_adaptive.csv: at every depth and for the force, the VOI and the bins, the effectivity of
+    the adaptive run's own estimate (estimate / |true error|) at its most refined pass whose estimate is
+    known and whose true error is above the reference's resolution (:data:`_EFFECTIVITY_FLOORS`): within
+    [EFFECTIVITY_MIN, EFFECTIVITY_MAX]. A depth where no pass qualifies has no row."""
+    rows = []
+    runs = table[table["kind"] == "adaptive"]
+    for d, run in runs.groupby("depth_mm", sort=True):
+        for q, (est_col, true_col, floor, unit) in _EFFECTIVITY_FLOORS.items():
+            est, true = run[est_col].astype(float), run[true_col].astype(float).abs()
+            ok = run[np.isfinite(est) & (true >= floor)]
+            if ok.empty:
+                continue
+            last = ok.loc[ok["pass_index"].idxmax()]
+            eff = float(last[est_col]) / abs(float(last[true_col]))
+            rows.append(
+                _check(
+                    f"cylinder: adaptive mesh: {q} estimate at {d:g} mm: estimate / true error",
+                    eff,
+                    EFFECTIVITY_MAX,
+                    EFFECTIVITY_MIN <= eff <= EFFECTIVITY_MAX,
+                    f"goal {EFFECTIVITY_MIN:g} to {EFFECTIVITY_MAX:g}; pass {int(last['pass_index'])}: "
+                    f"estimate {float(last[est_col]):.3g} {unit}, true {float(last[true_col]):+.3g} {unit}",
                 )
             )
     return rows
@@ -840,7 +895,8 @@ def verification_summary(
         against the finest (:func:`_cylinder_checks`); None: no cylinder rows.
     cylinder_adaptive : DataFrame, optional
         cylinder_adaptive.csv (:func:`deeptissue.verification.cylinder.write_adaptive_cylinder`): the adaptive
-        meshes against the finest fixed mesh (:func:`_cylinder_adaptive_checks`); None: no such rows.
+        meshes against the finest fixed mesh (:func:`_cylinder_adaptive_checks`) and the effectivity of
+        their estimates (:func:`_cylinder_effectivity_checks`); None: no such rows.
     radius_mm : float
         Radius of the Hertz sphere [mm].
     known_failures : dict, optional
@@ -866,7 +922,12 @@ def verification_summary(
             if cylinder_curve is None or cylinder_voi is None
             else _cylinder_checks(cylinder_curve, cylinder_voi)
         )
-        + ([] if cylinder_adaptive is None else _cylinder_adaptive_checks(cylinder_adaptive))
+        + (
+            []
+            if cylinder_adaptive is None
+            else _cylinder_adaptive_checks(cylinder_adaptive)
+            + _cylinder_effectivity_checks(cylinder_adaptive)
+        )
     )
     for row in rows:
         if row.pop("ok"):
