@@ -110,12 +110,18 @@ def test_a_refused_leg_writes_its_rows_and_names_both_scans(tmp_path, caplog):
     assert float(rows["leg_shift_mm"]["fail_limit"]) == LIMITS["leg_shift_mm"].fail
     assert rows["leg_skin_residual_mm"]["status"] == "ok"
     assert not files.pose_json.exists()
+    # the same rows beside it, in a file Snakemake does not remove with the failed rule's outputs
+    kept = files.checks_csv.with_name("checks_failed.csv")
+    assert kept.read_text() == files.checks_csv.read_text()
 
 
 def test_a_corrected_leg_warns_in_checks_and_pose_json(tmp_path):
     vol, A, pre, dur, _ = _shifted_scene((0, 5))
     files = _write(tmp_path, vol, A, pre, dur)
+    stale = files.checks_csv.with_name("checks_failed.csv")
+    stale.write_text("left by a refused run\n")
     pose = run_pose(files, options={}, animal="rat09")
+    assert not stale.exists()  # a run that passes removes a refused run's rows
     with open(files.checks_csv) as fh:
         rows = {r["check"]: r for r in csv.DictReader(fh)}
     assert rows["leg_shift_mm"]["status"] == "warn"

@@ -452,11 +452,23 @@ class PoseFiles:
     pre_nifti: Path | None = None
 
 
-def _record_checks(checks: list, checks_csv: Path | None, animal: str) -> None:
-    """Write ``checks.csv`` (unless None) and log every row: a failed rule's outputs are removed by Snakemake,
-    its log (``results/{animal}/logs/pose.log``) is kept."""
+def failed_checks_path(checks_csv: Path) -> Path:
+    """Where a refused animal's checks are kept: ``checks_failed.csv`` beside ``checks.csv``, a file the rule
+    does not declare, so that Snakemake, which removes a failed rule's outputs, leaves it."""
+    p = Path(checks_csv)
+    return p.with_name(f"{p.stem}_failed{p.suffix}")
+
+
+def _record_checks(checks: list, checks_csv: Path | None, animal: str, *, failed: bool) -> None:
+    """Write ``checks.csv`` (unless None), and for a refused animal the same rows to ``checks_failed.csv``
+    (removed again by the next run that passes); log every row."""
     if checks_csv is not None:
         write_checks(checks_csv, checks)
+        kept = failed_checks_path(checks_csv)
+        if failed:
+            write_checks(kept, checks)
+        else:
+            kept.unlink(missing_ok=True)
     for c in checks:
         ok = c.status == "ok"
         log.log(
@@ -520,13 +532,13 @@ def run_pose(
         )
     except LegMovedError as exc:
         checks = exc.checks + contour_checks(pre, dur)
-        _record_checks(checks, f.checks_csv, animal)
+        _record_checks(checks, f.checks_csv, animal, failed=True)
         raise PoseError(
             failed_message(checks, animal=animal, pre_file=pre_file, during_file=f.during_nifti)
         ) from exc
     checks = evaluate_checks(pose, pre, dur)
-    _record_checks(checks, f.checks_csv, animal)
     message = failed_message(checks, animal=animal, pre_file=pre_file, during_file=f.during_nifti)
+    _record_checks(checks, f.checks_csv, animal, failed=bool(message))
     if message:
         raise PoseError(message)
     pose = replace(pose, extra={**pose.extra, "qc_warnings": warnings_of(checks)})
