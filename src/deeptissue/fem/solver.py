@@ -179,14 +179,14 @@ class IncrementSettings:
         if not (
             0 < self.min_increment <= self.initial_increment <= self.max_increment <= 1
             and self.min_increment <= self.turn_initial_increment <= 1
-            and self.stall_increments >= 1
-            and self.stall_load >= 0
-            and (self.stall_wall_s is None or self.stall_wall_s > 0)
+            and 1 <= self.stall_increments < np.inf
+            and 0 <= self.stall_load < np.inf
+            and (self.stall_wall_s is None or 0 < self.stall_wall_s < np.inf)
         ):
             raise ValueError(
                 "IncrementSettings: need 0 < min_increment <= initial_increment <= max_increment <= 1, "
-                "min_increment <= turn_initial_increment <= 1, stall_increments >= 1, stall_load >= 0 and "
-                f"stall_wall_s > 0 or None, got {self}"
+                "min_increment <= turn_initial_increment <= 1, stall_increments >= 1, a finite stall_load >= 0 "
+                f"and a finite stall_wall_s > 0 or None, got {self}"
             )
 
 
