@@ -25,6 +25,7 @@ from .fem.solver import (
     BoneState,
     EndState,
     FacetSets,
+    Scene,
     SolverSettings,
     end_state,
     load_bone_state,
@@ -215,14 +216,10 @@ def solve_variant(
     sets = FacetSets(indenter=set_name)
     result = solve_from(
         mesh,
-        material=material,
-        indenter=indenter,
-        bone_motion=pose.bone_motion,
+        Scene(material, indenter, bone_motion=pose.bone_motion, cast=cast, sets=sets),
         base=base,
         start=start,
-        cast=cast,
         settings=settings,
-        sets=sets,
     )
     turned = base_variant if result.extra.get("turned") else None
     info = dict(

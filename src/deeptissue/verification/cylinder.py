@@ -24,7 +24,7 @@ import pandas as pd
 from ..adapt import AdaptSettings, PassEstimate, adapt
 from ..errorest import sampling_difference, voi_error_estimate
 from ..fem.indenters import Indenter
-from ..fem.solver import SolverSettings, solve_from, solve_indentation
+from ..fem.solver import Scene, SolverSettings, solve_from, solve_indentation
 from ..fem.transfer import mapped_end_state
 from ..io import atomic_path
 from ..mesh import TetMesh, set_background_size
@@ -426,9 +426,7 @@ def adaptive_cylinder(
                 settings=st,
             )
         )
-        return solve_from(
-            m, material=material, indenter=ind, bone_motion=BoneMotion(), base=base, settings=st
-        )
+        return solve_from(m, Scene(material, ind), base=base, settings=st)
 
     return adapt(
         lambda field: cylinder_mesh(start, height_mm=scene.height_mm, size_field=field),
