@@ -42,6 +42,7 @@ from .pose import Pose, load_pose
 from .strain import DEFAULT_BIN_EDGES, StrainError, element_strain
 from .summary import (
     Summary,
+    VoiSpec,
     failed_summary,
     qc_warnings_of,
     summarize_solution,
@@ -277,10 +278,12 @@ def solve_variant(
         result.displacement_mm,
         animal=animal,
         variant=variant,
-        strain_measure=study.strain_measure,
-        threshold=study.threshold,
-        bin_edges=study.bin_edges,
-        gamma_sampling=study.gamma_sampling,
+        voi=VoiSpec(
+            strain_measure=study.strain_measure,
+            threshold=study.threshold,
+            bin_edges=study.bin_edges,
+            gamma_sampling=study.gamma_sampling,
+        ),
         energy_density_mpa=energy,
         skin_contours_mm=skin_contours_mm,
         **info,

@@ -30,7 +30,7 @@ from ..io import atomic_path
 from ..mesh import TetMesh, set_background_size
 from ..rigid import BoneMotion
 from ..strain import DEFAULT_BIN_EDGES, gamma_at_points, voi_statistics
-from ..summary import SAMPLING_LEVELS, summarize_solution
+from ..summary import SAMPLING_LEVELS, VoiSpec, summarize_solution
 from .shapes import _finish, _start
 
 __all__ = [
@@ -263,8 +263,7 @@ def cylinder_scene(
                 r.displacement_mm,
                 animal="cylinder",
                 variant=f"{d:g}mm",
-                threshold=threshold,
-                bin_edges=edges,
+                voi=VoiSpec(threshold=threshold, bin_edges=edges),
             )
             vois.append(
                 dict(
