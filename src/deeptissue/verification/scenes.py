@@ -10,7 +10,7 @@ makes the target ``verify`` fail.
 from __future__ import annotations
 
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import matplotlib
 import numpy as np
@@ -861,18 +861,26 @@ def _cylinder_effectivity_checks(table: pd.DataFrame) -> list[dict]:
     return rows
 
 
+@dataclass(frozen=True)
+class VerificationTables:
+    """The tables the ``verify`` rules write, as :func:`verification_summary` reads them (the fields are
+    described there); the cylinder tables are optional."""
+
+    points: pd.DataFrame
+    hertz: pd.DataFrame
+    curve: pd.DataFrame
+    locking: pd.DataFrame
+    checks: pd.DataFrame
+    hard: pd.DataFrame
+    benchmark: pd.DataFrame
+    cylinder_curve: pd.DataFrame | None = None
+    cylinder_voi: pd.DataFrame | None = None
+    cylinder_adaptive: pd.DataFrame | None = None
+
+
 def verification_summary(
+    tables: VerificationTables,
     *,
-    points: pd.DataFrame,
-    hertz: pd.DataFrame,
-    curve: pd.DataFrame,
-    locking: pd.DataFrame,
-    checks: pd.DataFrame,
-    hard: pd.DataFrame,
-    benchmark: pd.DataFrame,
-    cylinder_curve: pd.DataFrame | None = None,
-    cylinder_voi: pd.DataFrame | None = None,
-    cylinder_adaptive: pd.DataFrame | None = None,
     radius_mm: float = HERTZ_RADIUS_MM,
     known_failures: dict[str, str] | None = None,
 ) -> pd.DataFrame:
@@ -880,6 +888,8 @@ def verification_summary(
 
     Parameters
     ----------
+    tables : VerificationTables
+        The fields below.
     points : DataFrame
         material_point.csv (case, quantity, max_error, tolerance, pass); its uniaxial, equibiaxial
         and simple-shear rows summarise homogeneous.csv.
@@ -909,6 +919,17 @@ def verification_summary(
         (a failing check named in ``known_failures``, its reason prefixed to the note).
     """
     known = KNOWN_FAILURES if known_failures is None else known_failures
+    points, hertz, curve, locking, checks, hard, benchmark = (
+        tables.points,
+        tables.hertz,
+        tables.curve,
+        tables.locking,
+        tables.checks,
+        tables.hard,
+        tables.benchmark,
+    )
+    cylinder_curve, cylinder_voi = tables.cylinder_curve, tables.cylinder_voi
+    cylinder_adaptive = tables.cylinder_adaptive
     rows = (
         _material_checks(points)
         + _hertz_checks(hertz, radius_mm)
@@ -963,18 +984,20 @@ def write_verification_summary(
     (the cylinder rows when both cylinder CSVs are given, the adaptive ones when cylinder_adaptive_csv is)."""
     cyl = cylinder_curve_csv is not None and cylinder_voi_csv is not None
     summary = verification_summary(
-        points=pd.read_csv(point_csv),
-        hertz=pd.read_csv(hertz_csv),
-        curve=pd.read_csv(curve_csv),
-        locking=pd.read_csv(locking_csv),
-        checks=pd.read_csv(checks_csv),
-        hard=pd.read_csv(hard_csv),
-        benchmark=pd.read_csv(benchmark_csv),
-        cylinder_curve=pd.read_csv(cylinder_curve_csv) if cyl else None,
-        cylinder_voi=pd.read_csv(cylinder_voi_csv) if cyl else None,
-        cylinder_adaptive=None
-        if cylinder_adaptive_csv is None
-        else pd.read_csv(cylinder_adaptive_csv),
+        VerificationTables(
+            points=pd.read_csv(point_csv),
+            hertz=pd.read_csv(hertz_csv),
+            curve=pd.read_csv(curve_csv),
+            locking=pd.read_csv(locking_csv),
+            checks=pd.read_csv(checks_csv),
+            hard=pd.read_csv(hard_csv),
+            benchmark=pd.read_csv(benchmark_csv),
+            cylinder_curve=pd.read_csv(cylinder_curve_csv) if cyl else None,
+            cylinder_voi=pd.read_csv(cylinder_voi_csv) if cyl else None,
+            cylinder_adaptive=None
+            if cylinder_adaptive_csv is None
+            else pd.read_csv(cylinder_adaptive_csv),
+        )
     )
     _write_csv(summary, summary_csv)
     return summary
