@@ -7,6 +7,7 @@ import pytest
 from deeptissue.verification.scenes import (
     HERTZ_REL_LIMIT,
     SUMMARY_COLUMNS,
+    VerificationCsvs,
     VerificationTables,
     failed_checks,
     verification_summary,
@@ -211,14 +212,16 @@ def test_the_summary_is_written_from_the_csv_files(tmp_path):
         df.to_csv(paths[name], index=False)
     out = tmp_path / "summary.csv"
     s = write_verification_summary(
-        point_csv=paths["points"],
-        hertz_csv=paths["hertz"],
-        curve_csv=paths["curve"],
-        locking_csv=paths["locking"],
-        checks_csv=paths["checks"],
-        hard_csv=paths["hard"],
-        benchmark_csv=paths["benchmark"],
-        summary_csv=out,
+        VerificationCsvs(
+            points=paths["points"],
+            hertz=paths["hertz"],
+            curve=paths["curve"],
+            locking=paths["locking"],
+            checks=paths["checks"],
+            hard=paths["hard"],
+            benchmark=paths["benchmark"],
+        ),
+        out,
     )
     back = pd.read_csv(out)
     assert list(back.columns) == SUMMARY_COLUMNS and len(back) == len(s)
@@ -331,16 +334,18 @@ def test_the_cylinder_rows_are_read_from_their_csv_files(tmp_path):
         paths[name] = tmp_path / f"{name}.csv"
         df.to_csv(paths[name], index=False)
     s = write_verification_summary(
-        point_csv=paths["points"],
-        hertz_csv=paths["hertz"],
-        curve_csv=paths["curve"],
-        locking_csv=paths["locking"],
-        checks_csv=paths["checks"],
-        hard_csv=paths["hard"],
-        benchmark_csv=paths["benchmark"],
-        summary_csv=tmp_path / "summary.csv",
-        cylinder_curve_csv=paths["cylinder_curve"],
-        cylinder_voi_csv=paths["cylinder_voi"],
+        VerificationCsvs(
+            points=paths["points"],
+            hertz=paths["hertz"],
+            curve=paths["curve"],
+            locking=paths["locking"],
+            checks=paths["checks"],
+            hard=paths["hard"],
+            benchmark=paths["benchmark"],
+            cylinder_curve=paths["cylinder_curve"],
+            cylinder_voi=paths["cylinder_voi"],
+        ),
+        tmp_path / "summary.csv",
     )
     assert s["check"].str.startswith("cylinder:").sum() == 11 and not failed_checks(s)
 
@@ -500,17 +505,19 @@ def test_the_adaptive_cylinder_rows_are_read_from_their_csv_file(tmp_path):
         paths[name] = tmp_path / f"{name}.csv"
         df.to_csv(paths[name], index=False)
     s = write_verification_summary(
-        point_csv=paths["points"],
-        hertz_csv=paths["hertz"],
-        curve_csv=paths["curve"],
-        locking_csv=paths["locking"],
-        checks_csv=paths["checks"],
-        hard_csv=paths["hard"],
-        benchmark_csv=paths["benchmark"],
-        summary_csv=tmp_path / "summary.csv",
-        cylinder_curve_csv=paths["cylinder_curve"],
-        cylinder_voi_csv=paths["cylinder_voi"],
-        cylinder_adaptive_csv=paths["cylinder_adaptive"],
+        VerificationCsvs(
+            points=paths["points"],
+            hertz=paths["hertz"],
+            curve=paths["curve"],
+            locking=paths["locking"],
+            checks=paths["checks"],
+            hard=paths["hard"],
+            benchmark=paths["benchmark"],
+            cylinder_curve=paths["cylinder_curve"],
+            cylinder_voi=paths["cylinder_voi"],
+            cylinder_adaptive=paths["cylinder_adaptive"],
+        ),
+        tmp_path / "summary.csv",
     )
     adaptive = s["check"].str.startswith("cylinder: adaptive")
     assert (adaptive & ~s["check"].str.endswith("/ true error")).sum() == 10

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import matplotlib
 import numpy as np
@@ -966,38 +967,43 @@ def failed_checks(summary: pd.DataFrame) -> list[str]:
     return summary.loc[summary["status"] == "fail", "check"].tolist()
 
 
-def write_verification_summary(
-    *,
-    point_csv,
-    hertz_csv,
-    curve_csv,
-    locking_csv,
-    checks_csv,
-    hard_csv,
-    benchmark_csv,
-    summary_csv,
-    cylinder_curve_csv=None,
-    cylinder_voi_csv=None,
-    cylinder_adaptive_csv=None,
-) -> pd.DataFrame:
-    """Read the verification CSVs, write :func:`verification_summary` to summary_csv and return it
-    (the cylinder rows when both cylinder CSVs are given, the adaptive ones when cylinder_adaptive_csv is)."""
-    cyl = cylinder_curve_csv is not None and cylinder_voi_csv is not None
-    summary = verification_summary(
-        VerificationTables(
-            points=pd.read_csv(point_csv),
-            hertz=pd.read_csv(hertz_csv),
-            curve=pd.read_csv(curve_csv),
-            locking=pd.read_csv(locking_csv),
-            checks=pd.read_csv(checks_csv),
-            hard=pd.read_csv(hard_csv),
-            benchmark=pd.read_csv(benchmark_csv),
-            cylinder_curve=pd.read_csv(cylinder_curve_csv) if cyl else None,
-            cylinder_voi=pd.read_csv(cylinder_voi_csv) if cyl else None,
+@dataclass(frozen=True)
+class VerificationCsvs:
+    """Paths of the CSVs the ``verify`` rules write, one per field of :class:`VerificationTables`; the
+    cylinder rows need both ``cylinder_curve`` and ``cylinder_voi``, the adaptive ones ``cylinder_adaptive``."""
+
+    points: str | Path
+    hertz: str | Path
+    curve: str | Path
+    locking: str | Path
+    checks: str | Path
+    hard: str | Path
+    benchmark: str | Path
+    cylinder_curve: str | Path | None = None
+    cylinder_voi: str | Path | None = None
+    cylinder_adaptive: str | Path | None = None
+
+    def read(self) -> VerificationTables:
+        """The tables of these CSVs (no cylinder tables unless both cylinder CSVs are given)."""
+        cyl = self.cylinder_curve is not None and self.cylinder_voi is not None
+        return VerificationTables(
+            points=pd.read_csv(self.points),
+            hertz=pd.read_csv(self.hertz),
+            curve=pd.read_csv(self.curve),
+            locking=pd.read_csv(self.locking),
+            checks=pd.read_csv(self.checks),
+            hard=pd.read_csv(self.hard),
+            benchmark=pd.read_csv(self.benchmark),
+            cylinder_curve=pd.read_csv(self.cylinder_curve) if cyl else None,
+            cylinder_voi=pd.read_csv(self.cylinder_voi) if cyl else None,
             cylinder_adaptive=None
-            if cylinder_adaptive_csv is None
-            else pd.read_csv(cylinder_adaptive_csv),
+            if self.cylinder_adaptive is None
+            else pd.read_csv(self.cylinder_adaptive),
         )
-    )
+
+
+def write_verification_summary(csvs: VerificationCsvs, summary_csv) -> pd.DataFrame:
+    """Read the verification CSVs, write :func:`verification_summary` to summary_csv and return it."""
+    summary = verification_summary(csvs.read())
     _write_csv(summary, summary_csv)
     return summary
