@@ -62,16 +62,25 @@ def _block_with_top_patch(size, h, h_fine, r_fine, centre, growth=None):
     return TetMesh(m.nodes_mm, m.tets, {"bone": m.facets["bottom"], "patch": m.facets["top"]})
 
 
+@dataclass(frozen=True)
+class HertzBlock:
+    """The block of :func:`hertz_curve` and its mesh: ``block_mm`` (x, y, z) [mm], element size ``h_mm``
+    [mm], refined to ``h_fine_mm`` [mm] within ``fine_radius_mm`` [mm] of the first contact point and
+    graded at ``growth`` [mm/mm] (the defaults are explained in :func:`hertz_curve`)."""
+
+    block_mm: tuple[float, float, float] = (40.0, 40.0, 20.0)
+    h_mm: float = 6.0
+    h_fine_mm: float = 0.1
+    fine_radius_mm: float = 0.4
+    growth: float = 0.5
+
+
 def hertz_curve(
     material,
     *,
     radius_mm=1.5,
     max_depth_mm=0.15,
-    block_mm=(40.0, 40.0, 20.0),
-    h_mm=6.0,
-    h_fine_mm=0.1,
-    fine_radius_mm=0.4,
-    growth=0.5,
+    block: HertzBlock = HertzBlock(),
     max_increment=0.25,
     accurate=True,
 ) -> pd.DataFrame:
@@ -86,9 +95,11 @@ def hertz_curve(
     0.05 R; 0.1 mm P2 facets within 0.4 mm of the first contact point, growing at 0.5 mm/mm to 6 mm
     (gmsh needs the gentle grading to honour the refinement).
     """
-    lx, ly, lz = block_mm
+    lx, ly, lz = block.block_mm
     top = (lx / 2, ly / 2, lz)
-    m = _block_with_top_patch(block_mm, h_mm, h_fine_mm, fine_radius_mm, top, growth)
+    m = _block_with_top_patch(
+        block.block_mm, block.h_mm, block.h_fine_mm, block.fine_radius_mm, top, block.growth
+    )
     ind = Indenter(
         "sphere",
         axis=(0, 0, -1),
@@ -141,8 +152,7 @@ def locking_check(
             mat,
             radius_mm=radius_mm,
             max_depth_mm=depth_rel * radius_mm,
-            h_fine_mm=h_fine_mm,
-            fine_radius_mm=fine_radius_mm,
+            block=HertzBlock(h_fine_mm=h_fine_mm, fine_radius_mm=fine_radius_mm),
         )
         cols = ["depth_mm", "force_N", "hertz_N", "rel_error"]
         last = {c: float(df[c].iloc[-1]) if len(df) else np.nan for c in cols}
@@ -413,10 +423,7 @@ def write_hertz_curve(material, *, hertz_csv, curve_csv, figure_png, radius_mm=1
         material,
         radius_mm=radius_mm,
         max_depth_mm=2 * radius_mm,
-        h_mm=6.0,
-        h_fine_mm=0.3,
-        fine_radius_mm=1.5,
-        growth=0.5,
+        block=HertzBlock(h_mm=6.0, h_fine_mm=0.3, fine_radius_mm=1.5, growth=0.5),
         max_increment=0.05,
         accurate=True,
     )
