@@ -172,7 +172,7 @@ def _layered_shear(m, k_low=0.5, k_high=0.7):
 
 def test_a_strain_jump_across_the_threshold_is_estimated_in_the_summary_and_voi_csv(tmp_path):
     from deeptissue.report import summary_tables
-    from deeptissue.summary import read_summary, summarize_solution, write_summary
+    from deeptissue.summary import VoiSpec, read_summary, summarize_solution, write_summary
 
     m = box_tet10([0, 1], [0, 0.5, 1, 1.5, 2], [0, 1])
     u = _layered_shear(m)
@@ -197,7 +197,9 @@ def test_a_strain_jump_across_the_threshold_is_estimated_in_the_summary_and_voi_
     )
     assert {f"bins_err_pp.{k}" for k in s.bins_percent} <= set(voi.columns)
     # centroid sampling: the estimate of the centroid numbers (one point per element)
-    c, _ = summarize_solution(m, u, animal="a", variant="sphere", gamma_sampling="centroid")
+    c, _ = summarize_solution(
+        m, u, animal="a", variant="sphere", voi=VoiSpec(gamma_sampling="centroid")
+    )
     assert c.voi_err_mm3 >= 0 and set(c.bins_err_pp) == set(s.bins_percent)
 
 

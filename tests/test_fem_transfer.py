@@ -8,7 +8,7 @@ import pytest
 from deeptissue.fem.assembly import as_material_law
 from deeptissue.fem.indenters import Indenter
 from deeptissue.fem.material import Ogden
-from deeptissue.fem.solver import SolverSettings, solve_from, solve_indentation
+from deeptissue.fem.solver import Scene, SolverSettings, solve_from, solve_indentation
 from deeptissue.fem.transfer import interpolate_nodal, mapped_end_state
 from deeptissue.rigid import BoneMotion, apply_rigid
 from deeptissue.verification.shapes import block_mesh, cored_cylinder_mesh
@@ -86,7 +86,7 @@ def test_a_solve_started_from_a_coarser_mesh_reaches_the_fine_mesh_end_state_in_
     np.testing.assert_allclose(
         base.displacement_mm.reshape(-1, 3)[b], moved - fine.nodes_mm[b], atol=1e-12
     )
-    r = solve_from(fine, material=LAW, indenter=ind, bone_motion=motion, base=base)
+    r = solve_from(fine, Scene(LAW, ind, bone_motion=motion), base=base)
     assert r.converged and r.extra["turned"], r.reason
     assert all(h.step == 4 for h in r.history)  # the end load only, not the path
     assert r.newton_iterations <= 0.5 * direct.newton_iterations  # 4 against 8
@@ -97,7 +97,7 @@ def test_a_solve_started_from_a_coarser_mesh_reaches_the_fine_mesh_end_state_in_
     folded = replace(
         base, displacement_mm=np.random.default_rng(1).normal(0.0, 2.0, base.displacement_mm.shape)
     )
-    again = solve_from(fine, material=LAW, indenter=ind, bone_motion=motion, base=folded)
+    again = solve_from(fine, Scene(LAW, ind, bone_motion=motion), base=folded)
     assert (
         again.converged
         and not again.extra.get("turned")

@@ -23,6 +23,7 @@ from deeptissue.mesh import TetMesh, load_tetmesh, save_tetmesh
 from deeptissue.rigid import BoneMotion, apply_rigid
 from deeptissue.strain import element_strain
 from deeptissue.summary import (
+    VoiSpec,
     deformed_surface,
     read_result_vtu,
     summarize_solution,
@@ -171,8 +172,7 @@ def test_p1_patch_test_on_a_distorted_mesh_and_strain_post_processing(tmp_path):
         r.displacement_mm,
         animal="a",
         variant="v",
-        threshold=0.05,
-        bin_edges=(0.05, 0.1, 1.0),
+        voi=VoiSpec(threshold=0.05, bin_edges=(0.05, 0.1, 1.0)),
         skin_contours_mm=verts[np.unique(tris)],
     )
     assert summary.skin_mean_mm == pytest.approx(0.0, abs=1e-12)

@@ -7,6 +7,7 @@ from study_meshes import boundary_tri6, box_tet10
 from deeptissue.mesh import TetMesh
 from deeptissue.summary import (
     Summary,
+    VoiSpec,
     deformed_surface,
     failed_summary,
     point_triangle_distance,
@@ -157,9 +158,7 @@ def test_summarize_solution_and_json_round_trip(tmp_path):
         u,
         animal="rat01",
         variant="sphere",
-        strain_measure="log",
-        threshold=0.25,
-        bin_edges=(0.25, 0.3, 0.5),
+        voi=VoiSpec(strain_measure="log", threshold=0.25, bin_edges=(0.25, 0.3, 0.5)),
     )
     assert s_log.voi_mm3 == pytest.approx(1.0)  # only the k = 0.7 layer has γ_log > 0.25
     assert s_log.bins_percent == pytest.approx({"0.25-0.3": 0.0, "0.3-0.5": 100.0, ">0.5": 0.0})
@@ -185,7 +184,12 @@ def test_gamma_sampling_chooses_the_reported_voi_and_both_are_kept():
     w = np.full(m.n_tets, 2.0)  # energy density [MPa]
     pts, _ = summarize_solution(m, u, animal="a", variant="sphere", energy_density_mpa=w)
     cen, _ = summarize_solution(
-        m, u, animal="a", variant="sphere", gamma_sampling="centroid", energy_density_mpa=w
+        m,
+        u,
+        animal="a",
+        variant="sphere",
+        voi=VoiSpec(gamma_sampling="centroid"),
+        energy_density_mpa=w,
     )
     assert pts.gamma_sampling == "points" and cen.gamma_sampling == "centroid"
     assert (
@@ -205,7 +209,7 @@ def test_gamma_sampling_chooses_the_reported_voi_and_both_are_kept():
     assert pts.voi_by_measure_mm3["green_lagrange"] == pts.voi_mm3
     assert cen.peak_gamma == pts.peak_gamma  # always the largest centroid value
     with pytest.raises(ValueError, match="gamma_sampling"):
-        summarize_solution(m, u, animal="a", variant="sphere", gamma_sampling="nodes")
+        summarize_solution(m, u, animal="a", variant="sphere", voi=VoiSpec(gamma_sampling="nodes"))
 
 
 def test_result_vtu_uses_vtk_node_order(tmp_path):

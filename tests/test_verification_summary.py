@@ -7,6 +7,8 @@ import pytest
 from deeptissue.verification.scenes import (
     HERTZ_REL_LIMIT,
     SUMMARY_COLUMNS,
+    VerificationCsvs,
+    VerificationTables,
     failed_checks,
     verification_summary,
     write_verification_summary,
@@ -139,7 +141,7 @@ KNOWN = {
 
 
 def test_a_passing_set_of_tables_has_only_passing_and_known_failures():
-    s = verification_summary(**_tables(), known_failures=KNOWN)
+    s = verification_summary(VerificationTables(**_tables()), known_failures=KNOWN)
     assert list(s.columns) == SUMMARY_COLUMNS
     assert s["check"].is_unique
     # 2 material + 2 Hertz + 1 curve + 2 locking + 4 fem checks + 2 hard cases + 1 benchmark
@@ -159,7 +161,8 @@ def test_a_passing_set_of_tables_has_only_passing_and_known_failures():
 
 def test_a_check_beyond_its_limit_fails_and_is_named():
     s = verification_summary(
-        **_tables(hertz_error=HERTZ_REL_LIMIT + 0.001, patch_error=1e-6), known_failures=KNOWN
+        VerificationTables(**_tables(hertz_error=HERTZ_REL_LIMIT + 0.001, patch_error=1e-6)),
+        known_failures=KNOWN,
     )
     assert failed_checks(s) == [
         "Hertz: max |F / F_Hertz - 1| to 0.1 R",
@@ -169,7 +172,9 @@ def test_a_check_beyond_its_limit_fails_and_is_named():
 
 
 def test_a_curve_that_stops_short_fails():
-    s = verification_summary(**_tables(curve_stopped=True), known_failures=KNOWN)
+    s = verification_summary(
+        VerificationTables(**_tables(curve_stopped=True)), known_failures=KNOWN
+    )
     assert failed_checks(s) == ["Hertz curve: depth reached [mm]"]
     assert (
         "line search failed" in s.set_index("check").loc["Hertz curve: depth reached [mm]", "note"]
@@ -179,12 +184,14 @@ def test_a_curve_that_stops_short_fails():
 def test_a_known_failure_that_converges_passes_and_an_unlisted_one_fails():
     assert (
         _status(
-            verification_summary(**_tables(hard_30_converged=True), known_failures=KNOWN),
+            verification_summary(
+                VerificationTables(**_tables(hard_30_converged=True)), known_failures=KNOWN
+            ),
             "hard case: bar tilted 30 deg, 2 mm",
         )
         == "pass"
     )
-    s = verification_summary(**_tables(), known_failures={})
+    s = verification_summary(VerificationTables(**_tables()), known_failures={})
     assert failed_checks(s) == ["hard case: bar tilted 30 deg, 2 mm"]
 
 
@@ -193,7 +200,7 @@ def test_a_failed_material_row_fails_whatever_its_pass_column_says():
     t["points"].loc[0, "max_error"] = (
         1e-6  # the row keeps pass=True: the summary compares value and limit itself
     )
-    assert failed_checks(verification_summary(**t, known_failures=KNOWN)) == [
+    assert failed_checks(verification_summary(VerificationTables(**t), known_failures=KNOWN)) == [
         "material point: reference F=I: |W| / mu"
     ]
 
@@ -205,14 +212,16 @@ def test_the_summary_is_written_from_the_csv_files(tmp_path):
         df.to_csv(paths[name], index=False)
     out = tmp_path / "summary.csv"
     s = write_verification_summary(
-        point_csv=paths["points"],
-        hertz_csv=paths["hertz"],
-        curve_csv=paths["curve"],
-        locking_csv=paths["locking"],
-        checks_csv=paths["checks"],
-        hard_csv=paths["hard"],
-        benchmark_csv=paths["benchmark"],
-        summary_csv=out,
+        VerificationCsvs(
+            points=paths["points"],
+            hertz=paths["hertz"],
+            curve=paths["curve"],
+            locking=paths["locking"],
+            checks=paths["checks"],
+            hard=paths["hard"],
+            benchmark=paths["benchmark"],
+        ),
+        out,
     )
     back = pd.read_csv(out)
     assert list(back.columns) == SUMMARY_COLUMNS and len(back) == len(s)
@@ -262,9 +271,9 @@ def _cylinder(force_error=0.001, voi_error=0.01, estimate_mm3=0.2):
 
 def test_cylinder_rows_hold_each_mesh_to_the_finest():
     curve, voi = _cylinder()
-    s = verification_summary(**_tables(), cylinder_curve=curve, cylinder_voi=voi).set_index(
-        "check"
-    )
+    s = verification_summary(
+        VerificationTables(**_tables(), cylinder_curve=curve, cylinder_voi=voi)
+    ).set_index("check")
     rows = s[s.index.str.startswith("cylinder:")]
     assert (
         len(rows) == 3 + 4 * 2
@@ -287,7 +296,8 @@ def test_cylinder_rows_hold_each_mesh_to_the_finest():
     )
     failed = failed_checks(
         verification_summary(
-            **_tables(), cylinder_curve=curve, cylinder_voi=voi, known_failures={}
+            VerificationTables(**_tables(), cylinder_curve=curve, cylinder_voi=voi),
+            known_failures={},
         )
     )
     assert "cylinder: 1.6 / 0.8 mm mesh: force at 0.5 mm: |F / F_finest - 1|" in failed
@@ -296,9 +306,9 @@ def test_cylinder_rows_hold_each_mesh_to_the_finest():
         "cylinder: 1.6 / 0.8 mm mesh: VOI at 3 mm: true error / estimate" in failed
     )  # 0.9 against 0.3 mm^3
     # the default mesh's misses are known failures of the mesh; the estimate's are not
-    s = verification_summary(**_tables(), cylinder_curve=curve, cylinder_voi=voi).set_index(
-        "check"
-    )
+    s = verification_summary(
+        VerificationTables(**_tables(), cylinder_curve=curve, cylinder_voi=voi)
+    ).set_index("check")
     assert (
         s.loc["cylinder: 1.6 / 0.8 mm mesh: force at 0.5 mm: |F / F_finest - 1|", "status"]
         == "known-failure"
@@ -324,16 +334,18 @@ def test_the_cylinder_rows_are_read_from_their_csv_files(tmp_path):
         paths[name] = tmp_path / f"{name}.csv"
         df.to_csv(paths[name], index=False)
     s = write_verification_summary(
-        point_csv=paths["points"],
-        hertz_csv=paths["hertz"],
-        curve_csv=paths["curve"],
-        locking_csv=paths["locking"],
-        checks_csv=paths["checks"],
-        hard_csv=paths["hard"],
-        benchmark_csv=paths["benchmark"],
-        summary_csv=tmp_path / "summary.csv",
-        cylinder_curve_csv=paths["cylinder_curve"],
-        cylinder_voi_csv=paths["cylinder_voi"],
+        VerificationCsvs(
+            points=paths["points"],
+            hertz=paths["hertz"],
+            curve=paths["curve"],
+            locking=paths["locking"],
+            checks=paths["checks"],
+            hard=paths["hard"],
+            benchmark=paths["benchmark"],
+            cylinder_curve=paths["cylinder_curve"],
+            cylinder_voi=paths["cylinder_voi"],
+        ),
+        tmp_path / "summary.csv",
     )
     assert s["check"].str.startswith("cylinder:").sum() == 11 and not failed_checks(s)
 
@@ -371,10 +383,12 @@ def _adaptive(curve, voi, *, force_error=0.002, voi_error=-0.01, goal_met=True):
 def test_adaptive_cylinder_rows_hold_each_last_pass_to_the_finest_fixed_mesh():
     curve, voi = _cylinder()
     s = verification_summary(
-        **_tables(),
-        cylinder_curve=curve,
-        cylinder_voi=voi,
-        cylinder_adaptive=_adaptive(curve, voi),
+        VerificationTables(
+            **_tables(),
+            cylinder_curve=curve,
+            cylinder_voi=voi,
+            cylinder_adaptive=_adaptive(curve, voi),
+        )
     ).set_index("check")
     rows = s[s.index.str.startswith("cylinder: adaptive") & ~s.index.str.endswith("/ true error")]
     # goal and force at 3 depths; VOI and bins where the reference has them (1.5 and 3 mm)
@@ -395,12 +409,14 @@ def test_adaptive_cylinder_rows_hold_each_last_pass_to_the_finest_fixed_mesh():
     assert "cylinder: adaptive mesh: VOI at 0.5 mm: |VOI / VOI_finest - 1|" not in rows.index
     failed = failed_checks(
         verification_summary(
-            **_tables(),
-            cylinder_curve=curve,
-            cylinder_voi=voi,
-            cylinder_adaptive=_adaptive(
-                curve, voi, force_error=0.03, voi_error=0.03, goal_met=False
-            ),
+            VerificationTables(
+                **_tables(),
+                cylinder_curve=curve,
+                cylinder_voi=voi,
+                cylinder_adaptive=_adaptive(
+                    curve, voi, force_error=0.03, voi_error=0.03, goal_met=False
+                ),
+            )
         )
     )
     assert {
@@ -454,7 +470,9 @@ def test_the_effectivity_of_each_adaptive_estimate_is_checked_where_the_referenc
         )
         + run(0.5, [q(nan, 17.0), q(0.5, 7.7), q(0.05, 0.05)])
     )
-    s = verification_summary(**_tables(), cylinder_adaptive=table).set_index("check")
+    s = verification_summary(VerificationTables(**_tables(), cylinder_adaptive=table)).set_index(
+        "check"
+    )
     rows = s[s.index.str.endswith("estimate / true error")]
     assert set(rows.index) == {
         "cylinder: adaptive mesh: force estimate at 2 mm: estimate / true error",
@@ -487,17 +505,19 @@ def test_the_adaptive_cylinder_rows_are_read_from_their_csv_file(tmp_path):
         paths[name] = tmp_path / f"{name}.csv"
         df.to_csv(paths[name], index=False)
     s = write_verification_summary(
-        point_csv=paths["points"],
-        hertz_csv=paths["hertz"],
-        curve_csv=paths["curve"],
-        locking_csv=paths["locking"],
-        checks_csv=paths["checks"],
-        hard_csv=paths["hard"],
-        benchmark_csv=paths["benchmark"],
-        summary_csv=tmp_path / "summary.csv",
-        cylinder_curve_csv=paths["cylinder_curve"],
-        cylinder_voi_csv=paths["cylinder_voi"],
-        cylinder_adaptive_csv=paths["cylinder_adaptive"],
+        VerificationCsvs(
+            points=paths["points"],
+            hertz=paths["hertz"],
+            curve=paths["curve"],
+            locking=paths["locking"],
+            checks=paths["checks"],
+            hard=paths["hard"],
+            benchmark=paths["benchmark"],
+            cylinder_curve=paths["cylinder_curve"],
+            cylinder_voi=paths["cylinder_voi"],
+            cylinder_adaptive=paths["cylinder_adaptive"],
+        ),
+        tmp_path / "summary.csv",
     )
     adaptive = s["check"].str.startswith("cylinder: adaptive")
     assert (adaptive & ~s["check"].str.endswith("/ true error")).sum() == 10

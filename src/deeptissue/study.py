@@ -25,6 +25,7 @@ from .fem.solver import (
     BoneState,
     EndState,
     FacetSets,
+    Scene,
     SolverSettings,
     end_state,
     load_bone_state,
@@ -41,6 +42,7 @@ from .pose import Pose, load_pose
 from .strain import DEFAULT_BIN_EDGES, StrainError, element_strain
 from .summary import (
     Summary,
+    VoiSpec,
     failed_summary,
     qc_warnings_of,
     summarize_solution,
@@ -215,14 +217,10 @@ def solve_variant(
     sets = FacetSets(indenter=set_name)
     result = solve_from(
         mesh,
-        material=material,
-        indenter=indenter,
-        bone_motion=pose.bone_motion,
+        Scene(material, indenter, bone_motion=pose.bone_motion, cast=cast, sets=sets),
         base=base,
         start=start,
-        cast=cast,
         settings=settings,
-        sets=sets,
     )
     turned = base_variant if result.extra.get("turned") else None
     info = dict(
@@ -280,10 +278,12 @@ def solve_variant(
         result.displacement_mm,
         animal=animal,
         variant=variant,
-        strain_measure=study.strain_measure,
-        threshold=study.threshold,
-        bin_edges=study.bin_edges,
-        gamma_sampling=study.gamma_sampling,
+        voi=VoiSpec(
+            strain_measure=study.strain_measure,
+            threshold=study.threshold,
+            bin_edges=study.bin_edges,
+            gamma_sampling=study.gamma_sampling,
+        ),
         energy_density_mpa=energy,
         skin_contours_mm=skin_contours_mm,
         **info,

@@ -36,6 +36,7 @@ __all__ = [
     "GAMMA_SAMPLINGS",
     "SAMPLING_LEVELS",
     "Summary",
+    "VoiSpec",
     "deformed_surface",
     "failed_summary",
     "point_triangle_distance",
@@ -245,16 +246,58 @@ def failed_summary(
     )
 
 
+@dataclass(frozen=True)
+class VoiSpec:
+    """How the volume of interest is defined and estimated.
+
+    ``strain_measure`` ({'green_lagrange', 'log'}) is the γmax ``voi_mm3`` and the bins use (both
+    measures' VOI are always reported); ``threshold`` [-] is the γmax above which tissue is in the VOI
+    (0.3, the damage threshold of the indentation studies); ``bin_edges`` are the γmax bin edges, the first
+    equal to ``threshold`` (:data:`deeptissue.strain.DEFAULT_BIN_EDGES`); ``gamma_sampling``
+    ({'points', 'centroid'}, :data:`GAMMA_SAMPLINGS`) says which estimate the reported VOI is: 'points'
+    integrates γmax at sub-element points, which converges faster under mesh refinement than one value
+    per element at the centroid."""
+
+    strain_measure: str = "green_lagrange"
+    threshold: float = 0.3
+    bin_edges: Sequence[float] = DEFAULT_BIN_EDGES
+    gamma_sampling: str = "points"
+
+    def __post_init__(self):
+        if self.gamma_sampling not in GAMMA_SAMPLINGS:
+            raise ValueError(
+                f"gamma_sampling {self.gamma_sampling!r}: expected one of {GAMMA_SAMPLINGS}"
+            )
+
+
+def _reported_error(mesh: TetMesh, displacement_mm, s, g_pts, v_pts, voi: VoiSpec):
+    """The recovered-strain error estimate of the reported VOI and bins: γh at the same points as
+    ``voi_mm3`` (the sub-element points ``g_pts``/``v_pts`` or the centroids of ``s``) against the
+    recovered γ*."""
+    measure = voi.strain_measure
+    at = (
+        (g_pts[measure], v_pts)
+        if voi.gamma_sampling == "points"
+        else (s.gamma(measure)[:, None], s.volume_mm3[:, None])
+    )
+    return voi_error_estimate(
+        mesh,
+        displacement_mm,
+        threshold=voi.threshold,
+        bin_edges=voi.bin_edges,
+        strain_measure=measure,
+        levels=SAMPLING_LEVELS if voi.gamma_sampling == "points" else 0,
+        sampled=at,
+    )
+
+
 def summarize_solution(
     mesh: TetMesh,
     displacement_mm,
     *,
     animal: str,
     variant: str,
-    strain_measure: str = "green_lagrange",
-    threshold: float = 0.3,
-    bin_edges: Sequence[float] = DEFAULT_BIN_EDGES,
-    gamma_sampling: str = "points",
+    voi: VoiSpec = VoiSpec(),
     energy_density_mpa=None,
     skin_contours_mm=None,
     **solver_info,
@@ -270,16 +313,11 @@ def summarize_solution(
         Nodal displacement [mm].
     animal, variant : str
         The run.
-    strain_measure : {'green_lagrange', 'log'}
-        Which γmax ``voi_mm3`` and the bins use (both measures' VOI are in ``voi_by_measure_mm3``).
-    threshold : float
-        γmax threshold of the VOI [-].
-    bin_edges : sequence of float
-        γmax bin edges, the first equal to ``threshold`` (:data:`deeptissue.strain.DEFAULT_BIN_EDGES`).
-    gamma_sampling : {'points', 'centroid'}
-        Which estimate (:data:`GAMMA_SAMPLINGS`) ``voi_mm3``, ``bins_percent``,
-        ``below_threshold_percent``, ``strain_energy_mJ`` and ``voi_by_measure_mm3`` are; both are
-        always in ``voi_sampled_mm3`` / ``voi_centroid_mm3`` and their bins.
+    voi : VoiSpec
+        Strain measure, threshold, bins and γmax sampling of the VOI. ``voi_mm3``, ``bins_percent``,
+        ``below_threshold_percent``, ``strain_energy_mJ`` and ``voi_by_measure_mm3`` follow its
+        ``gamma_sampling``; both samplings are always in ``voi_sampled_mm3`` / ``voi_centroid_mm3`` and
+        their bins.
     energy_density_mpa : (n_tets,) array_like or None
         Strain-energy density per reference volume [MPa] (= mJ/mm³), for ``strain_energy_mJ``.
     skin_contours_mm : (..., 3) array_like or None
@@ -298,8 +336,8 @@ def summarize_solution(
     strain : ElementStrain
         Per-element strain at the centroids (for ``result.vtu``).
     """
-    if gamma_sampling not in GAMMA_SAMPLINGS:
-        raise ValueError(f"gamma_sampling {gamma_sampling!r}: expected one of {GAMMA_SAMPLINGS}")
+    strain_measure, threshold, bin_edges = voi.strain_measure, voi.threshold, voi.bin_edges
+    gamma_sampling = voi.gamma_sampling
     s = element_strain(mesh, displacement_mm)
     g_pts, v_pts, n_centroid = gamma_at_points(
         mesh, displacement_mm, levels=SAMPLING_LEVELS, strain_measures=STRAIN_MEASURES
@@ -328,21 +366,7 @@ def summarize_solution(
     centroid, sampled = stats(strain_measure, "centroid", w), stats(strain_measure, "points", w)
     st = sampled if gamma_sampling == "points" else centroid
     by = {m: (st if m == strain_measure else stats(m, gamma_sampling)) for m in STRAIN_MEASURES}
-    # the error estimate of the reported numbers: γh at the same points as voi_mm3 against the recovered γ*
-    at = (
-        (g_pts[strain_measure], v_pts)
-        if gamma_sampling == "points"
-        else (s.gamma(strain_measure)[:, None], s.volume_mm3[:, None])
-    )
-    est = voi_error_estimate(
-        mesh,
-        displacement_mm,
-        threshold=threshold,
-        bin_edges=bin_edges,
-        strain_measure=strain_measure,
-        levels=SAMPLING_LEVELS if gamma_sampling == "points" else 0,
-        sampled=at,
-    )
+    est = _reported_error(mesh, displacement_mm, s, g_pts, v_pts, voi)
     skin = {}
     if skin_contours_mm is not None:
         verts, tris = deformed_surface(mesh, displacement_mm, facet="skin")

@@ -64,6 +64,7 @@ __all__ = [
     "IncrementRecord",
     "IncrementSettings",
     "NewtonSettings",
+    "Scene",
     "SolveResult",
     "SolverSettings",
     "end_state",
@@ -755,34 +756,44 @@ def solve_turned(
     return replace(r, extra={**r.extra, "turned": True})
 
 
+@dataclass(frozen=True)
+class Scene:
+    """What a variant's solve loads: the tissue ``material`` law, the rigid ``indenter``, the ``bone_motion``
+    (identity by default: the bone held), an optional rigid ``cast``, and the facet ``sets`` the indenter,
+    bone and cast act on."""
+
+    material: object
+    indenter: Indenter
+    bone_motion: BoneMotion = BoneMotion()
+    cast: Cast | None = None
+    sets: FacetSets = FacetSets()
+
+
 def solve_from(
     mesh: TetMesh,
+    scene: Scene,
     *,
-    material,
-    indenter: Indenter,
-    bone_motion: BoneMotion,
     base: EndState | None = None,
     start: BoneState | None = None,
-    cast: Cast | None = None,
     settings: SolverSettings = SolverSettings(),
-    sets: FacetSets = FacetSets(),
 ) -> SolveResult:
-    """Solve a variant from the nearest converged state there is: from ``base`` (:func:`solve_turned`: an end
-    state on this mesh whose indenter turns about the same final tip into ``indenter``, or with the same
-    indenter, a state carried from another mesh, :func:`deeptissue.fem.transfer.mapped_end_state`), and from
-    ``start`` (:func:`solve_indentation`) where there is no base or that solve does not converge. The costs of
-    a try that did not converge are added to the result's; its reason is ``extra['turn_failed']``, and
-    ``extra['turned']`` says whether the base was used."""
+    """Solve ``scene`` on ``mesh`` from the nearest converged state there is: from ``base``
+    (:func:`solve_turned`: an end state on this mesh whose indenter turns about the same final tip into the
+    scene's indenter, or with the same indenter, a state carried from another mesh,
+    :func:`deeptissue.fem.transfer.mapped_end_state`), and from ``start`` (:func:`solve_indentation`) where
+    there is no base or that solve does not converge. The costs of a try that did not converge are added to
+    the result's; its reason is ``extra['turn_failed']``, and ``extra['turned']`` says whether the base was
+    used."""
     first = None
     if base is not None:
         first = solve_turned(
             mesh,
-            material=material,
+            material=scene.material,
             base=base,
-            indenter=indenter,
-            cast=cast,
+            indenter=scene.indenter,
+            cast=scene.cast,
             settings=settings,
-            sets=sets,
+            sets=scene.sets,
         )
         if first.converged:
             return first
@@ -792,12 +803,12 @@ def solve_from(
         )
     r = solve_indentation(
         mesh,
-        material=material,
-        indenter=indenter,
-        bone_motion=bone_motion,
-        cast=cast,
+        material=scene.material,
+        indenter=scene.indenter,
+        bone_motion=scene.bone_motion,
+        cast=scene.cast,
         settings=settings,
-        sets=sets,
+        sets=scene.sets,
         start=start,
     )
     if first is None:

@@ -24,13 +24,13 @@ import pandas as pd
 from ..adapt import AdaptSettings, PassEstimate, adapt
 from ..errorest import sampling_difference, voi_error_estimate
 from ..fem.indenters import Indenter
-from ..fem.solver import SolverSettings, solve_from, solve_indentation
+from ..fem.solver import Scene, SolverSettings, solve_from, solve_indentation
 from ..fem.transfer import mapped_end_state
 from ..io import atomic_path
 from ..mesh import TetMesh, set_background_size
 from ..rigid import BoneMotion
 from ..strain import DEFAULT_BIN_EDGES, gamma_at_points, voi_statistics
-from ..summary import SAMPLING_LEVELS, summarize_solution
+from ..summary import SAMPLING_LEVELS, VoiSpec, summarize_solution
 from .shapes import _finish, _start
 
 __all__ = [
@@ -263,8 +263,7 @@ def cylinder_scene(
                 r.displacement_mm,
                 animal="cylinder",
                 variant=f"{d:g}mm",
-                threshold=threshold,
-                bin_edges=edges,
+                voi=VoiSpec(threshold=threshold, bin_edges=edges),
             )
             vois.append(
                 dict(
@@ -426,9 +425,7 @@ def adaptive_cylinder(
                 settings=st,
             )
         )
-        return solve_from(
-            m, material=material, indenter=ind, bone_motion=BoneMotion(), base=base, settings=st
-        )
+        return solve_from(m, Scene(material, ind), base=base, settings=st)
 
     return adapt(
         lambda field: cylinder_mesh(start, height_mm=scene.height_mm, size_field=field),

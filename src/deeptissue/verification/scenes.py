@@ -10,7 +10,8 @@ makes the target ``verify`` fail.
 from __future__ import annotations
 
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
+from pathlib import Path
 
 import matplotlib
 import numpy as np
@@ -61,16 +62,25 @@ def _block_with_top_patch(size, h, h_fine, r_fine, centre, growth=None):
     return TetMesh(m.nodes_mm, m.tets, {"bone": m.facets["bottom"], "patch": m.facets["top"]})
 
 
+@dataclass(frozen=True)
+class HertzBlock:
+    """The block of :func:`hertz_curve` and its mesh: ``block_mm`` (x, y, z) [mm], element size ``h_mm``
+    [mm], refined to ``h_fine_mm`` [mm] within ``fine_radius_mm`` [mm] of the first contact point and
+    graded at ``growth`` [mm/mm] (the defaults are explained in :func:`hertz_curve`)."""
+
+    block_mm: tuple[float, float, float] = (40.0, 40.0, 20.0)
+    h_mm: float = 6.0
+    h_fine_mm: float = 0.1
+    fine_radius_mm: float = 0.4
+    growth: float = 0.5
+
+
 def hertz_curve(
     material,
     *,
     radius_mm=1.5,
     max_depth_mm=0.15,
-    block_mm=(40.0, 40.0, 20.0),
-    h_mm=6.0,
-    h_fine_mm=0.1,
-    fine_radius_mm=0.4,
-    growth=0.5,
+    block: HertzBlock = HertzBlock(),
     max_increment=0.25,
     accurate=True,
 ) -> pd.DataFrame:
@@ -85,9 +95,11 @@ def hertz_curve(
     0.05 R; 0.1 mm P2 facets within 0.4 mm of the first contact point, growing at 0.5 mm/mm to 6 mm
     (gmsh needs the gentle grading to honour the refinement).
     """
-    lx, ly, lz = block_mm
+    lx, ly, lz = block.block_mm
     top = (lx / 2, ly / 2, lz)
-    m = _block_with_top_patch(block_mm, h_mm, h_fine_mm, fine_radius_mm, top, growth)
+    m = _block_with_top_patch(
+        block.block_mm, block.h_mm, block.h_fine_mm, block.fine_radius_mm, top, block.growth
+    )
     ind = Indenter(
         "sphere",
         axis=(0, 0, -1),
@@ -140,8 +152,7 @@ def locking_check(
             mat,
             radius_mm=radius_mm,
             max_depth_mm=depth_rel * radius_mm,
-            h_fine_mm=h_fine_mm,
-            fine_radius_mm=fine_radius_mm,
+            block=HertzBlock(h_fine_mm=h_fine_mm, fine_radius_mm=fine_radius_mm),
         )
         cols = ["depth_mm", "force_N", "hertz_N", "rel_error"]
         last = {c: float(df[c].iloc[-1]) if len(df) else np.nan for c in cols}
@@ -412,10 +423,7 @@ def write_hertz_curve(material, *, hertz_csv, curve_csv, figure_png, radius_mm=1
         material,
         radius_mm=radius_mm,
         max_depth_mm=2 * radius_mm,
-        h_mm=6.0,
-        h_fine_mm=0.3,
-        fine_radius_mm=1.5,
-        growth=0.5,
+        block=HertzBlock(h_mm=6.0, h_fine_mm=0.3, fine_radius_mm=1.5, growth=0.5),
         max_increment=0.05,
         accurate=True,
     )
@@ -861,18 +869,26 @@ def _cylinder_effectivity_checks(table: pd.DataFrame) -> list[dict]:
     return rows
 
 
+@dataclass(frozen=True)
+class VerificationTables:
+    """The tables the ``verify`` rules write, as :func:`verification_summary` reads them (the fields are
+    described there); the cylinder tables are optional."""
+
+    points: pd.DataFrame
+    hertz: pd.DataFrame
+    curve: pd.DataFrame
+    locking: pd.DataFrame
+    checks: pd.DataFrame
+    hard: pd.DataFrame
+    benchmark: pd.DataFrame
+    cylinder_curve: pd.DataFrame | None = None
+    cylinder_voi: pd.DataFrame | None = None
+    cylinder_adaptive: pd.DataFrame | None = None
+
+
 def verification_summary(
+    tables: VerificationTables,
     *,
-    points: pd.DataFrame,
-    hertz: pd.DataFrame,
-    curve: pd.DataFrame,
-    locking: pd.DataFrame,
-    checks: pd.DataFrame,
-    hard: pd.DataFrame,
-    benchmark: pd.DataFrame,
-    cylinder_curve: pd.DataFrame | None = None,
-    cylinder_voi: pd.DataFrame | None = None,
-    cylinder_adaptive: pd.DataFrame | None = None,
     radius_mm: float = HERTZ_RADIUS_MM,
     known_failures: dict[str, str] | None = None,
 ) -> pd.DataFrame:
@@ -880,6 +896,8 @@ def verification_summary(
 
     Parameters
     ----------
+    tables : VerificationTables
+        The fields below.
     points : DataFrame
         material_point.csv (case, quantity, max_error, tolerance, pass); its uniaxial, equibiaxial
         and simple-shear rows summarise homogeneous.csv.
@@ -909,6 +927,17 @@ def verification_summary(
         (a failing check named in ``known_failures``, its reason prefixed to the note).
     """
     known = KNOWN_FAILURES if known_failures is None else known_failures
+    points, hertz, curve, locking, checks, hard, benchmark = (
+        tables.points,
+        tables.hertz,
+        tables.curve,
+        tables.locking,
+        tables.checks,
+        tables.hard,
+        tables.benchmark,
+    )
+    cylinder_curve, cylinder_voi = tables.cylinder_curve, tables.cylinder_voi
+    cylinder_adaptive = tables.cylinder_adaptive
     rows = (
         _material_checks(points)
         + _hertz_checks(hertz, radius_mm)
@@ -945,36 +974,43 @@ def failed_checks(summary: pd.DataFrame) -> list[str]:
     return summary.loc[summary["status"] == "fail", "check"].tolist()
 
 
-def write_verification_summary(
-    *,
-    point_csv,
-    hertz_csv,
-    curve_csv,
-    locking_csv,
-    checks_csv,
-    hard_csv,
-    benchmark_csv,
-    summary_csv,
-    cylinder_curve_csv=None,
-    cylinder_voi_csv=None,
-    cylinder_adaptive_csv=None,
-) -> pd.DataFrame:
-    """Read the verification CSVs, write :func:`verification_summary` to summary_csv and return it
-    (the cylinder rows when both cylinder CSVs are given, the adaptive ones when cylinder_adaptive_csv is)."""
-    cyl = cylinder_curve_csv is not None and cylinder_voi_csv is not None
-    summary = verification_summary(
-        points=pd.read_csv(point_csv),
-        hertz=pd.read_csv(hertz_csv),
-        curve=pd.read_csv(curve_csv),
-        locking=pd.read_csv(locking_csv),
-        checks=pd.read_csv(checks_csv),
-        hard=pd.read_csv(hard_csv),
-        benchmark=pd.read_csv(benchmark_csv),
-        cylinder_curve=pd.read_csv(cylinder_curve_csv) if cyl else None,
-        cylinder_voi=pd.read_csv(cylinder_voi_csv) if cyl else None,
-        cylinder_adaptive=None
-        if cylinder_adaptive_csv is None
-        else pd.read_csv(cylinder_adaptive_csv),
-    )
+@dataclass(frozen=True)
+class VerificationCsvs:
+    """Paths of the CSVs the ``verify`` rules write, one per field of :class:`VerificationTables`; the
+    cylinder rows need both ``cylinder_curve`` and ``cylinder_voi``, the adaptive ones ``cylinder_adaptive``."""
+
+    points: str | Path
+    hertz: str | Path
+    curve: str | Path
+    locking: str | Path
+    checks: str | Path
+    hard: str | Path
+    benchmark: str | Path
+    cylinder_curve: str | Path | None = None
+    cylinder_voi: str | Path | None = None
+    cylinder_adaptive: str | Path | None = None
+
+    def read(self) -> VerificationTables:
+        """The tables of these CSVs (no cylinder tables unless both cylinder CSVs are given)."""
+        cyl = self.cylinder_curve is not None and self.cylinder_voi is not None
+        return VerificationTables(
+            points=pd.read_csv(self.points),
+            hertz=pd.read_csv(self.hertz),
+            curve=pd.read_csv(self.curve),
+            locking=pd.read_csv(self.locking),
+            checks=pd.read_csv(self.checks),
+            hard=pd.read_csv(self.hard),
+            benchmark=pd.read_csv(self.benchmark),
+            cylinder_curve=pd.read_csv(self.cylinder_curve) if cyl else None,
+            cylinder_voi=pd.read_csv(self.cylinder_voi) if cyl else None,
+            cylinder_adaptive=None
+            if self.cylinder_adaptive is None
+            else pd.read_csv(self.cylinder_adaptive),
+        )
+
+
+def write_verification_summary(csvs: VerificationCsvs, summary_csv) -> pd.DataFrame:
+    """Read the verification CSVs, write :func:`verification_summary` to summary_csv and return it."""
+    summary = verification_summary(csvs.read())
     _write_csv(summary, summary_csv)
     return summary
