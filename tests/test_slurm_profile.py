@@ -95,7 +95,9 @@ def test_the_user_guides_cluster_commands_plan_every_job_with_its_resources():
         ]
         assert jobs, out[-2000:]  # (target rules such as study have no action and run no job)
         if "slurm_account=" in command:
-            assert {"verify_locking", "convergence_run", "solve"} <= {rule for rule, _ in jobs}
+            assert {"verify_locking", "convergence_run", "adapt_variant"} <= {
+                rule for rule, _ in jobs
+            }
         for rule, resources in jobs:
             assert "mem_mb=" in resources and "runtime=" in resources, (command, rule, resources)
             if "slurm_account=" in command:
