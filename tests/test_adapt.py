@@ -9,7 +9,6 @@ import pytest
 
 from deeptissue.adapt import (
     GMSH_GRADED_EXCESS,
-    GMSH_TET_VOLUME,
     AdaptSettings,
     PassEstimate,
     adapt,
@@ -20,7 +19,7 @@ from deeptissue.adapt import (
     node_sizes,
     target_sizes,
 )
-from deeptissue.mesh import SizeField, TetMesh
+from deeptissue.mesh import GMSH_TET_VOLUME, SizeField, TetMesh
 from deeptissue.verification.cylinder import CylinderMesh, cylinder_mesh
 
 COARSE = CylinderMesh(element_size_mm=2.0, refine_size_mm=2.0)

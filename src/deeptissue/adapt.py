@@ -21,7 +21,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from .elements import tet_subdivision
-from .mesh import SizeField, TetMesh
+from .mesh import GMSH_TET_VOLUME, SizeField, TetMesh
 
 __all__ = [
     "AdaptPass",
@@ -29,7 +29,6 @@ __all__ = [
     "AdaptSettings",
     "GMSH_EDGE_RATIO",
     "GMSH_GRADED_EXCESS",
-    "GMSH_TET_VOLUME",
     "PassEstimate",
     "adapt",
     "element_sizes",
@@ -44,9 +43,8 @@ __all__ = [
 # the 6 edges of a tetrahedron by its corner indices
 _TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
 # gmsh's tetrahedra for a size h: mean corner-edge length 1.3 h (1.26 to 1.32 on uniform cylinder
-# meshes of 1.6 to 0.4 mm) and mean volume 0.21 h³ (0.19 to 0.22), against 0.118 h³ for the regular one
+# meshes of 1.6 to 0.4 mm) and mean volume 0.21 h³ (0.19 to 0.22: deeptissue.mesh.GMSH_TET_VOLUME)
 GMSH_EDGE_RATIO = 1.3
-GMSH_TET_VOLUME = 0.21
 # where a background size varies, gmsh makes more tetrahedra than its integral of 1/(0.21 h³): 12-20 %
 # more on the 1.6 mm cylinder refined to 0.2-0.5 mm within 1-3 mm of the top (and on its uniform 1.6 mm
 # remesh), 2 % less on uniform 1 and 0.6 mm remeshes; the count is an upper estimate for the budget
