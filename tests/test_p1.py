@@ -360,7 +360,7 @@ def test_p1_model_files_and_solve_job_with_the_cast(tmp_path):
     from deeptissue.contours import save_contours
     from deeptissue.model import MeshFiles, run_cast, run_mesh
     from deeptissue.pose import save_pose
-    from deeptissue.study import run_solve
+    from deeptissue.study import SolvePaths, run_solve
     from deeptissue.summary import read_summary
 
     c = leg_contours(n_slices=12, n_points=60)
@@ -400,14 +400,16 @@ def test_p1_model_files_and_solve_job_with_the_cast(tmp_path):
     assert info["settings"]["element_order"] == 1 and info["mesh"]["element_order"] == 1
     assert (tmp_path / "qc.png").read_bytes()[:4] == b"\x89PNG"
     s = run_solve(
+        SolvePaths(
+            mesh=out["npz"],
+            pose=tmp_path / "pose.json",
+            summary=tmp_path / "summary.json",
+            vtu=tmp_path / "result.vtu",
+            cast=tmp_path / "cast.npz",
+            during_contours=tmp_path / "contours.npz",
+        ),
         animal="synth",
         variant="sphere",
-        mesh_path=out["npz"],
-        cast_path=tmp_path / "cast.npz",
-        pose_path=tmp_path / "pose.json",
-        during_contours_path=tmp_path / "contours.npz",
-        summary_path=tmp_path / "summary.json",
-        vtu_path=tmp_path / "result.vtu",
         fem_cfg={},
         study_cfg={"threshold": 0.05, "bin_edges": [0.05, 0.1, 0.2]},
     )

@@ -15,13 +15,7 @@ import numpy as np
 import pytest
 import yaml
 
-from deeptissue.config import (
-    RESERVED_ANIMAL_NAMES,
-    ConfigError,
-    load_config_file,
-    study_name,
-    validate_config,
-)
+from deeptissue.config import RESERVED_ANIMAL_NAMES, study_name, validate_config
 from deeptissue.fem.indenters import Indenter
 from deeptissue.fem.solver import (
     BoneState,
@@ -36,7 +30,9 @@ from deeptissue.imaging import ImagingError, load_nifti, write_nifti
 from deeptissue.io import (
     PARTIAL_MARK,
     STALE_FOREIGN_S,
+    ConfigError,
     atomic_path,
+    load_config_file,
     remove_stale_partials,
     save_npz,
     write_json,

@@ -1,15 +1,29 @@
 """The study job (rule solve): files in, summary.json and result.vtu out, failures recorded."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from deeptissue.mesh import save_tetmesh
 from deeptissue.pose import Pose, save_pose
-from deeptissue.study import run_bone_state, run_solve, variant_indenter
+from deeptissue.study import SolvePaths, run_bone_state, run_solve, variant_indenter
 from deeptissue.summary import read_result_vtu, read_summary
 from deeptissue.verification.shapes import cored_cylinder_mesh
 
 R, L = 5.0, 10.0  # cylinder radius and length [mm]
+STUDY = {"threshold": 0.05, "bin_edges": [0.05, 0.1, 0.2]}
+
+
+def _paths(model_dir, out_dir, name: str, **files) -> SolvePaths:
+    """The solve job's files: the model's mesh and pose, outputs ``<name>.json`` and ``<name>.vtu``."""
+    return SolvePaths(
+        mesh=model_dir / "mesh.npz",
+        pose=model_dir / "pose.json",
+        summary=out_dir / f"{name}.json",
+        vtu=out_dir / f"{name}.vtu",
+        **files,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -43,16 +57,7 @@ def model_files(tmp_path_factory):
 def test_solve_job_writes_a_converged_summary_and_result(model_files, tmp_path):
     d, mesh = model_files
     s = run_solve(
-        animal="cyl",
-        variant="sphere",
-        mesh_path=d / "mesh.npz",
-        cast_path=None,
-        pose_path=d / "pose.json",
-        during_contours_path=None,
-        summary_path=tmp_path / "summary.json",
-        vtu_path=tmp_path / "result.vtu",
-        fem_cfg={},
-        study_cfg={"threshold": 0.05, "bin_edges": [0.05, 0.1, 0.2]},
+        _paths(d, tmp_path, "summary"), animal="cyl", variant="sphere", fem_cfg={}, study_cfg=STUDY
     )
     assert s.converged, s.reason
     back = read_summary(tmp_path / "summary.json")
@@ -62,7 +67,7 @@ def test_solve_job_writes_a_converged_summary_and_result(model_files, tmp_path):
     total = np.pi * (R**2 - 1.0) * L
     assert 0 < back.voi_mm3 < 0.2 * total
     assert sum(back.bins_percent.values()) == pytest.approx(100.0)
-    _, u, cells = read_result_vtu(tmp_path / "result.vtu")
+    _, u, cells = read_result_vtu(tmp_path / "summary.vtu")
     # the skin under the tip moved inward by about the indentation depth
     top = np.argmin(np.linalg.norm(mesh.nodes_mm - [0, R, L / 2], axis=1))
     assert u[top, 1] == pytest.approx(-0.4, abs=0.08)
@@ -89,22 +94,10 @@ def test_variants_start_from_the_bone_state_job_with_the_same_answer(model_files
         fem_cfg={},
     )
     assert state is not None and state.history and all(h.step < 4 for h in state.history)
-    common = dict(
-        animal="cyl",
-        variant="sphere",
-        mesh_path=d / "mesh.npz",
-        cast_path=None,
-        pose_path=d / "pose.json",
-        during_contours_path=None,
-        fem_cfg={},
-        study_cfg={"threshold": 0.05, "bin_edges": [0.05, 0.1, 0.2]},
-    )
-    own = run_solve(summary_path=tmp_path / "own.json", vtu_path=tmp_path / "own.vtu", **common)
+    common = dict(animal="cyl", variant="sphere", fem_cfg={}, study_cfg=STUDY)
+    own = run_solve(_paths(d, tmp_path, "own"), **common)
     shared = run_solve(
-        summary_path=tmp_path / "shared.json",
-        vtu_path=tmp_path / "shared.vtu",
-        bone_state_path=tmp_path / "bone_state.npz",
-        **common,
+        _paths(d, tmp_path, "shared", bone_state=tmp_path / "bone_state.npz"), **common
     )
     assert (
         shared.converged
@@ -130,21 +123,13 @@ def test_variants_start_from_the_bone_state_job_with_the_same_answer(model_files
         is None
     )
     alone = run_solve(
-        summary_path=tmp_path / "alone.json",
-        vtu_path=tmp_path / "alone.vtu",
-        bone_state_path=tmp_path / "failed_state.npz",
-        **common,
+        _paths(d, tmp_path, "alone", bone_state=tmp_path / "failed_state.npz"), **common
     )
     assert alone.converged and not alone.extra["started_from_bone_state"]
     assert alone.newton_iterations == own.newton_iterations
     # a file that is not a bone state: the variant is recorded as failed, naming the file
     (tmp_path / "junk.npz").write_text("junk")
-    junk = run_solve(
-        summary_path=tmp_path / "junk.json",
-        vtu_path=tmp_path / "junk.vtu",
-        bone_state_path=tmp_path / "junk.npz",
-        **common,
-    )
+    junk = run_solve(_paths(d, tmp_path, "junk", bone_state=tmp_path / "junk.npz"), **common)
     assert not junk.converged and "junk.npz: not a bone-state file" in junk.reason
 
 
@@ -152,34 +137,15 @@ def test_variants_start_from_the_bone_state_job_with_the_same_answer(model_files
 def test_turned_variant_job_starts_from_the_base_end_state(model_files, tmp_path):
     # rule solve of 'sphere' writes its end state; 'sphere_rz+15' turns the indenter from it (study.turn_from_base)
     d, mesh = model_files
-    common = dict(
-        animal="cyl",
-        mesh_path=d / "mesh.npz",
-        cast_path=None,
-        pose_path=d / "pose.json",
-        during_contours_path=None,
-        fem_cfg={},
-        study_cfg={"threshold": 0.05, "bin_edges": [0.05, 0.1, 0.2]},
-    )
+    common = dict(animal="cyl", fem_cfg={}, study_cfg=STUDY)
     base = run_solve(
-        variant="sphere",
-        summary_path=tmp_path / "b.json",
-        vtu_path=tmp_path / "b.vtu",
-        end_state_path=tmp_path / "sphere_end.npz",
-        **common,
+        _paths(d, tmp_path, "b", end_state=tmp_path / "sphere_end.npz"), variant="sphere", **common
     )
     assert base.converged and (tmp_path / "sphere_end.npz").exists()
-    own = run_solve(
-        variant="sphere_rz+15",
-        summary_path=tmp_path / "own.json",
-        vtu_path=tmp_path / "own.vtu",
-        **common,
-    )
+    own = run_solve(_paths(d, tmp_path, "own"), variant="sphere_rz+15", **common)
     turned = run_solve(
+        _paths(d, tmp_path, "t", base_state=tmp_path / "sphere_end.npz"),
         variant="sphere_rz+15",
-        summary_path=tmp_path / "t.json",
-        vtu_path=tmp_path / "t.vtu",
-        base_state_path=tmp_path / "sphere_end.npz",
         base_variant="sphere",
         **common,
     )
@@ -193,18 +159,14 @@ def test_turned_variant_job_starts_from_the_base_end_state(model_files, tmp_path
     bad = tmp_path / "pose_bad.json"
     bad.write_text("{not json")
     failed = run_solve(
-        **{**common, "pose_path": bad},
+        replace(_paths(d, tmp_path, "f", end_state=tmp_path / "failed_end.npz"), pose=bad),
         variant="sphere",
-        summary_path=tmp_path / "f.json",
-        vtu_path=tmp_path / "f.vtu",
-        end_state_path=tmp_path / "failed_end.npz",
+        **common,
     )
     assert not failed.converged and (tmp_path / "failed_end.npz").exists()
     alone = run_solve(
+        _paths(d, tmp_path, "a", base_state=tmp_path / "failed_end.npz"),
         variant="sphere_rz+15",
-        summary_path=tmp_path / "a.json",
-        vtu_path=tmp_path / "a.vtu",
-        base_state_path=tmp_path / "failed_end.npz",
         base_variant="sphere",
         **common,
     )
@@ -213,10 +175,8 @@ def test_turned_variant_job_starts_from_the_base_end_state(model_files, tmp_path
     # a file that is not an end state: recorded as failed, naming the file
     (tmp_path / "junk.npz").write_text("junk")
     junk = run_solve(
+        _paths(d, tmp_path, "j", base_state=tmp_path / "junk.npz"),
         variant="sphere_rz+15",
-        summary_path=tmp_path / "j.json",
-        vtu_path=tmp_path / "j.vtu",
-        base_state_path=tmp_path / "junk.npz",
         base_variant="sphere",
         **common,
     )
@@ -242,14 +202,9 @@ def test_failed_job_is_recorded_with_its_reason(model_files, tmp_path):
     bad = tmp_path / "pose.json"
     bad.write_text("{not json")
     s = run_solve(
+        replace(_paths(d, tmp_path, "summary"), pose=bad),
         animal="cyl",
         variant="bar",
-        mesh_path=d / "mesh.npz",
-        cast_path=None,
-        pose_path=bad,
-        during_contours_path=None,
-        summary_path=tmp_path / "summary.json",
-        vtu_path=tmp_path / "result.vtu",
         fem_cfg={},
         study_cfg={},
     )
@@ -257,7 +212,7 @@ def test_failed_job_is_recorded_with_its_reason(model_files, tmp_path):
     back = read_summary(tmp_path / "summary.json")
     assert not back.converged and "pose.json" in back.reason and "not valid JSON" in back.reason
     assert back.extra["within_goal"] is False and back.extra["outside_goal"] == "not converged"
-    _, u, cells = read_result_vtu(tmp_path / "result.vtu")
+    _, u, cells = read_result_vtu(tmp_path / "summary.vtu")
     assert np.all(u == 0) and np.all(cells["converged"] == 0)
 
 
@@ -314,16 +269,7 @@ def test_an_unconverged_solve_keeps_its_reason_when_its_last_state_has_no_strain
     )
     monkeypatch.setattr(study, "solve_from", lambda *a, **k: folded)
     s = run_solve(
-        animal="cyl",
-        variant="sphere",
-        mesh_path=d / "mesh.npz",
-        cast_path=None,
-        pose_path=d / "pose.json",
-        during_contours_path=None,
-        summary_path=tmp_path / "s.json",
-        vtu_path=tmp_path / "r.vtu",
-        fem_cfg={},
-        study_cfg={"threshold": 0.05, "bin_edges": [0.05, 0.1, 0.2]},
+        _paths(d, tmp_path, "s"), animal="cyl", variant="sphere", fem_cfg={}, study_cfg=STUDY
     )
     back = read_summary(tmp_path / "s.json")
     assert not back.converged and back.reason.startswith(
@@ -335,5 +281,5 @@ def test_an_unconverged_solve_keeps_its_reason_when_its_last_state_has_no_strain
         and back.extra["load_reached"] == pytest.approx(3.9854)
         and s.increments == 29
     )
-    _, u_vtu, cells = read_result_vtu(tmp_path / "r.vtu")
+    _, u_vtu, cells = read_result_vtu(tmp_path / "s.vtu")
     assert np.all(u_vtu == 0) and np.all(cells["converged"] == 0)

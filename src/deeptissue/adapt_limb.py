@@ -37,7 +37,13 @@ from .mesh import SizeField, TetMesh
 from .model import Cast, ModelSettings, build_model, load_cast
 from .pose import Pose, load_pose
 from .strain import ElementStrain, element_strain
-from .study import StudySettings, accuracy_fields, solve_variant, variant_indenter
+from .study import (
+    StudySettings,
+    VariantJob,
+    accuracy_fields,
+    solve_variant,
+    variant_indenter,
+)
 from .summary import (
     SAMPLING_LEVELS,
     Summary,
@@ -167,20 +173,19 @@ def limb_solver(
                 bone_motion=job.pose.bone_motion,
                 settings=settings,
             )
-        summary, u, strain = solve_variant(
+        variant_job = VariantJob(
             animal=job.animal,
             variant=job.variant,
-            mesh=mesh,
             pose=job.pose,
-            cast=cast,
             material=job.material,
             settings=settings,
+            cast=cast,
             study=job.study,
             skin_contours_mm=job.skin_contours_mm,
             bar_length_mm=job.bar_length_mm,
-            start=start,
-            base=base,
-            base_variant="previous pass",
+        )
+        summary, u, strain = solve_variant(
+            variant_job, mesh, start=start, base=base, base_variant="previous pass"
         )
         force = summary.indenter_force_N
         return LimbSolve(

@@ -3,7 +3,7 @@
 The schema (``workflow/schemas/config.schema.yaml``) gives every key a description, unit and
 default. Validation fills in defaults, checks the rules that span several keys, and turns the
 first problem into a one-line error that names the key, so a typo in a 40-line config is found at
-once. Config files are read again strictly (:func:`load_config_file`): a key given twice, an animal
+once. Config files are read again strictly (:func:`deeptissue.io.load_config_file`): a key given twice, an animal
 name YAML reads as a number and a syntax error are refused with file and line. ``docs/config.md`` is rendered from the same schema; regenerate it with::
 
     python -m deeptissue.config docs/config.md
@@ -24,7 +24,8 @@ from typing import Any
 import jsonschema
 import yaml
 
-from .io import atomic_path
+from .io import ConfigError, atomic_path, load_config_file
+from .phantom import PhantomSpec, check_indenter
 
 __all__ = [
     "ANIMAL_NAME_MAX_CHARS",
@@ -38,7 +39,6 @@ __all__ = [
     "convergence_animals",
     "figure_animal",
     "has_during_scan",
-    "load_config_file",
     "load_schema",
     "main",
     "schema_markdown",
@@ -68,106 +68,13 @@ ORDERED_KEYS = (
 )
 
 
-class ConfigError(ValueError):
-    """A configuration problem; the message is one line and names the key."""
-
-
-class _StrictLoader(yaml.SafeLoader):
-    """``yaml.SafeLoader`` that refuses a key given twice in one mapping (YAML would keep the last)."""
-
-    def construct_mapping(self, node, deep=False):
-        first_line = {}
-        for key_node, _ in node.value:
-            key = self.construct_object(key_node, deep=deep)
-            line = key_node.start_mark.line + 1
-            try:
-                seen = first_line.get(key)
-            except TypeError:  # an unhashable key: the base class reports it
-                break
-            if seen is not None:
-                raise ConfigError(
-                    f"config file {self.name}, line {line}: key {key_node.value!r} is given twice "
-                    f"(lines {seen} and {line}); YAML would keep only the second"
-                )
-            first_line[key] = line
-        return super().construct_mapping(node, deep=deep)
-
-
-_StrictLoader.add_constructor(
-    yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _StrictLoader.construct_mapping
-)
-
-
 def _a(kind: str) -> str:
     """``kind`` with its indefinite article (``an int``, ``a float``)."""
     return f"{'an' if kind[:1] in 'aeiou' else 'a'} {kind}"
 
 
-def _numeric_animal_names(node: yaml.Node, path: str) -> None:
-    """Refuse an animal name that YAML reads as a number (``01``, ``1e3``), with its line and the quoted form."""
-    if not isinstance(node, yaml.MappingNode):
-        return
-    for key_node, value_node in node.value:
-        if key_node.value == "animals" and isinstance(value_node, yaml.MappingNode):
-            for name_node, _ in value_node.value:
-                if (
-                    isinstance(name_node, yaml.ScalarNode)
-                    and name_node.tag != "tag:yaml.org,2002:str"
-                ):
-                    raise ConfigError(
-                        f"config file {path}, line {name_node.start_mark.line + 1}: animal name {name_node.value} "
-                        f"is read by YAML as {_a(name_node.tag.rsplit(':', 1)[-1])}, not a name; quote it: "
-                        f"'{name_node.value}'"
-                    )
-
-
-def load_config_file(path: str | Path) -> dict:
-    """Read a YAML (or JSON) config file, refusing what YAML would read silently or report without a place.
-
-    Parameters
-    ----------
-    path : str or Path
-        The config file.
-
-    Returns
-    -------
-    dict
-        Its contents (an empty file gives an empty dict).
-
-    Raises
-    ------
-    ConfigError
-        A YAML syntax error (with file, line and column), a key given twice in one mapping (with the key and
-        both lines), or an animal name that YAML reads as a number (with the line and the quoted form).
-    """
-    loader = _StrictLoader(Path(path).read_text(encoding="utf-8"))
-    loader.name = str(path)
-    try:
-        node = loader.get_single_node()
-        data = None if node is None else loader.construct_document(node)
-    except yaml.MarkedYAMLError as exc:
-        mark = exc.problem_mark or exc.context_mark
-        where = f", line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-        raise ConfigError(
-            f"config file {path}{where}: YAML syntax error: {exc.problem or exc.context}"
-        ) from exc
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"config file {path}: YAML syntax error: {exc}") from exc
-    finally:
-        loader.dispose()
-    if node is not None:
-        _numeric_animal_names(node, str(path))
-    if data is None:
-        return {}
-    if not isinstance(data, dict):
-        raise ConfigError(
-            f"config file {path}: the top level must be a mapping of keys, got {type(data).__name__}"
-        )
-    return data
-
-
 def check_config_files(paths) -> None:
-    """Read every config file of a run with :func:`load_config_file`, so that the first problem is refused.
+    """Read every config file of a run with :func:`deeptissue.io.load_config_file`, so that the first problem is refused.
 
     Snakemake reads the files itself (and keeps the last of two equal keys); the workflow calls this
     before it uses the configuration. A path that does not exist is skipped (Snakemake reports it).
@@ -180,7 +87,7 @@ def check_config_files(paths) -> None:
     Raises
     ------
     ConfigError
-        See :func:`load_config_file`.
+        See :func:`deeptissue.io.load_config_file`.
     """
     for path in paths:
         if Path(path).is_file():
@@ -604,8 +511,6 @@ def _check_phantoms(config: dict[str, Any]) -> None:
     phantoms = {a: cfg["phantom"] for a, cfg in config["animals"].items() if "phantom" in cfg}
     if not phantoms:
         return
-    from .phantom import PhantomSpec, check_indenter
-
     for animal, cfg in phantoms.items():
         try:
             check_indenter(PhantomSpec.from_config(cfg))

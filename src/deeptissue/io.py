@@ -1,4 +1,4 @@
-"""Small file helpers shared by all stages: outputs appear whole or not at all."""
+"""Small file helpers shared by all stages: outputs appear whole or not at all, config files are read strictly."""
 
 from __future__ import annotations
 
@@ -17,11 +17,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
 __all__ = [
     "PARTIAL_MARK",
     "STALE_FOREIGN_S",
+    "ConfigError",
     "atomic_path",
+    "load_config_file",
     "read_json",
     "remove_stale_partials",
     "save_npz",
@@ -284,3 +287,100 @@ def save_npz(path: str | Path, **arrays: np.ndarray) -> None:
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
             np.savez_compressed(fh, **arrays)
+
+
+class ConfigError(ValueError):
+    """A configuration problem; the message is one line and names the key (or the file and line)."""
+
+
+class _StrictLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that refuses a key given twice in one mapping (YAML would keep the last)."""
+
+    def construct_mapping(self, node, deep=False):
+        first_line = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            line = key_node.start_mark.line + 1
+            try:
+                seen = first_line.get(key)
+            except TypeError:  # an unhashable key: the base class reports it
+                break
+            if seen is not None:
+                raise ConfigError(
+                    f"config file {self.name}, line {line}: key {key_node.value!r} is given twice "
+                    f"(lines {seen} and {line}); YAML would keep only the second"
+                )
+            first_line[key] = line
+        return super().construct_mapping(node, deep=deep)
+
+
+_StrictLoader.add_constructor(
+    yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _StrictLoader.construct_mapping
+)
+
+
+def _numeric_animal_names(node: yaml.Node, path: str) -> None:
+    """Refuse an animal name that YAML reads as a number (``01``, ``1e3``), with its line and the quoted form."""
+    if not isinstance(node, yaml.MappingNode):
+        return
+    for key_node, value_node in node.value:
+        if key_node.value == "animals" and isinstance(value_node, yaml.MappingNode):
+            for name_node, _ in value_node.value:
+                if (
+                    isinstance(name_node, yaml.ScalarNode)
+                    and name_node.tag != "tag:yaml.org,2002:str"
+                ):
+                    kind = name_node.tag.rsplit(":", 1)[-1]
+                    raise ConfigError(
+                        f"config file {path}, line {name_node.start_mark.line + 1}: animal name {name_node.value} "
+                        f"is read by YAML as {'an' if kind[:1] in 'aeiou' else 'a'} {kind}, not a name; quote it: "
+                        f"'{name_node.value}'"
+                    )
+
+
+def load_config_file(path: str | Path) -> dict:
+    """Read a YAML (or JSON) config file, refusing what YAML would read silently or report without a place.
+
+    The study's config files (:func:`deeptissue.config.check_config_files`) and the manual segmentation
+    overrides (:func:`deeptissue.segment.load_overrides`) are read with it.
+
+    Parameters
+    ----------
+    path : str or Path
+        The config file.
+
+    Returns
+    -------
+    dict
+        Its contents (an empty file gives an empty dict).
+
+    Raises
+    ------
+    ConfigError
+        A YAML syntax error (with file, line and column), a key given twice in one mapping (with the key and
+        both lines), or an animal name that YAML reads as a number (with the line and the quoted form).
+    """
+    loader = _StrictLoader(Path(path).read_text(encoding="utf-8"))
+    loader.name = str(path)
+    try:
+        node = loader.get_single_node()
+        data = None if node is None else loader.construct_document(node)
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark or exc.context_mark
+        where = f", line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        raise ConfigError(
+            f"config file {path}{where}: YAML syntax error: {exc.problem or exc.context}"
+        ) from exc
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"config file {path}: YAML syntax error: {exc}") from exc
+    finally:
+        loader.dispose()
+    if node is not None:
+        _numeric_animal_names(node, str(path))
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(
+            f"config file {path}: the top level must be a mapping of keys, got {type(data).__name__}"
+        )
+    return data

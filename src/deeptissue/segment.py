@@ -168,7 +168,7 @@ def load_overrides(path: str | Path, *, n_slices: int | None = None) -> dict:
     With ``n_slices`` (the slices in the image file), a slice outside 0 .. n_slices - 1 is an error naming the file
     and the slice: it would otherwise replace nothing without a word.
     """
-    from .config import load_config_file
+    from .io import load_config_file
 
     data = load_config_file(path)
     out: dict = {}

@@ -26,6 +26,7 @@ from .fem.solver import (
     EndState,
     FacetSets,
     Scene,
+    SolveResult,
     SolverSettings,
     end_state,
     load_bone_state,
@@ -39,7 +40,7 @@ from .fem.solver import (
 from .io import save_npz
 from .mesh import TetMesh, load_tetmesh
 from .pose import Pose, load_pose
-from .strain import DEFAULT_BIN_EDGES, StrainError, element_strain
+from .strain import DEFAULT_BIN_EDGES, ElementStrain, StrainError, element_strain
 from .summary import (
     Summary,
     VoiSpec,
@@ -54,7 +55,9 @@ from .variants import parse_variant, variant_travel
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "SolvePaths",
     "StudySettings",
+    "VariantJob",
     "accuracy_fields",
     "run_bone_state",
     "run_solve",
@@ -144,18 +147,46 @@ def variant_indenter(
     )
 
 
+@dataclass(frozen=True)
+class VariantJob:
+    """What one variant's solve needs besides its mesh: the run, the indenter's travel, the physics and
+    the summary's settings.
+
+    Attributes
+    ----------
+    animal, variant : str
+        The run; ``variant`` is a :func:`deeptissue.variants.parse_variant` name.
+    pose : Pose
+        Indenter travel and bone motion [mm, deg].
+    material : Ogden
+        Tissue law.
+    settings : SolverSettings
+        Solver settings (the indenter's contact set is the variant's patch).
+    cast : Cast or None
+        Rigid cast (None: no cast contact).
+    study : StudySettings
+        Threshold, bins, strain measure and sampling of the summary.
+    skin_contours_mm : (..., 3) array_like or None
+        During-scan skin contour points [mm] for the skin agreement (None: no comparison).
+    bar_length_mm : float
+        Bar length end to end [mm] (10: config ``fem.bar_length_mm``'s default).
+    """
+
+    animal: str
+    variant: str
+    pose: Pose
+    material: Ogden
+    settings: SolverSettings
+    cast: Cast | None = None
+    study: StudySettings = StudySettings()
+    skin_contours_mm: np.ndarray | None = None
+    bar_length_mm: float = 10.0
+
+
 def solve_variant(
-    *,
-    animal: str,
-    variant: str,
+    job: VariantJob,
     mesh: TetMesh,
-    pose: Pose,
-    cast: Cast | None,
-    material: Ogden,
-    settings: SolverSettings,
-    study: StudySettings = StudySettings(),
-    skin_contours_mm: np.ndarray | None = None,
-    bar_length_mm: float = 10.0,
+    *,
     start: BoneState | None = None,
     base: EndState | None = None,
     base_variant: str | None = None,
@@ -169,24 +200,10 @@ def solve_variant(
 
     Parameters
     ----------
-    animal, variant : str
-        The run; ``variant`` is a :func:`deeptissue.variants.parse_variant` name.
+    job : VariantJob
+        The run, pose, cast, material, solver and study settings.
     mesh : TetMesh
         Reference mesh [mm] with facet sets ``bone``, ``skin`` and ``patch_<variant>`` (or ``patch``).
-    pose : Pose
-        Indenter travel and bone motion.
-    cast : Cast or None
-        Rigid cast (None: no cast contact).
-    material : Ogden
-        Tissue law.
-    settings : SolverSettings
-        Solver settings (the indenter's contact set is the variant's patch).
-    study : StudySettings
-        Threshold, bins, strain measure and sampling of the summary.
-    skin_contours_mm : (..., 3) array_like or None
-        During-scan skin contour points [mm] for the skin agreement.
-    bar_length_mm : float
-        Bar length end to end [mm].
     start : BoneState or None
         The mesh's shared bone-rotation state (:func:`run_bone_state`); None: solved here.
     base : EndState or None
@@ -212,23 +229,62 @@ def solve_variant(
         Centroid strain of that displacement.
     """
     t0 = time.perf_counter()
-    indenter = variant_indenter(pose, variant, bar_length_mm=bar_length_mm)
-    set_name = f"patch_{variant}" if f"patch_{variant}" in mesh.facets else "patch"
-    sets = FacetSets(indenter=set_name)
-    result = solve_from(
-        mesh,
-        Scene(material, indenter, bone_motion=pose.bone_motion, cast=cast, sets=sets),
-        base=base,
-        start=start,
-        settings=settings,
+    indenter = variant_indenter(job.pose, job.variant, bar_length_mm=job.bar_length_mm)
+    set_name = f"patch_{job.variant}" if f"patch_{job.variant}" in mesh.facets else "patch"
+    scene = Scene(
+        job.material,
+        indenter,
+        bone_motion=job.pose.bone_motion,
+        cast=job.cast,
+        sets=FacetSets(indenter=set_name),
     )
-    turned = base_variant if result.extra.get("turned") else None
-    info = dict(
+    result = solve_from(mesh, scene, base=base, start=start, settings=job.settings)
+    info = _solve_info(
+        result,
+        contact_set=set_name,
+        turned_from=base_variant if result.extra.get("turned") else None,
+        wall_s=time.perf_counter() - t0,
+    )
+    if not result.converged:
+        return _unconverged(job, mesh, result, info)
+    if end_state_path is not None:
+        state = end_state(
+            result,
+            mesh,
+            indenter=indenter,
+            bone_motion=job.pose.bone_motion,
+            settings=job.settings,
+        )
+        save_end_state(end_state_path, state)
+    summary, strain = summarize_solution(
+        mesh,
+        result.displacement_mm,
+        animal=job.animal,
+        variant=job.variant,
+        voi=VoiSpec(
+            strain_measure=job.study.strain_measure,
+            threshold=job.study.threshold,
+            bin_edges=job.study.bin_edges,
+            gamma_sampling=job.study.gamma_sampling,
+        ),
+        energy_density_mpa=ogden_energy(result.deformation_gradient, job.material),
+        skin_contours_mm=job.skin_contours_mm,
+        **info,
+    )
+    return summary, result.displacement_mm, strain
+
+
+def _solve_info(
+    result: SolveResult, *, contact_set: str, turned_from: str | None, wall_s: float
+) -> dict:
+    """The solver's costs and contact diagnostics that every variant's summary carries: ``wall_s`` [s]
+    is the whole solve's, set-up included; ``turned_from`` the base variant if the turn was used."""
+    return dict(
         indenter_force_N=result.indenter_force_N,
         n_dofs=result.n_dofs,
         increments=result.increments,
         newton_iterations=result.newton_iterations,
-        wall_s=time.perf_counter() - t0,
+        wall_s=wall_s,
         solver_wall_s=result.wall_s,
         assembly_s=result.assembly_s,
         linear_solve_s=result.linear_solve_s,
@@ -236,59 +292,41 @@ def solve_variant(
         max_penetration_mm=result.max_penetration_mm,
         max_penetration_rel=result.max_penetration_rel,
         load_reached=result.load_reached,
-        contact_set=set_name,
+        contact_set=contact_set,
         active_set_changes=result.extra.get("active_set_changes"),
         bone_clearance_mm=result.extra.get("bone_clearance_mm"),
         started_from_bone_state=result.extra.get("started_from_bone_state", False),
-        turned_from=turned,
+        turned_from=turned_from,
         turn_failed=result.extra.get("turn_failed"),
     )
-    if not result.converged:
-        log.warning("%s/%s did not converge: %s", animal, variant, result.reason)
-        u, reason = result.displacement_mm, result.reason
-        try:
-            strain = element_strain(mesh, u)
-        except StrainError as exc:
-            # the solver admits a state by its quadrature points; one folded between them has no strain to
-            # show, and the solver's reason, load and costs must not be lost to it
-            u = np.zeros_like(mesh.nodes_mm)
-            strain = element_strain(mesh, u)
-            reason = f"{reason}; its last state has no strain ({exc}): result.vtu shows the undeformed mesh"
-        summary = failed_summary(
-            animal=animal,
-            variant=variant,
-            reason=reason,
-            strain_measure=study.strain_measure,
-            threshold=study.threshold,
-            gamma_sampling=study.gamma_sampling,
-            n_elements=int(mesh.n_tets),
-            **info,
+
+
+def _unconverged(job: VariantJob, mesh: TetMesh, result: SolveResult, info: dict):
+    """The summary, displacement and strain of a solve that did not converge: the solver's reason and
+    its last converged state, or the undeformed mesh if that state has no strain."""
+    log.warning("%s/%s did not converge: %s", job.animal, job.variant, result.reason)
+    u, reason = result.displacement_mm, result.reason
+    try:
+        strain = element_strain(mesh, u)
+    except StrainError as exc:
+        # the solver admits a state by its quadrature points; one folded between them has no strain to
+        # show, and the solver's reason, load and costs must not be lost to it
+        u = np.zeros_like(mesh.nodes_mm)
+        strain = element_strain(mesh, u)
+        reason = (
+            f"{reason}; its last state has no strain ({exc}): result.vtu shows the undeformed mesh"
         )
-        return summary, u, strain
-    if end_state_path is not None:
-        save_end_state(
-            end_state_path,
-            end_state(
-                result, mesh, indenter=indenter, bone_motion=pose.bone_motion, settings=settings
-            ),
-        )
-    energy = ogden_energy(result.deformation_gradient, material)
-    summary, strain = summarize_solution(
-        mesh,
-        result.displacement_mm,
-        animal=animal,
-        variant=variant,
-        voi=VoiSpec(
-            strain_measure=study.strain_measure,
-            threshold=study.threshold,
-            bin_edges=study.bin_edges,
-            gamma_sampling=study.gamma_sampling,
-        ),
-        energy_density_mpa=energy,
-        skin_contours_mm=skin_contours_mm,
+    summary = failed_summary(
+        animal=job.animal,
+        variant=job.variant,
+        reason=reason,
+        strain_measure=job.study.strain_measure,
+        threshold=job.study.threshold,
+        gamma_sampling=job.study.gamma_sampling,
+        n_elements=int(mesh.n_tets),
         **info,
     )
-    return summary, result.displacement_mm, strain
+    return summary, u, strain
 
 
 def run_bone_state(
@@ -382,21 +420,49 @@ def _load_base(path, base_variant) -> EndState | None:
     return load_end_state(path)
 
 
+@dataclass(frozen=True)
+class SolvePaths:
+    """The files of rule ``solve`` (each a str or Path).
+
+    Attributes
+    ----------
+    mesh, pose : str or Path
+        Model mesh (:func:`deeptissue.mesh.load_tetmesh`) and pose (:func:`deeptissue.pose.load_pose`).
+    summary, vtu : str or Path
+        Outputs (:func:`deeptissue.summary.write_summary`, :func:`deeptissue.summary.write_result_vtu`
+        with cell data ``converged``).
+    cast : str or Path or None
+        The cast (``cast.npz``; falsy: no cast).
+    during_contours : str or Path or None
+        During-scan contours, whose skin is compared with the deformed model (falsy: no comparison).
+    bone_state : str or Path or None
+        The mesh's shared bone state (:func:`run_bone_state`); a file that records a failure means
+        this variant solves the rotation itself.
+    end_state : str or Path or None
+        Output: the converged end state (the start of the variants turned from this one), or, after
+        a failure, a file saying why.
+    base_state : str or Path or None
+        The end state of the base variant (:func:`deeptissue.variants.turn_base`), the start of this one.
+    """
+
+    mesh: str | Path
+    pose: str | Path
+    summary: str | Path
+    vtu: str | Path
+    cast: str | Path | None = None
+    during_contours: str | Path | None = None
+    bone_state: str | Path | None = None
+    end_state: str | Path | None = None
+    base_state: str | Path | None = None
+
+
 def run_solve(
+    paths: SolvePaths,
     *,
     animal: str,
     variant: str,
-    mesh_path,
-    cast_path,
-    pose_path,
-    during_contours_path,
-    summary_path,
-    vtu_path,
     fem_cfg: dict,
     study_cfg: dict,
-    bone_state_path=None,
-    end_state_path=None,
-    base_state_path=None,
     base_variant: str | None = None,
 ) -> Summary:
     """Rule ``solve``: read the model files, solve, write ``summary.json`` and ``result.vtu``.
@@ -407,63 +473,35 @@ def run_solve(
 
     Parameters
     ----------
+    paths : SolvePaths
+        The files read and written.
     animal, variant : str
         The run.
-    mesh_path, cast_path, pose_path : str or Path
-        Model mesh, cast (falsy: no cast) and pose.
-    during_contours_path : str or Path or None
-        During-scan contours, whose skin is compared with the deformed model (None: no comparison).
-    summary_path, vtu_path : str or Path
-        Outputs (:func:`deeptissue.summary.write_summary`, :func:`deeptissue.summary.write_result_vtu`
-        with cell data ``converged``).
     fem_cfg : dict
         Config section ``fem`` (``material``, ``solver``, ``bar_length_mm``).
     study_cfg : dict
         Config section ``study`` (:class:`StudySettings`).
-    bone_state_path : str or Path or None
-        The mesh's shared bone state (:func:`run_bone_state`); a file that records a failure means
-        this variant solves the rotation itself.
-    end_state_path : str or Path or None
-        Output: the converged end state (the start of the variants turned from this one), or, after
-        a failure, a file saying why.
-    base_state_path : str or Path or None
-        The end state of ``base_variant`` (:func:`deeptissue.variants.turn_base`), the start of this one.
     base_variant : str or None
-        Its name.
+        The name of the variant whose end state is ``paths.base_state``.
 
     Returns
     -------
     Summary
-        What was written to ``summary_path``.
+        What was written to ``paths.summary``.
     """
-    if end_state_path is not None:
-        Path(end_state_path).unlink(missing_ok=True)
+    if paths.end_state is not None:
+        Path(paths.end_state).unlink(missing_ok=True)
     study = StudySettings.from_config(study_cfg)
-    mesh = load_tetmesh(mesh_path)
-    u = np.zeros_like(mesh.nodes_mm)
+    mesh = load_tetmesh(paths.mesh)
     try:
-        pose = load_pose(pose_path)
-        cast = Cast.load(cast_path) if cast_path else None
-        skin = load_contours(during_contours_path).skin if during_contours_path else None
-        material = Ogden(**fem_cfg.get("material", {}))
-        settings = solver_settings_from_config(fem_cfg.get("solver"))
-        start = _load_start(bone_state_path) if bone_state_path else None
-        base = _load_base(base_state_path, base_variant) if base_state_path else None
+        job = _read_job(paths, animal=animal, variant=variant, fem_cfg=fem_cfg, study=study)
         summary, u, strain = solve_variant(
-            animal=animal,
-            variant=variant,
-            mesh=mesh,
-            pose=pose,
-            cast=cast,
-            material=material,
-            settings=settings,
-            study=study,
-            skin_contours_mm=skin,
-            bar_length_mm=float(fem_cfg.get("bar_length_mm", 10.0)),
-            start=start,
-            base=base,
+            job,
+            mesh,
+            start=_load_start(paths.bone_state) if paths.bone_state else None,
+            base=_load_base(paths.base_state, base_variant) if paths.base_state else None,
             base_variant=base_variant,
-            end_state_path=end_state_path,
+            end_state_path=paths.end_state,
         )
     except Exception as exc:  # recorded, never lost: the study goes on without this variant
         log.error("%s/%s failed:\n%s", animal, variant, traceback.format_exc())
@@ -476,20 +514,50 @@ def run_solve(
             gamma_sampling=study.gamma_sampling,
             n_elements=int(mesh.n_tets),
         )
+        u = np.zeros_like(mesh.nodes_mm)
         strain = element_strain(mesh, u)
+    return _write_solve_outputs(paths, mesh, summary, u, strain)
+
+
+def _read_job(
+    paths: SolvePaths, *, animal: str, variant: str, fem_cfg: dict, study: StudySettings
+) -> VariantJob:
+    """The variant's job from its pose, cast and during contours files and the config section ``fem``."""
+    pose = load_pose(paths.pose)
+    cast = Cast.load(paths.cast) if paths.cast else None
+    skin = load_contours(paths.during_contours).skin if paths.during_contours else None
+    return VariantJob(
+        animal=animal,
+        variant=variant,
+        pose=pose,
+        material=Ogden(**fem_cfg.get("material", {})),
+        settings=solver_settings_from_config(fem_cfg.get("solver")),
+        cast=cast,
+        study=study,
+        skin_contours_mm=skin,
+        bar_length_mm=float(fem_cfg.get("bar_length_mm", 10.0)),
+    )
+
+
+def _write_solve_outputs(
+    paths: SolvePaths, mesh: TetMesh, summary: Summary, u: np.ndarray, strain: ElementStrain
+) -> Summary:
+    """Write the outputs of rule ``solve``: a failure marker for a missing end state, ``result.vtu`` and the
+    summary with its accuracy fields and the animal's QC warnings (which travel with every variant's numbers).
+    Returns the summary written."""
     summary = replace(summary, extra={**summary.extra, **accuracy_fields(summary, mesh="fixed")})
-    if end_state_path is not None and not Path(end_state_path).exists():
-        save_npz(end_state_path, failed=np.array(summary.reason or "not converged"))
+    if paths.end_state is not None and not Path(paths.end_state).exists():
+        save_npz(paths.end_state, failed=np.array(summary.reason or "not converged"))
     write_result_vtu(
-        vtu_path,
+        paths.vtu,
         mesh,
         u,
         strain,
         cell_data={"converged": np.full(mesh.n_tets, int(summary.converged))},
     )
-    try:  # the animal's QC warnings travel with every variant's numbers
-        summary = replace(summary, qc_warnings=qc_warnings_of(pose_path))
+    try:
+        summary = replace(summary, qc_warnings=qc_warnings_of(paths.pose))
     except (OSError, ValueError) as exc:
-        log.warning("%s: QC warnings not read (%s)", pose_path, exc)
-    write_summary(summary_path, summary)
+        log.warning("%s: QC warnings not read (%s)", paths.pose, exc)
+    write_summary(paths.summary, summary)
     return summary

@@ -303,7 +303,7 @@ def run_discretisation(
     from ..fem.material import Ogden
     from ..fem.solver import solver_settings_from_config
     from ..model import build_cast, build_model
-    from ..study import StudySettings, solve_variant
+    from ..study import StudySettings, VariantJob, solve_variant
 
     animal, variant, setting = job.animal, job.variant, job.setting
     if setting.element_order not in SUPPORTED_ELEMENT_ORDERS:
@@ -346,15 +346,17 @@ def run_discretisation(
     t1 = time.perf_counter()
     try:
         summary, _, _ = solve_variant(
-            animal=animal,
-            variant=variant,
-            mesh=mesh,
-            pose=pose,
-            cast=fem_cast,
-            material=material,
-            settings=settings,
-            study=study,
-            bar_length_mm=bar,
+            VariantJob(
+                animal=animal,
+                variant=variant,
+                pose=pose,
+                material=material,
+                settings=settings,
+                cast=fem_cast,
+                study=study,
+                bar_length_mm=bar,
+            ),
+            mesh,
         )
     except Exception as exc:  # set-up errors of the solver: recorded, the ladder goes on
         log.exception("%s/%s/%s: solve failed", animal, variant, setting.name)
