@@ -68,6 +68,7 @@ from skimage.draw import polygon as _polygon_px
 from skimage.measure import find_contours
 from skimage.segmentation import watershed
 
+from .bone_motion import fit_bone_motion, moved_section, resolve_bone_dof
 from .contours import (
     Contours,
     load_contours,
@@ -77,6 +78,7 @@ from .contours import (
     resample_closed,
     save_contours,
 )
+from .fluid import FluidSearch, indenter_shape, inside_skin_mask, orient_axis
 from .imaging import (
     ImagingError,
     Volume,
@@ -87,6 +89,7 @@ from .imaging import (
     slab,
     split_legs,
 )
+from .pose_error import PoseError
 from .qc import LEFT_OUT, plot_segmentation
 from .segment_checks import failed_checks_message, segmentation_checks, write_checks
 
@@ -1098,7 +1101,7 @@ def segment_volume(
         cannot be traced beside it, is ``bone_hidden``.
     pre : Contours or None
         The pre contours on the same slices: the tibia of a ``bone_hidden`` slice is the pre tibia moved by
-        the rigid fit (:func:`deeptissue.pose.fit_bone_motion`) of the other slices. Without them a hidden
+        the rigid fit (:func:`deeptissue.bone_motion.fit_bone_motion`) of the other slices. Without them a hidden
         slice keeps its traced contour (cut at the guard), or is an error if it has none.
 
     Returns
@@ -1305,8 +1308,6 @@ def _fill_hidden(
 ) -> list:
     """The tibia contours with those of the ``hidden`` slices replaced by the pre tibia moved by the rigid fit
     of the other slices (see :func:`segment_volume`)."""
-    from .pose.bone import fit_bone_motion, moved_section, resolve_bone_dof
-
     off = vol.index_offset[2]
     names = ", ".join(str(int(k + off)) for k in np.nonzero(hidden)[0])
     n = len(bones)
@@ -1360,40 +1361,16 @@ def find_indenter(
 ):
     """The indenter of a during scan from its contrast fluid, or None when the scan has no fluid column.
 
-    The fluid and its axis are found as by the pose stage (:func:`deeptissue.pose.find_fluid_component`
+    The fluid and its axis are found as by the pose stage (:func:`deeptissue.fluid.find_fluid_component`
     outside the skin contours ``skin_mm`` (n_slices, n_points, 3) [mm], settings from the config section
     ``pose`` given as ``pose_options``); the head and the fluid radius by
-    :func:`deeptissue.pose.indenter_shape`, with the outer radius ``radius_mm`` (``pose.head_radius_mm``).
+    :func:`deeptissue.fluid.indenter_shape`, with the outer radius ``radius_mm`` (``pose.head_radius_mm``).
     """
-    import logging
-
-    from .pose.estimate import PoseOptions
-    from .pose.indenter import (
-        find_fluid_component,
-        fluid_threshold,
-        indenter_shape,
-        inside_skin_mask,
-        orient_axis,
-    )
-    from .pose.result import PoseError
-
-    opts = PoseOptions.from_config(pose_options)
     data = np.asarray(vol.data, float)
     mask = inside_skin_mask(data.shape, vol.affine, skin_mm)
     try:
-        thr = (
-            opts.fluid_threshold
-            if opts.fluid_threshold is not None
-            else fluid_threshold(data, mask, ratio=opts.fluid_threshold_ratio)
-        )
-        fluid = find_fluid_component(
-            data,
-            vol.affine,
-            threshold=thr,
-            exclude_mask=mask,
-            min_volume_mm3=opts.min_component_mm3,
-            ambiguity_ratio=opts.ambiguity_ratio,
-            animal=vol.animal,
+        fluid = FluidSearch.from_config(pose_options).find(
+            data, vol.affine, mask, animal=vol.animal
         )
         axis = orient_axis(
             fluid.axis, from_mm=fluid.com_mm, toward_mm=np.asarray(skin_mm).reshape(-1, 3).mean(0)
@@ -1408,9 +1385,7 @@ def find_indenter(
             animal=vol.animal,
         )
     except PoseError as exc:
-        logging.getLogger(__name__).info(
-            "%s: bones traced without an indenter mask (%s)", vol.where(), exc
-        )
+        log.info("%s: bones traced without an indenter mask (%s)", vol.where(), exc)
         return None
 
 
