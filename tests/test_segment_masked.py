@@ -12,9 +12,15 @@ import numpy as np
 import pytest
 from masked_legs import Leg, masked_legs
 
-from deeptissue.imaging import slab, split_legs
-from deeptissue.segment import SegmentationError, SegmentationSettings, segment_volume
-from deeptissue.segment_checks import failed_checks_message, segmentation_checks
+from deeptissue.contours import load_contours
+from deeptissue.imaging import split_legs, write_nifti
+from deeptissue.segment import (
+    SegmentationError,
+    SegmentationSettings,
+    SegmentJob,
+    segment_files,
+    segment_volume,
+)
 
 # a masked scan with partial volume: levels at half the steps they trace (skin 0.5 over a background of 0, muscle
 # 1 over a dark bone), so the contours lie on the true edges
@@ -114,7 +120,8 @@ def test_tibia_joined_to_the_fibula_by_a_septum_is_parted():
         assert d.mean() <= 0.07 and d.max() <= 0.32, (k, d.mean(), d.max())
 
 
-def test_slices_into_the_ankle_and_the_knee_are_left_out_with_a_warning():
+def test_slices_into_the_ankle_and_the_knee_are_left_out_with_a_warning(tmp_path, caplog):
+    # end_slices: leave_out: the ankle's slices 0-1 and the knee's slice 9 are left out, 2-8 segmented as a slab
     leg = Leg((0.0, 0.0), ankle_slices=(0, 1), knee_slices=(9,))
     vol = masked_legs([leg], n=(112, 96, 10), supersample=4)
     s = replace(SETTINGS, end_slices="leave_out")
@@ -125,10 +132,29 @@ def test_slices_into_the_ankle_and_the_knee_are_left_out_with_a_warning():
     assert "no closed bone contour" in info["left_out"][9]
     _assert_leg(c, Leg((0.0, 0.0)), range(7))
     assert np.allclose(c.skin[:, 0, 2], vol.world([[0, 0, k] for k in range(2, 9)])[:, 2])
-    checks = segmentation_checks(slab(vol, 2, 9), c, info, smooth_mm=0.0, n_file_slices=10)
-    left = [(ch.slice, ch.status) for ch in checks if ch.name == "slice_left_out"]
-    assert left == [(0, "warn"), (1, "warn"), (9, "warn")]
-    assert failed_checks_message(checks, "x") is None
+    # the rule: a warning naming them, a warning row each in the checks, the figure with every slice
+    img = tmp_path / "leg.nii.gz"
+    write_nifti(img, vol.data, vol.affine)
+    job = SegmentJob(
+        image=img,
+        contours_out=tmp_path / "pre.npz",
+        qc_out=tmp_path / "qc.png",
+        checks_out=tmp_path / "checks.csv",
+        animal="ankle",
+        settings=s,
+    )
+    with caplog.at_level("WARNING"):
+        assert segment_files(job).n_slices == 7
+    assert "3 slice(s) at the ends of the stack left out" in caplog.text
+    rows = [r.split(",") for r in (tmp_path / "checks.csv").read_text().splitlines()[1:]]
+    assert [(r[1], r[4]) for r in rows if r[0] == "slice_left_out"] == [
+        ("0", "warn"),
+        ("1", "warn"),
+        ("9", "warn"),
+    ]
+    assert not [r for r in rows if r[4] == "fail"]
+    assert load_contours(tmp_path / "pre.npz").n_slices == 7
+    assert (tmp_path / "qc.png").stat().st_size > 10_000
 
 
 def test_failures_along_half_the_leg_are_refused_even_when_ends_may_be_left_out():

@@ -27,9 +27,11 @@ Per slice (arrays indexed [i, j] as in the NIfTI, converted to world mm by the a
    bone_level)`` around dark regions inside the skin, and the thick cores that an opening by a disc of
    ``bone_open_mm`` parts from dark layers and septa (:func:`_bone_candidates`, :func:`_open_cores`), linked from slice to slice into tracks, the
    one that runs through the slab: the largest (``bone_select: largest``) or the most anterior of
-   those at least half as large (``anterior``). A slice without it is refused by number, never given
-   another structure. Automatic level: half the median muscle value of ``N`` (cortical bone gives
-   no signal).
+   those at least half as large (``anterior``). Where a dark region holds a neighbouring slice's tibia together
+   with another of its dark structures (the tibia joined to the fibula by a septum wider than the opening
+   parts), it is parted by a watershed seeded from that slice (:func:`_part_joined`) and the tibia chosen again.
+   A slice without it is refused by number, never given another structure. Automatic level: half the median
+   muscle value of ``N`` (cortical bone gives no signal).
 7. **Fibula** (``fibula: true``), chosen in 3D (:func:`_choose_fibula`): the other dark regions inside
    the skin (same level, outside the tibia) with an area from ``fibula_min_area_mm2`` up to
    ``fibula_max_area_ratio`` times the tibia's and round (4 pi A / P^2 >= 0.5, not a thin or ragged
@@ -52,7 +54,8 @@ Per slice (arrays indexed [i, j] as in the NIfTI, converted to world mm by the a
 Hand-drawn contours (a YAML file, see :func:`load_overrides`) replace the automatic result on
 the slices and structures they name. Where the legs touch, :func:`deeptissue.imaging.split_legs` keeps
 the one holding ``leg_point_mm`` before the contours are traced. Every slice that cannot be segmented is
-named in one :class:`SlicesFailed`; :func:`segment_files` then draws the failed run's QC figure, and runs
+named in one :class:`SlicesFailed`, unless ``end_slices: leave_out`` leaves the slices at the ends of the stack
+out (:func:`_leave_out_ends`: the longest run of slices that segment, more than half of them, is kept); :func:`segment_files` then draws the failed run's QC figure, and runs
 the checks of :mod:`deeptissue.segment_checks` on a run that went through.
 """
 
@@ -1116,7 +1119,9 @@ def segment_volume(
         none / hidden, and for the fibula dropped: on a track shorter than ``fibula_min_slices``),
         ``bone_touch_mm`` (distance from the indenter, with one), ``settings``,
         ``fibula_slices`` (count), ``bone_hidden`` (slice indices in the file), ``tibia_other_ratio`` (per
-        slice, the tibia's area over the largest other dark candidate's; NaN without one).
+        slice, the tibia's area over the largest other dark candidate's; NaN without one), ``left_out`` (``{slice
+        in the file: why}``, the slices left out at the ends with ``end_slices: leave_out``) and ``slab`` (the
+        slices ``(k0, k1)`` of ``vol`` the contours are on: ``(0, n_slices)`` unless some were left out).
 
     Raises
     ------
@@ -1167,7 +1172,15 @@ def segment_volume(
         run = _kept_run(vol.n_slices, failed) if s.end_slices == "leave_out" else None
         if run is None:
             raise _failure(scan, traced, failed)
-        return _leave_out_ends(vol, run, failed, state, overrides, indenter, pre, s, _skin_only)
+        call = dict(
+            settings=s,
+            state=state,
+            overrides=overrides,
+            indenter=indenter,
+            pre=pre,
+            _skin_only=_skin_only,
+        )
+        return _leave_out_ends(vol, run, failed, call)
     for k, (_, res) in enumerate(traced):
         if res is not None:
             res.finish(choice[k], px_mm=scan.px_mm, settings=s)
@@ -1187,24 +1200,21 @@ def _kept_run(n: int, failed: dict) -> tuple[int, int] | None:
     return best if 2 * (best[1] - best[0]) > n else None
 
 
-def _leave_out_ends(vol, run, failed, state, overrides, indenter, pre, s, skin_only):
-    """:func:`segment_volume` on the slices ``run`` (``(k0, k1)``) of ``vol`` only (``end_slices: leave_out``): the
-    slices beyond it, at the ends of the stack, are left out; ``info['left_out']`` maps each (index in the file)
-    to why, ``info['slab']`` is ``run``. A slice of the run that fails there is refused as always."""
+def _leave_out_ends(vol: Volume, run: tuple, failed: dict, call: dict) -> tuple[Contours, dict]:
+    """:func:`segment_volume` on the slices ``run`` (``(k0, k1)``) of ``vol`` only (``end_slices: leave_out``), with
+    its other arguments ``call``: the slices beyond the run, at the ends of the stack, are left out;
+    ``info['left_out']`` maps each (index in the file) to why (``failed``: ``{slice in vol: message}``),
+    ``info['slab']`` is ``run``. A slice of the run that fails there is refused as always."""
     k0, k1 = run
     off = vol.index_offset[2]
+    pre = call["pre"]
     if pre is not None:
         hid = None if pre.bone_hidden is None else pre.bone_hidden[k0:k1]
         fib = None if pre.fibula is None else pre.fibula[k0:k1]
         pre = Contours(skin=pre.skin[k0:k1], bone=pre.bone[k0:k1], fibula=fib, bone_hidden=hid)
     contours, info = segment_volume(
         slab(vol, k0, k1),
-        settings=replace(s, end_slices="refuse"),
-        state=state,
-        overrides=overrides,
-        indenter=indenter,
-        pre=pre,
-        _skin_only=skin_only,
+        **{**call, "pre": pre, "settings": replace(call["settings"], end_slices="refuse")},
     )
     left = {}
     for k in [*range(k0), *range(k1, vol.n_slices)]:
