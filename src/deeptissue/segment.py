@@ -55,8 +55,9 @@ Hand-drawn contours (a YAML file, see :func:`load_overrides`) replace the automa
 the slices and structures they name. Where the legs touch, :func:`deeptissue.imaging.split_legs` keeps
 the one holding ``leg_point_mm`` before the contours are traced. Every slice that cannot be segmented is
 named in one :class:`SlicesFailed`, unless ``end_slices: leave_out`` leaves the slices at the ends of the stack
-out (:func:`_leave_out_ends`: the longest run of slices that segment, more than half of them, is kept); :func:`segment_files` then draws the failed run's QC figure, and runs
-the checks of :mod:`deeptissue.segment_checks` on a run that went through.
+out (:func:`_leave_out_ends`: the longest run of slices that segment, more than half of them, is kept);
+:func:`segment_files` then draws the failed run's QC figure, and runs the checks of
+:mod:`deeptissue.segment_checks` on a run that went through.
 """
 
 from __future__ import annotations
@@ -123,9 +124,6 @@ _LINK_AREA_RATIO = 2.0
 # a given skin level above which more than this share of the image border lies is in the background: a leg that
 # touches the border covers a few of its pixels, the noise of an unmasked scan half of them at its median
 _BACKGROUND_SHARE = 0.2
-# a parted region's stub (the septum or channel that joined it to another) is cut this far [px] from the core the
-# opening keeps: the core's edge pixels the digital disc shaved off beside the stub stay
-_STUB_KEEP_PX = 0.5
 
 
 class SegmentationError(ImagingError):
@@ -772,8 +770,8 @@ def _split_joined(Nb, level: float, contour, tibia_seed, other_seeds) -> tuple |
         if n:
             away = ndimage.distance_transform_edt(~kept)
             reach = ndimage.maximum(away, lab, index=np.arange(1, n + 1))
-            stub = np.isin(lab, 1 + np.nonzero(np.asarray(reach) > 1.5)[0])
-            tib = tib & ~(stub & (away > _STUB_KEEP_PX))
+            # the stub reaches beyond the slivers of the core's own edge that the digital disc shaved off
+            tib = tib & ~np.isin(lab, 1 + np.nonzero(np.asarray(reach) > 1.5)[0])
     fill = max(2.0 * level, 1.0)
     # the image the parts are traced on: the region's dark pixels outside ``region`` and everything outside the
     # region's contour but its bright rim (whose values place the edge between pixels) set bright
