@@ -33,6 +33,9 @@ class Leg:
     # plateau, 2.2 times its shaft's radius, which takes the fibula's place)
     ankle_slices: tuple[int, ...] = field(default=())
     knee_slices: tuple[int, ...] = field(default=())
+    # slices on which a dark septum of this width joins the tibia to the fibula (wider than an opening parts)
+    septum_slices: tuple[int, ...] = field(default=())
+    septum_mm: float = 1.2
 
     def centre_at(self, k: int) -> np.ndarray:
         """The leg's centre on slice ``k`` [mm]."""
@@ -64,6 +67,15 @@ def _one_leg(leg: Leg, X, Y, k: int) -> np.ndarray:
     if k not in leg.knee_slices:
         fx, fy = cx + leg.fibula_mm[0], cy + leg.fibula_mm[1]
         one[np.hypot(X - fx, Y - fy) <= leg.fibula_radius_mm] = 0.0
+        if (
+            k in leg.septum_slices and tibia is not None
+        ):  # a dark band from the fibula's centre to the tibia's
+            (tx, ty), _ = tibia
+            u = np.array([tx - fx, ty - fy]) / np.hypot(tx - fx, ty - fy)
+            along = (X - fx) * u[0] + (Y - fy) * u[1]
+            across = np.abs(-(X - fx) * u[1] + (Y - fy) * u[0])
+            length = np.hypot(tx - fx, ty - fy)
+            one[(across <= leg.septum_mm / 2) & (along >= 0) & (along <= length)] = 0.0
     return one
 
 

@@ -168,7 +168,8 @@ def print_moves(name: str, case: tuple, opts) -> None:
     from moved_leg import MOVES, move
 
     from deeptissue.imaging import Volume
-    from deeptissue.pose import PoseError, estimate_pose, pose_errors
+    from deeptissue.pose import estimate_pose, pose_errors
+    from deeptissue.pose_error import PoseError
     from deeptissue.segment import SegmentationError, segment_volume
 
     truth, during, affine, pre, dur = case

@@ -212,23 +212,42 @@ def test_calf_ankle_tibia_not_fibula_and_skin_on_the_masked_edge(tmp_path):
         checks_out=tmp_path / "checks.csv",
         animal="calf_ankle",
         settings=settings,
-        crop_mm=a["crop_mm"],
         leg_point_mm=a["leg_point_mm"],
     )
     c = segment_files(job)
-    assert c.n_slices == 19  # slices 12-30
+    assert c.n_slices == 26  # slices 5-30; 0-4 (into the ankle joint) left out
+    areas = []
     for k in range(c.n_slices):
         a_t, cen_t = polygon_area_centroid(c.bone[k, :, :2])
+        areas.append(a_t)
         assert cen_t[0] < -40.0  # the picked leg (lower x)
         if c.fibula is not None and np.isfinite(c.fibula[k]).all():
             a_f, cen_f = polygon_area_centroid(c.fibula[k, :, :2])
             assert cen_t[1] > cen_f[1] and a_t > 2 * a_f, k  # anterior and larger: the tibia
+    # slices 7-11, where a septum joins the tibia's dark region to the fibula's, are parted: from slice 6 the tibia's
+    # area falls steadily from the ankle's flare (about 1750 mm^2) to the shaft (650 mm^2 on slice 12), by at most
+    # 25 % a slice (the joined regions fall by 29 % from slice 8 to 9 and 31 % from 11 to 12)
+    steps = np.diff(np.log(areas[1:8]))
+    assert np.all(steps < 0.0) and np.all(steps > -0.25), np.round(areas[:8])
     rows = [r.split(",") for r in (tmp_path / "checks.csv").read_text().splitlines()[1:]]
     skin = [float(r[2]) for r in rows if r[0] == "skin_to_mask_mm"]
-    assert len(skin) == 19 and max(skin) <= 1.5, skin  # median per slice, one pixel
+    assert len(skin) == 26 and max(skin) <= 1.5, skin  # median per slice, one pixel
+    assert [int(r[1]) for r in rows if r[0] == "slice_left_out" and r[4] == "warn"] == [
+        0,
+        1,
+        2,
+        3,
+        4,
+    ]
     assert not [r for r in rows if r[4] == "fail"]
-    # without the z range the ankle slices are named in one refusal, with the figure of the failed run
-    full = SegmentJob(**{**job.__dict__, "crop_mm": None, "leg_point_mm": [-60.0, 0.0, 0.0]})
+    # refused by default: the ankle slices are named in one refusal, with the figure of the failed run
+    full = SegmentJob(
+        **{
+            **job.__dict__,
+            "settings": {**settings, "end_slices": "refuse"},
+            "leg_point_mm": [-60.0, 0.0, 0.0],
+        }
+    )
     with pytest.raises(
         SegmentationError,
         match=r"3 of 31 slices cannot be segmented \(slices 1, 3, 4, z -87\.0 to -69\.0 mm\)",

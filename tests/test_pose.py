@@ -11,23 +11,21 @@ import pose_synth as ps
 import pytest
 import yaml
 
+from deeptissue.bone_motion import BoneDistance, bone_centroid_mm, fit_bone_motion
 from deeptissue.config import ConfigError, validate_config
 from deeptissue.contours import Contours, save_contours
+from deeptissue.fluid import inertia_axis
 from deeptissue.pose import (
-    BoneDistance,
     Pose,
-    PoseError,
     PoseFiles,
     PoseOptions,
-    bone_centroid_mm,
     estimate_pose,
-    fit_bone_motion,
-    inertia_axis,
     load_pose,
     pose_errors,
     run_pose,
     run_pose_accuracy,
 )
+from deeptissue.pose_error import PoseError
 from deeptissue.rigid import BoneMotion, apply_rigid, rotation_matrix
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -22,7 +22,6 @@ from deeptissue.pose import (
     MAX_SLICE_OBLIQUITY_DEG,
     LegGuard,
     Pose,
-    PoseError,
     PoseFiles,
     check_axial_slices,
     estimate_pose,
@@ -33,6 +32,7 @@ from deeptissue.pose import (
 )
 from deeptissue.pose.checks import LIMITS
 from deeptissue.pose.qc import travel_marks_mm
+from deeptissue.pose_error import PoseError
 from deeptissue.rigid import rotation_matrix
 
 sys.path.insert(0, str(Path(__file__).parent))

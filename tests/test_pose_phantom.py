@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from deeptissue.bone_motion import fit_bone_motion
 from deeptissue.phantom import PhantomSpec, make_phantom
 from deeptissue.pose import ACCURACY_TOLERANCES as TOL
-from deeptissue.pose import estimate_pose, fit_bone_motion, pose_errors
+from deeptissue.pose import estimate_pose, pose_errors
 from deeptissue.rigid import rotation_matrix
 
 CASES = {

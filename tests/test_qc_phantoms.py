@@ -11,7 +11,8 @@ import pytest
 from deeptissue.imaging import write_nifti
 from deeptissue.io import read_json
 from deeptissue.phantom import PhantomSpec, make_phantom
-from deeptissue.pose import PoseError, PoseFiles, run_pose
+from deeptissue.pose import PoseFiles, run_pose
+from deeptissue.pose_error import PoseError
 from deeptissue.segment import SegmentJob, segment_files
 
 # config/config.yaml's rat01 and rat02

@@ -10,17 +10,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from deeptissue.bone_motion import fit_bone_motion, moved_section
 from deeptissue.contours import Contours, load_contours, point_to_polygon_distance, save_contours
+from deeptissue.fluid import IndenterShape
 from deeptissue.imaging import Volume
 from deeptissue.phantom import PhantomSpec, _Scene, make_phantom
-from deeptissue.pose import (
-    ACCURACY_TOLERANCES,
-    IndenterShape,
-    estimate_pose,
-    fit_bone_motion,
-    moved_section,
-    pose_errors,
-)
+from deeptissue.pose import ACCURACY_TOLERANCES, estimate_pose, pose_errors
 from deeptissue.rigid import BoneMotion
 from deeptissue.segment import SegmentationError, find_indenter, segment_volume
 

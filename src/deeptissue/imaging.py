@@ -16,6 +16,7 @@ from scipy import ndimage
 from .io import atomic_path
 
 __all__ = [
+    "slab",
     "ImagingError",
     "Volume",
     "check_matching",
@@ -211,6 +212,25 @@ def crop_volume(vol: Volume, crop_mm) -> Volume:
         path=vol.path,
         animal=vol.animal,
         index_offset=tuple(int(o + p) for o, p in zip(off, vol.index_offset)),
+    )
+
+
+def slab(vol: Volume, k0: int, k1: int) -> Volume:
+    """The slices ``k0`` to ``k1 - 1`` of ``vol`` (indices into ``vol``), with the affine and ``index_offset`` that
+    keep every voxel at its world position and its index in the file."""
+    if not 0 <= k0 < k1 <= vol.n_slices:
+        raise ImagingError(
+            f"{vol.where()}: slices {k0} to {k1 - 1} are not within its {vol.n_slices} slices"
+        )
+    aff = vol.affine.copy()
+    aff[:3, 3] = vol.world([0, 0, k0])
+    off = vol.index_offset
+    return Volume(
+        data=np.ascontiguousarray(vol.data[:, :, k0:k1]),
+        affine=aff,
+        path=vol.path,
+        animal=vol.animal,
+        index_offset=(off[0], off[1], off[2] + k0),
     )
 
 

@@ -8,7 +8,10 @@ from .contours import Contours
 from .imaging import LegSplit, Volume
 from .io import atomic_path
 
-__all__ = ["plot_segmentation"]
+__all__ = ["LEFT_OUT", "plot_segmentation"]
+
+#: the start of a reason in ``failed`` that marks a slice left out at an end of the stack (framed orange), not failed
+LEFT_OUT = "left out: "
 
 # structure -> (colour, line width, label): the skin drawn wide enough to see on a bright leg edge
 _STYLE = {
@@ -71,7 +74,7 @@ def plot_segmentation(
     """Every slice of ``vol`` with the skin (red), tibia (green) and fibula (yellow, where found) contours, a
     legend; truth dashed (cyan). ``contours`` is a :class:`Contours` or, for a failed run, ``{structure: [(m, 3)
     or None per slice]}``. A slice in ``failed`` (``{slice index in vol: reason}``) has a red frame and its reason
-    in the title; a slice whose tibia touches the indenter (``bone_hidden``) says that its tibia is the pre tibia
+    in the title, an orange one when the reason starts with :data:`LEFT_OUT` (``segmentation.end_slices``); a slice whose tibia touches the indenter (``bone_hidden``) says that its tibia is the pre tibia
     moved rigidly; with ``split`` (:func:`deeptissue.imaging.split_legs`) the cut between touching legs is drawn
     (magenta) with both legs' centres.
 
@@ -123,12 +126,16 @@ def plot_segmentation(
         label = f"slice {k + vol.index_offset[2]}"
         if hidden is not None and hidden[k]:
             label += " (tibia at the indenter: from pre)"
+        colour = "black"
         if k in failed:
-            label += f"\nFAILED: {str(failed[k])[-60:]}"
+            why = str(failed[k])
+            left = why.startswith(LEFT_OUT)
+            colour = "darkorange" if left else "red"
+            label += f"\n{'LEFT OUT' if left else 'FAILED'}: {why.removeprefix(LEFT_OUT)[-60:]}"
             for side in ax.spines.values():
-                side.set_edgecolor("red")
+                side.set_edgecolor(colour)
                 side.set_linewidth(3)
-        ax.set_title(label, fontsize=7, color="red" if k in failed else "black")
+        ax.set_title(label, fontsize=7, color=colour)
     handles = [Line2D([], [], color=c, lw=lw, label=lab) for c, lw, lab in _STYLE.values()]
     if truth is not None:
         handles.append(Line2D([], [], color="cyan", ls="--", lw=0.8, label="truth"))
@@ -136,8 +143,11 @@ def plot_segmentation(
         handles.append(Line2D([], [], color="magenta", lw=0.9, label="cut between the legs"))
     fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8, frameon=False)
     sup = _accuracy_title(title, accuracy)
-    if failed:
-        sup += f"  |  FAILED on {len(failed)} slice(s), framed red"
+    n_left = sum(str(why).startswith(LEFT_OUT) for why in failed.values())
+    if len(failed) > n_left:
+        sup += f"  |  FAILED on {len(failed) - n_left} slice(s), framed red"
+    if n_left:
+        sup += f"  |  {n_left} slice(s) at the ends left out, framed orange"
     fig.suptitle(sup, fontsize=10)
     fig.tight_layout(rect=(0, 0.04, 1, 1))
     with atomic_path(path) as tmp:

@@ -43,7 +43,7 @@ def euler_xyz_deg(rotation_deg) -> np.ndarray:
 class BoneMotion:
     """Rigid motion of the bone, pre -> during: ``x' = R (x - centre) + centre + translation``.
 
-    The pose stage fits it (:func:`deeptissue.pose.fit_bone_motion`) and the FE solve prescribes it on
+    The pose stage fits it (:func:`deeptissue.bone_motion.fit_bone_motion`) and the FE solve prescribes it on
     the bone facets (:func:`deeptissue.fem.solver.solve_indentation`). The default is no motion.
 
     Attributes

@@ -27,9 +27,11 @@ Per slice (arrays indexed [i, j] as in the NIfTI, converted to world mm by the a
    bone_level)`` around dark regions inside the skin, and the thick cores that an opening by a disc of
    ``bone_open_mm`` parts from dark layers and septa (:func:`_bone_candidates`, :func:`_open_cores`), linked from slice to slice into tracks, the
    one that runs through the slab: the largest (``bone_select: largest``) or the most anterior of
-   those at least half as large (``anterior``). A slice without it is refused by number, never given
-   another structure. Automatic level: half the median muscle value of ``N`` (cortical bone gives
-   no signal).
+   those at least half as large (``anterior``). Where a dark region holds a neighbouring slice's tibia together
+   with another of its dark structures (the tibia joined to the fibula by a septum wider than the opening
+   parts), it is parted by a watershed seeded from that slice (:func:`_part_joined`) and the tibia chosen again.
+   A slice without it is refused by number, never given another structure. Automatic level: half the median
+   muscle value of ``N`` (cortical bone gives no signal).
 7. **Fibula** (``fibula: true``), chosen in 3D (:func:`_choose_fibula`): the other dark regions inside
    the skin (same level, outside the tibia) with an area from ``fibula_min_area_mm2`` up to
    ``fibula_max_area_ratio`` times the tibia's and round (4 pi A / P^2 >= 0.5, not a thin or ragged
@@ -52,21 +54,25 @@ Per slice (arrays indexed [i, j] as in the NIfTI, converted to world mm by the a
 Hand-drawn contours (a YAML file, see :func:`load_overrides`) replace the automatic result on
 the slices and structures they name. Where the legs touch, :func:`deeptissue.imaging.split_legs` keeps
 the one holding ``leg_point_mm`` before the contours are traced. Every slice that cannot be segmented is
-named in one :class:`SlicesFailed`; :func:`segment_files` then draws the failed run's QC figure, and runs
-the checks of :mod:`deeptissue.segment_checks` on a run that went through.
+named in one :class:`SlicesFailed`, unless ``end_slices: leave_out`` leaves the slices at the ends of the stack
+out (:func:`_leave_out_ends`: the longest run of slices that segment, more than half of them, is kept);
+:func:`segment_files` then draws the failed run's QC figure, and runs the checks of
+:mod:`deeptissue.segment_checks` on a run that went through.
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
 from skimage.draw import polygon as _polygon_px
 from skimage.measure import find_contours
+from skimage.segmentation import watershed
 
+from .bone_motion import fit_bone_motion, moved_section, resolve_bone_dof
 from .contours import (
     Contours,
     load_contours,
@@ -76,6 +82,7 @@ from .contours import (
     resample_closed,
     save_contours,
 )
+from .fluid import FluidSearch, indenter_shape, inside_skin_mask, orient_axis
 from .imaging import (
     ImagingError,
     Volume,
@@ -83,9 +90,11 @@ from .imaging import (
     check_not_same_scan,
     crop_volume,
     load_nifti,
+    slab,
     split_legs,
 )
-from .qc import plot_segmentation
+from .pose_error import PoseError
+from .qc import LEFT_OUT, plot_segmentation
 from .segment_checks import failed_checks_message, segmentation_checks, write_checks
 
 log = logging.getLogger(__name__)
@@ -144,6 +153,9 @@ class SegmentationSettings:
     fibula_min_slices: int = 3
     indenter_mask: bool = True
     indenter_guard_mm: float = 0.15
+    end_slices: str = (
+        "refuse"  # slices at an end of the stack that cannot be segmented: refuse | leave_out
+    )
 
     @classmethod
     def from_config(cls, *dicts: dict | None) -> SegmentationSettings:
@@ -709,6 +721,133 @@ def _choose_tibia(
     return out, dict.fromkeys(missing, msg)
 
 
+def _seed_px(point, mask) -> tuple[int, int] | None:
+    """The pixel of ``mask`` nearest the (i, j) ``point``, within 1.5 pixels of it (None: the point lies outside)."""
+    i, j = int(round(point[0])), int(round(point[1]))
+    best = None
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            p = (i + di, j + dj)
+            if 0 <= p[0] < mask.shape[0] and 0 <= p[1] < mask.shape[1] and mask[p]:
+                d = float(np.hypot(p[0] - point[0], p[1] - point[1]))
+                if best is None or d < best[0]:
+                    best = (d, p)
+    return None if best is None else best[1]
+
+
+def _split_joined(Nb, level: float, contour, tibia_seed, other_seeds) -> tuple | None:
+    """``(tibia, others)``: the dark region inside ``contour`` parted into the tibia's section and the other bones'
+    (``(area [px], (i, j) contour)`` each), or None when the seeds do not part it.
+
+    The region is split by a watershed on its distance transform from the seeds, ``tibia_seed`` and
+    ``other_seeds`` ((i, j) points: the centroids of the tibia and the other dark structures on a neighbouring
+    slice where they are apart). The tibia's part keeps the stub of the septum or channel that joined it to the
+    others; an opening by a disc just wider than the neck (the largest distance to the edge along the watershed
+    line) removes it, as :func:`_open_cores` does with a fixed disc, so the tibia's contour runs along its own edge
+    and across the neck's root. The contours are traced at ``level`` on ``Nb`` with the other parts set bright."""
+    inside = _raster(contour, Nb.shape)
+    mask = inside & (Nb < level)
+    t = _seed_px(tibia_seed, mask)
+    os_ = [p for p in (_seed_px(o, mask) for o in other_seeds) if p is not None and p != t]
+    if t is None or not os_:
+        return None
+    markers = np.zeros(Nb.shape, np.int32)
+    for lab_, p in enumerate([t, *os_], start=1):
+        markers[p] = lab_
+    dist = ndimage.distance_transform_edt(mask)
+    parts = watershed(-dist, markers, mask=mask)
+    tib = parts == 1
+    line = tib & ndimage.binary_dilation((parts > 1), structure=np.ones((3, 3), bool))
+    # no line: the parts touch only where the contour's sub-pixel saddle joins them, no pixel of neck to cut
+    kept = (
+        ndimage.binary_opening(tib, structure=_disk(float(dist[line].max()) + 1.0))
+        if line.any()
+        else tib
+    )
+    if kept[t]:
+        removed = tib & ~kept
+        lab, n = ndimage.label(removed)
+        if n:
+            away = ndimage.distance_transform_edt(~kept)
+            reach = ndimage.maximum(away, lab, index=np.arange(1, n + 1))
+            # the stub reaches beyond the slivers of the core's own edge that the digital disc shaved off
+            tib = tib & ~np.isin(lab, 1 + np.nonzero(np.asarray(reach) > 1.5)[0])
+    fill = max(2.0 * level, 1.0)
+    # the image the parts are traced on: the region's dark pixels outside ``region`` and everything outside the
+    # region's contour but its bright rim (whose values place the edge between pixels) set bright
+    rim = ndimage.binary_dilation(inside, structure=np.ones((3, 3), bool)) & (Nb >= level)
+
+    def traced(region, seed):
+        img = np.where((mask & region) | rim, Nb, fill)
+        for c in _closed_contours(img, level):
+            if points_in_polygon(np.asarray(seed, float)[None], c)[0]:
+                return abs(polygon_area_centroid(c)[0]), c
+        return None
+
+    tibia = traced(tib, t)
+    if tibia is None or any(points_in_polygon(np.asarray(os_, float), tibia[1])):
+        return None
+    others = [o for o in (traced(parts == i + 2, p) for i, p in enumerate(os_)) if o is not None]
+    return tibia, others
+
+
+def _part_joined(traced: list, choice: list) -> bool:
+    """Part, on every slice, the dark region that holds the tibia of a neighbouring slice together with another dark
+    structure of that slice (the tibia joined to the fibula by a septum, or to a dark layer, wider than
+    ``bone_open_mm`` parts): :func:`_split_joined`, seeded by the neighbour's centroids. The parts replace the
+    region among the slice's tibia candidates, the parts other than the tibia join the fibula's dark contours, and
+    the tibia's part becomes the slice's choice; a slice so parted seeds its own neighbours in turn. Returns whether
+    any region was parted."""
+    n = len(traced)
+    any_split, changed = False, True
+    while changed:
+        changed = False
+        for k in range(n):
+            res = traced[k][1]
+            if res is None or not res.bone_candidates:
+                continue
+            for nb in (k - 1, k + 1):
+                if not 0 <= nb < n or choice[nb] is None or traced[nb][1] is None:
+                    continue
+                cands = traced[nb][1].bone_candidates
+                tib = cands[choice[nb]][1]
+                t = polygon_area_centroid(tib)[1]
+                others = [
+                    polygon_area_centroid(c)[1]
+                    for i, (_, c) in enumerate(cands)
+                    if i != choice[nb]
+                ]
+                hit = _joined_candidate(res.bone_candidates, t, others)
+                if hit is None:
+                    continue
+                i, seeds = hit
+                split = _split_joined(
+                    res.trace["Nb"], res.bone_level, res.bone_candidates[i][1], t, seeds
+                )
+                if split is None:
+                    continue
+                tibia, parts = split
+                res.bone_candidates = [c for j, c in enumerate(res.bone_candidates) if j != i]
+                res.bone_candidates += [tibia, *parts]
+                res.trace["dark"] = list(res.trace["dark"]) + [c for _, c in parts]
+                choice[k] = len(res.bone_candidates) - 1 - len(parts)
+                changed = any_split = True
+                break
+    return any_split
+
+
+def _joined_candidate(cands: list, tibia_c, other_cs) -> tuple | None:
+    """``(index, other centroids inside)`` of the candidate that holds the centroid ``tibia_c`` and at least one of
+    ``other_cs`` (a neighbouring slice's tibia and other dark structures), or None."""
+    for i, (_, c) in enumerate(cands):
+        if not points_in_polygon(np.asarray(tibia_c)[None], c)[0]:
+            continue
+        inside = [o for o in other_cs if points_in_polygon(np.asarray(o)[None], c)[0]]
+        if inside:
+            return i, inside
+    return None
+
+
 def _slice_list(ks, off: int) -> str:
     """Slice indices in the file, comma-separated."""
     return ", ".join(str(int(k) + off) for k in ks)
@@ -928,7 +1067,7 @@ def _failure(scan: _Scan, traced: list, failed: dict) -> SlicesFailed:
     return SlicesFailed(
         f"{vol.where()}: {len(ks)} of {vol.n_slices} slices cannot be segmented (slices "
         f"{_slice_list(ks, off)}, z {min(z):.1f} to {max(z):.1f} mm): {lines}. Leave them out with the z range "
-        "of crop_mm, or draw them by hand",
+        "of crop_mm (or, at the ends of the stack, with segmentation.end_slices: leave_out), or draw them by hand",
         failed=failed,
         partial=partial,
     )
@@ -963,7 +1102,7 @@ def segment_volume(
         cannot be traced beside it, is ``bone_hidden``.
     pre : Contours or None
         The pre contours on the same slices: the tibia of a ``bone_hidden`` slice is the pre tibia moved by
-        the rigid fit (:func:`deeptissue.pose.fit_bone_motion`) of the other slices. Without them a hidden
+        the rigid fit (:func:`deeptissue.bone_motion.fit_bone_motion`) of the other slices. Without them a hidden
         slice keeps its traced contour (cut at the guard), or is an error if it has none.
 
     Returns
@@ -978,7 +1117,9 @@ def segment_volume(
         none / hidden, and for the fibula dropped: on a track shorter than ``fibula_min_slices``),
         ``bone_touch_mm`` (distance from the indenter, with one), ``settings``,
         ``fibula_slices`` (count), ``bone_hidden`` (slice indices in the file), ``tibia_other_ratio`` (per
-        slice, the tibia's area over the largest other dark candidate's; NaN without one).
+        slice, the tibia's area over the largest other dark candidate's; NaN without one), ``left_out`` (``{slice
+        in the file: why}``, the slices left out at the ends with ``end_slices: leave_out``) and ``slab`` (the
+        slices ``(k0, k1)`` of ``vol`` the contours are on: ``(0, n_slices)`` unless some were left out).
 
     Raises
     ------
@@ -996,29 +1137,93 @@ def segment_volume(
         raise ValueError(
             f"segmentation.bone_select: {s.bone_select!r} is not 'largest' or 'anterior'"
         )
+    if s.end_slices not in ("refuse", "leave_out"):
+        raise ValueError(
+            f"segmentation.end_slices: {s.end_slices!r} is not 'refuse' or 'leave_out'"
+        )
     scan = _scan(vol, s, (overrides or {}).get(state, {}), _skin_only)
     traced, failed = _trace_slices(scan, indenter)
     choice = [None] * vol.n_slices
     if not _skin_only:
-        # the tibia in 3D: the one dark structure that runs through every slice whose tibia is traced
-        choice, missing = _choose_tibia(
-            [
-                r.bone_candidates
-                if r is not None and m["bone"] is None and k not in failed
-                else None
-                for k, (m, r) in enumerate(traced)
-            ],
-            select=s.bone_select,
-            vol=vol,
-            flip_j=scan.flip_j,
-        )
+        # the tibia in 3D: the one dark structure that runs through every slice whose tibia is traced; where it
+        # is joined to another dark structure, parted and chosen again
+        def tibia_choice():
+            return _choose_tibia(
+                [
+                    r.bone_candidates
+                    if r is not None and m["bone"] is None and k not in failed
+                    else None
+                    for k, (m, r) in enumerate(traced)
+                ],
+                select=s.bone_select,
+                vol=vol,
+                flip_j=scan.flip_j,
+            )
+
+        choice, missing = tibia_choice()
+        if _part_joined(
+            [(m, r if k not in failed else None) for k, (m, r) in enumerate(traced)], choice
+        ):
+            choice, missing = tibia_choice()
         failed.update(missing)
     if failed:
-        raise _failure(scan, traced, failed)
+        run = _kept_run(vol.n_slices, failed) if s.end_slices == "leave_out" else None
+        if run is None:
+            raise _failure(scan, traced, failed)
+        call = dict(
+            settings=s,
+            state=state,
+            overrides=overrides,
+            indenter=indenter,
+            pre=pre,
+            _skin_only=_skin_only,
+        )
+        return _leave_out_ends(vol, run, failed, call)
     for k, (_, res) in enumerate(traced):
         if res is not None:
             res.finish(choice[k], px_mm=scan.px_mm, settings=s)
     return _assemble(scan, traced, pre)
+
+
+def _kept_run(n: int, failed: dict) -> tuple[int, int] | None:
+    """``(k0, k1)``: the longest run of consecutive slices ``k0`` to ``k1 - 1`` none of which failed, when it holds
+    more than half of the ``n`` slices (the failing slices lie towards the ends of the stack, not along the leg);
+    else None."""
+    best, start = (0, 0), 0
+    for k in range(n + 1):
+        if k == n or k in failed:
+            if k - start > best[1] - best[0]:
+                best = (start, k)
+            start = k + 1
+    return best if 2 * (best[1] - best[0]) > n else None
+
+
+def _leave_out_ends(vol: Volume, run: tuple, failed: dict, call: dict) -> tuple[Contours, dict]:
+    """:func:`segment_volume` on the slices ``run`` (``(k0, k1)``) of ``vol`` only (``end_slices: leave_out``), with
+    its other arguments ``call``: the slices beyond the run, at the ends of the stack, are left out;
+    ``info['left_out']`` maps each (index in the file) to why (``failed``: ``{slice in vol: message}``),
+    ``info['slab']`` is ``run``. A slice of the run that fails there is refused as always."""
+    k0, k1 = run
+    off = vol.index_offset[2]
+    pre = call["pre"]
+    if pre is not None:
+        hid = None if pre.bone_hidden is None else pre.bone_hidden[k0:k1]
+        fib = None if pre.fibula is None else pre.fibula[k0:k1]
+        pre = Contours(skin=pre.skin[k0:k1], bone=pre.bone[k0:k1], fibula=fib, bone_hidden=hid)
+    contours, info = segment_volume(
+        slab(vol, k0, k1),
+        **{**call, "pre": pre, "settings": replace(call["settings"], end_slices="refuse")},
+    )
+    left = {}
+    for k in [*range(k0), *range(k1, vol.n_slices)]:
+        edge = k0 - 1 if k < k0 else k1
+        msg = failed.get(k) or f"beyond slice {edge + off}, which cannot be segmented"
+        for prefix in (vol.where(k) + ": ", vol.where() + ": "):
+            msg = msg.removeprefix(prefix)
+        left[k + off] = msg
+    info["left_out"] = left
+    info["slab"] = run
+    return contours, info
 
 
 def _other_ratio(res, choice) -> float:
@@ -1093,6 +1298,8 @@ def _assemble(scan: _Scan, traced: list, pre: Contours | None) -> tuple[Contours
         "settings": s.__dict__,
         "fibula_slices": int(sum(found)),
         "bone_hidden": [int(k + off) for k in np.nonzero(hidden)[0]],
+        "left_out": {},
+        "slab": (0, vol.n_slices),
     }
     return Contours(
         skin=np.stack(skins), bone=np.stack(bones), fibula=fibula, bone_hidden=hidden
@@ -1109,8 +1316,6 @@ def _fill_hidden(
 ) -> list:
     """The tibia contours with those of the ``hidden`` slices replaced by the pre tibia moved by the rigid fit
     of the other slices (see :func:`segment_volume`)."""
-    from .pose.bone import fit_bone_motion, moved_section, resolve_bone_dof
-
     off = vol.index_offset[2]
     names = ", ".join(str(int(k + off)) for k in np.nonzero(hidden)[0])
     n = len(bones)
@@ -1164,40 +1369,16 @@ def find_indenter(
 ):
     """The indenter of a during scan from its contrast fluid, or None when the scan has no fluid column.
 
-    The fluid and its axis are found as by the pose stage (:func:`deeptissue.pose.find_fluid_component`
+    The fluid and its axis are found as by the pose stage (:func:`deeptissue.fluid.find_fluid_component`
     outside the skin contours ``skin_mm`` (n_slices, n_points, 3) [mm], settings from the config section
     ``pose`` given as ``pose_options``); the head and the fluid radius by
-    :func:`deeptissue.pose.indenter_shape`, with the outer radius ``radius_mm`` (``pose.head_radius_mm``).
+    :func:`deeptissue.fluid.indenter_shape`, with the outer radius ``radius_mm`` (``pose.head_radius_mm``).
     """
-    import logging
-
-    from .pose.estimate import PoseOptions
-    from .pose.indenter import (
-        find_fluid_component,
-        fluid_threshold,
-        indenter_shape,
-        inside_skin_mask,
-        orient_axis,
-    )
-    from .pose.result import PoseError
-
-    opts = PoseOptions.from_config(pose_options)
     data = np.asarray(vol.data, float)
     mask = inside_skin_mask(data.shape, vol.affine, skin_mm)
     try:
-        thr = (
-            opts.fluid_threshold
-            if opts.fluid_threshold is not None
-            else fluid_threshold(data, mask, ratio=opts.fluid_threshold_ratio)
-        )
-        fluid = find_fluid_component(
-            data,
-            vol.affine,
-            threshold=thr,
-            exclude_mask=mask,
-            min_volume_mm3=opts.min_component_mm3,
-            ambiguity_ratio=opts.ambiguity_ratio,
-            animal=vol.animal,
+        fluid = FluidSearch.from_config(pose_options).find(
+            data, vol.affine, mask, animal=vol.animal
         )
         axis = orient_axis(
             fluid.axis, from_mm=fluid.com_mm, toward_mm=np.asarray(skin_mm).reshape(-1, 3).mean(0)
@@ -1212,9 +1393,7 @@ def find_indenter(
             animal=vol.animal,
         )
     except PoseError as exc:
-        logging.getLogger(__name__).info(
-            "%s: bones traced without an indenter mask (%s)", vol.where(), exc
-        )
+        log.info("%s: bones traced without an indenter mask (%s)", vol.where(), exc)
         return None
 
 
@@ -1393,6 +1572,24 @@ def _log_info(job: SegmentJob, settings: SegmentationSettings, info: dict) -> No
         )
 
 
+def _shown(vol: Volume, contours: Contours, info: dict) -> tuple:
+    """``(contours, marked)`` for the QC figure of ``vol``: the contours on every slice of ``vol`` (None on the
+    slices left out at the ends) and ``{slice index in vol: reason}`` of those slices (:data:`LEFT_OUT`)."""
+    k0, k1 = info["slab"]
+    if (k0, k1) == (0, vol.n_slices):
+        return contours, {}
+    shown = {}
+    for st in STRUCTURES:
+        arr = getattr(contours, st)
+        per = [None] * vol.n_slices
+        if arr is not None:
+            for k in range(k0, k1):
+                per[k] = arr[k - k0] if np.isfinite(arr[k - k0]).all() else None
+        shown[st] = per
+    off = vol.index_offset[2]
+    return shown, {k - off: LEFT_OUT + why for k, why in info["left_out"].items()}
+
+
 def segment_files(job: SegmentJob) -> Contours:
     """The rule ``segment``: load and check the image, part the legs, segment, check, write contours, checks and
     the QC figure.
@@ -1422,8 +1619,22 @@ def segment_files(job: SegmentJob) -> Contours:
             f"failing slices marked: {failed_qc}"
         ) from exc
     _log_info(job, settings, info)
+    left_out = info["left_out"]
+    if left_out:
+        log.warning(
+            "%s %s: %d slice(s) at the ends of the stack left out (segmentation.end_slices: leave_out): %s",
+            job.animal,
+            job.state,
+            len(left_out),
+            "; ".join(f"slice {k}: {why}" for k, why in left_out.items()),
+        )
+    k0, k1 = info["slab"]
     checks = segmentation_checks(
-        leg, contours, info, smooth_mm=settings.smooth_mm, n_file_slices=n_file
+        slab(leg, k0, k1),
+        contours,
+        info,
+        smooth_mm=settings.smooth_mm,
+        n_file_slices=n_file,
     )
     true = load_contours(job.truth) if job.truth else None
     rows = contour_accuracy(contours, true) if true is not None else None
@@ -1438,8 +1649,9 @@ def segment_files(job: SegmentJob) -> Contours:
     ):  # the rule's outputs are removed on failure: the checks and figure go beside them
         failed_csv = job.failed_checks
         write_checks(failed_csv, checks)
+        shown, marked = _shown(vol, contours, info)
         plot_segmentation(
-            vol, contours, failed_qc, truth=true, failed=bad, split=split, title=title
+            vol, shown, failed_qc, truth=true, failed=marked | bad, split=split, title=title
         )
         raise SegmentationError(
             f"{message}. The QC figure with the failing slices marked: {failed_qc}; the checks: {failed_csv}"
@@ -1449,8 +1661,9 @@ def segment_files(job: SegmentJob) -> Contours:
     if job.checks_out is not None:
         write_checks(job.checks_out, checks)
     save_contours(job.contours_out, contours)
+    shown, marked = _shown(vol, contours, info)
     plot_segmentation(
-        vol, contours, job.qc_out, truth=true, accuracy=rows, split=split, title=title
+        vol, shown, job.qc_out, truth=true, accuracy=rows, failed=marked, split=split, title=title
     )
     return contours
 

@@ -48,26 +48,33 @@ ACTIONS = {
     "skin_to_mask_mm": "the skin lies off the edge of the leg: check the figure, segmentation.skin_level and "
     "skin_close_mm (a masked scan's broken skin ring)",
     "slices_left_out": "slices of the file outside crop_mm are not segmented",
+    "slice_left_out": "this slice at an end of the stack cannot be segmented and is left out "
+    "(segmentation.end_slices: leave_out): the model uses the slices kept; draw it in an overrides file to keep it",
 }
 
 
 @dataclass(frozen=True)
 class SegmentationCheck:
-    """One check on one slice (``slice`` -1: the whole scan); ``limit`` is a maximum, or a minimum with ``below``."""
+    """One check on one slice (``slice`` -1: the whole scan); ``limit`` is a maximum, or a minimum with ``below``;
+    a check with ``warn`` past its limit warns and does not stop the rule."""
 
     name: str
     slice: int
     value: float
     limit: float
     below: bool = False
+    warn: bool = False
 
     @property
     def status(self) -> str:
-        """``ok``, ``fail``, or ``n/a`` for a value that cannot be computed (NaN: no fibula on the slice)."""
+        """``ok``, ``fail`` (``warn`` for a warning check), or ``n/a`` for a value that cannot be computed (NaN: no
+        fibula on the slice)."""
         if not np.isfinite(self.value):
             return "n/a"
         bad = self.value < self.limit if self.below else self.value > self.limit
-        return "fail" if bad else "ok"
+        if not bad:
+            return "ok"
+        return "warn" if self.warn else "fail"
 
 
 def _skin_to_edge_mm(vol: Volume, skin: np.ndarray, body: np.ndarray, k: int) -> float:
@@ -95,6 +102,11 @@ def segmentation_checks(
         SegmentationCheck(
             "slices_left_out", -1, float(n_file_slices - contours.n_slices), n_file_slices
         )
+    ]
+    # a slice left out at an end of the stack (segmentation.end_slices: leave_out): 1, a warning
+    out += [
+        SegmentationCheck("slice_left_out", int(k), 1.0, 0.0, warn=True)
+        for k in sorted(info.get("left_out", {}))
     ]
     area = np.array([polygon_area_centroid(b[:, :2])[0] for b in contours.bone])
     cen = np.array([polygon_area_centroid(b[:, :2])[1] for b in contours.bone])
@@ -159,6 +171,6 @@ def write_checks(path, checks: list[SegmentationCheck]) -> None:
                         f"{c.value:.6g}",
                         f"{c.limit:g}",
                         c.status,
-                        ACTIONS[c.name] if c.status == "fail" else "",
+                        ACTIONS[c.name] if c.status in ("fail", "warn") else "",
                     ]
                 )

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..contours import polygon_area_centroid
 from ..io import atomic_path
-from .result import PoseError
+from ..pose_error import PoseError
 
 if TYPE_CHECKING:
     from ..contours import Contours

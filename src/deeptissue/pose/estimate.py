@@ -15,9 +15,17 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..bone_motion import (
+    BoneDistance,
+    BoneFit,
+    bone_centroid_mm,
+    fit_bone_motion,
+    resolve_bone_dof,
+)
 from ..contours import load_contours
+from ..fluid import FluidComponent, FluidSearch, inside_skin_mask, orient_axis
 from ..imaging import load_nifti
-from .bone import BoneDistance, BoneFit, bone_centroid_mm, fit_bone_motion, resolve_bone_dof
+from ..pose_error import PoseError, _where
 from .checks import (
     LegMovedError,
     contour_checks,
@@ -27,20 +35,10 @@ from .checks import (
     warnings_of,
     write_checks,
 )
-from .indenter import (
-    FluidComponent,
-    TipSearch,
-    find_fluid_component,
-    fluid_threshold,
-    inside_skin_mask,
-    line_triangle_hits,
-    orient_axis,
-    skin_triangles,
-    tip_end_mm,
-)
+from .indenter import TipSearch, line_triangle_hits, skin_triangles, tip_end_mm
 from .qc import plot_axis_qc, plot_bone_qc, plot_tip_qc
 from .registration import LegGuard, LegRegistration, register_leg
-from .result import Pose, PoseError, _where, save_pose
+from .result import Pose, save_pose
 from .scan import check_axial_slices
 
 if TYPE_CHECKING:
@@ -63,10 +61,11 @@ log = logging.getLogger(__name__)
 class PoseOptions:
     """Settings of :func:`estimate_pose` (config section ``pose``); see the schema for each key."""
 
-    fluid_threshold: float | None = None
-    fluid_threshold_ratio: float = 1.6
-    min_component_mm3: float = 1.0
-    ambiguity_ratio: float = 0.5
+    # the fluid search's keys, with its defaults (deeptissue.fluid.FluidSearch, shared with the segmentation)
+    fluid_threshold: float | None = FluidSearch.fluid_threshold
+    fluid_threshold_ratio: float = FluidSearch.fluid_threshold_ratio
+    min_component_mm3: float = FluidSearch.min_component_mm3
+    ambiguity_ratio: float = FluidSearch.ambiguity_ratio
     roi_diameter_mm: float = 5.0
     roi_reach_mm: float = 1.5
     head_radius_mm: float = 1.5
@@ -154,18 +153,8 @@ def _locate_fluid(
 ) -> tuple[FluidComponent, dict]:
     """The contrast fluid in the during scan (its own frame) and its diagnostics for ``pose.json``."""
     mask = inside_skin_mask(np.shape(during), affine, during_contours.skin)
-    thr = options.fluid_threshold
-    if thr is None:
-        thr = fluid_threshold(during, mask, ratio=options.fluid_threshold_ratio)
-    fluid = find_fluid_component(
-        during,
-        affine,
-        threshold=thr,
-        exclude_mask=mask,
-        min_volume_mm3=options.min_component_mm3,
-        ambiguity_ratio=options.ambiguity_ratio,
-        animal=animal,
-    )
+    search = FluidSearch(**{k: getattr(options, k) for k in FluidSearch.__dataclass_fields__})
+    fluid = search.find(during, affine, mask, animal=animal)
     m = fluid.moments_mm2
     # evidence for the QC checks: the column's length along the axis, and how far the cylinder fit turned
     # the inertia axis (NaN when the fit did not run or was rejected: the axis is the inertia axis)
@@ -282,7 +271,7 @@ def check_depth(
 
 
 def _bone(pre: Contours, dur: Contours, options: PoseOptions, animal: str) -> tuple[BoneFit, dict]:
-    """The tibia's fitted motion (:class:`~deeptissue.pose.bone.BoneFit`) and its diagnostics."""
+    """The tibia's fitted motion (:class:`~deeptissue.bone_motion.BoneFit`) and its diagnostics."""
     dof, why = resolve_bone_dof(options.bone_dof, pre, dur)
     log.info("%s%s", _where(animal), why)
     fit = fit_bone_motion(

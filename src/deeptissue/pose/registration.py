@@ -20,9 +20,9 @@ from scipy.interpolate import CubicSpline
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
+from ..bone_motion import parameter_sd
+from ..pose_error import PoseError, _where
 from ..rigid import BoneMotion
-from .bone import parameter_sd
-from .result import PoseError, _where
 
 if TYPE_CHECKING:
     from ..contours import Contours

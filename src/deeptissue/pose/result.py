@@ -17,7 +17,7 @@ import numpy as np
 from ..io import read_json, write_json
 from ..rigid import BoneMotion
 
-__all__ = ["Pose", "PoseError", "load_pose", "save_pose"]
+__all__ = ["Pose", "load_pose", "save_pose"]
 
 _VECTORS = (
     "indenter_axis",
@@ -152,12 +152,3 @@ def load_pose(path: str | Path) -> Pose:
         return Pose.from_dict(read_json(path))
     except ValueError as exc:
         raise ValueError(f"{path}: {exc}") from exc
-
-
-class PoseError(ValueError):
-    """The pose cannot be read from the scan; the message names the animal and the reason."""
-
-
-def _where(animal: str) -> str:
-    """Message prefix naming the animal ("" when none is given)."""
-    return f"animal {animal}: " if animal else ""

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .result import PoseError
+from ..pose_error import PoseError
 
 __all__ = ["MAX_SLICE_OBLIQUITY_DEG", "check_axial_slices", "slice_obliquity_deg"]
 

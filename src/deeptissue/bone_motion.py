@@ -13,13 +13,16 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+from scipy.interpolate import CubicSpline
+from scipy.optimize import least_squares
+from scipy.spatial import cKDTree
 
-from ..contours import slices_with_contour
-from ..rigid import BoneMotion, rotation_matrix
-from .result import PoseError, _where
+from .contours import resample_closed, slices_with_contour
+from .pose_error import PoseError, _where
+from .rigid import BoneMotion, rotation_matrix
 
 if TYPE_CHECKING:
-    from ..contours import Contours
+    from .contours import Contours
 
 __all__ = [
     "MIN_FIBULA_SLICES",
@@ -101,7 +104,6 @@ def dense_surface(
     ``extend_mm`` beyond the end slices (the moved bone reaches slightly outside the slab).
     Returns ``points_mm`` (N, 3) and ``normals`` (N, 3).
     """
-    from scipy.interpolate import CubicSpline
 
     c = np.asarray(contours_mm, float)
     n_s, n_p, _ = c.shape
@@ -208,7 +210,6 @@ def fit_bone_motion(
     ValueError
         For an unknown ``dof``.
     """
-    from scipy.optimize import least_squares
 
     pre, dur, use = _matched_stacks(bone_pre_mm, bone_during_mm, during_slices, animal)
     if dof not in (3, 5, 6):
@@ -286,7 +287,6 @@ def _matched_stacks(bone_pre_mm, bone_during_mm, during_slices, animal: str):
 def _residual_function(bodies, com_pre: np.ndarray, distance: BoneDistance):
     """``f(rotation_deg, translation_mm) -> residuals``: the ``distance`` of every during vertex of each
     (pre stack, during stack) body, mapped back by the motion about ``com_pre``, to that body's pre bone."""
-    from scipy.spatial import cKDTree
 
     parts = []
     for b_pre, b_dur in bodies:
@@ -337,7 +337,6 @@ def moved_section(
     as a segmented contour (:func:`deeptissue.contours.resample_closed`). Raises ValueError if the moved
     surface does not reach the plane.
     """
-    from ..contours import resample_closed
 
     pre = np.asarray(bone_pre_mm, float)
     pts, _ = dense_surface(pre, upsample=2)
