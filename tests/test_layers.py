@@ -25,8 +25,11 @@ PACKAGE = "deeptissue"
 #: model; the results (report, findings), the verification scenes and the convergence studies sit on
 #: the study, and the entry points (config validation with its phantom checks, status) on top.
 LAYERS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
-    "base": (("__init__", "io", "elements", "geometry", "rigid", "variants"), ()),
-    "images": (("imaging", "contours", "scanner", "qc", "segment_checks"), ("base",)),
+    "base": (("__init__", "io", "elements", "geometry", "rigid", "variants", "pose_error"), ()),
+    "images": (
+        ("imaging", "contours", "scanner", "qc", "segment_checks", "fluid", "bone_motion"),
+        ("base",),
+    ),
     "segment": (("segment",), ("images",)),
     "pose": (("pose",), ("segment",)),
     "phantom": (("phantom",), ("pose",)),
@@ -40,12 +43,7 @@ LAYERS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
 }
 
 #: Imports that do not point down the layers yet, as (importer, imported module), each with its reason.
-KNOWN_UPWARD: dict[tuple[str, str], str] = {
-    ("deeptissue.segment", "deeptissue.pose.bone"): "_fill_hidden fits the tibia's rigid motion",
-    ("deeptissue.segment", "deeptissue.pose.estimate"): "find_indenter reads PoseOptions",
-    ("deeptissue.segment", "deeptissue.pose.indenter"): "find_indenter runs the indenter search",
-    ("deeptissue.segment", "deeptissue.pose.result"): "find_indenter raises PoseError",
-}
+KNOWN_UPWARD: dict[tuple[str, str], str] = {}
 
 #: The longest function [lines, its ``def`` line to its last] and the most parameters one takes
 #: (``self`` and ``cls`` not counted; ``*args`` and ``**kwargs`` count one each): beyond them a body is

@@ -93,6 +93,7 @@ from .imaging import (
     slab,
     split_legs,
 )
+from .io import load_config_file
 from .pose_error import PoseError
 from .qc import LEFT_OUT, plot_segmentation
 from .segment_checks import failed_checks_message, segmentation_checks, write_checks
@@ -175,13 +176,11 @@ def load_overrides(path: str | Path, *, n_slices: int | None = None) -> dict:
     ``state`` is ``pre`` or ``during``, ``structure`` ``skin``, ``bone`` (the tibia) or ``fibula``, ``slice`` the axial
     slice index in the NIfTI file (0-based), points world mm (x, y) of a closed curve (at least 4,
     in either orientation; it is resampled like an automatic contour). The file is read strictly
-    (:func:`deeptissue.config.load_config_file`): a slice given twice for one structure, which YAML would
-    silently reduce to the last, is a :class:`deeptissue.config.ConfigError` naming the file, the key and both lines.
+    (:func:`deeptissue.io.load_config_file`): a slice given twice for one structure, which YAML would
+    silently reduce to the last, is a :class:`deeptissue.io.ConfigError` naming the file, the key and both lines.
     With ``n_slices`` (the slices in the image file), a slice outside 0 .. n_slices - 1 is an error naming the file
     and the slice: it would otherwise replace nothing without a word.
     """
-    from .io import load_config_file
-
     data = load_config_file(path)
     out: dict = {}
     for state, per in data.items():
