@@ -453,8 +453,16 @@ def _pass_estimates(est: PassEstimate, h, track: dict, plan: str, st: AdaptSetti
     out = {}
     for q, (value, h_q, relative) in regions.items():
         previous, held = track.get(q), track.get(f"{q} held")
-        if previous is not None and q == "bins" and len(previous.value) != len(value):
-            previous = held = None  # other bins: nothing to compare with
+        if q != "force" and not (
+            np.isfinite(h_q)
+            and previous is not None
+            and np.isfinite(previous.h_mm)
+            and len(previous.value) == len(value)
+        ):
+            # no marked region now or before (or other bins): judged by the recovered estimate alone
+            track[q] = _Tracked(value, h_q)
+            out[q] = (np.full(value.shape, np.nan), "recovered", np.nan)
+            continue
         order = st.force_order if q == "force" else st.voi_order
         err, status, shrink = _extrapolate(
             value, h_q, previous, held, order, st, relative=relative
@@ -470,13 +478,9 @@ def _pass_estimates(est: PassEstimate, h, track: dict, plan: str, st: AdaptSetti
         out[q] = (err, status, shrink)
     voi_pc, voi_status, _ = out["voi"]
     bins, bins_status, _ = out["bins"]
-    if voi_status not in ("estimated", "held") or not np.isfinite(regions["voi"][1]):
+    if voi_status not in ("estimated", "held"):
         voi_pc, voi_status = [voi_error_percent(est.voi_mm3, est.voi_err_mm3)], "recovered"
-    if (
-        bins_status not in ("estimated", "held")
-        or not labels
-        or not np.isfinite(regions["bins"][1])
-    ):
+    if bins_status not in ("estimated", "held") or not labels:
         bins, bins_status = np.full(len(labels), np.nan), "recovered"
     force_pc, force_status, shrink = out["force"]
     if st.force_goal_percent is None:
