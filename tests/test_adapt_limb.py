@@ -183,3 +183,36 @@ def test_a_failed_adaptive_run_is_recorded_and_the_study_goes_on(limb, tmp_path)
     # the first pass's mesh, undeformed, flagged as not converged
     mesh, u, cells = read_result_vtu(out / "result.vtu")
     assert mesh.n_tets > 0 and not u.any() and not cells["converged"].any()
+
+
+def test_the_summary_takes_the_loops_extrapolated_estimates_and_keeps_its_own_otherwise():
+    from dataclasses import replace
+
+    from deeptissue.adapt import AdaptPass
+    from deeptissue.adapt_limb import loop_estimates
+    from deeptissue.summary import Summary
+
+    s = Summary(
+        animal="a",
+        variant="bar",
+        converged=True,
+        voi_mm3=20.0,
+        bins_percent={"0.3-0.4": 60.0, "0.4-0.5": 40.0},
+        voi_err_mm3=2.0,
+        bins_err_pp={"0.3-0.4": 3.0, "0.4-0.5": 3.0},
+    )
+    nan = float("nan")
+    p = AdaptPass(
+        *(1, 100, 30, True, 1.0, 1.0, 1.0, 3.0, 20.0, 1.5, 0.4, 1.0, nan, nan, "no goal", 0.1),
+        goal_met=True,
+        voi_status="estimated",
+        bins_status="held",
+        bins_err={"0.3-0.4": 0.4, "0.4-0.5": 0.2},
+    )
+    out = loop_estimates(s, p)
+    assert out.voi_err_mm3 == pytest.approx(0.3)  # 1.5 % of 20 mm³
+    assert out.bins_err_pp == {"0.3-0.4": 0.4, "0.4-0.5": 0.2}
+    assert out.extra == {"voi_err_status": "estimated", "bins_err_status": "held"}
+    # the first pass (recovered): the summary's own estimates
+    first = loop_estimates(s, replace(p, voi_status="recovered", bins_status="recovered"))
+    assert first.voi_err_mm3 == 2.0 and first.bins_err_pp == s.bins_err_pp

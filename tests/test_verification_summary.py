@@ -486,10 +486,9 @@ def test_the_effectivity_of_each_adaptive_estimate_is_checked_where_the_referenc
     # 0.5 / 7.7: far below the error
     force05 = rows.loc["cylinder: adaptive mesh: force estimate at 0.5 mm: estimate / true error"]
     assert force05["value"] == pytest.approx(0.5 / 7.7) and force05["status"] == "fail"
-    # the VOI's 21-fold estimate: outside the goal, a known failure with its reason
+    # the VOI's 21-fold estimate: outside the goal, a failure like any other
     voi2 = rows.loc["cylinder: adaptive mesh: VOI estimate at 2 mm: estimate / true error"]
-    assert voi2["value"] == pytest.approx(11.8 / 0.56) and voi2["status"] == "known-failure"
-    assert "issue 54" in voi2["note"]
+    assert voi2["value"] == pytest.approx(11.8 / 0.56) and voi2["status"] == "fail"
 
 
 def test_the_adaptive_cylinder_rows_are_read_from_their_csv_file(tmp_path):

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .adapt import AdaptResult, AdaptSettings, PassEstimate, adapt
+from .adapt import AdaptPass, AdaptResult, AdaptSettings, PassEstimate, adapt
 from .contours import Contours, load_contours
 from .errorest import voi_error_estimate
 from .fem.cast import Cast as SolverCast
@@ -62,6 +62,7 @@ __all__ = [
     "limb_estimate",
     "limb_mesher",
     "limb_solver",
+    "loop_estimates",
     "run_adaptive_variant",
 ]
 
@@ -305,7 +306,8 @@ def run_adaptive_variant(
     """Rule ``adapt_variant``: read the pre contours, pose, cast and during contours, run
     :func:`adaptive_limb` and write ``files.passes_csv`` (one row per pass,
     :meth:`deeptissue.adapt.AdaptResult.table` with animal, variant and stop_reason), ``files.summary``
-    (the last converged pass's summary, as the rule ``solve`` writes it, with ``adapt_passes``,
+    (the last converged pass's summary, as the rule ``solve`` writes it, its VOI and bin estimates the
+    loop's (:func:`loop_estimates`), with ``adapt_passes``,
     ``adapt_stop_reason``, ``adapt_wall_s`` [s] and the last converged pass's verdict,
     :func:`deeptissue.study.accuracy_fields`; the failed pass's summary if none converged) and
     ``files.vtu`` (that pass's ``result.vtu``, :func:`deeptissue.summary.write_result_vtu`). A run that
@@ -350,7 +352,9 @@ def run_adaptive_variant(
         result, reason, study, animal, variant, mesher if files.vtu is not None else None
     )
     solved = [p for p in result.passes if p.converged] if result is not None else []
-    # the last converged pass's verdict: its summary's VOI and bin estimates, the loop's force estimate
+    if solved:
+        summary = loop_estimates(summary, solved[-1])
+    # the last converged pass's verdict: the loop's VOI, bin and force estimates
     extra = accuracy_fields(
         summary,
         mesh="adaptive",
@@ -379,6 +383,24 @@ def run_adaptive_variant(
         log.warning("%s: QC warnings not read (%s)", files.pose, exc)
     write_summary(files.summary, summary)
     return result
+
+
+def loop_estimates(summary: Summary, last: AdaptPass) -> Summary:
+    """``summary`` (of the pass ``last``) with the loop's VOI and bin estimates where they come from the
+    passes (``voi_status`` / ``bins_status`` 'estimated' or 'held': ``voi_err_mm3`` = VOI × ``voi_err_percent``,
+    ``bins_err_pp`` = ``bins_err``) instead of its own recovered-strain ones, and the statuses in ``extra``
+    (``voi_err_status``, ``bins_err_status``)."""
+    changes = {}
+    if last.voi_status != "recovered" and summary.voi_mm3 is not None:
+        changes["voi_err_mm3"] = float(summary.voi_mm3) * last.voi_err_percent / 100.0
+    if last.bins_status != "recovered" and last.bins_err:
+        changes["bins_err_pp"] = dict(last.bins_err)
+    extra = {
+        **summary.extra,
+        "voi_err_status": last.voi_status,
+        "bins_err_status": last.bins_status,
+    }
+    return replace(summary, **changes, extra=extra)
 
 
 def _write_passes(path, result: AdaptResult | None, animal: str, variant: str) -> None:

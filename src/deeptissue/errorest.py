@@ -17,9 +17,9 @@ element's shape functions) and compares γ* with γh at the same sample points a
   different sides of the threshold (``threshold_indicator_mm3``) sums to ``voi_err_mm3``, the rest
   is the volume moved between bins.
 
-The nodal average of each element's own nodal γ (``recovery='average'``) and the difference of two
-samplings of γh (:func:`sampling_difference`) are kept for comparison: on the cylinder scene
-(:func:`deeptissue.verification.cylinder.effectivity_table`) they miss errors the patch recovery bounds.
+On the adaptive loop's passes after the first, the VOI and bins are judged by their change from the
+previous pass instead (:func:`deeptissue.adapt.extrapolated_error`); this estimate judges the first pass
+and a fixed mesh, and its indicator says where to refine.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .elements import GMSH_TET10_EDGES, tet10_shape_functions, tet_shape_gradients, tet_subdivision
+from .elements import tet10_shape_functions, tet_shape_gradients, tet_subdivision
 from .mesh import TetMesh
 from .strain import (
     DEFAULT_BIN_EDGES,
@@ -40,19 +40,11 @@ from .strain import (
 
 __all__ = [
     "GAUSS_XI",
-    "NODE_XI",
     "VoiErrorEstimate",
     "element_indicator",
-    "gamma_at_nodes",
     "patch_recovered_gamma",
-    "recovered_gamma",
-    "sampling_difference",
     "voi_error_estimate",
 ]
-
-_CORNERS = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
-# reference coordinates of the 10 nodes of a gmsh Tetrahedron10 (corners, then the mid-edge nodes)
-NODE_XI = np.vstack([_CORNERS, [(_CORNERS[a] + _CORNERS[b]) / 2 for a, b in GMSH_TET10_EDGES]])
 
 
 def _gamma(F: np.ndarray, strain_measure: str) -> np.ndarray:
@@ -87,13 +79,6 @@ def _gamma_at(
         g = _gamma(F, strain_measure)
         out[lo : lo + chunk] = np.where(det[:, :q] > 0, g[:, :q], g[:, q:])
     return out
-
-
-def gamma_at_nodes(
-    mesh: TetMesh, displacement_mm, *, strain_measure: str = "green_lagrange"
-) -> np.ndarray:
-    """Each element's own γmax at each of its nodes (n_tets, 10) (or (n_tets, 4) for a linear mesh) [-]."""
-    return _gamma_at(mesh, displacement_mm, NODE_XI[: mesh.tets.shape[1]], strain_measure)
 
 
 # the 4-point degree-2 rule of the tetrahedron (barycentric a, b, b, b and permutations): the sampling
@@ -133,24 +118,6 @@ def patch_recovered_gamma(
     return np.linalg.solve(A, b[..., None])[:, 0, 0]
 
 
-def recovered_gamma(mesh: TetMesh, gamma_nodes, volume_mm3) -> np.ndarray:
-    """Nodal averages of the element-wise nodal γ (n_tets, n_nodes_per_tet), weighted by the element
-    volumes (n_tets,): the continuous recovered field's value at every mesh node (n_nodes,) [-]."""
-    g = np.asarray(gamma_nodes, float)
-    w = np.asarray(volume_mm3, float)
-    if g.shape != mesh.tets.shape or w.shape != (mesh.n_tets,):
-        raise ValueError(
-            f"gamma_nodes {g.shape} / volume_mm3 {w.shape}: expected {mesh.tets.shape} / ({mesh.n_tets},)"
-        )
-    num = np.bincount(
-        mesh.tets.ravel(), weights=(g * w[:, None]).ravel(), minlength=len(mesh.nodes_mm)
-    )
-    den = np.bincount(
-        mesh.tets.ravel(), weights=np.repeat(w, mesh.tets.shape[1]), minlength=len(mesh.nodes_mm)
-    )
-    return np.divide(num, den, out=np.zeros_like(num), where=den > 0)
-
-
 def _classes(gamma: np.ndarray, edges: np.ndarray) -> np.ndarray:
     """0 below or at the threshold edges[0], k for the k-th bin (right-closed), as voi_statistics."""
     return np.searchsorted(edges, gamma, side="left")
@@ -158,21 +125,18 @@ def _classes(gamma: np.ndarray, edges: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class VoiErrorEstimate:
-    """Estimated discretisation error of the VOI and its bins, from the recovered field γ* against γh."""
+    """Estimated discretisation error of the VOI and its bins, from the recovered field γ* against γh.
 
-    voi_err_mm3: float  # volume on different sides of the threshold under γ* and γh [mm³]
-    bins_err_pp: dict  # bin label -> |p(γ*) − p(γh)| [percentage points of the VOI]
-    voi_recovered_mm3: float  # the VOI of γ* [mm³]
-    voi_diff_mm3: float  # VOI(γ*) − VOI(γh), signed (|.| <= voi_err_mm3) [mm³]
-    bins_moved_pp: (
-        dict  # bin label -> volume in that bin under one field only, % of VOI(γh) (>= bins_err_pp)
-    )
-    indicator_mm3: (
-        np.ndarray
-    )  # (n_tets,) volume per element whose class differs between γ* and γh [mm³]
-    threshold_indicator_mm3: (
-        np.ndarray
-    )  # (n_tets,) the part of it on different sides of the threshold [mm³]
+    ``voi_err_mm3``: the volume on different sides of the threshold under γ* and γh [mm³];
+    ``bins_err_pp``: bin label -> |p(γ*) − p(γh)| [percentage points of the VOI];
+    ``indicator_mm3`` (n_tets,): the volume per element whose class differs between γ* and γh [mm³];
+    ``threshold_indicator_mm3`` (n_tets,): its part on different sides of the threshold [mm³].
+    """
+
+    voi_err_mm3: float
+    bins_err_pp: dict
+    indicator_mm3: np.ndarray
+    threshold_indicator_mm3: np.ndarray
 
 
 def voi_error_estimate(
@@ -184,7 +148,6 @@ def voi_error_estimate(
     strain_measure: str = "green_lagrange",
     levels: int = 2,
     sampled=None,
-    recovery: str = "patch",
 ) -> VoiErrorEstimate:
     """The recovered-strain estimate of the VOI and bin errors of one solution.
 
@@ -203,11 +166,6 @@ def voi_error_estimate(
         0: the centroid only).
     sampled : (gamma (n_tets, q), volume (n_tets, q)) or None
         γh and the point volumes at those points, if already computed (:func:`gamma_at_points`).
-    recovery : {'patch', 'average'}
-        How γ* is recovered: ``'patch'`` (:func:`patch_recovered_gamma`, the default: on the cylinder
-        scene and on smooth fields its estimate bounds the true error) or ``'average'`` (nodal averages
-        of each element's own nodal γ, :func:`recovered_gamma`; blind to smooth-field errors of quadratic
-        elements, whose nodal strains err alike on both sides of a node).
 
     Returns
     -------
@@ -220,21 +178,13 @@ def voi_error_estimate(
         )
         sampled = (g[strain_measure], v)
     g_h, v = (np.asarray(a, float) for a in sampled)
-    vol = v.sum(axis=1)
     pts, _ = tet_subdivision(levels)
     N = (
         tet10_shape_functions(pts)
         if mesh.order == 2
         else np.column_stack([1.0 - pts.sum(axis=1), pts])
     )
-    if recovery == "patch":
-        nodal = patch_recovered_gamma(mesh, displacement_mm, strain_measure=strain_measure)
-    elif recovery == "average":
-        nodal = recovered_gamma(
-            mesh, gamma_at_nodes(mesh, displacement_mm, strain_measure=strain_measure), vol
-        )
-    else:
-        raise ValueError(f"recovery {recovery!r}: expected 'patch' or 'average'")
+    nodal = patch_recovered_gamma(mesh, displacement_mm, strain_measure=strain_measure)
     g_star = nodal[mesh.tets] @ N.T  # (n_tets, q)
     if g_star.shape != g_h.shape:
         raise ValueError(f"sampled gamma {g_h.shape}: expected {g_star.shape} (levels={levels})")
@@ -242,19 +192,9 @@ def voi_error_estimate(
     h = voi_statistics(g_h.ravel(), v.ravel(), **kw)
     r = voi_statistics(g_star.ravel(), v.ravel(), **kw)
     c_h, c_s = _classes(g_h, edges), _classes(g_star, edges)
-    labels = bin_labels(edges)
-    moved = {
-        k: float(100.0 * np.sum(v * ((c_h == i + 1) != (c_s == i + 1))) / h.voi_mm3)
-        if h.voi_mm3 > 0
-        else 0.0
-        for i, k in enumerate(labels)
-    }
     return VoiErrorEstimate(
         voi_err_mm3=float(np.sum(v * ((c_h > 0) != (c_s > 0)))),
-        bins_err_pp={k: abs(r.bins_percent[k] - h.bins_percent[k]) for k in labels},
-        voi_recovered_mm3=r.voi_mm3,
-        voi_diff_mm3=r.voi_mm3 - h.voi_mm3,
-        bins_moved_pp=moved,
+        bins_err_pp={k: abs(r.bins_percent[k] - h.bins_percent[k]) for k in bin_labels(edges)},
         indicator_mm3=((c_s != c_h) * v).sum(axis=1),
         threshold_indicator_mm3=(((c_s > 0) != (c_h > 0)) * v).sum(axis=1),
     )
@@ -265,13 +205,3 @@ def element_indicator(mesh: TetMesh, displacement_mm, **kw) -> np.ndarray:
     threshold, or which bin) differs between the recovered field γ* and γh (:func:`voi_error_estimate`,
     same keywords). Zero in every element that neither field puts across the threshold or a bin edge."""
     return voi_error_estimate(mesh, displacement_mm, **kw).indicator_mm3
-
-
-def sampling_difference(
-    voi_points_mm3: float, bins_points: dict, voi_centroid_mm3: float, bins_centroid: dict
-) -> tuple[float, dict]:
-    """The two-samplings estimate: ``(|VOI_points − VOI_centroid| [mm³], {bin: |Δp| [pp]})``, γh sampled
-    at 64 points per element against the centroids (``voi_sampled_mm3`` and ``voi_centroid_mm3`` of a summary)."""
-    return abs(voi_points_mm3 - voi_centroid_mm3), {
-        k: abs(bins_points[k] - bins_centroid[k]) for k in bins_points
-    }

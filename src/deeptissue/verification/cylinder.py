@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 
 from ..adapt import AdaptSettings, PassEstimate, adapt
-from ..errorest import sampling_difference, voi_error_estimate
+from ..errorest import voi_error_estimate
 from ..fem.indenters import Indenter
 from ..fem.solver import Scene, SolverSettings, solve_from, solve_indentation
 from ..fem.transfer import mapped_end_state
@@ -38,7 +38,6 @@ __all__ = [
     "CURVE_DEPTHS_MM",
     "CylinderMesh",
     "CylinderScene",
-    "ESTIMATES",
     "REFERENCE_MESH",
     "VOI_DEPTHS_MM",
     "adaptive_comparison",
@@ -162,32 +161,6 @@ def _indenter(depth_mm: float, height_mm: float, radius_mm: float = 1.5) -> Inde
     )
 
 
-def _other_estimates(mesh, u, summary, threshold, edges) -> dict:
-    """The estimates the summary's is compared with (columns ``est_<candidate>_voi_mm3`` and
-    ``est_<candidate>_bins_pp``, the largest over the bins): the signed-difference form of the patch
-    recovery, both forms of the nodal-average recovery, and the difference of the two samplings."""
-
-    out = {}
-    for rec in ("patch", "average"):
-        e = voi_error_estimate(mesh, u, threshold=threshold, bin_edges=edges, recovery=rec)
-        out.update(
-            {
-                f"est_{rec}_diff_voi_mm3": abs(e.voi_diff_mm3),
-                f"est_{rec}_diff_bins_pp": max(e.bins_err_pp.values()),
-                f"est_{rec}_moved_voi_mm3": e.voi_err_mm3,
-                f"est_{rec}_moved_bins_pp": max(e.bins_moved_pp.values()),
-            }
-        )
-    d_voi, d_bins = sampling_difference(
-        summary.voi_sampled_mm3,
-        summary.bins_sampled_percent,
-        summary.voi_centroid_mm3,
-        summary.bins_centroid_percent,
-    )
-    out.update(est_sampling_voi_mm3=d_voi, est_sampling_bins_pp=max(d_bins.values()))
-    return out
-
-
 @dataclass(frozen=True)
 class CylinderScene:
     """The cylinder's height and the VOI measured in it, shared by the fixed and the adaptive meshes.
@@ -273,7 +246,6 @@ def cylinder_scene(
                     voi_centroid_mm3=s.voi_centroid_mm3,
                     **{f"bins_percent.{b}": p for b, p in s.bins_percent.items()},
                     **{f"bins_err_pp.{b}": p for b, p in s.bins_err_pp.items()},
-                    **_other_estimates(m, r.displacement_mm, s, threshold, edges),
                 )
             )
     curve = pd.DataFrame(rows)
@@ -301,23 +273,12 @@ def mesh_convergence(
     return pd.concat(curves, ignore_index=True), pd.concat(vois, ignore_index=True)
 
 
-# the estimates of cylinder_voi.csv: name -> (VOI column [mm³], largest-bin column [pp])
-ESTIMATES = {
-    "patch, moved volume (the summary's)": ("voi_err_mm3", None),
-    "patch, signed difference": ("est_patch_diff_voi_mm3", "est_patch_diff_bins_pp"),
-    "patch, moved volume": ("est_patch_moved_voi_mm3", "est_patch_moved_bins_pp"),
-    "nodal average, signed difference": ("est_average_diff_voi_mm3", "est_average_diff_bins_pp"),
-    "nodal average, moved volume": ("est_average_moved_voi_mm3", "est_average_moved_bins_pp"),
-    "two samplings": ("est_sampling_voi_mm3", "est_sampling_bins_pp"),
-}
-
-
 def effectivity_table(voi: pd.DataFrame) -> pd.DataFrame:
-    """Effectivity (estimate / true error) of every estimate of ``voi`` (cylinder_voi.csv) for each mesh
-    but the finest (most DOFs) at each depth: columns mesh, depth_mm, true_voi_mm3 (signed), true_voi_percent,
-    true_bins_pp (largest over the bins), then per estimate ``<name>: voi`` and ``<name>: bins``. The
-    summary's bin estimate is the largest of its ``bins_err_pp.*``; an effectivity >= 0.5 means the
-    true error is within twice the estimate."""
+    """Effectivity (estimate / true error) of the summary's recovered-strain estimate in ``voi``
+    (cylinder_voi.csv) for each mesh but the finest (most DOFs) at each depth: columns mesh, depth_mm,
+    true_voi_mm3 (signed), true_voi_percent, true_bins_pp (largest over the bins), voi (``voi_err_mm3``
+    over |true_voi_mm3|) and bins (the largest ``bins_err_pp.*`` over true_bins_pp). An effectivity
+    >= 0.5 means the true error is within twice the estimate."""
     bins = [c for c in voi.columns if c.startswith("bins_percent.")]
     ref_mesh = voi.loc[voi["n_dofs"].idxmax(), "mesh"]
     ref = voi[voi["mesh"] == ref_mesh].set_index("depth_mm")
@@ -326,23 +287,18 @@ def effectivity_table(voi: pd.DataFrame) -> pd.DataFrame:
         f = ref.loc[r["depth_mm"]]
         true_voi = r["voi_mm3"] - f["voi_mm3"]
         true_bins = max(abs(r[b] - f[b]) for b in bins)
-        row = dict(
-            mesh=r["mesh"],
-            depth_mm=r["depth_mm"],
-            true_voi_mm3=true_voi,
-            true_voi_percent=100 * true_voi / f["voi_mm3"],
-            true_bins_pp=true_bins,
-        )
-        for name, (cv, cb) in ESTIMATES.items():
-            if cv in r:
-                row[f"{name}: voi"] = r[cv] / abs(true_voi) if true_voi else np.inf
-            est_b = (
-                max(r[c] for c in voi.columns if c.startswith("bins_err_pp."))
-                if cb is None
-                else r.get(cb, np.nan)
+        est_b = max(r[c] for c in voi.columns if c.startswith("bins_err_pp."))
+        rows.append(
+            dict(
+                mesh=r["mesh"],
+                depth_mm=r["depth_mm"],
+                true_voi_mm3=true_voi,
+                true_voi_percent=100 * true_voi / f["voi_mm3"],
+                true_bins_pp=true_bins,
+                voi=r["voi_err_mm3"] / abs(true_voi) if true_voi else np.inf,
+                bins=est_b / true_bins if true_bins else np.inf,
             )
-            row[f"{name}: bins"] = est_b / true_bins if true_bins else np.inf
-        rows.append(row)
+        )
     return pd.DataFrame(rows)
 
 

@@ -558,18 +558,6 @@ _EFFECTIVITY_FLOORS = {
     "VOI": ("est_voi_percent", "true_voi_percent", 0.5, "%"),
     "bins": ("est_bins_pp", "true_bins_pp", 0.25, "pp"),
 }
-_LOOSE_VOI_ESTIMATE = (
-    "the VOI and bin estimates compare the recovered γ* with γh (the volume on different sides of "
-    "each edge), whose errors of both signs add up; a sharper estimate is open (issue 54)"
-)
-KNOWN_FAILURES.update(
-    {
-        f"cylinder: adaptive mesh: {q} estimate at {d:g} mm: estimate / true error": _LOOSE_VOI_ESTIMATE
-        for q in ("VOI", "bins")
-        for d in (1.5, 2.0, 3.0)
-    }
-)
-
 _HOMOGENEOUS_CASES = ("uniaxial", "equibiaxial", "simple_shear")
 
 
