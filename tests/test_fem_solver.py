@@ -523,6 +523,52 @@ def test_indenter_passing_between_the_skin_nodes_is_cut_back_not_accepted(limb, 
     assert all(length[i] <= 0.35 * length[i - 1] + 1e-12 for i in after_cut)
 
 
+def _scripted_load_step(monkeypatch, k, converges):
+    """The increment sizes _load_step attempts in step k when an increment of size dt converges with
+    ``converges(dt)`` -> Newton iterations, or fails (None); no mesh: the increments are scripted."""
+    from types import SimpleNamespace
+
+    from deeptissue.fem import solver
+
+    tried = []
+
+    def increment(run, k, dt):
+        tried.append(dt)
+        iters = converges(dt)
+        if iters is not None:
+            run.t += dt
+        run.progress.append((0.0, run.t))
+        run.history.append(None)
+        return iters is not None, "" if iters is not None else "scripted failure", iters or 0, 0
+
+    monkeypatch.setattr(solver, "_increment", increment)
+    run = SimpleNamespace(
+        job=SimpleNamespace(settings=SolverSettings(), indenter=None),
+        history=[],
+        progress=[],
+        t_wall=time.perf_counter(),
+        longest_ok_s=0.0,
+        k_ind=None,
+        contact=None,
+        lam=np.zeros(1),
+        sched=None,
+        fail=lambda reason: None,
+    )
+    assert solver._load_step(run, k)
+    return tried
+
+
+def test_after_a_cut_an_increment_without_iterations_does_not_jump_to_the_end(monkeypatch):
+    # increments longer than 0.05 fail; shorter ones converge at once (a loose intermediate state in a pinch).
+    # The indentation step then grows by 2 after each, never tries the whole rest again after its first cut
+    tried = _scripted_load_step(monkeypatch, 3, lambda dt: 0 if dt <= 0.05 else None)
+    failed = [dt for dt in tried if dt > 0.05]
+    assert tried[0] == 0.25 and failed[:2] == [0.25, 0.0875]
+    assert all(b <= 2.0 * a + 1e-12 for a, b in zip(tried[2:], tried[3:]))
+    # a bone-rotation step, where the rigid predictor is exact, is still finished at once
+    assert _scripted_load_step(monkeypatch, 0, lambda dt: 0) == [1.0]
+
+
 def test_one_tangent_per_newton_direction(limb, monkeypatch):
     # the test of convergence after a step reads the force and gaps of the line search's last merit evaluation:
     # a tangent is assembled for each Newton direction, and for the first test of an increment only (none for the

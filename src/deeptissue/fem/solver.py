@@ -1407,6 +1407,7 @@ def _load_step(run: _Run, k: int) -> bool:
         )
     dt = inc.max_increment if k < 3 else inc.initial_increment
     run.prev = None
+    cut = False  # an increment of this step has been cut back
     while run.t < k + 1 - 1e-12:
         why = _stop_reason(run)
         if why:
@@ -1416,12 +1417,15 @@ def _load_step(run: _Run, k: int) -> bool:
         dt = _first_touch(run, k, min(dt, inc.max_increment, k + 1 - run.t))
         ok, why, iters, changes = _increment(run, k, dt)
         if not ok:
+            cut = True
             dt *= _CUT
             if dt < inc.min_increment:
                 run.fail(f"increment below {inc.min_increment} at t = {run.t:.4f} ({why})")
                 return False
-        elif iters == 0:
-            dt = inc.max_increment  # the rigid predictor was exact: finish the step at once
+        elif iters == 0 and not cut:
+            # the predictor was exact: finish the step at once; after a cut, where a loose intermediate state can
+            # need no iteration while the rest of the step needs many, it grows as after an easy increment
+            dt = inc.max_increment
         elif iters <= _EASY_ITERATIONS and changes <= _EASY_CHANGES_REL * max(
             np.count_nonzero(run.lam), 1
         ):
