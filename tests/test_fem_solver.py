@@ -1,5 +1,6 @@
 """FE core solver: patch test, rigid bone motion, indentation, cast contact, bone and end states."""
 
+import logging
 import time
 from dataclasses import replace
 
@@ -499,11 +500,14 @@ def test_tissue_passing_through_the_indenter_is_not_reported_converged(limb):
     assert ok.converged and ok.indenter_force_N > 0
 
 
-def test_indenter_passing_between_the_skin_nodes_is_cut_back_not_accepted(limb, monkeypatch):
+def test_indenter_passing_between_the_skin_nodes_is_cut_back_not_accepted(
+    limb, monkeypatch, caplog
+):
     # the weighted gaps close at the nodes only: where a facet dips too far into the indenter between its nodes
     # (on a mesh coarse for the indenter, the sphere slips through the skin), the increment is cut, never
     # accepted. With the limit at zero every increment in contact is refused and the solve names the reason.
     monkeypatch.setattr("deeptissue.fem.solver._MAX_PENETRATION_REL", 0.0)
+    caplog.set_level(logging.INFO, logger="deeptissue.fem.solver")
     ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(3.5, 0.0, 3.0), end_mm=(2.5, 0.0, 3.0))
     r = solve_indentation(
         limb,
@@ -521,6 +525,12 @@ def test_indenter_passing_between_the_skin_nodes_is_cut_back_not_accepted(limb, 
     after_cut = [i for i in range(1, len(length)) if not r.history[i - 1].converged]
     assert len(after_cut) >= 3
     assert all(length[i] <= 0.35 * length[i - 1] + 1e-12 for i in after_cut)
+    # each cut names the most compressed point of the state it stopped at: the sphere compresses the tissue
+    # (the first cut may come before the indenter has moved it)
+    crush = [m for m in caplog.messages if m.startswith("  its smallest det F is ")]
+    assert len(crush) == len(cut)
+    smallest = [float(m.split()[5].rstrip(",")) for m in crush]
+    assert all(0.0 < j <= 1.0 + 1e-9 for j in smallest) and min(smallest) < 0.99, crush
 
 
 def _scripted_load_step(monkeypatch, k, converges):
