@@ -1,5 +1,6 @@
 """FE core solver: patch test, rigid bone motion, indentation, cast contact, bone and end states."""
 
+import logging
 import time
 from dataclasses import replace
 
@@ -499,11 +500,14 @@ def test_tissue_passing_through_the_indenter_is_not_reported_converged(limb):
     assert ok.converged and ok.indenter_force_N > 0
 
 
-def test_indenter_passing_between_the_skin_nodes_is_cut_back_not_accepted(limb, monkeypatch):
+def test_indenter_passing_between_the_skin_nodes_is_cut_back_not_accepted(
+    limb, monkeypatch, caplog
+):
     # the weighted gaps close at the nodes only: where a facet dips too far into the indenter between its nodes
     # (on a mesh coarse for the indenter, the sphere slips through the skin), the increment is cut, never
     # accepted. With the limit at zero every increment in contact is refused and the solve names the reason.
     monkeypatch.setattr("deeptissue.fem.solver._MAX_PENETRATION_REL", 0.0)
+    caplog.set_level(logging.INFO, logger="deeptissue.fem.solver")
     ind = Indenter("sphere", axis=(-1, 0, 0), start_mm=(3.5, 0.0, 3.0), end_mm=(2.5, 0.0, 3.0))
     r = solve_indentation(
         limb,
@@ -521,6 +525,58 @@ def test_indenter_passing_between_the_skin_nodes_is_cut_back_not_accepted(limb, 
     after_cut = [i for i in range(1, len(length)) if not r.history[i - 1].converged]
     assert len(after_cut) >= 3
     assert all(length[i] <= 0.35 * length[i - 1] + 1e-12 for i in after_cut)
+    # each cut names the most compressed point of the state it stopped at: the sphere compresses the tissue
+    # (the first cut may come before the indenter has moved it)
+    crush = [m for m in caplog.messages if m.startswith("  its smallest det F is ")]
+    assert len(crush) == len(cut)
+    smallest = [float(m.split()[5].rstrip(",")) for m in crush]
+    assert all(0.0 < j <= 1.0 + 1e-9 for j in smallest) and min(smallest) < 0.99, crush
+
+
+def _scripted_load_step(monkeypatch, k, converges):
+    """The increment sizes _load_step attempts in step k when an increment of size dt converges with
+    ``converges(dt)`` -> Newton iterations, or fails (None); no mesh: the increments are scripted."""
+    from types import SimpleNamespace
+
+    from deeptissue.fem import solver
+
+    tried = []
+
+    def increment(run, k, dt):
+        tried.append(dt)
+        iters = converges(dt)
+        if iters is not None:
+            run.t += dt
+        run.progress.append((0.0, run.t))
+        run.history.append(None)
+        return iters is not None, "" if iters is not None else "scripted failure", iters or 0, 0
+
+    monkeypatch.setattr(solver, "_increment", increment)
+    run = SimpleNamespace(
+        job=SimpleNamespace(settings=SolverSettings(), indenter=None),
+        history=[],
+        progress=[],
+        t_wall=time.perf_counter(),
+        longest_ok_s=0.0,
+        k_ind=None,
+        contact=None,
+        lam=np.zeros(1),
+        sched=None,
+        fail=lambda reason: None,
+    )
+    assert solver._load_step(run, k)
+    return tried
+
+
+def test_after_a_cut_an_increment_without_iterations_does_not_jump_to_the_end(monkeypatch):
+    # increments longer than 0.05 fail; shorter ones converge at once (a loose intermediate state in a pinch).
+    # The indentation step then grows by 2 after each, never tries the whole rest again after its first cut
+    tried = _scripted_load_step(monkeypatch, 3, lambda dt: 0 if dt <= 0.05 else None)
+    failed = [dt for dt in tried if dt > 0.05]
+    assert tried[0] == 0.25 and failed[:2] == [0.25, 0.0875]
+    assert all(b <= 2.0 * a + 1e-12 for a, b in zip(tried[2:], tried[3:]))
+    # a bone-rotation step, where the rigid predictor is exact, is still finished at once
+    assert _scripted_load_step(monkeypatch, 0, lambda dt: 0) == [1.0]
 
 
 def test_one_tangent_per_newton_direction(limb, monkeypatch):
