@@ -312,6 +312,27 @@ def _hand_made_pose(root, animal):
     )
 
 
+def test_the_tables_hold_each_animals_own_variants_and_ask_for_no_other(tmp_path):
+    from deeptissue.report import summary_tables
+
+    runs = [("ratA", "sphere", 0.9), ("ratA", "sphere_rx+15", 1.0), ("ratB", "bar", 1.3)]
+    made = [_hand_made_run(tmp_path, a, v, k) for a, v, k in runs]
+    own = {"ratA": ["sphere", "sphere_rx+15"], "ratB": ["bar"]}
+    voi, bins = summary_tables(made, animals=["ratA", "ratB"], variants=own)
+    assert list(zip(voi["animal"], voi["variant"])) == [(a, v) for a, v, _ in runs]
+    assert voi["voi_mm3"].tolist() == pytest.approx([s.voi_mm3 for s in made])
+    assert bins.groupby(["animal", "variant"], sort=False).size().index.tolist() == [
+        (a, v) for a, v, _ in runs
+    ]
+    # one list for every animal asks for ratB's sphere, which it does not have
+    with pytest.raises(
+        ValueError, match=r"no summary for ratA/bar, ratB/sphere, ratB/sphere_rx\+15$"
+    ):
+        summary_tables(made, animals=["ratA", "ratB"], variants=["sphere", "bar", "sphere_rx+15"])
+    with pytest.raises(ValueError, match=r"no variants given for animal\(s\) ratB"):
+        summary_tables(made, animals=["ratA", "ratB"], variants={"ratA": ["sphere"]})
+
+
 @pytest.mark.slow
 def test_aggregate_and_findings_run_when_an_animal_lacks_variants(tmp_path):
     """rat01 has sphere, bar and sphere_rz+15 (study.variants), rat02 only its own sphere: each animal's rows
