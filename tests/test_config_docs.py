@@ -9,6 +9,7 @@ import yaml
 from deeptissue.config import (
     REGENERATE_COMMAND,
     ConfigError,
+    animal_variants,
     check_config,
     convergence_animals,
     figure_animal,
@@ -132,6 +133,21 @@ def _demo():
             ),
             r"config key animals\.calf\.leg_point_mm: \[0\.5, 2\.0, 0\.5\] lies outside animals\.calf\.crop_mm",
         ),
+        (  # an animal's own variants must hold the base of each turned one: it is compared with it
+            lambda c: c["animals"]["rat01"].update(variants=["bar", "sphere_rx+15"]),
+            r"config key animals\.rat01\.variants: 'sphere_rx\+15' is turned from 'sphere', which the list "
+            r"\['bar', 'sphere_rx\+15'\] does not name; add 'sphere'",
+        ),
+        (
+            lambda c: c["animals"]["rat01"].update(variants=["sphere", "bar_rz-7.5"]),
+            r"config key animals\.rat01\.variants: 'bar_rz-7\.5' is turned from 'bar'",
+        ),
+        (
+            lambda c: c["animals"].update(
+                calf={"pre": "config/config.yaml", "variants": ["sphere"]}
+            ),
+            r"config key animals\.calf\.variants: 'calf' has no during scan, so none of its variants is solved",
+        ),
     ],
 )
 def test_cross_key_checks_name_the_key(mutate, match):
@@ -181,3 +197,22 @@ def test_figure_and_convergence_animals_defaults():
     cfg["convergence"]["animals"] = None
     cfg["animals"] = {"calf": {"pre": "a.nii.gz"}, "rat": {"phantom": {}}}
     assert convergence_animals(cfg) == ["rat"]
+
+
+def test_an_animals_own_variants_replace_the_studys_for_it_alone():
+    cfg = _demo()
+    six = ["sphere", "bar", "sphere_rx+15", "sphere_rx-15", "sphere_rz+15", "sphere_rz-15"]
+    assert [animal_variants(cfg, a) for a in cfg["animals"]] == [six, six, six]
+    cfg["animals"]["rat02"]["variants"] = ["sphere_rz+15", "sphere"]
+    cfg = validate_config(cfg, SCHEMA, base_dir=ROOT)
+    assert animal_variants(cfg, "rat02") == ["sphere_rz+15", "sphere"]  # its own order
+    assert animal_variants(cfg, "rat01") == six == cfg["study"]["variants"]
+    # each item is checked as study.variants' are, with the animal's key in the message
+    for bad, match in [
+        (["sphere", "cone"], r"animals\.rat02\.variants\[1\]: 'cone' does not match"),
+        ([], r"animals\.rat02\.variants: \[\] should be non-empty"),
+        (["sphere", "sphere"], r"animals\.rat02\.variants: .* has non-unique elements"),
+    ]:
+        cfg["animals"]["rat02"]["variants"] = bad
+        with pytest.raises(ConfigError, match=match):
+            validate_config(cfg, SCHEMA, base_dir=ROOT)

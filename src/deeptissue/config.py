@@ -26,6 +26,7 @@ import yaml
 
 from .io import ConfigError, atomic_path, load_config_file
 from .phantom import PhantomSpec, check_indenter
+from .variants import parse_variant
 
 __all__ = [
     "ANIMAL_NAME_MAX_CHARS",
@@ -34,6 +35,7 @@ __all__ = [
     "SCHEMA_PATH",
     "RESERVED_ANIMAL_NAMES",
     "ConfigError",
+    "animal_variants",
     "check_config",
     "check_config_files",
     "convergence_animals",
@@ -361,6 +363,25 @@ def has_during_scan(animal: dict[str, Any]) -> bool:
     return "phantom" in animal or "during" in animal
 
 
+def animal_variants(config: dict[str, Any], animal: str) -> list[str]:
+    """The variants solved for one animal: its own ``animals.<animal>.variants``, else ``study.variants``.
+
+    Parameters
+    ----------
+    config : dict
+        A validated configuration.
+    animal : str
+        A configured animal.
+
+    Returns
+    -------
+    list of str
+        Variant names (:func:`deeptissue.variants.parse_variant`), in the order given.
+    """
+    own = config["animals"][animal].get("variants")
+    return list(own if own is not None else config["study"]["variants"])
+
+
 def figure_animal(config: dict[str, Any]) -> str | None:
     """The animal drawn in the study's section figures: ``study.figure_animal``, or the first configured animal
     with a during scan (None if there is none: a study of pre-only animals has no FE results to draw).
@@ -518,6 +539,28 @@ def _check_phantoms(config: dict[str, Any]) -> None:
             raise ConfigError(f"config key animals.{animal}.{exc}") from exc
 
 
+def _check_animal_variants(config: dict[str, Any]) -> None:
+    """An animal's own ``variants`` name the unturned variant of every turned one they list (``sphere`` for
+    ``sphere_rx+15``): a turned variant is compared with, and solved from, the unturned one of its animal."""
+    for animal, cfg in config["animals"].items():
+        own = cfg.get("variants")
+        if own is None:
+            continue
+        if not has_during_scan(cfg):
+            raise ConfigError(
+                f"config key animals.{animal}.variants: {animal!r} has no during scan, so none of its variants is "
+                f"solved; remove the key or give the animal its during scan"
+            )
+        for name in own:
+            v = parse_variant(name)
+            if v.turn_axis is not None and v.indenter not in own:
+                raise ConfigError(
+                    f"config key animals.{animal}.variants: {name!r} is turned from {v.indenter!r}, which the list "
+                    f"{list(own)} does not name; add {v.indenter!r} (a turned variant is compared with its unturned "
+                    f"one of the same animal) or remove {name!r}"
+                )
+
+
 def check_config(config: dict[str, Any]) -> None:
     """Check the rules of a configuration that span several keys (the schema checks each key alone).
 
@@ -526,7 +569,8 @@ def check_config(config: dict[str, Any]) -> None:
     ``study.bin_edges`` starts at ``study.threshold`` and increases strictly; the keys of
     :data:`ORDERED_KEYS` do not decrease; ``study.figure_animal``
     is a configured animal; ``convergence.animals`` are configured animals (the ``convergence`` target
-    asks for a during scan); an animal's ``leg_point_mm`` lies inside its ``crop_mm``.
+    asks for a during scan); an animal's ``leg_point_mm`` lies inside its ``crop_mm``; an animal's own
+    ``variants`` name the unturned variant of every turned one they list.
 
     Parameters
     ----------
@@ -545,6 +589,7 @@ def check_config(config: dict[str, Any]) -> None:
     _check_figure_animal(config)
     _check_convergence_animals(config)
     _check_leg_points(config)
+    _check_animal_variants(config)
 
 
 # --- the reference page docs/config.md, rendered from the schema ---

@@ -45,6 +45,7 @@ __all__ = [
     "section_frame",
     "save_figure",
     "summary_tables",
+    "variants_by_animal",
     "voi_changes",
     "write_csv",
 ]
@@ -94,56 +95,73 @@ def _flatten(d: dict) -> dict:
     return flat
 
 
+def variants_by_animal(
+    animals: Sequence[str], variants: Sequence[str] | Mapping[str, Sequence[str]]
+) -> dict[str, list[str]]:
+    """``{animal: its variants}`` in the configured order: ``variants`` is one list for every animal, or
+    each animal's own (config ``animals.<name>.variants``, else ``study.variants``).
+
+    Raises ValueError naming an animal that a mapping leaves out.
+    """
+    if isinstance(variants, Mapping):
+        missing = [a for a in animals if a not in variants]
+        if missing:
+            raise ValueError(f"no variants given for animal(s) {', '.join(missing)}")
+        return {a: list(variants[a]) for a in animals}
+    return {a: list(variants) for a in animals}
+
+
 def summary_tables(
     summaries: Sequence[Summary],
     *,
     animals: Sequence[str],
-    variants: Sequence[str],
+    variants: Sequence[str] | Mapping[str, Sequence[str]],
     bin_edges: Sequence[float] | None = None,
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """``voi`` (one row per animal × variant, every summary field, dicts flattened as ``key.sub``, each
     error estimate right after its number) and ``bins`` (long: animal, variant, bin, percent, err_pp
-    (its estimated error [percentage points]), excluded), in the configured order. Bin labels come
-    from the summaries, or from ``bin_edges`` when no run converged.
+    (its estimated error [percentage points]), excluded), in the configured order. ``variants``: one
+    list for every animal or each animal's own (:func:`variants_by_animal`); an animal has rows for its
+    own variants only. Bin labels come from the summaries, or from ``bin_edges`` when no run converged.
 
     Raises ValueError naming any animal × variant without a summary.
     """
+    runs = [(a, v) for a, vs in variants_by_animal(animals, variants).items() for v in vs]
     by_key = {(s.animal, s.variant): s for s in summaries}
-    missing = [f"{a}/{v}" for a in animals for v in variants if (a, v) not in by_key]
+    missing = [f"{a}/{v}" for a, v in runs if (a, v) not in by_key]
     if missing:
         raise ValueError(f"no summary for {', '.join(missing)}")
-    excl = exclusions([by_key[(a, v)] for a in animals for v in variants])
+    excl = exclusions([by_key[k] for k in runs])
     rows, bins = [], []
-    for a in animals:
-        for v in variants:
-            s = by_key[(a, v)]
-            row = {
-                "animal": a,
-                "variant": v,
-                "excluded": a in excl,
-                "exclusion_reason": excl.get(a, ""),
-            }
-            d = s.to_dict()
-            d.pop("animal"), d.pop("variant")
-            row.update(_beside_errors(_flatten(d)))
-            rows.append(row)
-            labels = (
-                list(s.bins_percent or {})
-                or _labels_from_any(summaries)
-                or (bin_labels(bin_edges) if bin_edges else [])
+    for a, v in runs:
+        s = by_key[(a, v)]
+        row = {
+            "animal": a,
+            "variant": v,
+            "excluded": a in excl,
+            "exclusion_reason": excl.get(a, ""),
+        }
+        d = s.to_dict()
+        d.pop("animal"), d.pop("variant")
+        row.update(_beside_errors(_flatten(d)))
+        rows.append(row)
+        labels = (
+            list(s.bins_percent or {})
+            or _labels_from_any(summaries)
+            or (bin_labels(bin_edges) if bin_edges else [])
+        )
+        for label in labels:
+            ok = s.converged
+            bins.append(
+                {
+                    "animal": a,
+                    "variant": v,
+                    "bin": label,
+                    "percent": (s.bins_percent or {}).get(label, np.nan) if ok else np.nan,
+                    "err_pp": (s.bins_err_pp or {}).get(label, np.nan) if ok else np.nan,
+                    "excluded": a in excl,
+                }
             )
-            for label in labels:
-                ok = s.converged
-                bins.append(
-                    {
-                        "animal": a,
-                        "variant": v,
-                        "bin": label,
-                        "percent": (s.bins_percent or {}).get(label, np.nan) if ok else np.nan,
-                        "err_pp": (s.bins_err_pp or {}).get(label, np.nan) if ok else np.nan,
-                        "excluded": a in excl,
-                    }
-                )
     voi = pd.DataFrame(rows)
     return voi, pd.DataFrame(bins, columns=BINS_COLUMNS)
 
@@ -233,7 +251,8 @@ def _wrap(text, width):
 def plot_voi(
     voi: pd.DataFrame, path: str | Path, *, measure_label: str = "γmax (Green–Lagrange)"
 ) -> None:
-    """Fig. 7A style: VOI [mm³] per animal, one bar per variant; excluded animals greyed and hatched."""
+    """Fig. 7A style: VOI [mm³] per animal, one bar per variant; excluded animals greyed and hatched; an
+    animal without a variant (its own variant list) leaves that variant's place empty."""
     plt = pyplot()
     animals = list(dict.fromkeys(voi["animal"]))
     variants = list(dict.fromkeys(voi["variant"]))
@@ -248,6 +267,8 @@ def plot_voi(
         sub = voi[voi["animal"] == a].set_index("variant")
         excluded = bool(sub["excluded"].iloc[0])
         for j, v in enumerate(variants):
+            if v not in sub.index:
+                continue  # not a variant of this animal
             x = i - 0.4 + width * (j + 0.5)
             val = sub.loc[v, "voi_mm3"]
             if not bool(sub.loc[v, "converged"]) or val is None or not np.isfinite(float(val)):
@@ -304,8 +325,9 @@ def plot_voi(
 
 
 def plot_bins(bins: pd.DataFrame, path: str | Path) -> None:
-    """Fig. 7B style: stacked % of the VOI per strain bin, one bar per animal × variant; the largest
-    estimated bin error (the ``err_pp`` column of :func:`summary_tables`' bins) is written above each bar."""
+    """Fig. 7B style: stacked % of the VOI per strain bin, one bar per animal × variant of the table (an
+    animal's own variants only); the largest estimated bin error (the ``err_pp`` column of
+    :func:`summary_tables`' bins) is written above each bar."""
     plt = pyplot()
     animals = list(dict.fromkeys(bins["animal"]))
     variants = list(dict.fromkeys(bins["variant"]))
@@ -321,7 +343,9 @@ def plot_bins(bins: pd.DataFrame, path: str | Path) -> None:
     for a in animals:
         for v in variants:
             sub = bins[(bins["animal"] == a) & (bins["variant"] == v)].set_index("bin")
-            excluded = bool(sub["excluded"].iloc[0]) if len(sub) else False
+            if not len(sub):
+                continue  # not a variant of this animal
+            excluded = bool(sub["excluded"].iloc[0])
             bottom = 0.0
             for b in labels:
                 p = float(sub.loc[b, "percent"]) if b in sub.index else np.nan
@@ -340,7 +364,7 @@ def plot_bins(bins: pd.DataFrame, path: str | Path) -> None:
             err = worst_err.get((a, v), np.nan)
             if np.isfinite(err):  # the largest estimated bin error, above the bar
                 ax.text(x, 101, f"±{err:.1f}", ha="center", va="bottom", fontsize=5, rotation=90)
-            pcts = sub["percent"].to_numpy(float) if len(sub) else np.array([np.nan])
+            pcts = sub["percent"].to_numpy(float)
             if not np.isfinite(pcts).any():
                 ax.text(x, 2, "n.c.", ha="center", fontsize=6, rotation=90)
             elif np.nansum(pcts) == 0:
@@ -433,8 +457,9 @@ def plot_voi_change(voi: pd.DataFrame, path: str | Path, *, reference: str = "sp
     """VOI change of every other orientation of the reference indenter (variants named
     ``<reference>_…``, e.g. ``sphere_rx+15``) against the estimated orientation per animal [%], with its
     uncertainty as error bar (:func:`voi_changes`); a change larger than its uncertainty is drawn solid
-    and marked ``*``, one within it pale. Other indenters (the bar, several times the sphere's VOI)
-    would set the scale and hide the orientations (their change is in :func:`voi_changes`)."""
+    and marked ``*``, one within it pale; an animal without an orientation (its own variant list) leaves
+    its place empty, one with none says so. Other indenters (the bar, several times the sphere's VOI) would set the scale and
+    hide the orientations (their change is in :func:`voi_changes`)."""
     plt = pyplot()
     ch = voi_changes(voi, reference=reference)
     animals = list(dict.fromkeys(voi["animal"]))
@@ -455,10 +480,15 @@ def plot_voi_change(voi: pd.DataFrame, path: str | Path, *, reference: str = "sp
     lo = min(-10.0, 1.3 * float(np.nanmin(ends, initial=0.0)))
     n_real = int((shown["larger_than_error"] == True).sum())  # noqa: E712 (None: undefined)
     n_defined = int(shown["larger_than_error"].notna().sum())
+    runs = set(zip(voi["animal"], voi["variant"]))
     for i, a in enumerate(animals):
         sub = ch[ch["animal"] == a].set_index("variant")
         excluded = bool(sub["excluded"].iloc[0]) if len(sub) else False
+        if variants and not any((a, v) in runs for v in variants):
+            ax.text(i, 0, "no turned variant", ha="center", va="bottom", fontsize=6, color="0.3")
         for j, v in enumerate(variants):
+            if (a, v) not in runs:
+                continue  # not a variant of this animal
             x = i - 0.4 + width * (j + 0.5)
             val = float(sub.loc[v, "voi_change_percent"]) if v in sub.index else np.nan
             if not np.isfinite(val):
@@ -486,6 +516,7 @@ def plot_voi_change(voi: pd.DataFrame, path: str | Path, *, reference: str = "sp
     handles = [plt.Rectangle((0, 0), 1, 1, color=colours[v]) for v in variants]
     ax.legend(handles, variants, fontsize=7, bbox_to_anchor=(1.01, 1), loc="upper left")
     ax.set_xticks(range(len(animals)), animals)
+    ax.set_xlim(-0.6, len(animals) - 0.4)
     ax.set_ylim(lo, hi)
     ax.set_ylabel(f"VOI change vs '{reference}' [%]")
     ax.set_title(
@@ -711,7 +742,9 @@ class AggregateJob:
     """What rule ``aggregate`` reads and writes.
 
     ``summary_paths``: every ``summary.json`` of the study (:func:`deeptissue.summary.read_summary`);
-    ``animals``, ``variants``: the configured order of the tables and figures, each pair with a summary;
+    ``animals``, ``variants``: the configured order of the tables and figures, each animal with a summary of
+    each of its variants (``variants``: one list for every animal, or ``{animal: its own}``,
+    :func:`variants_by_animal`);
     ``outputs``: paths by key, ``voi_csv``, ``bins_csv`` (:func:`summary_tables`), ``voi_png``,
     ``bins_png``, ``voi_change_png``, ``sections_png`` (sphere vs bar, seven sections) and
     ``orientations_png`` (sections 3–5 of every sphere variant); ``figure_animal``: the animal of the
@@ -723,7 +756,7 @@ class AggregateJob:
 
     summary_paths: Sequence[str | Path]
     animals: Sequence[str]
-    variants: Sequence[str]
+    variants: Sequence[str] | Mapping[str, Sequence[str]]
     outputs: Mapping[str, str | Path]
     figure_animal: str
     figure_results: Mapping[str, str | Path]
@@ -759,7 +792,8 @@ def _write_section_figures(job: AggregateJob, by_key: Mapping, label: str) -> No
     from .variants import parse_variant
 
     animal, out = job.figure_animal, job.outputs
-    excl = exclusions([by_key[(animal, v)] for v in job.variants])
+    own = variants_by_animal([animal], job.variants)[animal]
+    excl = exclusions([by_key[(animal, v)] for v in own])
     note = f" — EXCLUDED ({excl[animal]})" if animal in excl else ""
     results = {v: (by_key[(animal, v)], job.figure_results[v]) for v in job.figure_results}
     sections = figure_sections(

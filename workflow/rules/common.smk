@@ -2,7 +2,7 @@
 from argparse import Namespace
 from pathlib import Path
 
-from deeptissue.config import has_during_scan, validate_config
+from deeptissue.config import animal_variants, has_during_scan, validate_config
 from deeptissue.io import remove_stale_partials
 from deeptissue.scanner import scan_kind
 from deeptissue.variants import mesh_group_of, mesh_groups, solve_priority, turn_base
@@ -18,8 +18,12 @@ config = validate_config(
 STUDY_NAME = config["study"].pop("name")
 
 ANIMALS = list(config["animals"])
-# which variants share a mesh (model.mesh_groups): {mesh name: variants}
-MESH_GROUPS = mesh_groups(config["study"]["variants"], by=config["model"]["mesh_groups"])
+# the variants solved per animal: its own animals.<a>.variants, else study.variants
+VARIANTS_OF = {a: animal_variants(config, a) for a in ANIMALS}
+# every variant of some animal, in the order first named (study.variants, then the animals' own)
+ALL_VARIANTS = list(dict.fromkeys(v for a in ANIMALS for v in VARIANTS_OF[a]))
+# which of an animal's variants share a mesh (model.mesh_groups): {animal: {mesh name: variants}}
+MESH_GROUPS = {a: mesh_groups(VARIANTS_OF[a], by=config["model"]["mesh_groups"]) for a in ANIMALS}
 STATES = ["pre", "during"]
 
 
@@ -44,21 +48,23 @@ def animal_states(animal):
     return STATES if has_during(animal) else ["pre"]
 
 
-def turn_base_of(variant):
-    """The variant whose end state ``variant`` is turned from (study.turn_from_base), or None."""
+def turn_base_of(animal, variant):
+    """The variant of the animal whose end state ``variant`` is turned from (study.turn_from_base), or None."""
     if not config["study"]["turn_from_base"]:
         return None
-    return turn_base(variant, config["study"]["variants"], MESH_GROUPS)
+    return turn_base(variant, VARIANTS_OF[animal], MESH_GROUPS[animal])
 
 
 def base_state_of(animal, variant):
     """The end state a turned variant starts from ([] if it is solved from the start)."""
-    base = turn_base_of(variant)
+    base = turn_base_of(animal, variant)
     return [] if base is None else f"results/{animal}/{base}/end_state.npz"
 
 
-# the variants others are turned from
-TURN_BASES = {turn_base_of(v) for v in config["study"]["variants"]} - {None}
+# the (animal, variant) pairs others are turned from
+TURN_BASES = {(a, turn_base_of(a, v)) for a in ANIMALS for v in VARIANTS_OF[a]} - {
+    (a, None) for a in ANIMALS
+}
 
 # every rule upstream of a solve (convert, phantom, segment, pose, cast, mesh, bone_state) runs first, so each
 # animal's model is ready before the solves fill the cores and the longest-first order of the solves holds
@@ -71,7 +77,7 @@ def solve_job_priority(wildcards):
     others are turned from before all (they wait for it)."""
     depth = animal_cfg(wildcards.animal).get("phantom", {}).get("depth_mm")
     return solve_priority(wildcards.variant, depth) + (
-        50.0 if wildcards.variant in TURN_BASES else 0.0
+        50.0 if (wildcards.animal, wildcards.variant) in TURN_BASES else 0.0
     )
 
 
@@ -84,7 +90,7 @@ def variant_output(animal, variant, name):
 
 def mesh_of(animal, variant):
     """The directory of the mesh a variant is solved on."""
-    return f"results/{animal}/model/{mesh_group_of(variant, MESH_GROUPS)}"
+    return f"results/{animal}/model/{mesh_group_of(variant, MESH_GROUPS[animal])}"
 
 
 def is_converted(animal, state):

@@ -8,8 +8,6 @@ from deeptissue.convergence import default_ladder
 
 CONV = config["convergence"]
 CONV_VARIANTS = list(CONV["variants"])
-# rule adapt_variant solves the variants of the study
-CONV_ADAPTIVE_VARIANTS = [v for v in CONV_VARIANTS if v in VARIANTS]
 CONV_LADDER = default_ladder(CONV, model_cfg=config["model"], solver_cfg=config["fem"]["solver"])
 CONV_SETTINGS = CONV_LADDER.names
 
@@ -42,7 +40,8 @@ rule convergence_run:
         is_default=lambda wc: wc.setting == CONV_LADDER.default_name,
         model=config["model"],
         fem=config["fem"],
-        study=config["study"],
+        # with the animal's variants, whose study meshes (model.mesh_groups) a null mesh_variants takes
+        study=lambda wc: dict(config["study"], variants=VARIANTS_OF[wc.animal]),
         mesh_variants=CONV["mesh_variants"],  # null: the variant's study mesh (model.mesh_groups)
         linear_reference=CONV["linear_reference"],
     script:
@@ -66,11 +65,13 @@ rule convergence_aggregate:
             conv_variant=CONV_VARIANTS,
             setting=CONV_SETTINGS,
         ),
-        adaptive=lambda wc: expand(
-            "results/{animal}/adaptive/{variant}/passes.csv",
-            animal=convergence_animals(config, required=True),
-            variant=CONV_ADAPTIVE_VARIANTS,
-        ),
+        # rule adapt_variant's runs of each animal's study variants (VARIANTS_OF) among convergence.variants
+        adaptive=lambda wc: [
+            f"results/{a}/adaptive/{v}/passes.csv"
+            for a in convergence_animals(config, required=True)
+            for v in CONV_VARIANTS
+            if v in VARIANTS_OF[a]
+        ],
         cylinder=rules.verify_cylinder_adaptive.output.table,
     output:
         csv=report(

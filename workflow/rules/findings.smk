@@ -8,7 +8,7 @@ FINDINGS_FIGURES = {
     "skin_png": ("findings_skin.png", "findings_skin.rst"),
 }
 # the sphere's and the bar's strain fields, for where the highest strains lie (claim 2)
-PEAK_RUNS = [(a, v) for a in STUDY_ANIMALS for v in ("sphere", "bar") if v in VARIANTS]
+PEAK_RUNS = [(a, v) for a in STUDY_ANIMALS for v in ("sphere", "bar") if v in VARIANTS_OF[a]]
 FINDINGS_OUTPUTS = [f"{SUMMARY}/findings.csv", f"{SUMMARY}/findings.md"] + [
     f"{SUMMARY}/{name}" for name, _ in FINDINGS_FIGURES.values()
 ]

@@ -1,13 +1,13 @@
 # Rules of the model stage: rigid cast, limb mesh with contact patches.
 # The model settings get the FE section's bar length (if set) for the bar's contact patch.
-# One cast per animal (its hole clears every variant); one mesh per group of variants
-# (model.mesh_groups: by default one mesh "all" per animal; "indenter": one per indenter shape,
+# One cast per animal (its hole clears every variant of the animal); one mesh per group of the animal's
+# variants (model.mesh_groups: by default one mesh "all" per animal; "indenter": one per indenter shape,
 # refined only where that indenter goes).
 import re
 
 
 wildcard_constraints:
-    group="|".join(re.escape(g) for g in MESH_GROUPS),
+    group="|".join(re.escape(g) for g in dict.fromkeys(g for a in ANIMALS for g in MESH_GROUPS[a])),
 
 
 rule cast:
@@ -29,7 +29,7 @@ rule cast:
             config["model"],
             bar_length_mm=float(config.get("fem", {}).get("bar_length_mm", 10.0)),
         ),
-        variants=config["study"]["variants"],
+        variants=lambda wc: VARIANTS_OF[wc.animal],
     script:
         "../scripts/cast.py"
 
@@ -65,7 +65,7 @@ rule mesh:
             config["model"],
             bar_length_mm=float(config.get("fem", {}).get("bar_length_mm", 10.0)),
         ),
-        variants=lambda wc: MESH_GROUPS[wc.group],
+        variants=lambda wc: MESH_GROUPS[wc.animal][wc.group],
     script:
         "../scripts/mesh.py"
 
@@ -77,9 +77,9 @@ if {"segment", "pose"} <= {r.name for r in workflow.rules}:
         f"results/{a}/model/{g}/{f}"
         for a in ANIMALS
         if has_during(a)
-        for g in MESH_GROUPS
+        for g in MESH_GROUPS[a]
         for f in ("mesh.npz", "mesh.msh", "mesh.vtu", "model.json")
     )
     FINAL_OUTPUTS.extend(
-        f"results/{a}/qc/model_{g}.png" for a in ANIMALS if has_during(a) for g in MESH_GROUPS
+        f"results/{a}/qc/model_{g}.png" for a in ANIMALS if has_during(a) for g in MESH_GROUPS[a]
     )

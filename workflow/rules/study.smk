@@ -7,12 +7,17 @@ from deeptissue.variants import parse_variant
 STUDY = config["study"]
 # the study's tables and figures: a folder per study.name, so studies in one checkout keep their own
 SUMMARY = f"results/summary/{STUDY_NAME}"
-VARIANTS = list(STUDY["variants"])
 # the animals with a during scan are solved; pre-only animals are only segmented
 STUDY_ANIMALS = [a for a in ANIMALS if has_during(a)]
+# the solves of the study: each animal with its own variants (VARIANTS_OF: animals.<a>.variants or study.variants)
+STUDY_RUNS = [(a, v) for a in STUDY_ANIMALS for v in VARIANTS_OF[a]]
 FIGURE_ANIMAL = figure_animal(config)
-# variants drawn in the section figures: sphere vs bar, and every sphere orientation
-SECTION_VARIANTS = [v for v in VARIANTS if v == "bar" or parse_variant(v).indenter == "sphere"]
+# variants of the figure animal drawn in the section figures: sphere vs bar, and every sphere orientation
+SECTION_VARIANTS = [
+    v
+    for v in (VARIANTS_OF[FIGURE_ANIMAL] if FIGURE_ANIMAL else [])
+    if v == "bar" or parse_variant(v).indenter == "sphere"
+]
 
 
 STUDY_OUTPUTS = [
@@ -31,7 +36,7 @@ FINAL_OUTPUTS.extend(study_outputs())
 
 rule aggregate:
     input:
-        summaries=[variant_output(a, v, "summary.json") for a in STUDY_ANIMALS for v in VARIANTS],
+        summaries=[variant_output(a, v, "summary.json") for a, v in STUDY_RUNS],
         results=[variant_output(FIGURE_ANIMAL, v, "result.vtu") for v in SECTION_VARIANTS],
         pose=f"results/{FIGURE_ANIMAL}/pose.json",
     output:
@@ -86,7 +91,7 @@ rule aggregate:
         runtime=30,
     params:
         animals=STUDY_ANIMALS,
-        variants=VARIANTS,
+        variants={a: VARIANTS_OF[a] for a in STUDY_ANIMALS},
         section_variants=SECTION_VARIANTS,
         figure_animal=FIGURE_ANIMAL,
         strain_measure=STUDY["strain_measure"],
@@ -97,7 +102,7 @@ rule aggregate:
 
 
 wildcard_constraints:
-    variant="|".join(re.escape(v) for v in VARIANTS),
+    variant="|".join(re.escape(v) for v in ALL_VARIANTS),
 
 
 rule bone_state:
@@ -156,12 +161,12 @@ rule solve:
     params:
         fem=config["fem"],
         study=STUDY,
-        base_variant=lambda wc: turn_base_of(wc.variant),
+        base_variant=lambda wc: turn_base_of(wc.animal, wc.variant),
     script:
         "../scripts/solve.py"
 
 
 rule study:
-    """The FE study of every configured animal and variant: `snakemake --cores 2 study`."""
+    """The FE study of every configured animal and its variants: `snakemake --cores 2 study`."""
     input:
         study_outputs(),
