@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import textwrap
+
 import numpy as np
 
 from .contours import Contours
@@ -131,7 +133,9 @@ def plot_segmentation(
             why = str(failed[k])
             left = why.startswith(LEFT_OUT)
             colour = "darkorange" if left else "red"
-            label += f"\n{'LEFT OUT' if left else 'FAILED'}: {why.removeprefix(LEFT_OUT)[-60:]}"
+            # wrapped to the panel's width: a long reason runs into the next panel's title otherwise
+            reason = textwrap.wrap(why.removeprefix(LEFT_OUT), 34, max_lines=3, placeholder=" …")
+            label += "\n" + "\n".join([("LEFT OUT" if left else "FAILED") + ":", *reason])
             for side in ax.spines.values():
                 side.set_edgecolor(colour)
                 side.set_linewidth(3)
@@ -149,7 +153,8 @@ def plot_segmentation(
     if n_left:
         sup += f"  |  {n_left} slice(s) at the ends left out, framed orange"
     fig.suptitle(sup, fontsize=10)
-    fig.tight_layout(rect=(0, 0.04, 1, 1))
+    # half an inch at the top for the suptitle, which tight_layout does not keep clear of the panels' titles
+    fig.tight_layout(rect=(0, 0.04, 1, 1 - 0.5 / fig.get_figheight()))
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=80)
     plt.close(fig)
