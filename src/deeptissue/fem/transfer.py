@@ -1,14 +1,14 @@
 """A solution carried from one mesh of a body to another (the start of a solve on a refined mesh).
 
 :func:`interpolate_nodal` evaluates a nodal field of a quadratic (or linear) tetrahedral mesh at points:
-each point is placed in the straight tetrahedron through an element's corners that holds it, and the
-element's shape functions are evaluated at its barycentric coordinates there. Points just outside every
-straight tetrahedron (on a curved boundary, between a curved facet and its chord) take the element they are
-least outside of, and the field is extrapolated a little. On a curved element the straight coordinates
-differ from the element's own by a fraction of the facet's sagitta: the result is a start for Newton's
-method on the new mesh, not a solution.
+each point is placed in the straight tetrahedron through an element's corners that holds it (a point just
+outside every one, beyond a curved facet's chord, takes the element it is least outside of), its reference
+coordinates in that element's own curved map are found by Newton's method from the straight ones, and the
+element's shape functions are evaluated there. A field linear in x (a rigid motion) is carried exactly, also
+to new nodes on the old mesh's curved facets or between them and the new mesh's; with the straight
+coordinates alone such a node is off by a fraction of the facet's sagitta times the field's gradient.
 
-:func:`mapped_end_state` is such a start: a converged end state's displacement carried to another mesh of
+:func:`mapped_end_state` is the start of a solve on the new mesh: a converged end state's displacement carried to another mesh of
 the same limb, as an :class:`deeptissue.fem.solver.EndState` that :func:`deeptissue.fem.solver.solve_turned`
 solves (with the same indenter: a turn of zero) at the end of the load, in a few Newton iterations instead
 of the whole path. Units: mm.
@@ -22,7 +22,7 @@ import numpy as np
 from scipy import sparse
 from scipy.optimize import least_squares
 
-from ..elements import tet10_shape_functions, tet_shape_gradients
+from ..elements import tet10_shape_functions, tet10_shape_gradients, tet_shape_gradients
 from ..mesh import TetMesh, edge_midpoints, locate_in_tets
 from ..rigid import BoneMotion, apply_rigid
 from .indenters import Indenter
@@ -49,9 +49,36 @@ def interpolate_nodal(mesh: TetMesh, values, points_mm) -> np.ndarray:
         raise ValueError(
             f"interpolate_nodal: {V.shape[0]} nodal values for a mesh of {len(mesh.nodes_mm)} nodes"
         )
-    elem, lam = locate_in_tets(mesh, points_mm)
-    N = tet10_shape_functions(lam[:, 1:]) if mesh.order == 2 else lam
-    return np.einsum("na,na...->n...", N, V[mesh.tets[elem]])
+    P = np.asarray(points_mm, float).reshape(-1, 3)
+    elem, lam = locate_in_tets(mesh, P)
+    if mesh.order == 1:
+        return np.einsum("na,na...->n...", lam, V[mesh.tets[elem]])
+    xi = _curved_coordinates(mesh, elem, lam[:, 1:], P)
+    return np.einsum("na,na...->n...", tet10_shape_functions(xi), V[mesh.tets[elem]])
+
+
+def _curved_coordinates(
+    mesh: TetMesh, elem: np.ndarray, xi: np.ndarray, points_mm: np.ndarray, iterations: int = 8
+) -> np.ndarray:
+    """The reference coordinates (n, 3) of ``points_mm`` (n, 3) in the quadratic elements ``elem`` (n,): the
+    inverse of each element's own (curved) map by Newton's method, started from the straight coordinates
+    ``xi`` (n, 3). A point on a curved facet then lies on that facet in the old element, and a field linear
+    in x (a rigid motion) is carried exactly; with the straight coordinates it is off by a fraction of the
+    facet's sagitta times the field's gradient. Points where Newton's method does not settle keep ``xi``."""
+    Xe = mesh.nodes_mm[mesh.tets[elem]]  # (n, 10, 3)
+    z = xi.copy()
+    for _ in range(iterations):
+        r = np.einsum("na,nak->nk", tet10_shape_functions(z), Xe) - points_mm
+        J = np.einsum("naj,nak->nkj", tet10_shape_gradients(z), Xe)
+        ok = np.abs(np.linalg.det(J)) > 1e-300
+        step = np.zeros_like(z)
+        step[ok] = np.linalg.solve(J[ok], r[ok][..., None])[..., 0]
+        z = z - step
+    r = np.linalg.norm(np.einsum("na,nak->nk", tet10_shape_functions(z), Xe) - points_mm, axis=1)
+    size = np.linalg.norm(Xe[:, 1] - Xe[:, 0], axis=1)
+    lam = np.column_stack([1.0 - z.sum(axis=1), z])
+    good = (r < 1e-9 * size + 1e-12) & (lam.min(axis=1) > -0.5)
+    return np.where(good[:, None], z, xi)
 
 
 def _inverted(mesh: TetMesh, u: np.ndarray, order: int) -> np.ndarray:
@@ -220,11 +247,19 @@ def mapped_end_state(
         )
         fixed[b] = True
     order = settings.quadrature_order
+    counts = [int(_inverted(dst, u, order).sum())]
     u, folded = _unfolded(dst, u, fixed, order=order)
+    counts.append(folded)
     if folded:
         repaired = _untangled(dst, u, _inverted(dst, u, order), fixed, order)
         if repaired is not None:
             u, folded = _unfolded(dst, repaired, fixed, order=order)
+        counts.append(folded)
+    log.info(
+        "carried state: %s tets inverted (interpolated, mid-edge nodes straightened%s)",
+        " -> ".join(map(str, counts)),
+        ", untangled" if len(counts) > 2 else "",
+    )
     if folded:
         log.warning("the state carried to the new mesh inverts %d tets: not used", folded)
         return None
