@@ -30,7 +30,7 @@ from .errorest import voi_error_estimate
 from .fem.cast import Cast as SolverCast
 from .fem.indenters import Indenter
 from .fem.material import Ogden
-from .fem.solver import SolverSettings, solve_bone_rotation, solver_settings_from_config
+from .fem.solver import SolverSettings, solve_bone_rotation
 from .fem.transfer import mapped_end_state
 from .io import atomic_path
 from .mesh import SizeField, TetMesh
@@ -38,6 +38,7 @@ from .model import Cast, ModelSettings, build_model, load_cast
 from .pose import Pose, load_pose
 from .strain import ElementStrain, element_strain
 from .study import (
+    FemPhysics,
     StudySettings,
     VariantJob,
     accuracy_fields,
@@ -323,20 +324,21 @@ def run_adaptive_variant(
     contours, cast = load_contours(files.contours), load_cast(files.cast)
     reason = ""
     try:
+        physics = FemPhysics.from_config(fem_cfg)
         job = LimbJob(
             animal=animal,
             variant=variant,
             contours=contours,
             pose=pose,
             cast=cast,
-            material=Ogden(**fem_cfg.get("material", {})),
-            solver=solver_settings_from_config(fem_cfg.get("solver")),
+            material=physics.material,
+            solver=physics.settings,
             model=model_cfg,
             study=study,
             skin_contours_mm=load_contours(files.during_contours).skin
             if files.during_contours
             else None,
-            bar_length_mm=float(fem_cfg.get("bar_length_mm", 10.0)),
+            bar_length_mm=physics.bar_length_mm,
         )
         result = adaptive_limb(
             job,

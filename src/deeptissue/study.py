@@ -55,6 +55,7 @@ from .variants import parse_variant, variant_travel
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "FemPhysics",
     "SolvePaths",
     "StudySettings",
     "VariantJob",
@@ -145,6 +146,29 @@ def variant_indenter(
         radius_mm=radius_mm,
         bar_length_mm=bar_length_mm,
     )
+
+
+@dataclass(frozen=True)
+class FemPhysics:
+    """The config section ``fem`` read once for every solve: the tissue law, the solver's settings and the
+    bar's length end to end [mm] (10: ``fem.bar_length_mm``'s default, the paper's oblong indenter)."""
+
+    material: Ogden
+    settings: SolverSettings
+    bar_length_mm: float = 10.0
+
+    @classmethod
+    def from_config(cls, fem_cfg: dict | None, *, solver_cfg: dict | None = None) -> FemPhysics:
+        """From the config section ``fem`` (defaults for missing keys); ``solver_cfg`` in place of its
+        ``solver`` section where a run sets its own (a convergence setting's tolerances)."""
+        d = dict(fem_cfg or {})
+        return cls(
+            material=Ogden(**d.get("material", {})),
+            settings=solver_settings_from_config(
+                d.get("solver") if solver_cfg is None else solver_cfg
+            ),
+            bar_length_mm=float(d.get("bar_length_mm", cls.bar_length_mm)),
+        )
 
 
 @dataclass(frozen=True)
@@ -357,13 +381,13 @@ def run_bone_state(
         mesh = load_tetmesh(mesh_path)
         pose = load_pose(pose_path)
         cast = Cast.load(cast_path) if cast_path else None
-        settings = solver_settings_from_config(fem_cfg.get("solver"))
+        physics = FemPhysics.from_config(fem_cfg)
         r, state = solve_bone_rotation(
             mesh,
-            material=Ogden(**fem_cfg.get("material", {})),
+            material=physics.material,
             bone_motion=pose.bone_motion,
             cast=cast,
-            settings=settings,
+            settings=physics.settings,
         )
         why = r.reason
     except Exception as exc:  # the variants then solve the rotation themselves
@@ -526,16 +550,17 @@ def _read_job(
     pose = load_pose(paths.pose)
     cast = Cast.load(paths.cast) if paths.cast else None
     skin = load_contours(paths.during_contours).skin if paths.during_contours else None
+    physics = FemPhysics.from_config(fem_cfg)
     return VariantJob(
         animal=animal,
         variant=variant,
         pose=pose,
-        material=Ogden(**fem_cfg.get("material", {})),
-        settings=solver_settings_from_config(fem_cfg.get("solver")),
+        material=physics.material,
+        settings=physics.settings,
         cast=cast,
         study=study,
         skin_contours_mm=skin,
-        bar_length_mm=float(fem_cfg.get("bar_length_mm", 10.0)),
+        bar_length_mm=physics.bar_length_mm,
     )
 
 

@@ -300,10 +300,8 @@ def run_discretisation(
         If the setting's element order is not supported.
     """
     from ..fem.cast import Cast as FemCast
-    from ..fem.material import Ogden
-    from ..fem.solver import solver_settings_from_config
     from ..model import build_cast, build_model
-    from ..study import StudySettings, VariantJob, solve_variant
+    from ..study import FemPhysics, StudySettings, VariantJob, solve_variant
 
     animal, variant, setting = job.animal, job.variant, job.setting
     if setting.element_order not in SUPPORTED_ELEMENT_ORDERS:
@@ -316,7 +314,10 @@ def run_discretisation(
     row = _blank_row(job, _rss_mb())
     variants = _mesh_variants(job, model_cfg, study_cfg)
     msettings = setting.model_settings(model_cfg)
-    msettings.setdefault("bar_length_mm", float(fem_cfg.get("bar_length_mm", 10.0)))
+    physics = FemPhysics.from_config(
+        fem_cfg, solver_cfg=setting.solver_config(fem_cfg.get("solver"))
+    )
+    msettings.setdefault("bar_length_mm", physics.bar_length_mm)
     use_cast = cast is not False
     if (
         cast is None or cast is False
@@ -339,10 +340,7 @@ def run_discretisation(
     row["mesh_s"] = time.perf_counter() - t0
     row["n_elements"] = int(mesh.n_tets)
     study = StudySettings.from_config(study_cfg)
-    settings = solver_settings_from_config(setting.solver_config(fem_cfg.get("solver")))
-    material = Ogden(**fem_cfg.get("material", {}))
     fem_cast = None if not use_cast else FemCast(model.cast.vertices_mm, model.cast.triangles)
-    bar = float(fem_cfg.get("bar_length_mm", 10.0))
     t1 = time.perf_counter()
     try:
         summary, _, _ = solve_variant(
@@ -350,11 +348,11 @@ def run_discretisation(
                 animal=animal,
                 variant=variant,
                 pose=pose,
-                material=material,
-                settings=settings,
+                material=physics.material,
+                settings=physics.settings,
                 cast=fem_cast,
                 study=study,
-                bar_length_mm=bar,
+                bar_length_mm=physics.bar_length_mm,
             ),
             mesh,
         )
@@ -367,7 +365,13 @@ def run_discretisation(
     row["wall_s"] = row["mesh_s"] + run_s
     if job.linear_reference:
         _add_linear_reference(
-            row, job, mesh, pose=pose, material=material, settings=settings, bar_mm=bar
+            row,
+            job,
+            mesh,
+            pose=pose,
+            material=physics.material,
+            settings=physics.settings,
+            bar_mm=physics.bar_length_mm,
         )
     row["peak_rss_mb"] = _rss_mb()
     _log_row(row)
