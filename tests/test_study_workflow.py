@@ -225,29 +225,10 @@ def test_the_solve_rule_schedules_the_longest_solves_first(tmp_path):
 def test_rule_aggregate_runs_on_hand_made_summaries(tmp_path):
     """sphere and sphere_rz+15 converged, bar failed (its summary says why): the animal is excluded, the study completes,
     and a second run has nothing to do."""
-    m = box_tet10(np.linspace(-3, 3, 7), np.linspace(0, 5, 6), np.linspace(-3, 3, 7))
-    y = m.nodes_mm[:, 1]
     for variant, k in [("sphere", 0.9), ("bar", 1.3), ("sphere_rz+15", 1.0)]:
-        u = np.column_stack([k * y**2 / 10, 0 * y, 0 * y])
-        s, strain = summarize_solution(m, u, animal="rat01", variant=variant, indenter_force_N=0.1)
-        if variant == "bar":
-            s = failed_summary(
-                animal="rat01", variant="bar", reason="no convergence at 85% depth", increments=9
-            )
-        write_summary(tmp_path / "results" / "rat01" / variant / "summary.json", s)
-        write_result_vtu(tmp_path / "results" / "rat01" / variant / "result.vtu", m, u, strain)
-    save_pose(
-        tmp_path / "results" / "rat01" / "pose.json",
-        Pose(
-            indenter_axis=[0, -1, 0],
-            tip_start_mm=[0, 5, 0],
-            tip_end_mm=[0, 3, 0],
-            depth_mm=2.0,
-            bone_com_mm=[0, 1, 0],
-            bone_rotation_deg=[0, 0, 0],
-            bone_translation_mm=[0, 0, 0],
-        ),
-    )
+        failed = "no convergence at 85% depth" if variant == "bar" else None
+        _hand_made_run(tmp_path, "rat01", variant, k, failed=failed)
+    _hand_made_pose(tmp_path, "rat01")
     # the study's tables go to results/summary/<study.name>, here "test" from config/test.yaml
     targets = [
         "results/summary/test/voi.csv",

@@ -144,14 +144,14 @@ LIMITS = {
         1.0,
         "the leg moved in the cast between the pre and during scans (the pose is corrected for it below "
         "the failure limit): check pose_axis.png and pose_tip.png; beyond the limit rescan with the leg "
-        "held in the cast, and check that both scans are of the same session",
+        "held in the cast, and check that both scans were taken in one sitting of the animal",
     ),
     "leg_rotation_deg": Limit(
         0.5,
         5.0,
         "the leg turned in the cast between the pre and during scans (the pose is corrected for it below "
         "the failure limit): check pose_axis.png and pose_tip.png; beyond the limit rescan with the leg "
-        "held in the cast, and check that both scans are of the same session",
+        "held in the cast, and check that both scans were taken in one sitting of the animal",
     ),
     # RMS distance of the far-field during skin (beyond 5 mm of the indenter, deeptissue.pose.LegGuard), after the leg's
     # correction, from the pre skin: 0.008-0.021 mm on the six phantoms, unmoved, moved up to 5 pixels or
