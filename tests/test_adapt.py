@@ -172,16 +172,15 @@ def _fake(mesh, errors_percent, *, forces=None, converged=None, meshes=None, voi
     """A loop on a fixed mesh (or on meshes[k]) whose pass k reports errors_percent[k] for the VOI
     (vois[k] mm³, 1 mm³ without), the bins and the force forces[k]; the indicator is non-zero in the
     first element."""
-    calls = {"fields": [], "k": -1, "previous": []}
+    calls = {"fields": [], "k": -1}
 
     def build(field):
         calls["fields"].append(field)
         calls["k"] += 1
         return mesh if meshes is None else meshes[calls["k"]]
 
-    def solve(m, previous):
+    def solve(m):
         k = calls["k"]
-        calls["previous"].append(previous)
         ok = True if converged is None else converged[k]
         return SimpleNamespace(
             converged=ok,
@@ -220,13 +219,6 @@ def test_the_loop_stops_on_the_goal_and_refines_where_the_indicator_is(coarse_cy
         1, "force_err_percent"
     ] == pytest.approx(100 * 0.1 / 1.1)
     assert calls["fields"][0] is None  # the first pass on the mesher's own sizes
-    # each later pass starts from the previous pass's mesh and solution
-    assert calls["previous"][0] is None
-    assert [(p[0] is m, p[1].k) for p in calls["previous"][1:]] == [
-        (True, 0),
-        (True, 1),
-        (True, 2),
-    ]
     f = calls["fields"][1]
     first = node_sizes(m, element_sizes(m))[m.tets[0, :4]]
     assert np.all(
@@ -265,7 +257,7 @@ def test_only_the_quantity_that_misses_its_goal_is_refined(coarse_cylinder):
 
     adapt(
         lambda f: fields.append(f) or m,
-        lambda mm, _: SimpleNamespace(
+        lambda mm: SimpleNamespace(
             converged=True, indenter_force_N=1.0, displacement_mm=np.zeros_like(mm.nodes_mm)
         ),
         estimate,
@@ -293,11 +285,13 @@ def test_the_loop_stops_on_its_budget_and_on_a_failed_solve(coarse_cylinder):
     assert r.mesh is m and r.estimate.voi_err_mm3 == pytest.approx(0.1)  # the last converged pass
     # a solve that ends unconverged after the budget was spent (the solver's max_wall_s) stops on the budget
     build, solve, est, _ = _fake(m, [10.0] * 5, converged=[True, False, True])
+    calls_made = []
 
-    def slow(mesh, previous):
-        if previous is not None:
+    def slow(mesh):
+        if calls_made:
             time.sleep(1.0)
-        return solve(mesh, previous)
+        calls_made.append(mesh)
+        return solve(mesh)
 
     r = adapt(build, slow, est, AdaptSettings(max_wall_s=0.8))
     assert r.stop_reason == "wall" and len(r.passes) == 2 and not r.passes[-1].converged
@@ -603,7 +597,7 @@ def test_a_scene_without_a_voi_meets_the_voi_goal_only_if_its_estimate_agrees(co
 
         return adapt(
             lambda f: m,
-            lambda mm, _: SimpleNamespace(
+            lambda mm: SimpleNamespace(
                 converged=True, indenter_force_N=1.0, displacement_mm=np.zeros_like(mm.nodes_mm)
             ),
             estimate,
@@ -662,7 +656,7 @@ def test_from_the_second_pass_the_voi_and_bins_are_extrapolated_with_their_order
     k = iter(range(3))
     r = adapt(
         lambda f: meshes[next(k)],
-        lambda mm, _: SimpleNamespace(
+        lambda mm: SimpleNamespace(
             converged=True, indenter_force_N=1.0, displacement_mm=np.zeros_like(mm.nodes_mm)
         ),
         estimate,
@@ -682,7 +676,7 @@ def test_from_the_second_pass_the_voi_and_bins_are_extrapolated_with_their_order
     truth.clear()
     r1 = adapt(
         lambda f: meshes[next(k)],
-        lambda mm, _: SimpleNamespace(
+        lambda mm: SimpleNamespace(
             converged=True, indenter_force_N=1.0, displacement_mm=np.zeros_like(mm.nodes_mm)
         ),
         estimate,

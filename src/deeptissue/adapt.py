@@ -505,7 +505,7 @@ def _pass_estimates(est: PassEstimate, h, track: dict, plan: str, st: AdaptSetti
 
 def adapt(
     build_mesh: Callable[[SizeField | None], TetMesh],
-    solve: Callable[[TetMesh, tuple | None], object],
+    solve: Callable[[TetMesh], object],
     estimate: Callable[[TetMesh, object], PassEstimate],
     settings: AdaptSettings = AdaptSettings(),
     *,
@@ -520,10 +520,11 @@ def adapt(
         ``build_mesh(size_field) -> TetMesh``; ``None`` asks for the mesher's own default sizes
         (the first pass, unless ``initial`` is given).
     solve : callable
-        ``solve(mesh, previous)`` -> an object with ``converged``, ``indenter_force_N`` and ``displacement_mm``
-        (:class:`deeptissue.fem.solver.SolveResult`); ``previous`` is (mesh, solution) of the last pass, None
-        on the first: its solution carried to the new mesh starts the solve there
-        (:func:`deeptissue.fem.transfer.mapped_end_state`).
+        ``solve(mesh)`` -> an object with ``converged``, ``indenter_force_N`` and ``displacement_mm``
+        (:class:`deeptissue.fem.solver.SolveResult`): the whole load path on that mesh. A previous pass's
+        solution carried to the new mesh is no start: its tissue crushed between the indenter and the bone
+        folds the new mesh's tets there, and 11 of the 14 such starts of the demo's second passes did not
+        converge (docs/performance.md).
     estimate : callable
         ``estimate(mesh, solution) -> PassEstimate``.
     settings : AdaptSettings
@@ -552,7 +553,7 @@ def adapt(
         t0 = time.perf_counter()
         mesh = build_mesh(field_)
         t1 = time.perf_counter()
-        sol = solve(mesh, None if last is None else last[:2])
+        sol = solve(mesh)
         t2 = time.perf_counter()
         if (
             not sol.converged

@@ -5,11 +5,13 @@ first pass at the model's element size everywhere, the next ones from the backgr
 previous pass), solves the bone rotation and the indentation on that mesh
 (:func:`deeptissue.fem.solver.solve_bone_rotation`, :func:`deeptissue.study.solve_variant`; the cast
 contacts the new mesh's skin facets, the indenter its patch) and estimates the discretisation error of
-the VOI, its bins and the force (:func:`limb_estimate`). Every variant, turned ones too, starts from
-the model's element size and its bone rotation: a turn from the base variant's last pass, carried to
-another mesh, finds its contact set anew (rat03's ``sphere_rz+15`` on its sphere's final sizes: 922 and
-1 035 active-set changes in its first two increments, 1 192 s for its first pass, where a first pass
-from the start takes 40-90 s on the same loaded machine). :func:`run_adaptive_variant` is the rule ``adapt_variant``.
+the VOI, its bins and the force (:func:`limb_estimate`). Every pass solves the whole load path on its
+own mesh: a previous pass's solution carried to a new mesh folds its tets where the tissue is crushed
+between the indenter and the bone (:func:`deeptissue.adapt.adapt`). Every variant, turned ones too,
+starts from the model's element size: a turn from the base variant's last pass, carried to another
+mesh, finds its contact set anew (rat03's ``sphere_rz+15`` on its sphere's final sizes: 922 and 1 035
+active-set changes in its first two increments, 1 192 s for its first pass, where a first pass from the
+start takes 40-90 s on the same loaded machine). :func:`run_adaptive_variant` is the rule ``adapt_variant``.
 """
 
 from __future__ import annotations
@@ -31,7 +33,6 @@ from .fem.cast import Cast as SolverCast
 from .fem.indenters import Indenter
 from .fem.material import Ogden
 from .fem.solver import SolverSettings, solve_bone_rotation
-from .fem.transfer import mapped_end_state
 from .io import atomic_path
 from .mesh import SizeField, TetMesh
 from .model import Cast, ModelSettings, build_model, load_cast
@@ -139,42 +140,27 @@ def limb_mesher(
 
 def limb_solver(
     job: LimbJob, *, deadline_s: float | None = None
-) -> Callable[[TetMesh, tuple | None], LimbSolve]:
-    """``solve(mesh, previous) -> LimbSolve`` of :func:`deeptissue.adapt.adapt`. The first pass solves the
-    bone-rotation steps on the mesh (:func:`deeptissue.fem.solver.solve_bone_rotation`), then the variant
-    from that state as the rule ``solve`` does (:func:`deeptissue.study.solve_variant`, which solves the
-    rotation itself if those steps did not converge). A later pass starts from the previous pass's
-    solution carried to its mesh (:func:`deeptissue.fem.transfer.mapped_end_state`, ``turned_from``
-    "previous pass") and solves the whole path only if that state folds tets or does not converge.
-    ``deadline_s`` (``time.perf_counter()`` seconds) ends every solve there, as the solver's
-    ``max_wall_s`` (the smaller of the two): a pass that cannot finish within the loop's budget is
+) -> Callable[[TetMesh], LimbSolve]:
+    """``solve(mesh) -> LimbSolve`` of :func:`deeptissue.adapt.adapt`. Every pass solves the bone-rotation
+    steps on its mesh (:func:`deeptissue.fem.solver.solve_bone_rotation`), then the variant from that
+    state as the rule ``solve`` does (:func:`deeptissue.study.solve_variant`, which solves the rotation
+    itself if those steps did not converge). ``deadline_s`` (``time.perf_counter()`` seconds) ends every
+    solve there, as the solver's ``max_wall_s`` (the smaller of the two): a pass that cannot finish within the loop's budget is
     stopped instead of running on."""
-    indenter = job.indenter()
     cast = SolverCast(job.cast.vertices_mm, job.cast.triangles)
 
-    def solve(mesh: TetMesh, previous: tuple | None) -> LimbSolve:
+    def solve(mesh: TetMesh) -> LimbSolve:
         settings = job.solver
         if deadline_s is not None:
             left = max(deadline_s - time.perf_counter(), 1.0)
             settings = replace(settings, max_wall_s=min(settings.max_wall_s or np.inf, left))
-        start = base = None
-        if previous is None:
-            _, start = solve_bone_rotation(
-                mesh,
-                material=job.material,
-                bone_motion=job.pose.bone_motion,
-                cast=cast,
-                settings=settings,
-            )
-        else:
-            base = mapped_end_state(
-                previous[0],
-                previous[1].displacement_mm,
-                mesh,
-                indenter=indenter,
-                bone_motion=job.pose.bone_motion,
-                settings=settings,
-            )
+        _, start = solve_bone_rotation(
+            mesh,
+            material=job.material,
+            bone_motion=job.pose.bone_motion,
+            cast=cast,
+            settings=settings,
+        )
         variant_job = VariantJob(
             animal=job.animal,
             variant=job.variant,
@@ -186,9 +172,7 @@ def limb_solver(
             skin_contours_mm=job.skin_contours_mm,
             bar_length_mm=job.bar_length_mm,
         )
-        summary, u, strain = solve_variant(
-            variant_job, mesh, start=start, base=base, base_variant="previous pass"
-        )
+        summary, u, strain = solve_variant(variant_job, mesh, start=start)
         force = summary.indenter_force_N
         return LimbSolve(
             converged=summary.converged,

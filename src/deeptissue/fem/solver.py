@@ -120,10 +120,6 @@ _GROW, _SHRINK, _CUT = 2.0, 0.7, 0.35
 # Lagrangian correction of the linear solve gains about log10 of it in digits (a single-precision Cholesky of
 # the augmented matrix still succeeds at 1e4 and fails at 1e6 on a limb)
 _AUGMENTATION = 1e3
-# a state carried from another mesh starts with the entries active whose weighted gap is below this fraction of
-# their facet size: on a cored cylinder carried from 1.6 to 1.0 mm elements, 4 Newton iterations at 1-5 %
-# (6-10 at 20 %, 12-17 with none active) against 10 for the whole path
-_CARRIED_ACTIVE_GAP_REL = 0.05
 _REPORT_QUADRATURE_ORDER = 4  # facet quadrature on which the penetration between nodes is reported
 # a quadrature point compressed below this volume ratio counts as crushed in the log of a cut increment: in the
 # stalled pinch of the hard cases one element reaches 0.05 while 11-13 are below 0.2
@@ -731,17 +727,7 @@ def solve_turned(
             f"{3 * len(mesh.nodes_mm)}: not this mesh's state"
         )
     inc = settings.increments
-    if np.allclose(a.unit_axis, b.unit_axis, rtol=0.0, atol=1e-12):
-        # no turn (a state carried from another mesh): every fraction of it is the same problem, tried once
-        inc = replace(
-            inc,
-            initial_increment=1.0,
-            max_increment=1.0,
-            min_increment=1.0,
-            turn_initial_increment=1.0,
-        )
-    else:
-        inc = replace(inc, initial_increment=min(inc.turn_initial_increment, inc.max_increment))
+    inc = replace(inc, initial_increment=min(inc.turn_initial_increment, inc.max_increment))
     turn = replace(settings, increments=inc)
     r = _solve(
         _SolveJob(
@@ -782,8 +768,7 @@ def solve_from(
 ) -> SolveResult:
     """Solve ``scene`` on ``mesh`` from the nearest converged state there is: from ``base``
     (:func:`solve_turned`: an end state on this mesh whose indenter turns about the same final tip into the
-    scene's indenter, or with the same indenter, a state carried from another mesh,
-    :func:`deeptissue.fem.transfer.mapped_end_state`), and from ``start`` (:func:`solve_indentation`) where
+    scene's indenter), and from ``start`` (:func:`solve_indentation`) where
     there is no base or that solve does not converge. The costs of a try that did not converge are added to
     the result's; its reason is ``extra['turn_failed']``, and ``extra['turned']`` says whether the base was
     used."""
@@ -1316,7 +1301,6 @@ class _Run:
 
     def _take_start(self, start) -> None:
         """Start from a bone state (t = 3, every variant of the mesh) or a base variant's end state (a turn)."""
-        self.carried = isinstance(start, EndState) and not start.contact  # mapped_end_state
         if start is None:
             return
         self.steps = [k for k in self.steps if k >= 3]
@@ -1478,12 +1462,6 @@ def _newton(run: _Run, u, lam, target_d, end: bool):
     g0 = contact.node_gaps(u, np.ones(len(contact.node), bool))
     contact.cand = g0 < run.cand_dist
     lam[~contact.cand] = 0.0
-    if run.carried and run.t <= 3.0:
-        # a state carried from another mesh has no contact forces: the entries within a fraction of a facet of
-        # touching start active, and the first Newton iteration finds their forces
-        gw0 = contact.weighted(u, contact.cand)[0]
-        near = contact.cand & np.isfinite(gw0) & (gw0 < _CARRIED_ACTIVE_GAP_REL * contact.h)
-        lam[near] = contact.c[near] * _CARRIED_ACTIVE_GAP_REL * contact.h[near]
     # only the end of the load is reported (path independent: the ends of the bone-rotation steps only start
     # the next one)
     tol = (

@@ -25,7 +25,6 @@ from ..adapt import AdaptSettings, PassEstimate, adapt
 from ..errorest import voi_error_estimate
 from ..fem.indenters import Indenter
 from ..fem.solver import Scene, SolverSettings, solve_from, solve_indentation
-from ..fem.transfer import mapped_end_state
 from ..io import atomic_path
 from ..mesh import TetMesh, set_background_size
 from ..rigid import BoneMotion
@@ -368,24 +367,9 @@ def adaptive_cylinder(
     ind = _indenter(depth_mm, scene.height_mm)
     st = SolverSettings() if solver_settings is None else solver_settings
 
-    def solve(m, previous):  # from the previous pass's solution carried to this mesh
-        base = (
-            None
-            if previous is None
-            else mapped_end_state(
-                previous[0],
-                previous[1].displacement_mm,
-                m,
-                indenter=ind,
-                bone_motion=BoneMotion(),
-                settings=st,
-            )
-        )
-        return solve_from(m, Scene(material, ind), base=base, settings=st)
-
     return adapt(
         lambda field: cylinder_mesh(start, height_mm=scene.height_mm, size_field=field),
-        solve,
+        lambda m: solve_from(m, Scene(material, ind), settings=st),
         lambda m, r: cylinder_estimate(
             m, r, ind, threshold=scene.threshold, bin_edges=scene.bin_edges
         ),
