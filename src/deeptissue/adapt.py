@@ -63,9 +63,7 @@ class AdaptSettings:
     The goals are those of the study's accuracy goal: the VOI within 2 %, every bin within 1 pp, the
     force within 2 %. ``h_min_mm`` 0.1 mm: a small VOI needs elements below 0.2 mm where γ crosses the
     threshold (rat03's sphere of the demo, 5 mm³: the estimate stalls at 3.1 % with 0.2 mm, and meets the
-    goal at pass 3 with 0.1 mm, 114 480 DOFs, 147 s on one core); with every pass started from the
-    previous one's solution the overshoot elsewhere costs little (rat01's sphere: 142 323 DOFs, 209 s,
-    against 84 639 DOFs, 115 s with 0.2 mm; the cylinder at 2 mm: 77 433 DOFs, 38 s). ``h_max_mm`` 1.6 mm is
+    goal at pass 3 with 0.1 mm, 114 480 DOFs, 147 s on one core). ``h_max_mm`` 1.6 mm is
     the study's default element size. One pass shrinks an element at most by ``max_shrink`` and grows
     it at most by ``max_growth`` (1: no coarsening, since the loop starts from a coarse mesh and the
     field outside the indicator's elements is not estimated). ``max_shrink`` 0.25 lets the first
