@@ -24,7 +24,7 @@ import pandas as pd
 from ..adapt import AdaptSettings, PassEstimate, adapt
 from ..errorest import voi_error_estimate
 from ..fem.indenters import Indenter
-from ..fem.solver import Scene, SolverSettings, solve_from, solve_indentation
+from ..fem.solver import SolverSettings, solve_indentation
 from ..io import atomic_path
 from ..mesh import TetMesh, set_background_size
 from ..rigid import BoneMotion
@@ -369,7 +369,9 @@ def adaptive_cylinder(
 
     return adapt(
         lambda field: cylinder_mesh(start, height_mm=scene.height_mm, size_field=field),
-        lambda m: solve_from(m, Scene(material, ind), settings=st),
+        lambda m: solve_indentation(
+            m, material=material, indenter=ind, bone_motion=BoneMotion(), settings=st
+        ),
         lambda m, r: cylinder_estimate(
             m, r, ind, threshold=scene.threshold, bin_edges=scene.bin_edges
         ),
