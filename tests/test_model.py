@@ -34,6 +34,7 @@ from deeptissue.model import (
     build_model,
     cast_hole_boundary,
     load_cast,
+    model_qc_figure,
     run_mesh,
     save_cast,
     write_model,
@@ -611,3 +612,66 @@ def test_demo_phantom_meshes_without_manual_input():
         <= model.info["cast"]["skin_gap_mm"]["max"]
         < 0.21
     )
+
+
+# --------------------------------------------------------------------------- the QC figure
+
+
+def _tick_spacing_and_label_size_px(fig, ax, name):
+    """Screen distance between neighbouring major ticks of world axis ``name`` inside the limits, and the
+    largest tick label's extent along that direction [px], after a draw.
+
+    mplot3d keeps a tick label's own position in tick units, so the labels' screen boxes are not usable; the
+    ticks are projected here with the axes' own projection instead."""
+    from mpl_toolkits.mplot3d import proj3d
+
+    renderer = fig.canvas.get_renderer()
+    axis = getattr(ax, f"{name}axis")
+    k = "xyz".index(name)
+    lims = [ax.get_xlim(), ax.get_ylim(), ax.get_zlim()]
+    lo, hi = lims[k]
+    centre = [0.5 * (a + b) for a, b in lims]
+    ticks = [v for v in axis.get_majorticklocs() if lo <= v <= hi]
+    points = []
+    for v in ticks:
+        p = list(centre)
+        p[k] = v
+        x, y, _ = proj3d.proj_transform(*p, ax.get_proj())
+        points.append(ax.transData.transform((x, y)))
+    steps = np.diff(np.array(points), axis=0)
+    gaps = np.linalg.norm(steps, axis=1)
+    direction = np.abs(steps[0]) / gaps[0]
+    sizes = [
+        direction @ [b.width, b.height]
+        for t in axis.get_ticklabels()
+        if t.get_text()
+        for b in [t.get_window_extent(renderer)]
+    ]
+    return ticks, gaps, max(sizes)
+
+
+def test_model_qc_figure_axes_are_readable():
+    """Each view has the axis along its line of sight without ticks and the two across it with at least
+    three labelled ticks whose labels do not run into each other (at matplotlib's default 2.5 mm steps a
+    20 mm leg's labels run together: "10.0 7.5 5.0 2.5 0.0 -2.5-5.0-7.5-10.0")."""
+    c = leg_contours()
+    p = leg_pose(c, tilt_deg=4.0)
+    model = build_model(
+        c,
+        p,
+        variants=["sphere", "bar"],
+        settings={"element_size_mm": 2.5, "refine_size_mm": 1.25},
+        animal="r",
+    )
+    fig = model_qc_figure(model, p)
+    fig.set_dpi(110)  # as written by plot_model_qc
+    fig.canvas.draw()
+    assert len(fig.axes) == 2
+    for ax in fig.axes:
+        ticked = [n for n in "xyz" if len(getattr(ax, f"get_{n}ticks")())]
+        assert len(ticked) == 2, (ax.get_title(), ticked)
+        for name in ticked:
+            assert getattr(ax, f"get_{name}label")() == f"{name} [mm]"
+            ticks, gaps, label_px = _tick_spacing_and_label_size_px(fig, ax, name)
+            assert len(ticks) >= 3, (ax.get_title(), name, ticks)
+            assert gaps.min() > label_px + 6.0, (ax.get_title(), name, gaps, label_px)

@@ -3,7 +3,7 @@
 :func:`build_cast` and :func:`build_model` are the two entry points used by the rules ``cast`` and
 ``mesh``; :func:`save_cast` / :func:`load_cast` and :func:`write_model` write the files of
 ``results/{animal}/model/`` (``mesh.npz``, ``mesh.msh``, ``mesh.vtu``, ``cast.npz``, ``model.json``);
-:func:`plot_model_qc` draws the QC figure.
+:func:`model_qc_figure` draws the QC figure and :func:`plot_model_qc` writes it.
 """
 
 from __future__ import annotations
@@ -44,6 +44,7 @@ __all__ = [
     "build_model",
     "cast_hole_boundary",
     "load_cast",
+    "model_qc_figure",
     "plot_model_qc",
     "run_cast",
     "run_mesh",
@@ -622,11 +623,24 @@ def write_model(model: AnimalModel, *, mesh_npz, mesh_msh, mesh_vtu, model_json)
 
 
 def plot_model_qc(path, model: AnimalModel, pose: Pose) -> None:
-    """3D QC figure: skin (grey), patch union (red), cast rings (blue), hole rim (black), axis."""
+    """Write :func:`model_qc_figure` to ``path`` (PNG, atomically)."""
+    import matplotlib.pyplot as plt
+
+    fig = model_qc_figure(model, pose)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+
+
+def model_qc_figure(model: AnimalModel, pose: Pose):
+    """3D QC figure, seen along the indenter axis and from the side: skin (grey), patch union (red), cast
+    rings (blue), hole rim (black), axis (orange). Ticks every 5 mm on the two world axes across the line
+    of sight (at 2.5 mm steps a 20 mm leg's labels run into each other); the axis seen end-on has none."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FormatStrFormatter, MultipleLocator
     from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 
     mesh, cast = model.mesh, model.cast
@@ -692,8 +706,13 @@ def plot_model_qc(path, model: AnimalModel, pose: Pose) -> None:
         ax.set_proj_type("ortho")
         # the world axis closest to the line of sight is seen end-on: its ticks would pile up into one blot
         along = "xyz"[int(np.argmax(np.abs(vv)))]
+        for axis in (ax.xaxis, ax.yaxis, ax.zaxis):
+            axis.set_major_locator(MultipleLocator(5.0))
+            axis.set_major_formatter(FormatStrFormatter("%g"))
         getattr(ax, f"set_{along}ticks")([])
         getattr(ax, f"set_{along}label")("")
+        ax.tick_params(labelsize=8)
+        ax.set_box_aspect((1, 1, 1), zoom=1.15)
         ax.set_title(title, fontsize=9)
     st = model.info["mesh"]
     fig.suptitle(
@@ -701,9 +720,8 @@ def plot_model_qc(path, model: AnimalModel, pose: Pose) -> None:
         f"min dihedral {st['min_dihedral_deg']:.1f} deg; skin grey, contact patch red, cast blue, hole rim black, axis orange",
         fontsize=9,
     )
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110)
-    plt.close(fig)
+    fig.subplots_adjust(left=0.02, right=0.98, bottom=0.02, top=0.86, wspace=0.05)
+    return fig
 
 
 # --------------------------------------------------------------------------- rule entry points
