@@ -13,7 +13,7 @@ import pytest
 from masked_legs import Leg, masked_legs
 
 from deeptissue.contours import load_contours
-from deeptissue.imaging import split_legs, write_nifti
+from deeptissue.imaging import body_mask, split_legs, write_nifti
 from deeptissue.segment import (
     SegmentationError,
     SegmentationSettings,
@@ -66,14 +66,19 @@ def test_tibia_cortex_open_into_the_zeroed_fat():
     _assert_leg(c, leg, range(c.n_slices))
 
 
-def test_two_legs_touching_over_more_than_half_the_slices():
-    # the legs draw together by 0.5 mm a slice: apart on slices 0-4, their skins overlapping on 5-11 (up to 1.8 mm)
-    mine = Leg((-7.0, -1.0), drift_mm=(0.25, 0.0))
-    other = Leg((7.0, 1.0), drift_mm=(-0.25, 0.0))
-    vol = masked_legs([mine, other], n=(128, 96, 12), supersample=4)
-    split = split_legs(vol, (-7.0, -1.0, 0.0))
-    assert set(range(5, 12)) <= set(split.parted)  # and where a gap under 1.8 mm is bridged first
-    c, _ = segment_volume(split.leg, settings=SETTINGS)
+# the legs draw together by 0.5 mm a slice: their skins 0.2 mm apart on slice 4, overlapping on 5-11 (up to 1.8 mm)
+TOUCHING = (
+    Leg((-7.0, -1.0), drift_mm=(0.25, 0.0)),
+    Leg((7.0, 1.0), drift_mm=(-0.25, 0.0)),
+)
+
+
+@pytest.fixture(scope="module")
+def touching():
+    return masked_legs(list(TOUCHING), n=(128, 96, 12), supersample=4)
+
+
+def _assert_the_leg_not_the_other(c, mine: Leg, other: Leg, fibula_mm: float = 0.1):
     for k in range(c.n_slices):
         # the skin on the true circle away from the cut (points farther from the other leg than its radius)
         far = np.hypot(*(c.skin[k, :, :2] - other.centre_at(k)).T) > other.radius_mm + 0.5
@@ -83,7 +88,55 @@ def test_two_legs_touching_over_more_than_half_the_slices():
         _assert_on_circle(c.bone[k], centre, radius, f"tibia, slice {k}")
         # the other leg's bones are never chosen
         fib = np.nanmean(c.fibula[k, :, :2], axis=0)
-        assert np.hypot(*(fib - (mine.centre_at(k) + mine.fibula_mm))) < 0.1, k
+        assert np.hypot(*(fib - (mine.centre_at(k) + mine.fibula_mm))) < fibula_mm, k
+
+
+def test_two_legs_touching_over_more_than_half_the_slices(touching):
+    from scipy import ndimage
+
+    # the premise: one body on slices 4-11 (8 of 12; on 4 the pixels that straddle the 0.2 mm gap join them), two
+    # legs apart on 0-3
+    body = body_mask(touching)
+    assert [ndimage.label(body[:, :, k])[1] for k in range(12)] == [2] * 4 + [1] * 8
+    mine, other = TOUCHING
+    split = split_legs(touching, (-7.0, -1.0, 0.0))
+    assert set(range(5, 12)) <= set(split.parted)  # and where a gap under 1.8 mm is bridged first
+    c, _ = segment_volume(split.leg, settings=SETTINGS)
+    _assert_the_leg_not_the_other(c, mine, other)
+
+
+@pytest.mark.parametrize(
+    "mine, other, fibula_mm",
+    [
+        (0, 1, 0.1),
+        # the leg at +x has its fibula on the side of the other leg: on slice 11 the phantom's overlap puts the
+        # other leg's fat and skin rings over part of it (which no real pair of legs has), its centre 0.17 mm off
+        (1, 0, 0.25),
+    ],
+)
+def test_the_rule_segments_the_leg_with_the_point_where_the_legs_touch(
+    touching, tmp_path, mine, other, fibula_mm
+):
+    # the point on slice 8 (z 2.5 mm), where the legs are one body: that leg on every slice, the other's bones never
+    img = tmp_path / "legs.nii.gz"
+    write_nifti(img, touching.data, touching.affine)
+    mine, other = TOUCHING[mine], TOUCHING[other]
+    at = mine.centre_at(8)
+    c = segment_files(
+        SegmentJob(
+            image=img,
+            contours_out=tmp_path / "pre.npz",
+            qc_out=tmp_path / "qc.png",
+            checks_out=tmp_path / "checks.csv",
+            animal="touching",
+            settings=SETTINGS,
+            leg_point_mm=[float(at[0]), float(at[1]), 2.5],
+        )
+    )
+    assert c.n_slices == 12
+    _assert_the_leg_not_the_other(c, mine, other, fibula_mm)
+    rows = [r.split(",") for r in (tmp_path / "checks.csv").read_text().splitlines()[1:]]
+    assert rows and not [r for r in rows if r[4] == "fail"]
 
 
 def test_slices_into_the_ankle_and_the_knee_are_named_in_one_refusal():
