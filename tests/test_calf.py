@@ -147,7 +147,6 @@ def test_the_readme_command_runs_through_snakemake(calf, tmp_path):
     r = subprocess.run(
         [
             *snakemake,
-            "results/calf/qc/segmentation_pre.png",
             "--cores",
             "2",
             "--configfile",
@@ -161,10 +160,14 @@ def test_the_readme_command_runs_through_snakemake(calf, tmp_path):
     )
     assert r.returncode == 0, r.stderr[-3000:]
     assert (repo / "results/calf/qc/segmentation_pre.png").stat().st_size > 0
+    # every check of the pre-only animal in one table, every one ok
+    rows = (repo / "results/calf/qc/checks.csv").read_text().splitlines()
+    assert rows[0].startswith("stage,check,slice") and len(rows) > 23
+    assert all(r.startswith("segmentation_pre,") and ",fail," not in r for r in rows[1:])
     np.testing.assert_allclose(
         load_contours(repo / "results/calf/contours/pre.npz").bone, calf[1].bone
     )
-    # the default target of a pre-only study segments and solves nothing
+    # a second run does nothing: the default target of a pre-only study segments and solves nothing
     r = subprocess.run(
         [*snakemake, "-n", "--cores", "2", "--configfile", "config/calf.yaml"],
         cwd=repo,

@@ -1,10 +1,13 @@
-"""Checks of one state's segmentation, for every animal (``results/{animal}/qc/segmentation_checks_{state}.csv``).
+"""Checks of one state's segmentation, for every animal (``results/{animal}/qc/segmentation_checks_{state}.csv``),
+and every check of one animal in one table (``results/{animal}/qc/checks.csv``, :func:`merge_checks`).
 
 A segmentation carries its own evidence that the contour taken for the tibia is the tibia on every slice: its
 section changes slowly along the leg, its centroid does not jump, it is not a fraction of another dark region's
 area, it is larger than the fibula, and the skin lies on the edge of the leg. The checks run on scans without
 an indenter too (a ``pre``-only animal has no pose stage), and a failure stops the segmentation rule naming
-every failing slice.
+every failing slice. :func:`merge_checks` puts the segmentation checks of each state and, for an animal with a
+``during`` scan, the pose stage's (``pose_checks.csv``, :mod:`deeptissue.pose.checks`) in one file, so that every
+animal's QC is read in one place.
 """
 
 from __future__ import annotations
@@ -20,7 +23,14 @@ from .contours import Contours, polygon_area_centroid
 from .imaging import Volume, body_mask
 from .io import atomic_path
 
-__all__ = ["SegmentationCheck", "failed_checks_message", "segmentation_checks", "write_checks"]
+__all__ = [
+    "CHECKS_COLUMNS",
+    "SegmentationCheck",
+    "failed_checks_message",
+    "merge_checks",
+    "segmentation_checks",
+    "write_checks",
+]
 
 # Failure limits. The tibia's section area and centroid from slice to slice are those of the pose stage's checks
 # (deeptissue.pose.checks.LIMITS, measured on the digital phantoms): |log(A_k / A_k-1)| 0.04-0.05 and a centroid
@@ -53,17 +63,25 @@ ACTIONS = {
 }
 
 
+#: the checks that warn past their limit and never stop the rule
+WARN_ONLY = frozenset({"slice_left_out"})
+
+
 @dataclass(frozen=True)
 class SegmentationCheck:
     """One check on one slice (``slice`` -1: the whole scan); ``limit`` is a maximum, or a minimum with ``below``;
-    a check with ``warn`` past its limit warns and does not stop the rule."""
+    a check of :data:`WARN_ONLY` past its limit warns and does not stop the rule."""
 
     name: str
     slice: int
     value: float
     limit: float
     below: bool = False
-    warn: bool = False
+
+    @property
+    def warn(self) -> bool:
+        """Whether the check only warns (:data:`WARN_ONLY`)."""
+        return self.name in WARN_ONLY
 
     @property
     def status(self) -> str:
@@ -105,7 +123,7 @@ def segmentation_checks(
     ]
     # a slice left out at an end of the stack (segmentation.end_slices: leave_out): 1, a warning
     out += [
-        SegmentationCheck("slice_left_out", int(k), 1.0, 0.0, warn=True)
+        SegmentationCheck("slice_left_out", int(k), 1.0, 0.0)
         for k in sorted(info.get("left_out", {}))
     ]
     area = np.array([polygon_area_centroid(b[:, :2])[0] for b in contours.bone])
@@ -174,3 +192,40 @@ def write_checks(path, checks: list[SegmentationCheck]) -> None:
                         ACTIONS[c.name] if c.status in ("fail", "warn") else "",
                     ]
                 )
+
+
+#: the columns of an animal's ``checks.csv``
+CHECKS_COLUMNS = ("stage", "check", "slice", "value", "limit", "fail_limit", "status", "action")
+
+
+def _read_rows(path) -> list[dict]:
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def merge_checks(path, *, segmentation: dict, pose=None) -> int:
+    """Write every check of one animal to ``path`` (columns :data:`CHECKS_COLUMNS`, atomically) and return the
+    number of rows: the rows of each state's segmentation checks (``segmentation``: ``{state: csv}``, stage
+    ``segmentation_{state}``; their ``limit`` is the failure limit, the warning limit of a check that only warns)
+    and of the pose checks (``pose``: its ``checks.csv`` or None for an animal without a ``during`` scan; stage
+    ``pose``, no slice). ``status`` and ``action`` are copied as each stage wrote them."""
+    rows = []
+    for state, src in segmentation.items():
+        for r in _read_rows(src):
+            warn_only = r["check"] in WARN_ONLY
+            rows.append(
+                {
+                    **r,
+                    "stage": f"segmentation_{state}",
+                    "limit": r["limit"] if warn_only else "",
+                    "fail_limit": "" if warn_only else r["limit"],
+                }
+            )
+    if pose is not None:
+        rows += [{**r, "stage": "pose", "slice": ""} for r in _read_rows(pose)]
+    with atomic_path(path) as tmp:
+        with open(tmp, "w", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=CHECKS_COLUMNS)
+            w.writeheader()
+            w.writerows({k: r[k] for k in CHECKS_COLUMNS} for r in rows)
+    return len(rows)

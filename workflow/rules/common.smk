@@ -134,6 +134,18 @@ def segment_inputs(wildcards):
     return inputs
 
 
+def checks_inputs(wildcards):
+    """The checks of one animal: its segmentation's of each state and, with a during scan, the pose's."""
+    a = wildcards.animal
+    inputs = {
+        f"segmentation_{s}": f"results/{a}/qc/segmentation_checks_{s}.csv"
+        for s in animal_states(a)
+    }
+    if has_during(a):
+        inputs["pose"] = f"results/{a}/qc/pose_checks.csv"
+    return inputs
+
+
 onstart:
     # the temporaries of outputs whose job was killed mid-write (SIGKILL: the out-of-memory killer); a rerun of
     # the job removes those of its own outputs, this removes those of outputs nothing will write again

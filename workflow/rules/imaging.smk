@@ -60,6 +60,25 @@ rule segment:
         "../scripts/segment.py"
 
 
+rule checks:
+    """Every check of one animal in one table: its segmentation's of each state and, with a during scan, the pose's."""
+    input:
+        unpack(checks_inputs),
+    output:
+        checks=report(
+            "results/{animal}/qc/checks.csv",
+            caption="../report/qc_checks.rst",
+            category="QC checks",
+            subcategory="{animal}",
+        ),
+    log:
+        "results/{animal}/logs/checks.log",
+    conda:
+        "../envs/deeptissue.yaml"
+    script:
+        "../scripts/checks.py"
+
+
 rule segmentation_accuracy:
     """Distance of the segmented contours to the phantom's true contours, per slice and structure."""
     input:
@@ -87,6 +106,7 @@ for _a in ANIMALS:
     FINAL_OUTPUTS.extend(
         expand("results/{animal}/contours/{state}.npz", animal=_a, state=animal_states(_a))
     )
+    FINAL_OUTPUTS.append(f"results/{_a}/qc/checks.csv")
 FINAL_OUTPUTS.extend(
     expand(
         "results/{animal}/qc/segmentation_accuracy_{state}.csv",

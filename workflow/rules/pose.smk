@@ -29,12 +29,8 @@ rule pose:
             category="pose",
             subcategory="{animal}",
         ),
-        checks=report(
-            "results/{animal}/qc/checks.csv",
-            caption="../report/qc_checks.rst",
-            category="pose",
-            subcategory="{animal}",
-        ),
+        # read with the segmentation's checks in qc/checks.csv (rule checks)
+        checks="results/{animal}/qc/pose_checks.csv",
     log:
         "results/{animal}/logs/pose.log",
     priority: MODEL_PRIORITY

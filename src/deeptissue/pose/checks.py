@@ -1,4 +1,5 @@
-"""Quality checks of one animal's imaging estimates (``results/{animal}/qc/checks.csv``).
+"""Quality checks of one animal's imaging estimates (``results/{animal}/qc/pose_checks.csv``, read with the
+segmentation's checks in ``qc/checks.csv``: :func:`deeptissue.segment_checks.merge_checks`).
 
 Every estimate carries its own evidence: how well the during tibia fits the pre tibia, how many slices
 the fit used, whether the contour taken for the tibia is one bone from slice to slice, and whether the
