@@ -159,10 +159,10 @@ class IncrementSettings:
     or over the last stall_wall_s seconds (None: no such window), or three times the slowest converged
     increment's wall time where that is longer. 1e-3 of the indentation step is 3 um of a 3 mm
     travel; 12 attempts is more than the cuts from a full step down to min_increment (8), so a solve stops there
-    only when it alternates tiny accepted increments with failed long ones; 300 s is ten times a demo variant's
-    solve and twice the slowest base variant of config/paper.yaml (docs/performance.md), so a study never
-    spends more than that on a variant after it stops advancing; on a fine mesh whose converged increments
-    take minutes each the window grows with them."""
+    only when it alternates tiny accepted increments with failed long ones; 300 s is twice the longest
+    increment the demo's adaptive passes converge (147 s, docs/performance.md), so a study never spends
+    more than that on a variant after it stops advancing; on a finer mesh whose converged increments take
+    longer the window grows with them."""
 
     initial_increment: float = 0.25
     max_increment: float = 1.0
