@@ -19,6 +19,7 @@ from deeptissue.adapt import (
     node_sizes,
     target_sizes,
 )
+from deeptissue.fem.progress import NEXT_PASS
 from deeptissue.mesh import GMSH_TET_VOLUME, SizeField, TetMesh
 from deeptissue.verification.cylinder import CylinderMesh, cylinder_mesh
 
@@ -274,8 +275,12 @@ def test_only_the_quantity_that_misses_its_goal_is_refined(coarse_cylinder):
 def test_the_loop_stops_on_its_budget_and_on_a_failed_solve(coarse_cylinder):
     m = coarse_cylinder
     build, solve, est, _ = _fake(m, [10.0] * 5)
-    r = adapt(build, solve, est, AdaptSettings(max_passes=3))
+    lines = []
+    r = adapt(build, solve, est, AdaptSettings(max_passes=3), log=lines.append)
     assert r.stop_reason == "passes" and len(r.passes) == 3 and not r.goal_met
+    # each pass's line, and the line that says another pass is being meshed, but not after the last
+    assert [ln.split(":")[0] for ln in lines] == ["pass 0", "pass 1", "pass 1", "pass 2", "pass 2"]
+    assert lines[1] == lines[3].replace("2", "1") == f"pass 1: {NEXT_PASS}"
     build, solve, est, _ = _fake(m, [10.0] * 5)
     r = adapt(build, solve, est, AdaptSettings(max_wall_s=1e-9))
     assert r.stop_reason == "wall" and len(r.passes) == 1

@@ -2,7 +2,7 @@
 
 import os
 
-from deeptissue.fem.progress import Progress, format_progress, parse_end, parse_progress
+from deeptissue.fem.progress import NEXT_PASS, Progress, format_progress, parse_end, parse_progress
 from deeptissue.status import collect, format_status, main, read_solve_log
 
 _T = "2026-12-06 18:15:{:02d},000 INFO deeptissue.fem.solver "
@@ -55,6 +55,18 @@ def test_a_log_reads_as_running_stalled_converged_failed_or_waiting():
     failed = RUNNING + "2026-12-06 18:16:00,000 ERROR solve solve failed\nTraceback ...\n"
     assert read_solve_log(failed)[:1] == ("failed",)
     assert read_solve_log(_lines("Initializing CellBasis"))[0] == "waiting"
+    # an adaptive run between two passes: its first solve converged, the next pass is being meshed
+    between = CONVERGED + (
+        "2026-12-06 18:16:00,000 INFO deeptissue.adapt_limb rat01/sphere adaptive pass 1: "
+        f"{NEXT_PASS}\n"
+    )
+    assert read_solve_log(CONVERGED + _lines("adaptive pass 0: 18180 DOFs, goal met: False"))[
+        0
+    ] == ("converged")
+    state, p, _ = read_solve_log(between)
+    assert state == "running" and p.load == 4.0
+    assert read_solve_log(between + RUNNING)[0] == "running"
+    assert read_solve_log(between + CONVERGED)[0] == "converged"
 
 
 def test_status_prints_one_line_per_solve_job(tmp_path, capsys):

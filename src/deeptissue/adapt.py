@@ -21,6 +21,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from .elements import tet_subdivision
+from .fem.progress import NEXT_PASS
 from .mesh import GMSH_TET_VOLUME, SizeField, TetMesh
 
 __all__ = [
@@ -612,6 +613,8 @@ def adapt(
         field_ = SizeField.from_mesh(
             mesh, node_sizes(mesh, new_h, grading=st.grading, current_mm=h)
         )
+        if log is not None:
+            log(f"pass {k + 1}: {NEXT_PASS}")
     mesh, sol, est = last if last is not None else (None, None, None)
     return AdaptResult(tuple(passes), mesh, sol, est, reason)
 

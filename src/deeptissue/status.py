@@ -4,7 +4,8 @@
 ``bone_state_{mesh}.log`` and ``adapt_{variant}.log``: the job, its state (running, converged, not converged,
 failed, waiting), the load reached of 4 (full depth), the converged / attempted increments, the Newton
 iterations, the solve's elapsed time and how long ago its log last changed. A job that runs several solves (a
-turned variant solved again from the start, the passes of an adaptive run) shows its last one. The solver logs
+turned variant solved again from the start, the passes of an adaptive run) shows its last one; an adaptive run
+meshing its next pass is running. The solver logs
 one progress line per increment (:mod:`deeptissue.fem.progress`).
 """
 
@@ -16,7 +17,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from .fem.progress import Progress, parse_end, parse_progress
+from .fem.progress import NEXT_PASS, Progress, parse_end, parse_progress
 
 __all__ = ["SolveStatus", "collect", "format_status", "main", "read_solve_log"]
 
@@ -44,6 +45,9 @@ def read_solve_log(text: str) -> tuple[str, Progress | None, str]:
         p = parse_progress(line)
         if p is not None:
             state, progress, reason = "running", p, ""
+            continue
+        if NEXT_PASS in line:  # an adaptive run goes on to its next pass
+            state, reason = "running", ""
             continue
         end = parse_end(line)
         if end is not None:

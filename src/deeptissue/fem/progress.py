@@ -3,7 +3,8 @@
 A solve (:mod:`deeptissue.fem.solver`) logs ``progress: load 3.6029/4 increments 3/4 newton 8 elapsed 52.3 s``
 (the load parameter reached of 4 = full depth, converged / attempted increments, Newton iterations, wall time
 [s] since the solve started), and at its end ``solve converged in ...`` or ``solve not converged (reason) in
-...``. :mod:`deeptissue.status` reads these lines from the jobs' logs.
+...``. An adaptive run (:func:`deeptissue.adapt.adapt`) logs :data:`NEXT_PASS` when it goes on to mesh and solve
+another pass. :mod:`deeptissue.status` reads these lines from the jobs' logs.
 """
 
 from __future__ import annotations
@@ -11,7 +12,10 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-__all__ = ["Progress", "format_progress", "parse_end", "parse_progress"]
+__all__ = ["NEXT_PASS", "Progress", "format_progress", "parse_end", "parse_progress"]
+
+#: what an adaptive run logs when it goes on to another pass
+NEXT_PASS = "meshing to the refined sizes"
 
 _PROGRESS = re.compile(
     r"progress: load (?P<load>[-\d.]+)/4 increments (?P<ok>\d+)/(?P<all>\d+) "
