@@ -509,7 +509,16 @@ _PINCH = (
     "open hard case: the tissue pinched against the rigid core stalls in the last increments (active-set "
     "changes without descent; the force stops growing) on the project's machine"
 )
-KNOWN_FAILURES = {"hard case: sphere pinched 0.1 mm from the bone": _PINCH}
+KNOWN_FAILURES = {
+    "hard case: sphere pinched 0.1 mm from the bone": _PINCH,
+    # 0.25 mm from the core: the same crushed element as the pinch (det F 0.06 at stretches 1.19, 1.02, 0.05);
+    # the code that first recorded it converged fails on the project's machine along the same path
+    "hard case: sphere to depth 2.5R (3.75 mm)": (
+        "open hard case: the sphere ends 0.25 mm from the rigid core and crushes the element between them "
+        "(det F 0.06); the end state's Newton stalls at a fixed active set as in the pinched sphere, at "
+        "t = 3.9998 on the project's machine"
+    ),
+}
 
 # cylinder scene, each fixed mesh and each adaptive run against the finest fixed mesh: the accuracy goal
 # of the study's numbers (force within 0.5 % from 0.5 to 3 mm; VOI within 2 % and every bin within 1 pp
@@ -553,6 +562,23 @@ KNOWN_FAILURES.update(
 # resolves: the force 0.1 % (the finest adaptive passes and the 1.2 / 0.4 mm mesh differ by 0.05-0.07 % at
 # 2 to 3 mm), the VOI 0.5 % and the bins 0.25 pp (the reference's own VOI estimate is 0.27-0.49 mm³, 1-5 %)
 EFFECTIVITY_MIN, EFFECTIVITY_MAX = 0.8, 3.0
+KNOWN_FAILURES.update(
+    {
+        # the contact zone is refined, the elements around it are not: the force's error there does not change
+        # between passes (a mesh refined to 0.8 mm outside the reference's 0.4 mm zone moves the reference by
+        # 0.05 %, the adaptive pass 2 is 0.41 % above both)
+        "cylinder: adaptive mesh: force estimate at 1 mm: estimate / true error": (
+            "under-estimate: the force's estimate extrapolates the change that refining the contact zone "
+            "makes; at 1 mm the error left (0.4 %) lies in the unrefined elements around the zone and does "
+            "not change between passes (within the 2 % goal)"
+        ),
+        # a true error of 0.11 % is within 0.06 % of what the reference resolves: the effectivity is 3 to 9
+        "cylinder: adaptive mesh: force estimate at 2.5 mm: estimate / true error": (
+            "over-estimate near the reference's resolution: a true error of 0.11 % against a reference that "
+            "a finer bulk moves by 0.05 %"
+        ),
+    }
+)
 _EFFECTIVITY_FLOORS = {
     "force": ("est_force_percent", "true_force_percent", 0.1, "%"),
     "VOI": ("est_voi_percent", "true_voi_percent", 0.5, "%"),
