@@ -706,6 +706,34 @@ def test_a_voi_region_that_misses_its_goal_is_refined_enough_to_extrapolate(coar
     from deeptissue.adapt import _next_sizes
 
     st = AdaptSettings(force_goal_percent=None, max_tets=10**6)
-    new_h, _ = _next_sizes(m, h, est, (2.09, 0.0, np.nan), st)
+    new_h, _ = _next_sizes(m, h, est, (2.09, 0.0, np.nan), st, st.max_tets)
     assert np.all(new_h[:40] <= st.valid_shrink * h[:40] + 1e-12)
     assert np.allclose(new_h[40:], h[40:])
+
+
+def test_the_first_refinement_has_the_smaller_budget(coarse_cylinder, monkeypatch):
+    # the first refinement is aimed by the recovered estimate (several times the true error): it gets
+    # first_refinement_tets, or max_tets where that is smaller; every later one gets max_tets
+    import deeptissue.adapt as adapt_module
+
+    budgets = []
+    real = adapt_module.fit_budget
+
+    def recording(mesh, h, new_h, max_tets, **kw):
+        budgets.append(max_tets)
+        return real(mesh, h, new_h, max_tets, **kw)
+
+    monkeypatch.setattr(adapt_module, "fit_budget", recording)
+    build, solve, est, _ = _fake(coarse_cylinder, [10.0] * 3)
+    adapt(
+        build, solve, est, AdaptSettings(max_passes=3, max_tets=9000, first_refinement_tets=3000)
+    )
+    assert budgets and budgets[0] == 3000 and set(budgets[1:]) == {9000}
+    budgets.clear()
+    build, solve, est, _ = _fake(coarse_cylinder, [10.0] * 2)
+    adapt(
+        build, solve, est, AdaptSettings(max_passes=2, max_tets=2000, first_refinement_tets=3000)
+    )
+    assert set(budgets) == {2000}
+    with pytest.raises(ValueError, match="first_refinement_tets"):
+        AdaptSettings(first_refinement_tets=0)
