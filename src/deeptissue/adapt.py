@@ -90,7 +90,7 @@ class AdaptSettings:
     so does the band between the threshold surfaces of two solutions; on the cylinder at 1.5 mm, the one
     pass after the first whose true VOI error (0.61 %) the reference resolves, orders 1.5, 2 and 2.5 put
     the estimate at 2.8, 1.27 and 0.60 times it, and at 2 and 3 mm the passes it judges meet the goal at
-    pass 1 with 30 537 and 49 353 DOFs, within it against the reference (VOI +0.25 %, +0.09 %). On the
+    pass 1 with 30 537 and 48 459 DOFs, within it against the reference (VOI +0.25 %, −0.05 %). On the
     cylinder the force's true error falls as h^1.9-2.0 at 0.5 mm, h^2.4-2.0 at 2 mm and h^2.9 at 3 mm;
     1.75 puts the estimate at 1.0 to 2.8 times the true error on those passes (the change alone: 1.1 to
     7.8 times). An extrapolation is valid where the region's mean size shrank to at most
