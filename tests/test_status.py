@@ -60,9 +60,8 @@ def test_a_log_reads_as_running_stalled_converged_failed_or_waiting():
         "2026-12-06 18:16:00,000 INFO deeptissue.adapt_limb rat01/sphere adaptive pass 1: "
         f"{NEXT_PASS}\n"
     )
-    assert read_solve_log(CONVERGED + _lines("adaptive pass 0: 18180 DOFs, goal met: False"))[
-        0
-    ] == ("converged")
+    after_pass = CONVERGED + _lines("adaptive pass 0: 18180 DOFs, goal met: False")
+    assert read_solve_log(after_pass)[0] == "converged"
     state, p, _ = read_solve_log(between)
     assert state == "running" and p.load == 4.0
     assert read_solve_log(between + RUNNING)[0] == "running"
