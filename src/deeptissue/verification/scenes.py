@@ -511,8 +511,7 @@ _PINCH = (
 )
 KNOWN_FAILURES = {
     "hard case: sphere pinched 0.1 mm from the bone": _PINCH,
-    # 0.25 mm from the core: the same crushed element as the pinch (det F 0.06 at stretches 1.19, 1.02, 0.05);
-    # the code that first recorded it converged fails on the project's machine along the same path
+    # 0.25 mm from the core: the same crushed element as the pinch (det F 0.06 at stretches 1.19, 1.02, 0.05)
     "hard case: sphere to depth 2.5R (3.75 mm)": (
         "open hard case: the sphere ends 0.25 mm from the rigid core and crushes the element between them "
         "(det F 0.06); the end state's Newton stalls at a fixed active set as in the pinched sphere, at "
