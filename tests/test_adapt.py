@@ -711,6 +711,46 @@ def test_a_voi_region_that_misses_its_goal_is_refined_enough_to_extrapolate(coar
     assert np.allclose(new_h[40:], h[40:])
 
 
+def test_given_meshes_are_the_first_passes_and_the_loop_meshes_its_own_after_them(coarse_cylinder):
+    # a turned variant's first passes are its base's meshes: solved and judged as they are, never meshed
+    # again; where they miss the goal, the loop meshes its next pass from its own estimate
+    m = coarse_cylinder
+    given = [m, TetMesh(m.nodes_mm.copy(), m.tets.copy(), facets=dict(m.facets))]
+
+    def run(errors_percent):
+        built, solved, errors = [], [], iter(errors_percent)
+
+        def build(field):
+            built.append(field)
+            return m
+
+        def solve(mesh):
+            solved.append(mesh)
+            return SimpleNamespace(
+                converged=True, displacement_mm=np.zeros_like(mesh.nodes_mm), indenter_force_N=1.0
+            )
+
+        def estimate(mesh, sol):
+            e = next(errors)
+            eta = np.zeros(mesh.n_tets)
+            eta[0] = e / 100
+            return PassEstimate(
+                voi_mm3=1.0, voi_err_mm3=e / 100, bins_err_pp=e / 4, force_N=1.0, indicator_mm3=eta
+            )
+
+        st = AdaptSettings(max_passes=4, force_goal_percent=None)
+        return adapt(build, solve, estimate, st, given=given), built, solved
+
+    r, built, solved = run([10.0, 1.0])
+    assert r.goal_met and len(r.passes) == 2 and built == []
+    assert solved[0] is given[0] and solved[1] is given[1]
+    r, built, solved = run([10.0, 10.0, 1.0])
+    assert r.goal_met and len(r.passes) == 3 and all(a is b for a, b in zip(solved, given))
+    assert (
+        len(built) == 1 and built[0] is not None
+    )  # its own refined sizes, not the mesher's default
+
+
 def test_the_first_refinement_has_the_smaller_budget(coarse_cylinder, monkeypatch):
     # the first refinement is aimed by the recovered estimate (several times the true error): it gets
     # first_refinement_tets, or max_tets where that is smaller; every later one gets max_tets

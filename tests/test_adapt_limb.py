@@ -9,7 +9,13 @@ from model_synth import leg_contours, leg_pose
 from study_meshes import boundary_tri6, box_tet10
 
 from deeptissue.adapt import AdaptSettings, element_sizes, node_sizes
-from deeptissue.adapt_limb import AdaptFiles, contact_tets, limb_mesher, run_adaptive_variant
+from deeptissue.adapt_limb import (
+    AdaptFiles,
+    contact_tets,
+    limb_mesher,
+    load_pass_states,
+    run_adaptive_variant,
+)
 from deeptissue.contours import save_contours
 from deeptissue.fem.indenters import Indenter
 from deeptissue.mesh import SizeField, TetMesh
@@ -40,7 +46,7 @@ def _centroids(mesh: TetMesh) -> np.ndarray:
     return mesh.nodes_mm[mesh.tets[:, :4]].mean(axis=1)
 
 
-def _files(d, name) -> AdaptFiles:
+def _files(d, name, base=None) -> AdaptFiles:
     return AdaptFiles(
         contours=d / "pre.npz",
         pose=d / "pose.json",
@@ -49,6 +55,8 @@ def _files(d, name) -> AdaptFiles:
         passes_csv=d / name / "passes.csv",
         summary=d / name / "summary.json",
         vtu=d / name / "result.vtu",
+        base_states=None if base is None else d / base / "states",
+        states=d / name / "states",
     )
 
 
@@ -111,7 +119,7 @@ def test_two_adaptive_passes_on_a_phantom_limb_refine_under_the_indenter(limb, t
     save_contours(tmp_path / "pre.npz", c)
     save_pose(tmp_path / "pose.json", p)
     save_cast(tmp_path / "cast.npz", cast)
-    study = {"threshold": 0.3}
+    study = {"threshold": 0.3, "variants": ["sphere", "sphere_rz+15", "sphere_rx+15"]}
     result = run_adaptive_variant(
         animal="leg",
         variant="sphere",
@@ -155,6 +163,39 @@ def test_two_adaptive_passes_on_a_phantom_limb_refine_under_the_indenter(limb, t
         np.allclose(cells["gamma_gl"], result.solution.strain.gamma_gl)
         and cells["converged"].all()
     )
+    # every converged pass's mesh (with the patches of the variants turned from this one) and end state
+    passes = load_pass_states(tmp_path / "a/states")
+    assert [m.n_tets for m, _ in passes] == list(t["n_tets"])
+    assert {"patch_sphere", "patch_sphere_rz+15", "patch_sphere_rx+15"} <= set(passes[1][0].facets)
+    assert np.allclose(passes[1][1].displacement_mm, result.solution.displacement_mm.ravel())
+    # a turned variant rides those passes: the same meshes, each turned from the sphere's end state there
+    run_adaptive_variant(
+        animal="leg",
+        variant="sphere_rz+15",
+        files=_files(tmp_path, "t", base="a"),
+        model_cfg=MODEL,
+        fem_cfg={},
+        study_cfg=study,
+        settings=AdaptSettings(max_passes=2, max_tets=2200),
+    )
+    rode = pd.read_csv(tmp_path / "t/passes.csv")
+    assert list(rode["n_tets"]) == list(t["n_tets"]) and rode["converged"].all()
+    d = json.loads((tmp_path / "t/summary.json").read_text())
+    assert d["turned_from"] == "sphere" and d["contact_set"] == "patch_sphere_rz+15"
+    assert d["indenter_force_N"] > 0 and d["voi_mm3"] > 0
+    # a base that converged on no pass: the turned variant meshes and solves its own from the start
+    (tmp_path / "empty/states").mkdir(parents=True)
+    run_adaptive_variant(
+        animal="leg",
+        variant="sphere_rx+15",
+        files=_files(tmp_path, "x", base="empty"),
+        model_cfg=MODEL,
+        fem_cfg={},
+        study_cfg=study,
+        settings=AdaptSettings(max_passes=1),
+    )
+    d = json.loads((tmp_path / "x/summary.json").read_text())
+    assert d["converged"] and d["turned_from"] is None and d["adapt_passes"] == 1
 
 
 def test_a_failed_adaptive_run_is_recorded_and_the_study_goes_on(limb, tmp_path):

@@ -197,6 +197,18 @@ def test_turn_base_is_the_unturned_variant_of_the_same_shape_on_the_same_mesh():
     assert turn_base("sphere_rx+15", variants, split) is None  # not on its base's mesh
 
 
+def test_on_adaptive_meshes_a_turned_variant_rides_its_base_whatever_the_mesh_groups():
+    from deeptissue.variants import adaptive_turns
+
+    variants = ["sphere", "bar", "sphere_rx+15", "sphere_rz-15", "bar_rz-10"]
+    assert adaptive_turns("sphere", variants) == (None, ("sphere_rx+15", "sphere_rz-15"))
+    assert adaptive_turns("bar", variants) == (None, ("bar_rz-10",))
+    assert adaptive_turns("sphere_rx+15", variants) == ("sphere", ())
+    assert adaptive_turns("sphere_rx+15", ["bar", "sphere_rx+15"]) == (None, ())
+    assert adaptive_turns("sphere", variants, turn_from_base=False) == (None, ())
+    assert adaptive_turns("sphere_rz-15", variants, turn_from_base=False) == (None, ())
+
+
 def test_failed_job_is_recorded_with_its_reason(model_files, tmp_path):
     d, mesh = model_files
     bad = tmp_path / "pose.json"

@@ -195,6 +195,20 @@ def test_the_bone_at_indenter_config_turns_the_sphere_of_deep3_only(tmp_path):
 
 
 @pytest.mark.slow
+def test_a_turned_adaptive_variant_rides_its_base_variants_passes(tmp_path):
+    # the demo (study.mesh: adaptive): each turned sphere reads its sphere's converged passes; the
+    # sphere and the bar mesh their own
+    r = _snakemake(tmp_path, "-n", "--cores", "2", configfile=ROOT / "config" / "config.yaml")
+    assert r.returncode == 0, r.stderr[-2000:]
+    jobs = _dry_run_jobs(r.stdout)["adapt_variant"]
+    assert len(jobs) == 18
+    for j in jobs:
+        a, v = j["wildcards"]["animal"], j["wildcards"]["variant"]
+        states = f"results/{a}/adaptive/sphere/states"
+        assert (states in j["input"]) == v.startswith("sphere_r"), (a, v, j["input"])
+
+
+@pytest.mark.slow
 def test_the_solve_rule_schedules_the_longest_solves_first(tmp_path):
     # the dry run shows each solve job with its priority (deeptissue.variants.solve_priority): 10 for a bar
     # plus the phantom's depth, and 50 more for a variant others are turned from (they wait for it)

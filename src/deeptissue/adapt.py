@@ -12,7 +12,7 @@ callables, so the same loop serves the cylinder scene (:mod:`deeptissue.verifica
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -517,6 +517,7 @@ def adapt(
     settings: AdaptSettings = AdaptSettings(),
     *,
     initial: SizeField | None = None,
+    given: Sequence[TetMesh] = (),
     log: Callable[[str], None] | None = None,
 ) -> AdaptResult:
     """Solve, estimate and remesh until the estimates meet the goals or the budget is spent.
@@ -528,14 +529,15 @@ def adapt(
         (the first pass, unless ``initial`` is given).
     solve : callable
         ``solve(mesh)`` -> an object with ``converged``, ``indenter_force_N`` and ``displacement_mm``
-        (:class:`deeptissue.fem.solver.SolveResult`): the whole load path on that mesh. A previous pass's
-        solution carried to the new mesh is no start: its tissue crushed between the indenter and the bone
-        folds the new mesh's tets there, and 11 of the 14 such starts of the demo's second passes did not
-        converge (docs/performance.md).
+        (:class:`deeptissue.fem.solver.SolveResult`) of that mesh's own solve: a previous pass's solution
+        carried to a new mesh folds its tets where the tissue is crushed between indenter and bone.
     estimate : callable
         ``estimate(mesh, solution) -> PassEstimate``.
     settings : AdaptSettings
         Goals, budget and remeshing limits.
+    given : sequence of TetMesh
+        The first passes' meshes (a base variant's, :func:`deeptissue.adapt_limb.adaptive_limb`); the
+        loop meshes its own with ``build_mesh`` after them.
     log : callable or None
         Called with one line per pass.
 
@@ -558,7 +560,7 @@ def adapt(
     reason = "passes"
     for k in range(st.max_passes):
         t0 = time.perf_counter()
-        mesh = build_mesh(field_)
+        mesh = given[k] if k < len(given) else build_mesh(field_)
         t1 = time.perf_counter()
         sol = solve(mesh)
         t2 = time.perf_counter()
@@ -617,6 +619,8 @@ def adapt(
         if time.perf_counter() - t_start >= st.max_wall_s:
             reason = "wall"
             break
+        if k + 1 < len(given):  # the next pass is given
+            continue
         budget = min(st.first_refinement_tets, st.max_tets) if k == 0 else st.max_tets
         new_h, plan = _next_sizes(mesh, h, est, (e.voi_pc, bins_max, e.force_pc), st, budget)
         field_ = SizeField.from_mesh(

@@ -7,19 +7,24 @@ previous pass), solves the bone rotation and the indentation on that mesh
 contacts the new mesh's skin facets, the indenter its patch) and estimates the discretisation error of
 the VOI, its bins and the force (:func:`limb_estimate`). Every pass solves the whole load path on its
 own mesh: a previous pass's solution carried to a new mesh folds its tets where the tissue is crushed
-between the indenter and the bone (:func:`deeptissue.adapt.adapt`). Every variant, turned ones too,
-starts from the model's element size: a turn from the base variant's last pass, carried to another
-mesh, finds its contact set anew (rat03's ``sphere_rz+15`` on its sphere's final sizes: 922 and 1 035
-active-set changes in its first two increments, 1 192 s for its first pass, where a first pass from the
-start takes 40-90 s on the same loaded machine). :func:`run_adaptive_variant` is the rule ``adapt_variant``.
+between the indenter and the bone (:func:`deeptissue.adapt.adapt`).
+
+A turned variant (``sphere_rx+15`` of ``sphere``, :func:`deeptissue.variants.turn_base`) rides its base
+variant's passes: the base's meshes carry the turned variants' patches too, and each converged pass
+writes its mesh and end state (:func:`pass_files`). The turned variant's first passes are those
+meshes, each solved by turning the indenter from the base's end state on the same mesh
+(:func:`deeptissue.fem.solver.solve_turned`, no state moves between meshes), and its own estimates
+judge them; where they miss the goal, it meshes its own next passes and solves them from the start.
+:func:`run_adaptive_variant` is the rule ``adapt_variant``.
 """
 
 from __future__ import annotations
 
 import logging
+import shutil
 import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -32,9 +37,9 @@ from .errorest import voi_error_estimate
 from .fem.cast import Cast as SolverCast
 from .fem.indenters import Indenter
 from .fem.material import Ogden
-from .fem.solver import SolverSettings, solve_bone_rotation
+from .fem.solver import EndState, SolverSettings, load_end_state, solve_bone_rotation
 from .io import atomic_path
-from .mesh import SizeField, TetMesh
+from .mesh import SizeField, TetMesh, load_tetmesh, save_tetmesh
 from .model import Cast, ModelSettings, build_model, load_cast
 from .pose import Pose, load_pose
 from .strain import ElementStrain, element_strain
@@ -54,6 +59,7 @@ from .summary import (
     write_result_vtu,
     write_summary,
 )
+from .variants import adaptive_turns
 
 __all__ = [
     "AdaptFiles",
@@ -64,7 +70,9 @@ __all__ = [
     "limb_estimate",
     "limb_mesher",
     "limb_solver",
+    "load_pass_states",
     "loop_estimates",
+    "pass_files",
     "run_adaptive_variant",
 ]
 
@@ -76,7 +84,9 @@ class LimbJob:
     """One limb variant to solve on adaptive meshes: the animal's pre contours, pose and model cast
     (:func:`deeptissue.model.load_cast`, contacted by every pass's skin facets), the tissue law, the
     solver's, model's and study's settings, the during scan's skin contour points [mm] (None: no skin
-    agreement) and the bar's length end to end [mm]."""
+    agreement), the bar's length end to end [mm], the variants turned from this one (their patches are
+    tagged on every pass's mesh, so that they ride its passes) and the variant this one is turned from
+    (None: a base variant)."""
 
     animal: str
     variant: str
@@ -89,6 +99,8 @@ class LimbJob:
     study: StudySettings = StudySettings()
     skin_contours_mm: np.ndarray | None = None
     bar_length_mm: float = 10.0
+    turned: tuple[str, ...] = ()
+    base_variant: str | None = None
 
     def indenter(self) -> Indenter:
         """The variant's rigid indenter on this animal's pose."""
@@ -115,10 +127,13 @@ def limb_mesher(
     cast: Cast,
     settings: ModelSettings | dict | None = None,
     animal: str = "?",
+    turned: Sequence[str] = (),
 ) -> Callable[[SizeField | None], TetMesh]:
     """``build_mesh(size_field) -> TetMesh`` of :func:`deeptissue.adapt.adapt` for one variant: the
     animal's limb (:func:`deeptissue.model.build_model`) with the facet sets ``bone``, ``skin`` (the
-    cast's contact set), ``proximal``, ``distal``, ``patch_<variant>`` and ``patch``. Without a size
+    cast's contact set), ``proximal``, ``distal``, ``patch_<variant>``, ``patch_<t>`` of each variant
+    ``t`` of ``turned`` (the patches are tagged on the finished mesh, which they do not change) and
+    ``patch`` (their union). Without a size
     field the mesh has the model's ``element_size_mm`` everywhere: the loop never coarsens, so it starts
     from the coarsest mesh and refines only where the estimate asks."""
     s = settings if isinstance(settings, ModelSettings) else ModelSettings.from_dict(settings)
@@ -128,7 +143,7 @@ def limb_mesher(
         return build_model(
             contours,
             pose,
-            variants=[variant],
+            variants=[variant, *turned],
             settings=uniform if size_field is None else s,
             animal=animal,
             cast=cast,
@@ -139,28 +154,42 @@ def limb_mesher(
 
 
 def limb_solver(
-    job: LimbJob, *, deadline_s: float | None = None
+    job: LimbJob,
+    *,
+    deadline_s: float | None = None,
+    base: Sequence[tuple[TetMesh, EndState]] = (),
+    states_dir: str | Path | None = None,
 ) -> Callable[[TetMesh], LimbSolve]:
-    """``solve(mesh) -> LimbSolve`` of :func:`deeptissue.adapt.adapt`. Every pass solves the bone-rotation
-    steps on its mesh (:func:`deeptissue.fem.solver.solve_bone_rotation`), then the variant from that
-    state as the rule ``solve`` does (:func:`deeptissue.study.solve_variant`, which solves the rotation
-    itself if those steps did not converge). ``deadline_s`` (``time.perf_counter()`` seconds) ends every
-    solve there, as the solver's ``max_wall_s`` (the smaller of the two): a pass that cannot finish within the loop's budget is
-    stopped instead of running on."""
+    """``solve(mesh) -> LimbSolve`` of :func:`deeptissue.adapt.adapt`. On a mesh of ``base`` (the base
+    variant's passes, :func:`load_pass_states`) the variant is turned from the base's end state there
+    (:func:`deeptissue.study.solve_variant` with ``base``; from the start if that does not converge).
+    Every other pass solves the bone-rotation steps on its mesh
+    (:func:`deeptissue.fem.solver.solve_bone_rotation`), then the variant from that state as the rule
+    ``solve`` does (:func:`deeptissue.study.solve_variant`, which solves the rotation itself if those
+    steps did not converge). ``deadline_s`` (``time.perf_counter()`` seconds) ends every solve there, as
+    the solver's ``max_wall_s`` (the smaller of the two): a pass that cannot finish within the loop's
+    budget is stopped instead of running on. ``states_dir``: where each converged pass's mesh and end
+    state are written (:func:`pass_files`, the passes counted in the order solved)."""
     cast = SolverCast(job.cast.vertices_mm, job.cast.triangles)
+    turn_from = {id(mesh): state for mesh, state in base}
+    solved = []  # one entry per call: the pass index of the next solve
 
     def solve(mesh: TetMesh) -> LimbSolve:
+        k = len(solved)
+        solved.append(k)
         settings = job.solver
         if deadline_s is not None:
             left = max(deadline_s - time.perf_counter(), 1.0)
             settings = replace(settings, max_wall_s=min(settings.max_wall_s or np.inf, left))
-        _, start = solve_bone_rotation(
-            mesh,
-            material=job.material,
-            bone_motion=job.pose.bone_motion,
-            cast=cast,
-            settings=settings,
-        )
+        state, start = turn_from.get(id(mesh)), None
+        if state is None:
+            _, start = solve_bone_rotation(
+                mesh,
+                material=job.material,
+                bone_motion=job.pose.bone_motion,
+                cast=cast,
+                settings=settings,
+            )
         variant_job = VariantJob(
             animal=job.animal,
             variant=job.variant,
@@ -172,7 +201,17 @@ def limb_solver(
             skin_contours_mm=job.skin_contours_mm,
             bar_length_mm=job.bar_length_mm,
         )
-        summary, u, strain = solve_variant(variant_job, mesh, start=start)
+        mesh_path, end_path = (None, None) if states_dir is None else pass_files(states_dir, k)
+        summary, u, strain = solve_variant(
+            variant_job,
+            mesh,
+            start=start,
+            base=state,
+            base_variant=job.base_variant,
+            end_state_path=end_path,
+        )
+        if summary.converged and mesh_path is not None:
+            save_tetmesh(mesh_path, mesh)
         force = summary.indenter_force_N
         return LimbSolve(
             converged=summary.converged,
@@ -183,6 +222,24 @@ def limb_solver(
         )
 
     return solve
+
+
+def pass_files(states_dir: str | Path, k: int) -> tuple[Path, Path]:
+    """The mesh file (:func:`deeptissue.mesh.save_tetmesh`) and the end-state file
+    (:func:`deeptissue.fem.solver.save_end_state`) of converged pass ``k`` in ``states_dir``."""
+    d = Path(states_dir)
+    return d / f"pass{k}_mesh.npz", d / f"pass{k}_end_state.npz"
+
+
+def load_pass_states(states_dir: str | Path) -> list[tuple[TetMesh, EndState]]:
+    """The (mesh, end state) of each converged pass in ``states_dir`` (:func:`pass_files`), from pass 0 to
+    the first pass without both files; ValueError naming the file that is not a mesh or an end state."""
+    out = []
+    while True:
+        mesh_path, state_path = pass_files(states_dir, len(out))
+        if not (mesh_path.is_file() and state_path.is_file()):
+            return out
+        out.append((load_tetmesh(mesh_path), load_end_state(state_path)))
 
 
 def contact_tets(
@@ -239,12 +296,16 @@ def adaptive_limb(
     job: LimbJob,
     settings: AdaptSettings = AdaptSettings(),
     *,
+    base: Sequence[tuple[TetMesh, EndState]] = (),
+    states_dir: str | Path | None = None,
     log_pass: Callable[[str], None] | None = None,
 ) -> AdaptResult:
     """One limb variant on adaptive meshes: :func:`deeptissue.adapt.adapt` with :func:`limb_mesher`,
     :func:`limb_solver` and :func:`limb_estimate` until the estimates meet the goals of ``settings`` or
-    its budget is spent. Returns the AdaptResult (``solution``: the last converged pass's
-    :class:`LimbSolve`)."""
+    its budget is spent; its first passes are the meshes of ``base`` (the base variant's passes, on which
+    this variant is turned from their end states) and every converged pass's mesh and end state go to
+    ``states_dir`` (:func:`limb_solver`). Returns the AdaptResult (``solution``: the last converged
+    pass's :class:`LimbSolve`)."""
     indenter = job.indenter()
     deadline_s = time.perf_counter() + settings.max_wall_s
     return adapt(
@@ -255,10 +316,12 @@ def adaptive_limb(
             cast=job.cast,
             settings=job.model,
             animal=job.animal,
+            turned=job.turned,
         ),
-        limb_solver(job, deadline_s=deadline_s),
+        limb_solver(job, deadline_s=deadline_s, base=base, states_dir=states_dir),
         lambda mesh, sol: limb_estimate(mesh, sol, indenter, job.study),
         settings,
+        given=[mesh for mesh, _ in base],
         log=log_pass,
     )
 
@@ -266,8 +329,10 @@ def adaptive_limb(
 @dataclass(frozen=True)
 class AdaptFiles:
     """The files of rule ``adapt_variant``: inputs ``contours`` (pre), ``pose``, ``cast``,
-    ``during_contours`` (None: no skin agreement); outputs ``passes_csv``, ``summary`` and ``vtu``
-    (None: not written)."""
+    ``during_contours`` (None: no skin agreement) and ``base_states`` (the folder of the base variant's
+    converged passes, :func:`pass_files`; None: not a turned variant); outputs ``passes_csv``,
+    ``summary``, ``vtu`` (None: not written) and ``states`` (the folder of this run's converged passes;
+    None: not written)."""
 
     contours: str | Path
     pose: str | Path
@@ -276,6 +341,8 @@ class AdaptFiles:
     passes_csv: str | Path
     summary: str | Path
     vtu: str | Path | None = None
+    base_states: str | Path | None = None
+    states: str | Path | None = None
 
 
 def run_adaptive_variant(
@@ -298,14 +365,23 @@ def run_adaptive_variant(
     ``files.vtu`` (that pass's ``result.vtu``, :func:`deeptissue.summary.write_result_vtu`). A run that
     raises (its passes table then has no rows), or whose first pass does not converge, writes a summary
     with ``converged = False`` and the reason and the first pass's mesh undeformed, so that the study goes
-    on without this variant (as rule ``solve`` does); returns None if it raised.
+    on without this variant (as rule ``solve`` does); returns None if it raised. ``files.states`` gets
+    each converged pass's mesh and end state (:func:`pass_files`); a turned variant
+    (:func:`deeptissue.variants.adaptive_turns`) rides the base's passes in ``files.base_states``.
 
     ``model_cfg``, ``fem_cfg`` and ``study_cfg`` are the config sections ``model`` (with
-    ``bar_length_mm``, as the rule ``mesh`` gets it), ``fem`` and ``study``.
+    ``bar_length_mm``, as the rule ``mesh`` gets it), ``fem`` and ``study`` (with the animal's
+    ``variants``).
     """
     study = StudySettings.from_config(study_cfg)
     pose = load_pose(files.pose)
     contours, cast = load_contours(files.contours), load_cast(files.cast)
+    base_variant, turned = adaptive_turns(
+        variant, study_cfg.get("variants") or (), study_cfg.get("turn_from_base", True)
+    )
+    if files.states is not None:
+        shutil.rmtree(files.states, ignore_errors=True)
+        Path(files.states).mkdir(parents=True)
     reason = ""
     try:
         physics = FemPhysics.from_config(fem_cfg)
@@ -323,10 +399,14 @@ def run_adaptive_variant(
             if files.during_contours
             else None,
             bar_length_mm=physics.bar_length_mm,
+            turned=turned,
+            base_variant=base_variant,
         )
         result = adaptive_limb(
             job,
             settings,
+            base=_base_passes(files.base_states, base_variant),
+            states_dir=files.states,
             log_pass=lambda line: log.info("%s/%s adaptive %s", animal, variant, line),
         )
     except Exception as exc:  # recorded, never lost: the study goes on without this variant
@@ -369,6 +449,21 @@ def run_adaptive_variant(
         log.warning("%s: QC warnings not read (%s)", files.pose, exc)
     write_summary(files.summary, summary)
     return result
+
+
+def _base_passes(states_dir, base_variant) -> list[tuple[TetMesh, EndState]]:
+    """The base variant's converged passes in ``states_dir`` (none without a base, or where its run
+    converged on no pass: this variant then meshes and solves its own passes from the start)."""
+    if states_dir is None or base_variant is None:
+        return []
+    passes = load_pass_states(states_dir)
+    if not passes:
+        log.warning(
+            "%s: %s converged on no adaptive pass: this variant is solved from the start",
+            states_dir,
+            base_variant,
+        )
+    return passes
 
 
 def loop_estimates(summary: Summary, last: AdaptPass) -> Summary:

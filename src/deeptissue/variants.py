@@ -16,6 +16,7 @@ from .rigid import rotation_matrix
 __all__ = [
     "MESH_GROUPINGS",
     "Variant",
+    "adaptive_turns",
     "mesh_group_of",
     "mesh_groups",
     "parse_variant",
@@ -207,6 +208,19 @@ def turn_base(variant: str, variants, groups: dict | None = None) -> str | None:
     if groups is not None and mesh_group_of(base, groups) != mesh_group_of(variant, groups):
         return None
     return base
+
+
+def adaptive_turns(
+    variant: str, variants, turn_from_base: bool = True
+) -> tuple[str | None, tuple[str, ...]]:
+    """On adaptive meshes, where every variant has meshes of its own: the variant whose passes ``variant``
+    rides (its :func:`turn_base`; None: it meshes its own) and the variants among ``variants`` that
+    ride the passes of ``variant``; neither without ``turn_from_base`` (config ``study.turn_from_base``)."""
+    variants = list(variants)
+    if not turn_from_base:
+        return None, ()
+    turned = tuple(v for v in variants if turn_base(v, variants) == variant)
+    return turn_base(variant, variants), turned
 
 
 def solve_priority(variant: str, depth_mm: float | None = None) -> float:

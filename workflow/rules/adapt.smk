@@ -7,17 +7,21 @@
 
 rule adapt_variant:
     """One animal x variant on adaptive meshes: every pass meshes the limb with the variant's patch,
-    solves the bone rotation and the indentation with the cast, and estimates the errors.
+    solves the bone rotation and the indentation with the cast, and estimates the errors; a turned
+    variant's first passes are its base's meshes, turned from the base's end states.
     """
     input:
         contours="results/{animal}/contours/pre.npz",
         pose="results/{animal}/pose.json",
         cast="results/{animal}/model/cast.npz",
         during_contours="results/{animal}/contours/during.npz",
+        # a turned variant rides its base's passes, turned from their end states on the same meshes
+        base_states=lambda wc: adaptive_base_states_of(wc.animal, wc.variant),
     output:
         passes="results/{animal}/adaptive/{variant}/passes.csv",
         summary="results/{animal}/adaptive/{variant}/summary.json",
         vtu="results/{animal}/adaptive/{variant}/result.vtu",
+        states=directory("results/{animal}/adaptive/{variant}/states"),
     log:
         "results/{animal}/logs/adapt_{variant}.log",
     benchmark:
@@ -34,6 +38,6 @@ rule adapt_variant:
             bar_length_mm=float(config.get("fem", {}).get("bar_length_mm", 10.0)),
         ),
         fem=config["fem"],
-        study=STUDY,
+        study=lambda wc: dict(STUDY, variants=VARIANTS_OF[wc.animal]),
     script:
         "../scripts/adapt_variant.py"

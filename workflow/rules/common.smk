@@ -5,7 +5,13 @@ from pathlib import Path
 from deeptissue.config import animal_variants, has_during_scan, validate_config
 from deeptissue.io import remove_stale_partials
 from deeptissue.scanner import scan_kind
-from deeptissue.variants import mesh_group_of, mesh_groups, solve_priority, turn_base
+from deeptissue.variants import (
+    adaptive_turns,
+    mesh_group_of,
+    mesh_groups,
+    solve_priority,
+    turn_base,
+)
 
 config = validate_config(
     config,
@@ -59,6 +65,12 @@ def base_state_of(animal, variant):
     """The end state a turned variant starts from ([] if it is solved from the start)."""
     base = turn_base_of(animal, variant)
     return [] if base is None else f"results/{animal}/{base}/end_state.npz"
+
+
+def adaptive_base_states_of(animal, variant):
+    """The converged passes of the variant whose adaptive passes ``variant`` rides ([] if it meshes its own)."""
+    base, _ = adaptive_turns(variant, VARIANTS_OF[animal], config["study"]["turn_from_base"])
+    return [] if base is None else f"results/{animal}/adaptive/{base}/states"
 
 
 # the (animal, variant) pairs others are turned from

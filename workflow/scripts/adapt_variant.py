@@ -20,6 +20,8 @@ with script_log(snakemake.log[0], "adapt_variant"):  # noqa: F821
             passes_csv=snakemake.output.passes,  # noqa: F821
             summary=snakemake.output.summary,  # noqa: F821
             vtu=snakemake.output.vtu,  # noqa: F821
+            base_states=snakemake.input.base_states or None,  # noqa: F821
+            states=snakemake.output.states,  # noqa: F821
         ),
         model_cfg=snakemake.params.model,  # noqa: F821
         fem_cfg=snakemake.params.fem,  # noqa: F821
