@@ -211,7 +211,8 @@ def test_a_turned_adaptive_variant_rides_its_base_variants_passes(tmp_path):
 @pytest.mark.slow
 def test_the_solve_rule_schedules_the_longest_solves_first(tmp_path):
     # the dry run shows each solve job with its priority (deeptissue.variants.solve_priority): 10 for a bar
-    # plus the phantom's depth, and 50 more for a variant others are turned from (they wait for it)
+    # plus the phantom's depth, and 5 more for a variant others are turned from (they wait for it, after
+    # the bars: the longest job starts first)
     import re
 
     r = _snakemake(tmp_path, "-n", "--cores", "2")
@@ -223,7 +224,7 @@ def test_the_solve_rule_schedules_the_longest_solves_first(tmp_path):
         (a, v) for a in depth for v in cfg["study"]["variants"]
     )
     for animal, variant, prio in jobs:
-        base = 50.0 if variant == "sphere" else 0.0
+        base = 5.0 if variant == "sphere" else 0.0
         assert float(prio) == pytest.approx(
             (10.0 if variant.startswith("bar") else 0.0) + depth[animal] + base
         )

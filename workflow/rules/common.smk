@@ -86,10 +86,11 @@ MODEL_PRIORITY = 100
 
 def solve_job_priority(wildcards):
     """Longest solves first (bars, then deeper phantoms): deeptissue.variants.solve_priority; a variant that
-    others are turned from before all (they wait for it)."""
+    others are turned from (they wait for it) before the other variants of its shape, after the bars: the
+    longest job, a bar, starts first, and the short turned variants end the study."""
     depth = animal_cfg(wildcards.animal).get("phantom", {}).get("depth_mm")
     return solve_priority(wildcards.variant, depth) + (
-        50.0 if (wildcards.animal, wildcards.variant) in TURN_BASES else 0.0
+        5.0 if (wildcards.animal, wildcards.variant) in TURN_BASES else 0.0
     )
 
 
