@@ -183,6 +183,7 @@ def test_two_adaptive_passes_on_a_phantom_limb_refine_under_the_indenter(limb, t
     d = json.loads((tmp_path / "t/summary.json").read_text())
     assert d["turned_from"] == "sphere" and d["contact_set"] == "patch_sphere_rz+15"
     assert d["indenter_force_N"] > 0 and d["voi_mm3"] > 0
+    assert not any((tmp_path / "t/states").iterdir())  # no variant rides a turned one's passes
     # a base that converged on no pass: the turned variant meshes and solves its own from the start
     (tmp_path / "empty/states").mkdir(parents=True)
     run_adaptive_variant(

@@ -366,7 +366,8 @@ def run_adaptive_variant(
     raises (its passes table then has no rows), or whose first pass does not converge, writes a summary
     with ``converged = False`` and the reason and the first pass's mesh undeformed, so that the study goes
     on without this variant (as rule ``solve`` does); returns None if it raised. ``files.states`` gets
-    each converged pass's mesh and end state (:func:`pass_files`); a turned variant
+    each converged pass's mesh and end state (:func:`pass_files`) where other variants ride this one's
+    passes, and is left empty otherwise; a turned variant
     (:func:`deeptissue.variants.adaptive_turns`) rides the base's passes in ``files.base_states``.
 
     ``model_cfg``, ``fem_cfg`` and ``study_cfg`` are the config sections ``model`` (with
@@ -406,7 +407,7 @@ def run_adaptive_variant(
             job,
             settings,
             base=_base_passes(files.base_states, base_variant),
-            states_dir=files.states,
+            states_dir=files.states if turned else None,  # only what a turned variant rides
             log_pass=lambda line: log.info("%s/%s adaptive %s", animal, variant, line),
         )
     except Exception as exc:  # recorded, never lost: the study goes on without this variant
