@@ -199,6 +199,32 @@ def test_two_adaptive_passes_on_a_phantom_limb_refine_under_the_indenter(limb, t
     assert d["converged"] and d["turned_from"] is None and d["adapt_passes"] == 1
 
 
+def test_a_turned_variant_rides_only_base_passes_that_carry_its_patch(tmp_path):
+    from deeptissue.adapt_limb import _base_passes, pass_files
+    from deeptissue.fem.solver import EndState, SolverSettings, save_end_state
+    from deeptissue.mesh import save_tetmesh
+    from deeptissue.rigid import BoneMotion
+
+    box = box_tet10(np.linspace(0, 2, 3), np.linspace(0, 2, 3), np.linspace(0, 2, 3))
+    top = boundary_tri6(box, lambda x: x[:, 2] > 2 - 1e-9)
+    sphere = Indenter(kind="sphere", axis=(0, 0, -1), start_mm=(1, 1, 3), end_mm=(1, 1, 1.8))
+    state = EndState(np.zeros(box.nodes_mm.size), {}, sphere, BoneMotion(), SolverSettings())
+    for k, facets in enumerate(({"patch_sphere_rz+15": top}, {"patch_sphere": top})):
+        mesh_path, state_path = pass_files(tmp_path, k)
+        save_tetmesh(mesh_path, TetMesh(box.nodes_mm, box.tets, facets=facets))
+        save_end_state(state_path, state)
+    assert len(load_pass_states(tmp_path)) == 2
+    # pass 1 lacks the patch: the base was meshed for other variants, so no pass is ridden
+    assert _base_passes(tmp_path, "sphere", "sphere_rz+15") == []
+    pass_files(tmp_path, 1)[0].unlink()  # pass 1 incomplete: the passes end before it
+    assert len(_base_passes(tmp_path, "sphere", "sphere_rz+15")) == 1
+    assert _base_passes(tmp_path, None, "sphere_rz+15") == []
+    # a file that is not an end state is refused with its name
+    pass_files(tmp_path, 0)[1].write_text("no state")
+    with pytest.raises(ValueError, match="pass0_end_state.npz"):
+        load_pass_states(tmp_path)
+
+
 def test_a_failed_adaptive_run_is_recorded_and_the_study_goes_on(limb, tmp_path):
     c, p, cast = limb
     save_contours(tmp_path / "pre.npz", c)

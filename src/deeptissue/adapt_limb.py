@@ -406,7 +406,7 @@ def run_adaptive_variant(
         result = adaptive_limb(
             job,
             settings,
-            base=_base_passes(files.base_states, base_variant),
+            base=_base_passes(files.base_states, base_variant, variant),
             states_dir=files.states if turned else None,  # only what a turned variant rides
             log_pass=lambda line: log.info("%s/%s adaptive %s", animal, variant, line),
         )
@@ -452,18 +452,21 @@ def run_adaptive_variant(
     return result
 
 
-def _base_passes(states_dir, base_variant) -> list[tuple[TetMesh, EndState]]:
-    """The base variant's converged passes in ``states_dir`` (none without a base, or where its run
-    converged on no pass: this variant then meshes and solves its own passes from the start)."""
+def _base_passes(states_dir, base_variant, variant) -> list[tuple[TetMesh, EndState]]:
+    """The base variant's converged passes in ``states_dir``; none without a base, or where its run
+    converged on no pass or its meshes lack this variant's patch (a base run for other variants): this
+    variant then meshes and solves its own passes from the start."""
     if states_dir is None or base_variant is None:
         return []
     passes = load_pass_states(states_dir)
+    why = ""
     if not passes:
-        log.warning(
-            "%s: %s converged on no adaptive pass: this variant is solved from the start",
-            states_dir,
-            base_variant,
-        )
+        why = f"{base_variant} converged on no adaptive pass"
+    elif any(f"patch_{variant}" not in mesh.facets for mesh, _ in passes):
+        why = f"the meshes of {base_variant} have no patch_{variant}"
+    if why:
+        log.warning("%s: %s: this variant is solved from the start", states_dir, why)
+        return []
     return passes
 
 
