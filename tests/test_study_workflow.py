@@ -159,9 +159,9 @@ def test_each_animal_solves_meshes_and_aggregates_its_own_variants(tmp_path):
     assert "results/rat02/sphere/end_state.npz" in turned
     assert "results/rat02/model/sphere/mesh.npz" in turned
     assert not any(p.endswith("end_state.npz") for p in solves[("rat03", "bar")]["input"])
-    # 50 more for a sphere others are turned from; rat03's bar is no base (10 + its depth)
-    assert solves[("rat02", "sphere")]["priority"] == pytest.approx(50 + 2.5)
-    assert solves[("rat01", "sphere")]["priority"] == pytest.approx(50 + 2.0)
+    # 5 more for a sphere others are turned from; rat03's bar is no base (10 + its depth)
+    assert solves[("rat02", "sphere")]["priority"] == pytest.approx(5 + 2.5)
+    assert solves[("rat01", "sphere")]["priority"] == pytest.approx(5 + 2.0)
     assert solves[("rat03", "bar")]["priority"] == pytest.approx(10 + 2.2)
     (aggregate,) = jobs["aggregate"]
     summaries = [p for p in aggregate["input"] if p.endswith("summary.json")]
