@@ -112,9 +112,10 @@ class AdaptSettings:
     aimed by the first pass's recovered estimate, several times the true error (on the demo the VOI
     moves by 0.3-10 % from the first pass to the second, where the first pass estimated 13-37 %). With
     the whole 20 000, rat02's spheres get about 72 000 DOFs at their second pass and meet the goal at
-    0.1-0.4 of it, and the demo takes 33.5 min; with 12 000, about 49 000 DOFs and 0.15-0.57, and the
-    demo takes 21.6 min, every variant within the goal. The passes after it are aimed by the change
-    between passes and get ``max_tets``, which rat02's bar needs (79 416 DOFs at its fourth pass).
+    0.1-0.4 of it (the demo's jobs 3 720 s); with 12 000, about 49 000 DOFs and 0.15-0.57, every variant
+    within the goal (2 440 s with every variant on meshes of its own, CHANGELOG.md). The passes
+    after it are aimed by the change between passes and get ``max_tets``, which rat02's bar needs
+    (79 416 DOFs at its fourth pass).
     """
 
     voi_goal_percent: float = 2.0

@@ -20,6 +20,7 @@ judge them; where they miss the goal, it meshes its own next passes and solves t
 
 from __future__ import annotations
 
+import itertools
 import logging
 import shutil
 import time
@@ -172,11 +173,10 @@ def limb_solver(
     state are written (:func:`pass_files`, the passes counted in the order solved)."""
     cast = SolverCast(job.cast.vertices_mm, job.cast.triangles)
     turn_from = {id(mesh): state for mesh, state in base}
-    solved = []  # one entry per call: the pass index of the next solve
+    passes = itertools.count()  # adapt() solves each pass once, in order
 
     def solve(mesh: TetMesh) -> LimbSolve:
-        k = len(solved)
-        solved.append(k)
+        k = next(passes)
         settings = job.solver
         if deadline_s is not None:
             left = max(deadline_s - time.perf_counter(), 1.0)
