@@ -690,6 +690,57 @@ def test_from_the_second_pass_the_voi_and_bins_are_extrapolated_with_their_order
     assert r1.table().loc[1, "voi_err_percent"] == pytest.approx(3 * t.loc[1, "voi_err_percent"])
 
 
+def test_a_region_the_budget_cannot_refine_is_judged_by_its_recovered_estimate(
+    coarse_cylinder,
+):
+    """Bins 50 ± 20 h² % on meshes halved from pass 0 to 1: pass 1's extrapolated estimate misses the
+    goal by far, its recovered estimate (0.5 pp) meets it. Where the budget leaves the next pass's sizes
+    as they are, the next pass could only be judged by its recovered estimate on the same mesh: pass 1
+    is judged by its own, and the loop stops there."""
+    m = coarse_cylinder
+    meshes = [TetMesh(f * m.nodes_mm, m.tets, m.facets) for f in (1.0, 0.5, 0.5)]
+    recovered_pp = iter([5.0, 0.5, 0.5])
+
+    def estimate(mesh, sol):
+        h = element_sizes(mesh)[0]
+        eta = np.zeros(mesh.n_tets)
+        eta[0] = 1.0
+        return PassEstimate(
+            voi_mm3=10.0,
+            voi_err_mm3=0.01,
+            bins_err_pp=next(recovered_pp),
+            force_N=1.0,
+            indicator_mm3=eta,
+            bins_percent={"a": 50 + 20 * h * h, "b": 50 - 20 * h * h},
+            voi_indicator_mm3=np.zeros(mesh.n_tets),
+        )
+
+    def run(max_tets):
+        k = iter(range(3))
+        lines = []
+        r = adapt(
+            lambda f: meshes[next(k)],
+            lambda mm: SimpleNamespace(
+                converged=True, indenter_force_N=1.0, displacement_mm=np.zeros_like(mm.nodes_mm)
+            ),
+            estimate,
+            AdaptSettings(max_passes=3, force_goal_percent=None, max_tets=max_tets),
+            log=lines.append,
+        )
+        return r, r.table(), lines
+
+    r, t, lines = run(max_tets=1)  # no room for a single element more
+    assert r.stop_reason == "goal" and len(r.passes) == 2, t.to_string()
+    assert list(t["bins_status"]) == ["recovered", "recovered"]
+    assert t.loc[1, "bins_err_pp"] == 0.5 and "bins_err_pp.a" not in t
+    assert any("cannot refine the bins region" in ln for ln in lines)
+    # with room to refine, pass 1 keeps its extrapolated estimate and the loop goes on
+    recovered_pp = iter([5.0, 0.5, 0.5])
+    r, t, _ = run(max_tets=10**6)
+    assert t.loc[1, "bins_status"] == "estimated" and t.loc[1, "bins_err_pp"] > 1.0
+    assert len(r.passes) == 3 and not t.loc[1, "goal_met"]
+
+
 def test_a_voi_region_that_misses_its_goal_is_refined_enough_to_extrapolate(coarse_cylinder):
     m = coarse_cylinder
     h = element_sizes(m)
