@@ -31,6 +31,7 @@ __all__ = [
     "GMSH_EDGE_RATIO",
     "GMSH_GRADED_EXCESS",
     "PassEstimate",
+    "SAME_MESH_GROWTH",
     "adapt",
     "element_sizes",
     "estimated_tets",
@@ -51,6 +52,10 @@ GMSH_EDGE_RATIO = 1.3
 # more on the 1.6 mm cylinder refined to 0.2-0.5 mm within 1-3 mm of the top (and on its uniform 1.6 mm
 # remesh), 2 % less on uniform 1 and 0.6 mm remeshes; the count is an upper estimate for the budget
 GMSH_GRADED_EXCESS = 1.2
+# a next mesh with at most this many times the elements of the present one (both by estimated_tets of
+# their graded sizes) is almost the same mesh: where the element budget holds the loop there, a further
+# pass changes its region too little to extrapolate (rat02's bar of the demo: 15 739 and 16 152 tets)
+SAME_MESH_GROWTH = 1.2
 # points per element at which the linear size field is integrated (tet_subdivision(2): 64; within 3 % of
 # the converged integral for a size falling from 1.6 to 0.2 mm across one element)
 _SIZE_POINTS, _ = tet_subdivision(2)
@@ -105,11 +110,10 @@ class AdaptSettings:
     the contact zone is refined to at most ``valid_shrink`` of its size, unless ``h_min_mm`` or
     the element budget keep it from shrinking that far: such a refinement cannot give an estimate, so
     the budget goes to the VOI and bins, and the pass records why (:class:`AdaptPass`). Where the
-    budget or ``h_min_mm`` keep the next sizes from refining a VOI or bin region that misses its goal
-    to ``valid_shrink``, the next pass could not extrapolate it either and would be judged by its
-    recovered estimate on an almost unchanged mesh: this pass is judged by its own recovered estimate
-    instead, and stops there if that meets the goal (rat02's bar of the demo: the bins extrapolated at
-    1.17 pp on 75 615 DOFs, the next pass at 79 416 DOFs recovered 0.60 pp, 300 s later).
+    budget or ``h_min_mm`` hold the next sizes to almost the same mesh (:data:`SAME_MESH_GROWTH`) and
+    keep a VOI or bin region that misses its goal above ``valid_shrink``, the next pass could not
+    extrapolate it either and would be judged by its recovered estimate on an almost unchanged mesh:
+    this pass is judged by its own recovered estimate instead, and stops there if that meets the goal.
     ``max_tets`` caps the next mesh's size (:func:`estimated_tets` of the graded node sizes, an upper
     estimate of gmsh's count; 20 000 quadratic tetrahedra are about 90 000 DOFs, a few minutes per
     solve on one core and under 4 GB): the refined sizes are scaled up together until it fits
@@ -591,14 +595,14 @@ def adapt(
         t3 = time.perf_counter()
         h = element_sizes(mesh)
         e = _pass_estimates(est, h, track, plan, st)
-        met, new_h, stuck = _met(e, est, st), None, []
+        met, new_h, stuck = _met(e, est, st), None, ""
         wall_spent = time.perf_counter() - t_start >= st.max_wall_s
         if not (met or wall_spent or k + 1 == st.max_passes or k + 1 < len(given)):
             budget = min(st.first_refinement_tets, st.max_tets) if k == 0 else st.max_tets
             new_h, plan = _next_sizes(
                 mesh, h, est, (e.voi_pc, _bins_max(e, est), e.force_pc), st, budget
             )
-            e, stuck = _judged_where_unrefinable(e, est, h, new_h, st)
+            e, stuck = _judged_where_unrefinable(e, est, mesh, new_h, st)
             met = _met(e, est, st)
         p = _solved_pass(k, mesh, (t1 - t0, t2 - t1, t3 - t2, t3 - t_start), est, e, met)
         passes.append(p)
@@ -610,11 +614,7 @@ def adapt(
                 f"+- {e.force_pc:.2f} % ({e.force_status}), goal met: {met}"
             )
             if stuck:
-                log(
-                    f"pass {k}: the next sizes cannot refine the {' and '.join(stuck)} region to "
-                    f"{st.valid_shrink:g} of its size (element budget or h_min): judged by its "
-                    "recovered estimate"
-                )
+                log(f"pass {k}: {stuck}")
         if met:
             reason = "goal"
             break
@@ -676,30 +676,45 @@ def _met(e: _Estimates, est: PassEstimate, st: AdaptSettings) -> bool:
 
 
 def _judged_where_unrefinable(
-    e: _Estimates, est: PassEstimate, h, new_h, st: AdaptSettings
-) -> tuple[_Estimates, list]:
+    e: _Estimates, est: PassEstimate, mesh: TetMesh, new_h, st: AdaptSettings
+) -> tuple[_Estimates, str]:
     """``e`` with the VOI's or the bins' estimate that misses its goal replaced by this pass's recovered
-    estimate where the next pass's sizes ``new_h`` (n_tets,) [mm] leave the quantity's region above
-    ``valid_shrink`` of its present mean size ``h`` (the element budget or ``h_min_mm`` keep it there):
-    the next pass could not extrapolate it and would be judged by its recovered estimate on an almost
-    unchanged mesh. Returns the estimates and the names of the quantities judged anew."""
-    voi_region, bins_region = _regions(est)
-
-    def unrefinable(mask):
-        return bool(mask.any()) and new_h[mask].mean() > st.valid_shrink * h[mask].mean()
-
-    changes, names = {}, []
+    estimate where the next pass's sizes ``new_h`` (n_tets,) [mm] make almost the same mesh (the element
+    budget or ``h_min_mm`` keep them there: at most :data:`SAME_MESH_GROWTH` times the elements, by
+    :func:`estimated_tets` of both meshes' graded sizes) and leave the quantity's region above
+    ``valid_shrink`` of its mean size: the next pass could not extrapolate it and would be judged by its
+    recovered estimate on an almost unchanged mesh. Returns the estimates and what was judged anew and
+    why ('' if nothing)."""
+    h = element_sizes(mesh)
+    misses = {}
     if e.voi_status != "recovered" and not e.voi_pc <= st.voi_goal_percent:
-        if unrefinable(voi_region):
-            changes.update(
-                voi_pc=voi_error_percent(est.voi_mm3, est.voi_err_mm3), voi_status="recovered"
-            )
-            names.append("VOI")
+        misses["VOI"] = _regions(est)[0]
     if e.bins_status != "recovered" and not _bins_max(e, est) <= st.bins_goal_pp:
-        if unrefinable(bins_region):
-            changes.update(bins_pp={b: np.nan for b in e.bins_pp}, bins_status="recovered")
-            names.append("bins")
-    return replace(e, **changes), names
+        misses["bins"] = _regions(est)[1]
+    misses = {q: m for q, m in misses.items() if m.any()}
+    if not misses:
+        return e, ""
+    now = node_sizes(mesh, h, grading=st.grading, current_mm=h)
+    growth = estimated_tets(
+        mesh, node_sizes(mesh, new_h, grading=st.grading, current_mm=h)
+    ) / estimated_tets(mesh, now)
+    shrink = {q: float(new_h[m].mean() / h[m].mean()) for q, m in misses.items()}
+    stuck = [q for q, f in shrink.items() if f > st.valid_shrink]
+    if growth > SAME_MESH_GROWTH or not stuck:
+        return e, ""
+    changes = {}
+    if "VOI" in stuck:
+        changes.update(
+            voi_pc=voi_error_percent(est.voi_mm3, est.voi_err_mm3), voi_status="recovered"
+        )
+    if "bins" in stuck:
+        changes.update(bins_pp={b: np.nan for b in e.bins_pp}, bins_status="recovered")
+    regions = ", ".join(f"the {q} region to {shrink[q]:.2f}" for q in stuck)
+    why = (
+        f"the next sizes give {growth:.2f} times the elements and shrink {regions} of its size "
+        f"(valid_shrink {st.valid_shrink:g}): judged by the recovered estimate"
+    )
+    return replace(e, **changes), why
 
 
 def _unsolved_pass(k: int, mesh: TetMesh, times_s: tuple) -> AdaptPass:
