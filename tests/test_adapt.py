@@ -733,7 +733,7 @@ def test_a_region_the_budget_cannot_refine_is_judged_by_its_recovered_estimate(
     assert r.stop_reason == "goal" and len(r.passes) == 2, t.to_string()
     assert list(t["bins_status"]) == ["recovered", "recovered"]
     assert t.loc[1, "bins_err_pp"] == 0.5 and "bins_err_pp.a" not in t
-    assert any("1.00 times the elements and shrink the bins region to 1.00" in ln for ln in lines)
+    assert any("0.83 times the elements and shrink the bins region to 1.00" in ln for ln in lines)
     # with room to refine, pass 1 keeps its extrapolated estimate and the loop goes on
     recovered_pp = iter([5.0, 0.5, 0.5])
     r, t, _ = run(max_tets=10**6)
