@@ -126,7 +126,7 @@ class AdaptSettings:
     0.1-0.4 of it (the demo's jobs 3 720 s); with 12 000, about 49 000 DOFs and 0.15-0.57, every variant
     within the goal (2 440 s with every variant on meshes of its own, CHANGELOG.md). The passes
     after it are aimed by the change between passes and get ``max_tets``, which rat02's bar needs
-    (79 416 DOFs at its fourth pass).
+    (75 615 DOFs at its third pass).
     """
 
     voi_goal_percent: float = 2.0
