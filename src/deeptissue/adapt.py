@@ -52,11 +52,13 @@ GMSH_EDGE_RATIO = 1.3
 # more on the 1.6 mm cylinder refined to 0.2-0.5 mm within 1-3 mm of the top (and on its uniform 1.6 mm
 # remesh), 2 % less on uniform 1 and 0.6 mm remeshes; the count is an upper estimate for the budget
 GMSH_GRADED_EXCESS = 1.2
-# a next mesh expected to have at most this many times the elements of the present one (estimated_tets
-# of its graded sizes over GMSH_GRADED_EXCESS: gmsh made 0.79-0.81 of the estimate at each of the three
-# refinements of rat02's bar of the demo; an unchanged mesh is expected at 0.83) is almost the same mesh: where the element budget holds the loop there, a further pass changes its region too little to
-# extrapolate. rat02's bar of the demo, at a budget of 20 000: 10 110 tets at pass 1 (expected growth
-# 1.65, gmsh made 15 739), 15 739 at pass 2 (expected 1.06, gmsh made 16 152)
+# a next mesh expected to have at most this many times the elements of the present one is almost the
+# same mesh: where the element budget holds the loop there, a further pass changes a region too little
+# to extrapolate. Expected: estimated_tets of its graded sizes over GMSH_GRADED_EXCESS (gmsh made
+# 0.79-0.81 of the estimate at each of the three refinements of rat02's bar of the demo; an unchanged
+# mesh is expected at 0.83). That bar, at a budget of 20 000: 10 110 tets at pass 1 (expected growth
+# about 1.65, the budget over 1.2 x 10 110; gmsh made 15 739), 15 739 at pass 2 (expected 1.05, its
+# log's `the next sizes give` line; gmsh made 16 152 at the pass this rule now saves)
 SAME_MESH_GROWTH = 1.2
 # points per element at which the linear size field is integrated (tet_subdivision(2): 64; within 3 % of
 # the converged integral for a size falling from 1.6 to 0.2 mm across one element)
@@ -318,8 +320,8 @@ class AdaptPass:
     ``bins_status`` say what ``voi_err_percent`` and ``bins_err_pp`` are: ``'estimated'`` (extrapolated
     from the previous pass), ``'held'`` or ``'recovered'`` (the recovered-strain estimate of this pass
     alone: on the first pass, where no element is marked or the region was not refined enough to
-    extrapolate, and where the next pass's sizes could not refine it enough); ``bins_err`` holds every
-    bin's extrapolated or held estimate [pp] (empty when recovered).
+    extrapolate, and where the next pass would be almost the same mesh, :data:`SAME_MESH_GROWTH`);
+    ``bins_err`` holds every bin's extrapolated or held estimate [pp] (empty when recovered).
     """
 
     index: int
