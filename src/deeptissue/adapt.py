@@ -58,7 +58,7 @@ GMSH_GRADED_EXCESS = 1.2
 # 0.79-0.81 of the estimate at each of the three refinements of rat02's bar of the demo; an unchanged
 # mesh is expected at 0.83). That bar, at a budget of 20 000: 10 110 tets at pass 1 (expected growth
 # about 1.65, the budget over 1.2 x 10 110; gmsh made 15 739), 15 739 at pass 2 (expected 1.05, its
-# log's `the next sizes give` line; gmsh made 16 152 at the pass this rule now saves)
+# log's `the next sizes give` line; gmsh made 16 152 at the pass after it, which the rule skips)
 SAME_MESH_GROWTH = 1.2
 # points per element at which the linear size field is integrated (tet_subdivision(2): 64; within 3 % of
 # the converged integral for a size falling from 1.6 to 0.2 mm across one element)
