@@ -599,16 +599,17 @@ def adapt(
         t3 = time.perf_counter()
         h = element_sizes(mesh)
         e = _pass_estimates(est, h, track, plan, st)
-        met, new_h, stuck = _met(e, est, st), None, ""
+        met, nxt, stuck = _met(e, est, st), None, ""
         wall_spent = time.perf_counter() - t_start >= st.max_wall_s
         if not (met or wall_spent or k + 1 == st.max_passes or k + 1 < len(given)):
             budget = min(st.first_refinement_tets, st.max_tets) if k == 0 else st.max_tets
             new_h, plan = _next_sizes(
                 mesh, h, est, (e.voi_pc, _bins_max(e, est), e.force_pc), st, budget
             )
-            e, stuck = _judged_where_unrefinable(e, est, mesh, new_h, st)
+            nxt = node_sizes(mesh, new_h, grading=st.grading, current_mm=h)
+            e, stuck = _judged_where_unrefinable(e, est, mesh, (h, new_h, nxt), st)
             met = _met(e, est, st)
-        p = _solved_pass(k, mesh, (t1 - t0, t2 - t1, t3 - t2, t3 - t_start), est, e, met)
+        p = _solved_pass(k, mesh, h, (t1 - t0, t2 - t1, t3 - t2, t3 - t_start), est, e, met)
         passes.append(p)
         last = (mesh, sol, est)
         if log is not None:
@@ -627,11 +628,9 @@ def adapt(
         if wall_spent:
             reason = "wall"
             break
-        if new_h is None:  # the next pass is given
+        if nxt is None:  # the next pass is given
             continue
-        field_ = SizeField.from_mesh(
-            mesh, node_sizes(mesh, new_h, grading=st.grading, current_mm=h)
-        )
+        field_ = SizeField.from_mesh(mesh, nxt)
         if log is not None:
             log(f"pass {k + 1}: {NEXT_PASS}")
     mesh, sol, est = last if last is not None else (None, None, None)
@@ -639,11 +638,11 @@ def adapt(
 
 
 def _solved_pass(
-    k: int, mesh: TetMesh, times_s: tuple, est: PassEstimate, e: _Estimates, met: bool
+    k: int, mesh: TetMesh, h, times_s: tuple, est: PassEstimate, e: _Estimates, met: bool
 ):
-    """Pass ``k`` solved on ``mesh``: its (mesh, solve, estimate, since the start) times [s], the
-    estimator's ``est``, the estimates ``e`` as judged and whether they meet the goal."""
-    h = element_sizes(mesh)
+    """Pass ``k`` solved on ``mesh`` of element sizes ``h`` [mm]: its (mesh, solve, estimate, since the
+    start) times [s], the estimator's ``est``, the estimates ``e`` as judged and whether they meet the
+    goal."""
     return AdaptPass(
         k,
         3 * len(mesh.nodes_mm),
@@ -680,26 +679,27 @@ def _met(e: _Estimates, est: PassEstimate, st: AdaptSettings) -> bool:
 
 
 def _judged_where_unrefinable(
-    e: _Estimates, est: PassEstimate, mesh: TetMesh, new_h, st: AdaptSettings
+    e: _Estimates, est: PassEstimate, mesh: TetMesh, sizes: tuple, st: AdaptSettings
 ) -> tuple[_Estimates, str]:
     """``e`` with the VOI's or the bins' estimate that misses its goal replaced by this pass's recovered
-    estimate where the next pass's sizes ``new_h`` (n_tets,) [mm] make almost the same mesh (the element
-    budget or ``h_min_mm`` keep them there: at most :data:`SAME_MESH_GROWTH` times the elements, by
-    :func:`estimated_tets` of the next sizes) and leave the quantity's region above
-    ``valid_shrink`` of its mean size: the next pass could not extrapolate it and would be judged by its
-    recovered estimate on an almost unchanged mesh. Returns the estimates and what was judged anew and
-    why ('' if nothing)."""
-    h = element_sizes(mesh)
+    estimate where the next pass's sizes make almost the same mesh (the element budget or ``h_min_mm``
+    keep them there: at most :data:`SAME_MESH_GROWTH` times the elements, by :func:`estimated_tets` of
+    the next node sizes) and leave the quantity's region above ``valid_shrink`` of its mean size: the
+    next pass could not extrapolate it and would be judged by its recovered estimate on an almost
+    unchanged mesh. ``sizes``: the present and the next element sizes (n_tets,) [mm] and the next node
+    sizes (:func:`node_sizes`, the next pass's size field). Returns the estimates and what was judged
+    anew and why ('' if nothing)."""
+    h, new_h, nxt = sizes
+    voi_region, bins_region = _regions(est)
     misses = {}
     if e.voi_status != "recovered" and not e.voi_pc <= st.voi_goal_percent:
-        misses["VOI"] = _regions(est)[0]
+        misses["VOI"] = voi_region
     if e.bins_status != "recovered" and not _bins_max(e, est) <= st.bins_goal_pp:
-        misses["bins"] = _regions(est)[1]
+        misses["bins"] = bins_region
     misses = {q: m for q, m in misses.items() if m.any()}
     if not misses:
         return e, ""
     now = node_sizes(mesh, h, grading=st.grading, current_mm=h)
-    nxt = node_sizes(mesh, new_h, grading=st.grading, current_mm=h)
     # the expected count: the estimate is an upper one by gmsh's excess where sizes change
     growth = estimated_tets(mesh, nxt, current_mm=now) / (GMSH_GRADED_EXCESS * mesh.n_tets)
     shrink = {q: float(new_h[m].mean() / h[m].mean()) for q, m in misses.items()}
