@@ -235,3 +235,31 @@ def test_the_augmented_lagrangian_slope_is_its_derivative():
             p.lagrangian(u + eps * a, lam + eps * b) - p.lagrangian(u - eps * a, lam - eps * b)
         ) / (2 * eps)
         assert p.lagrangian_slope(f, gw, G, lam, a, b) == pytest.approx(fd, rel=1e-5)
+
+
+def test_a_newton_step_may_not_crush_an_element_past_a_fraction_of_its_volume():
+    # the line search's merits refuse a point whose det F falls below _STEP_DET_FRACTION (1/4) of its value at the
+    # step's start: a homogeneous compression to half the length (det F 1/8) is refused, to 3/4 (det F 0.42) taken;
+    # outside a line search only an inverted point is refused
+    from deeptissue.fem.assembly import Assembler, as_material_law
+    from deeptissue.fem.solver import SolverSettings, _line_search, _Problem
+
+    limb = cored_cylinder_mesh(length_mm=6.0, radius_mm=3.0, core_radius_mm=0.8, h_mm=1.2)
+    law = as_material_law(LAW)
+    constrained = np.zeros(limb.nodes_mm.size, bool)
+    asm = Assembler(limb, law, constrained=constrained)
+    wc = WeightedContact(
+        limb.nodes_mm, [("indenter", limb.facets["skin"])], np.array([], int), young_mpa=law.young_mpa
+    )
+    ind = Indenter("sphere", axis=(-1, 0, 0), radius_mm=1.5)
+    wc.gapfns[0] = lambda x, hessian=True: ind.gap(x, np.array([9.0, 0.0, 3.0]), hessian=hessian)
+    p = _Problem(SolverSettings(), asm, wc, constrained, 1.0)
+    u, lam = np.zeros(limb.nodes_mm.size), np.zeros(len(wc.node))
+    du = -0.5 * limb.nodes_mm.ravel()  # every length halved: det F = 1/8
+    assert np.isfinite(p.merit(u + du, lam))
+    assert p.bound_step(u) == pytest.approx(1.0)
+    assert p.merit(u + du, lam) == np.inf and p.lagrangian(u + du, lam) == np.inf
+    assert np.isfinite(p.merit(u + 0.5 * du, lam))
+    assert _line_search(p.merit, u, lam, du, 0 * lam, np.inf, -1.0, whole=True) == 0.5
+    p.bound_step(None)
+    assert np.isfinite(p.merit(u + du, lam))

@@ -185,18 +185,24 @@ class Assembler:
         F += np.eye(3)
         return F
 
-    def energy(self, u: np.ndarray) -> float:
-        """Total strain energy [mJ]; +inf if det F <= 0 at any quadrature point."""
+    def det_f(self, u: np.ndarray) -> np.ndarray:
+        """det F (E, Q) at the quadrature points for the nodal displacement u (n_dofs,) [mm]."""
+        return np.linalg.det(self.deformation_gradient(u))
+
+    def energy(self, u: np.ndarray, min_det: np.ndarray | float = 0.0) -> float:
+        """Total strain energy [mJ]; +inf if det F <= min_det (a bound, or one per quadrature point (E, Q))
+        anywhere."""
         F = self.deformation_gradient(u)
-        if np.any(np.linalg.det(F) <= 0):
+        if np.any(np.linalg.det(F) <= min_det):
             return np.inf
         W = self.law.energy(F, self.law.params)
         return float(np.sum(W * self.w))
 
-    def force(self, u: np.ndarray):
-        """(energy [mJ], internal force (n_dofs,) [N]); energy inf and force None if inverted."""
+    def force(self, u: np.ndarray, min_det: np.ndarray | float = 0.0):
+        """(energy [mJ], internal force (n_dofs,) [N]); energy inf and force None if det F <= min_det (a bound,
+        or one per quadrature point (E, Q)) anywhere: inverted, or compressed past that bound."""
         F = self.deformation_gradient(u)
-        if np.any(np.linalg.det(F) <= 0):
+        if np.any(np.linalg.det(F) <= min_det):
             return np.inf, None
         W = self.law.energy(F, self.law.params)
         P = self.law.stress(F, self.law.params)
