@@ -17,21 +17,55 @@ The stage reads the during scan and the contours of both states and writes ``pos
 - :mod:`.accuracy`: errors against a phantom's truth (rule ``pose_accuracy``).
 """
 
-from .accuracy import ACCURACY_TOLERANCES, accuracy_table, pose_errors, run_pose_accuracy
-from .estimate import (
-    PoseFiles,
-    PoseOptions,
-    check_depth,
-    check_tip_in_leg,
-    estimate_pose,
-    read_override,
-    run_pose,
-)
-from .indenter import TipSearch, line_triangle_hits, skin_triangles, tip_end_mm
-from .qc import plot_axis_qc, plot_bone_qc, plot_tip_qc
-from .registration import LegGuard, LegRegistration, register_leg
-from .result import Pose, load_pose, save_pose
-from .scan import MAX_SLICE_OBLIQUITY_DEG, check_axial_slices, slice_obliquity_deg
+import importlib
+
+#: Each public name and the submodule that defines it. A submodule is imported when one of its names is
+#: first asked for (:func:`__getattr__`), so a job that only reads or writes ``pose.json`` (:mod:`.result`),
+#: as every solve does, does not import the estimation's SciPy, scikit-image, nibabel and Matplotlib modules.
+_EXPORTS = {
+    "ACCURACY_TOLERANCES": "accuracy",
+    "accuracy_table": "accuracy",
+    "pose_errors": "accuracy",
+    "run_pose_accuracy": "accuracy",
+    "PoseFiles": "estimate",
+    "PoseOptions": "estimate",
+    "check_depth": "estimate",
+    "check_tip_in_leg": "estimate",
+    "estimate_pose": "estimate",
+    "read_override": "estimate",
+    "run_pose": "estimate",
+    "TipSearch": "indenter",
+    "line_triangle_hits": "indenter",
+    "skin_triangles": "indenter",
+    "tip_end_mm": "indenter",
+    "plot_axis_qc": "qc",
+    "plot_bone_qc": "qc",
+    "plot_tip_qc": "qc",
+    "LegGuard": "registration",
+    "LegRegistration": "registration",
+    "register_leg": "registration",
+    "Pose": "result",
+    "load_pose": "result",
+    "save_pose": "result",
+    "MAX_SLICE_OBLIQUITY_DEG": "scan",
+    "check_axial_slices": "scan",
+    "slice_obliquity_deg": "scan",
+}
+
+
+def __getattr__(name: str):
+    """The public ``name`` from its submodule (:data:`_EXPORTS`), imported on first use."""
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{module}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_EXPORTS})
+
 
 __all__ = [
     "ACCURACY_TOLERANCES",
