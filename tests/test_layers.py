@@ -27,7 +27,16 @@ PACKAGE = "deeptissue"
 LAYERS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "base": (("__init__", "io", "elements", "geometry", "rigid", "variants", "pose_error"), ()),
     "images": (
-        ("imaging", "contours", "scanner", "qc", "segment_checks", "fluid", "bone_motion"),
+        (
+            "imaging",
+            "contours",
+            "scanner",
+            "qc",
+            "segment_checks",
+            "segment_accuracy",
+            "fluid",
+            "bone_motion",
+        ),
         ("base",),
     ),
     "segment": (("segment",), ("images",)),
@@ -208,12 +217,12 @@ def test_every_module_is_in_exactly_one_layer_and_every_entry_exists():
 
 
 def test_the_import_walk_sees_relative_function_level_and_absolute_imports():
-    # truths read off the source by hand: study imports the solver at its top, segment imports the
-    # strict YAML reader inside load_overrides, config the phantom at its top
+    # truths read off the source by hand: study imports the solver at its top, the phantom imports the
+    # NIfTI writer inside write_phantom, config the phantom at its top
     found = {(a, b, inside) for a, b, _, inside in _imports()}
     assert ("deeptissue.study", "deeptissue.fem.solver", False) in found
     assert ("deeptissue.study", "deeptissue.pose", False) in found
-    assert ("deeptissue.segment", "deeptissue.io", True) in found
+    assert ("deeptissue.phantom", "deeptissue.imaging", True) in found
     assert ("deeptissue.config", "deeptissue.phantom", False) in found
     assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
 

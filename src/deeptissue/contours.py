@@ -22,6 +22,7 @@ import numpy as np
 from .io import save_npz
 
 __all__ = [
+    "STRUCTURES",
     "Contours",
     "load_contours",
     "point_to_polygon_distance",
@@ -32,6 +33,9 @@ __all__ = [
     "save_contours",
     "slices_with_contour",
 ]
+
+#: The structures a :class:`Contours` holds (the fibula optional).
+STRUCTURES = ("skin", "bone", "fibula")
 
 
 @dataclass(frozen=True)

@@ -82,7 +82,7 @@ def plot_segmentation(
 
     Drawn in voxel index space (so any affine works), zoomed to the skin contours (the whole slice where there
     are none); the PNG is written atomically. With ``accuracy`` rows (see
-    :func:`deeptissue.segment.contour_accuracy`) the title carries the mean/max distance to the truth per structure.
+    :func:`deeptissue.segment_accuracy.contour_accuracy`) the title carries the mean/max distance to the truth per structure.
     """
     import matplotlib
 

@@ -74,9 +74,9 @@ from skimage.segmentation import watershed
 
 from .bone_motion import fit_bone_motion, moved_section, resolve_bone_dof
 from .contours import (
+    STRUCTURES,
     Contours,
     load_contours,
-    point_to_polygon_distance,
     points_in_polygon,
     polygon_area_centroid,
     resample_closed,
@@ -96,6 +96,7 @@ from .imaging import (
 from .io import load_config_file
 from .pose_error import PoseError
 from .qc import LEFT_OUT, plot_segmentation
+from .segment_accuracy import contour_accuracy, write_accuracy
 from .segment_checks import failed_checks_message, segmentation_checks, write_checks
 
 log = logging.getLogger(__name__)
@@ -114,7 +115,6 @@ __all__ = [
     "write_accuracy",
 ]
 
-STRUCTURES = ("skin", "bone", "fibula")
 # the skin plateau is read in a 1-pixel band starting this many blur widths (+ pixels) inside the edge
 _BAND_SIGMAS, _BAND_PX = 1.5, 0.0
 # a fibula candidate's isoperimetric ratio 4 pi A / P^2 (1 for a circle; the phantom's ~0.95)
@@ -1396,40 +1396,6 @@ def find_indenter(
         return None
 
 
-def contour_accuracy(seg: Contours, truth: Contours | dict) -> list[dict]:
-    """In-plane distances from segmented points to the true contour, per slice and structure.
-
-    Parameters
-    ----------
-    seg : Contours
-        Segmented contours.
-    truth : Contours or dict
-        The true contours (each curve taken as the closed polygon through its points), or a dict
-        ``structure -> list of (m, 2|3) dense polylines per slice`` [mm].
-
-    Returns
-    -------
-    list of dict
-        Rows ``{slice, structure, mean_mm, max_mm}`` (slice counted in ``seg``); the fibula's only
-        on the slices where both the segmentation and the truth have one.
-    """
-    rows = []
-    for st in STRUCTURES:
-        segs = getattr(seg, st)
-        true = truth.get(st) if isinstance(truth, dict) else getattr(truth, st)
-        if segs is None or true is None:
-            continue
-        for k in range(segs.shape[0]):
-            t = np.asarray(true[k], float)
-            if not np.isfinite(segs[k]).all() or not np.isfinite(t).all():
-                continue  # fibula absent from this slice in the segmentation or the truth
-            d = point_to_polygon_distance(segs[k, :, :2], t[:, :2])
-            rows.append(
-                {"slice": k, "structure": st, "mean_mm": float(d.mean()), "max_mm": float(d.max())}
-            )
-    return rows
-
-
 @dataclass(frozen=True)
 class SegmentJob:
     """The files and settings of one run of the rule ``segment`` (:func:`segment_files`).
@@ -1665,29 +1631,3 @@ def segment_files(job: SegmentJob) -> Contours:
         vol, shown, job.qc_out, truth=true, accuracy=rows, failed=marked, split=split, title=title
     )
     return contours
-
-
-def write_accuracy(contours_path, truth_path, csv_path) -> list[dict]:
-    """Write the CSV of :func:`contour_accuracy` (slice, structure, mean_mm, max_mm) of a contour file vs a truth file.
-
-    Parameters
-    ----------
-    contours_path, truth_path : str or Path
-        Contour files (:func:`deeptissue.contours.load_contours`), segmented and true.
-    csv_path : str or Path
-        Output CSV, distances [mm].
-
-    Returns
-    -------
-    list of dict
-        The rows written.
-    """
-    import pandas as pd
-
-    from .contours import load_contours
-    from .io import atomic_path
-
-    rows = contour_accuracy(load_contours(contours_path), load_contours(truth_path))
-    with atomic_path(csv_path) as tmp:
-        pd.DataFrame(rows).to_csv(tmp, index=False, float_format="%.5f")
-    return rows
