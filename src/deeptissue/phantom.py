@@ -523,6 +523,55 @@ def _affine(spec: PhantomSpec) -> np.ndarray:
     return A
 
 
+#: A bound [mm per mm] of the in-plane gradient of the tibia's, fibula's and indenter's level functions in
+#: a slice: ``bone_f``'s gradient in (x, y) and ``fibula_f``'s and ``indenter_sd``'s in 3D are at most 1;
+#: 2 leaves room for the slow change of the tibia along z that a moved bone's tilted slice plane picks up.
+#: Where one of them is more than this times a distance from a level, it keeps its side of that level
+#: within the distance, so it is evaluated only near its boundaries (:meth:`_Scene._sub_levels`,
+#: :func:`_level_grid`).
+_BONE_LIPSCHITZ = 2.0
+
+
+def _level_grid(
+    fn, x_mm: np.ndarray, y_mm: np.ndarray, *, h_mm: float, stride: int = 8
+) -> np.ndarray:
+    """A level function ``fn(X, Y)`` (gradient length <= :data:`_BONE_LIPSCHITZ`) on the grid ``x_mm`` ×
+    ``y_mm`` (indexing ij, ``h_mm`` apart) for marching squares: ``fn``'s own values wherever its zero set
+    may pass, ±1 with its sign elsewhere.
+
+    ``fn`` is evaluated on every ``stride``-th grid line first. A cell of that coarse grid whose four
+    corners share a sign and are each more than ``_BONE_LIPSCHITZ · (half its diagonal + h_mm)`` from
+    zero keeps that sign at each of its points, more than ``_BONE_LIPSCHITZ · h_mm`` from zero: no grid
+    edge from one of them crosses the zero set, so marching squares never interpolates their values and
+    the contours are those of ``fn`` on the whole grid. ``fn`` is evaluated at the points of the other
+    cells only (about a tenth of the grid around a bone's boundary).
+    """
+    nx, ny = len(x_mm), len(y_mm)
+    ci = np.unique(np.r_[np.arange(0, nx, stride), nx - 1])
+    cj = np.unique(np.r_[np.arange(0, ny, stride), ny - 1])
+    coarse = fn(*np.meshgrid(x_mm[ci], y_mm[cj], indexing="ij"))
+    far = np.abs(coarse) > _BONE_LIPSCHITZ * (stride * h_mm / np.sqrt(2.0) + h_mm)
+    pos = coarse > 0
+    corners = [(slice(None, -1), slice(None, -1)), (slice(1, None), slice(None, -1))]
+    corners += [(slice(None, -1), slice(1, None)), (slice(1, None), slice(1, None))]
+    settled = np.logical_and.reduce([far[c] & (pos[c] == pos[corners[0]]) for c in corners])
+
+    def cells(i: np.ndarray, starts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The coarse cell a grid line lies in, and the one before where it is that cell's first line."""
+        lo = np.minimum(np.searchsorted(starts, i, side="right") - 1, len(starts) - 2)
+        return lo, np.where((starts[lo] == i) & (lo > 0), lo - 1, lo)
+
+    (a_lo, a_hi), (b_lo, b_hi) = cells(np.arange(nx), ci), cells(np.arange(ny), cj)
+    exact = np.zeros((nx, ny), bool)
+    for a in (a_lo, a_hi):
+        for b in (b_lo, b_hi):
+            exact |= ~settled[np.ix_(a, b)]
+    grid = np.where(pos[:-1, :-1][np.ix_(a_lo, b_lo)], 1.0, -1.0)
+    i, j = np.nonzero(exact)
+    grid[i, j] = fn(x_mm[i], y_mm[j])
+    return grid
+
+
 class _Scene:
     """Anatomy + indenter + motion: level functions of the pre and during states."""
 
@@ -704,37 +753,96 @@ class _Scene:
         return best
 
     # rendering -------------------------------------------------------------------------------
-    def _values(self, X, Y, z, state):
-        """Intensity without coil (same shape as X) and a distance-like margin (mm) to the nearest boundary."""
+    def _tibia_levels(self, q) -> dict:
+        """The tibia's and its marrow's level functions (mm) at the pre-state points ``q`` (x, y, z)."""
+        return {
+            "fb": self.an.bone_f(*q),
+            "fm": self.an.bone_f(*q, self.s.cortex_thickness_mm),
+        }
+
+    def _fibula_levels(self, q) -> dict:
+        """The fibula's and its marrow's level functions (mm) at the pre-state points ``q`` (x, y, z)."""
+        return {
+            "ff": self.an.fibula_f(*q),
+            "ffm": self.an.fibula_f(*q, self.s.fibula_cortex_mm),
+        }
+
+    def _levels(self, X, Y, z, state) -> dict:
+        """Every level function (mm, < 0 inside) at the points (X, Y) of slice ``z``: ``phi`` (tissue), ``fb``,
+        ``fm`` (tibia, marrow), ``ff``, ``ffm`` (fibula, marrow; with a fibula) and ``sd`` (the indenter's
+        signed distance; during, with a depth), each shaped like X."""
+        q = self._preimage(X, Y, z, state)
+        out = {"phi": self.phi(X, Y, z, state), **self._tibia_levels(q)}
+        if self.s.fibula:
+            out.update(self._fibula_levels(q))
+        if state == "during" and self.s.depth_mm > 0:
+            out["sd"] = self.indenter_sd(X, Y, z)
+        return out
+
+    def _intensity(self, lv: dict) -> np.ndarray:
+        """Intensity without coil at the points of the level functions ``lv`` (:meth:`_levels`)."""
         s = self.s
-        val = np.zeros_like(X)
-        phi = self.phi(X, Y, z, state)
+        phi = lv["phi"]
+        val = np.zeros_like(phi)
         tissue = phi < 0
         val[tissue] = s.muscle
         val[tissue & (phi > -s.skin_thickness_mm)] = s.skin
-        # |bone_f| is at most the distance (mm) to its zero set (gradient length <= 1), so
-        # sub-sampling happens wherever a boundary crosses a pixel
-        fb = self.bone(X, Y, z, state)
-        fm = self.bone(X, Y, z, state, inset=s.cortex_thickness_mm)
-        bone = tissue & (fb < 0)
+        bone = tissue & (lv["fb"] < 0)
         val[bone] = s.cortex
-        val[bone & (fm < 0)] = s.marrow
-        margin = np.minimum.reduce(
-            [np.abs(phi), np.abs(phi + s.skin_thickness_mm), np.abs(fb), np.abs(fm)]
-        )
-        if s.fibula:
-            ff = self.fibula(X, Y, z, state)
-            ffm = self.fibula(X, Y, z, state, inset=s.fibula_cortex_mm)
-            fib = tissue & (ff < 0)
+        val[bone & (lv["fm"] < 0)] = s.marrow
+        if "ff" in lv:
+            fib = tissue & (lv["ff"] < 0)
             val[fib] = s.cortex
-            val[fib & (ffm < 0)] = s.marrow
-            margin = np.minimum.reduce([margin, np.abs(ff), np.abs(ffm)])
-        if state == "during" and s.depth_mm > 0:
-            sd = self.indenter_sd(X, Y, z)
-            val[sd < 0] = s.wall
-            val[sd < -s.indenter_wall_mm] = s.fluid
+            val[fib & (lv["ffm"] < 0)] = s.marrow
+        if "sd" in lv:
+            val[lv["sd"] < 0] = s.wall
+            val[lv["sd"] < -s.indenter_wall_mm] = s.fluid
+        return val
+
+    def _margin(self, lv: dict) -> np.ndarray:
+        """A distance-like margin (mm) to the nearest boundary at the points of ``lv`` (:meth:`_levels`):
+        ``|bone_f|`` and the others are at most the distance to their zero sets (gradient length <= 1), so
+        sub-sampling happens wherever a boundary crosses a pixel."""
+        s, phi = self.s, lv["phi"]
+        parts = [
+            np.abs(phi),
+            np.abs(phi + s.skin_thickness_mm),
+            np.abs(lv["fb"]),
+            np.abs(lv["fm"]),
+        ]
+        margin = np.minimum.reduce(parts)
+        if "ff" in lv:
+            margin = np.minimum.reduce([margin, np.abs(lv["ff"]), np.abs(lv["ffm"])])
+        if "sd" in lv:
+            sd = lv["sd"]
             margin = np.minimum.reduce([margin, np.abs(sd), np.abs(sd + s.indenter_wall_mm)])
-        return val, margin
+        return margin
+
+    def _sub_levels(self, centre: dict, Xs, Ys, z, state) -> dict:
+        """The level functions at the sub-samples ``Xs``, ``Ys`` (n, S²) of n pixels whose centres have the
+        levels ``centre`` (each (n,)): ``phi`` at every sub-sample; the bones' and the indenter's only in the
+        pixels where one of them is within :data:`_BONE_LIPSCHITZ` times half a pixel diagonal of a level
+        the intensity compares it with. Elsewhere every sub-sample has the centre's sign against each of
+        those levels, and the centre's value stands in for them."""
+        s = self.s
+        reach = _BONE_LIPSCHITZ * self.affine[0, 0] / np.sqrt(2.0)
+        out = {k: np.repeat(v[:, None], Xs.shape[1], axis=1) for k, v in centre.items()}
+        out["phi"] = self.phi(Xs, Ys, z, state)
+
+        def near(name: str, level: float = 0.0) -> np.ndarray:
+            if name not in centre:
+                return np.zeros(len(Xs), bool)
+            return np.abs(centre[name] - level) < reach
+
+        for rows, levels in (
+            (near("fb") | near("fm"), lambda q: self._tibia_levels(self._preimage(*q, state))),
+            (near("ff") | near("ffm"), lambda q: self._fibula_levels(self._preimage(*q, state))),
+            (near("sd") | near("sd", -s.indenter_wall_mm), lambda q: {"sd": self.indenter_sd(*q)}),
+        ):
+            if rows.any():
+                for name, value in levels((Xs[rows], Ys[rows], z)).items():
+                    out[name][rows] = value
+        return out
 
     def render_slice(self, k: int, state: str) -> np.ndarray:
         """Noise-free magnitude of slice k (n_pixels, n_pixels): sub-sampled where a boundary is near."""
@@ -745,15 +853,16 @@ class _Scene:
         z = float(self.z[k])
         xc = x0 + np.arange(n) * dx
         XC, YC = np.meshgrid(xc, xc, indexing="ij")  # [i, j] -> x, y
-        img, margin = self._values(XC, YC, z, state)
-        near = np.nonzero(margin < 1.5 * dx)
+        lv = self._levels(XC, YC, z, state)
+        img = self._intensity(lv)
+        near = np.nonzero(self._margin(lv) < 1.5 * dx)
         if len(near[0]):
             off = ((np.arange(S) + 0.5) / S - 0.5) * dx
             ox, oy = np.meshgrid(off, off, indexing="ij")
             Xs = XC[near][:, None] + ox.ravel()[None, :]
             Ys = YC[near][:, None] + oy.ravel()[None, :]
-            v, _ = self._values(Xs, Ys, z, state)
-            img[near] = v.mean(axis=1)
+            centre = {key: v[near] for key, v in lv.items() if key != "phi"}
+            img[near] = self._intensity(self._sub_levels(centre, Xs, Ys, z, state)).mean(axis=1)
         return img * self.coil(XC, YC, z)
 
     # truth contours --------------------------------------------------------------------------
@@ -791,8 +900,10 @@ class _Scene:
         else:
             raise ValueError(f"phantom: unknown structure {structure!r}")
         g = np.arange(-half, half + h / 2, h)
-        X, Y = np.meshgrid(cx + g, cy + g, indexing="ij")
-        F = fn(X, Y)
+        if structure == "skin":
+            F = fn(*np.meshgrid(cx + g, cy + g, indexing="ij"))
+        else:
+            F = _level_grid(fn, cx + g, cy + g, h_mm=h)
         cs = [c for c in find_contours(F, 0.0) if np.allclose(c[0], c[-1])]
         if not cs:
             raise RuntimeError(f"phantom: no closed {structure} boundary in slice {k} ({state})")
