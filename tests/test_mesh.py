@@ -77,3 +77,35 @@ def test_edge_midpoints_are_where_a_straight_tet10_has_its_mid_edge_nodes():
     x = mesh.nodes_mm + np.array([0.3, -0.1, 0.2]) * mesh.nodes_mm[:, :1] ** 2
     _, moved = edge_midpoints(mesh.tets, x)
     assert np.allclose(moved[:, 0], 0.5 * (x[mesh.tets[:, 0]] + x[mesh.tets[:, 1]]))
+
+
+def test_containing_tets_finds_what_locate_in_tets_finds_inside_a_hole_and_outside():
+    from study_meshes import box_tet10
+
+    from deeptissue.mesh import containing_tets, locate_in_tets
+
+    box = box_tet10(np.linspace(0, 2, 5), np.linspace(0, 3, 7), np.linspace(0, 2, 5))
+    rng = np.random.default_rng(4)
+    # uneven elements (each node moved up to 0.1 mm) around a hole of radius 0.6 mm
+    nodes = box.nodes_mm + rng.uniform(-0.1, 0.1, box.nodes_mm.shape)
+    centroids = nodes[box.tets[:, :4]].mean(axis=1)
+    kept = box.tets[np.linalg.norm(centroids - [1.0, 1.5, 1.0], axis=1) > 0.6]
+    mesh = TetMesh(nodes_mm=nodes, tets=kept)
+    corners = nodes[kept[:, :4]]
+    faces = (corners.sum(axis=1, keepdims=True) - corners) / 3.0  # on faces shared by two elements
+    P = np.vstack(
+        [
+            rng.uniform([-0.5, -0.5, -0.5], [2.5, 3.5, 2.5], size=(3000, 3)),  # a third inside
+            rng.uniform([-3.0, -3.0, -3.0], [5.0, 6.0, 5.0], size=(1000, 3)),  # most far outside
+            rng.uniform([0.6, 1.1, 0.6], [1.4, 1.9, 1.4], size=(500, 3)),  # in and around the hole
+            nodes[np.unique(kept[:, :4])],  # corners: equal coordinates in several elements
+            faces.reshape(-1, 3)[::7],
+        ]
+    )
+    elem, lam = locate_in_tets(mesh, P)
+    expected = np.where(lam.min(axis=1) >= -1e-9, elem, -1)
+    found = containing_tets(mesh, P)
+    assert np.array_equal(found, expected)
+    assert (found >= 0).sum() > 1000 and (found < 0).sum() > 1000
+    # a point inside the hole is in no element
+    assert containing_tets(mesh, [[1.0, 1.5, 1.0]])[0] == -1

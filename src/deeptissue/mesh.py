@@ -100,31 +100,57 @@ def edge_midpoints(tets, x) -> tuple[np.ndarray, np.ndarray]:
     return tets[:, 4:], 0.5 * (x[tets[:, e[:, 0]]] + x[tets[:, e[:, 1]]])
 
 
+def _tet_frames(mesh: TetMesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Corners (m, 4, 3) [mm], centroids (m, 3) [mm] and inverse edge matrices (m, 3, 3) [1/mm] of the straight
+    tetrahedra through the mesh's corners (the edge matrix's columns: the edges from corner 0)."""
+    corners = mesh.nodes_mm[mesh.tets[:, :4]]
+    inverse = np.linalg.inv(np.transpose(corners[:, 1:] - corners[:, :1], (0, 2, 1)))
+    return corners, corners.mean(axis=1), inverse
+
+
+def _barycentric(frames, points_mm: np.ndarray, elems: np.ndarray) -> np.ndarray:
+    """Barycentric coordinates (n, 4) of each point (n, 3) [mm] in its element ``elems`` (n,) of ``frames``
+    (:func:`_tet_frames`)."""
+    corners, _, inverse = frames
+    xi = np.einsum("nij,nj->ni", inverse[elems], points_mm - corners[elems, 0])
+    return np.column_stack([1.0 - xi.sum(axis=1), xi])
+
+
+def _locate_nearest(
+    frames, points_mm: np.ndarray, nearest: int
+) -> tuple[cKDTree, np.ndarray, np.ndarray]:
+    """The centroids' KD-tree, and for each point (n, 3) [mm] the element among those with the ``nearest``
+    nearest centroids whose smallest barycentric coordinate is largest (n,), with its coordinates (n, 4)."""
+    tree = cKDTree(frames[1])
+    n, k = len(points_mm), min(nearest, len(frames[1]))
+    _, idx = tree.query(points_mm, k=k)
+    idx = idx.reshape(n, k)
+    lam = _barycentric(frames, np.repeat(points_mm, k, axis=0), idx.ravel()).reshape(n, k, 4)
+    best = np.argmax(lam.min(axis=2), axis=1)
+    rows = np.arange(n)
+    return tree, idx[rows, best], lam[rows, best]
+
+
+def _first_top(score: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For candidates in consecutive groups of ``counts`` (each > 0): each group's top ``score`` and the
+    position of its first candidate reaching it."""
+    starts = np.cumsum(counts) - counts
+    top = np.maximum.reduceat(score, starts)
+    pick = np.flatnonzero(score == np.repeat(top, counts))
+    return top, pick[np.searchsorted(pick, starts)]
+
+
 def locate_in_tets(mesh: TetMesh, points_mm, *, nearest: int = 8) -> tuple[np.ndarray, np.ndarray]:
     """(element (n,) int, its barycentric coordinates (n, 4)) of each point (n, 3) [mm] among the straight
     tetrahedra through the mesh's corners: the element whose smallest barycentric coordinate is largest
     (>= 0: the point is inside it; < 0: the point is outside every element, and this is the one it is least
     outside of). Candidates: the elements with the ``nearest`` nearest centroids, and for a point inside none
-    of them, every element whose centroid is within the largest centroid-corner distance."""
+    of them, every element whose centroid is within the largest centroid-corner distance (the first in
+    index order among equals). :func:`containing_tets` gives the containing element alone, faster."""
     P = np.asarray(points_mm, float).reshape(-1, 3)
-    corners = mesh.nodes_mm[mesh.tets[:, :4]]  # (m, 4, 3)
-    cen = corners.mean(axis=1)
-    Tinv = np.linalg.inv(
-        np.transpose(corners[:, 1:] - corners[:, :1], (0, 2, 1))
-    )  # columns: edges from corner 0
-
-    def barycentric(rows, elems):
-        xi = np.einsum("nij,nj->ni", Tinv[elems], P[rows] - corners[elems, 0])
-        return np.column_stack([1.0 - xi.sum(axis=1), xi])
-
-    tree = cKDTree(cen)
-    k = min(nearest, mesh.n_tets)
-    _, idx = tree.query(P, k=k)
-    idx = idx.reshape(len(P), k)
-    lam = barycentric(np.repeat(np.arange(len(P)), k), idx.ravel()).reshape(len(P), k, 4)
-    best = np.argmax(lam.min(axis=2), axis=1)
-    rows = np.arange(len(P))
-    elem, out = idx[rows, best], lam[rows, best]
+    frames = _tet_frames(mesh)
+    corners, cen, _ = frames
+    tree, elem, out = _locate_nearest(frames, P, nearest)
     todo = np.flatnonzero(out.min(axis=1) < 0.0)
     if len(todo):
         reach = float(np.max(np.linalg.norm(corners - cen[:, None], axis=2)))
@@ -132,17 +158,55 @@ def locate_in_tets(mesh: TetMesh, points_mm, *, nearest: int = 8) -> tuple[np.nd
         counts = np.fromiter((len(c) for c in cand), int, len(todo))
         has = counts > 0
         flat = np.fromiter((i for c in cand for i in c), np.int64, counts.sum())
-        lam_c = barycentric(np.repeat(todo, counts), flat)
-        score = lam_c.min(axis=1)
-        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])[has]
-        top = np.maximum.reduceat(score, starts)
-        # the first candidate of each point reaching its top score
-        pick = np.flatnonzero(score == np.repeat(top, counts[has]))
-        first = pick[np.searchsorted(pick, starts)]
+        lam_c = _barycentric(frames, np.repeat(P[todo], counts, axis=0), flat)
+        top, first = _first_top(lam_c.min(axis=1), counts[has])
         better = top > out[todo[has]].min(axis=1)
         at = todo[has][better]
         elem[at], out[at] = flat[first[better]], lam_c[first[better]]
     return elem, out
+
+
+def containing_tets(
+    mesh: TetMesh, points_mm, *, tol: float = 1e-9, nearest: int = 8
+) -> np.ndarray:
+    """The element of :func:`locate_in_tets` for each point (n, 3) [mm] where its smallest barycentric
+    coordinate is >= ``-tol`` (the point is inside it), -1 elsewhere (n,) int; the same answer, without
+    searching every element near a point that no element holds.
+
+    An element where a point's barycentric coordinates are all >= ``-tol`` holds it in its copy scaled by
+    ``1 + 4 tol`` about its centroid, so the point is within ``(1 + 4 tol)`` times the element's largest
+    centroid-corner distance of its centroid. The points that the ``nearest`` candidates do not hold are
+    searched for from the elements, each within that distance of its own centroid (a point outside the limb
+    is near a few elements or none, where :func:`locate_in_tets` weighs every element within the largest
+    such distance of all).
+    """
+    P = np.asarray(points_mm, float).reshape(-1, 3)
+    frames = _tet_frames(mesh)
+    corners, cen, _ = frames
+    _, elem, out = _locate_nearest(frames, P, nearest)
+    score = out.min(axis=1)
+    found = np.where(score >= -tol, elem, -1)
+    todo = np.flatnonzero(score < 0.0)
+    if not len(todo):
+        return found
+    radius = np.linalg.norm(corners - cen[:, None], axis=2).max(axis=1)
+    # (1 nm more, so that rounding cannot leave out an element that holds a point)
+    near = cKDTree(P[todo]).query_ball_point(cen, radius * (1.0 + 4.0 * tol) + 1e-6)
+    counts = np.fromiter((len(c) for c in near), int, len(near))
+    el = np.repeat(np.arange(len(near)), counts)
+    row = np.fromiter((i for c in near for i in c), np.int64, counts.sum())
+    # the candidates of locate_in_tets: every element whose centroid is within the largest such distance
+    keep = np.linalg.norm(P[todo[row]] - cen[el], axis=1) <= float(np.max(radius))
+    order = np.lexsort((el[keep], row[keep]))
+    el, row = el[keep][order], row[keep][order]
+    if not len(row):
+        return found
+    lam = _barycentric(frames, P[todo[row]], el)
+    points, counts = np.unique(row, return_counts=True)
+    top, first = _first_top(lam.min(axis=1), counts)
+    better = (top >= -tol) & (top > score[todo[points]])
+    found[todo[points[better]]] = el[first[better]]
+    return found
 
 
 def extract_tetmesh(gmsh_module=None, *, order: int = 2) -> TetMesh:

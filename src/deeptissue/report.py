@@ -21,7 +21,7 @@ import numpy as np
 import pandas as pd
 
 from .io import atomic_path
-from .mesh import TetMesh, locate_in_tets
+from .mesh import TetMesh, containing_tets
 from .strain import DEFAULT_BIN_EDGES, bin_labels
 from .summary import Summary
 
@@ -545,10 +545,9 @@ def section_frame(axis, *, leg_axis=(0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.nda
 
 def locate_points(mesh: TetMesh, points_mm, *, tol: float = 1e-9) -> np.ndarray:
     """Index of the tetrahedron (straight, through its corner nodes) containing each point, -1 outside
-    (:func:`deeptissue.mesh.locate_in_tets`). ``points_mm`` (..., 3) -> (...) int."""
+    (:func:`deeptissue.mesh.containing_tets`). ``points_mm`` (..., 3) -> (...) int."""
     P = np.asarray(points_mm, float)
-    elem, lam = locate_in_tets(mesh, P)
-    return np.where(lam.min(axis=1) >= -tol, elem, -1).reshape(P.shape[:-1])
+    return containing_tets(mesh, P, tol=tol).reshape(P.shape[:-1])
 
 
 @dataclass(frozen=True)
