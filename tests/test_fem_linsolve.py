@@ -317,3 +317,15 @@ def test_two_reproducible_contact_solves_take_identical_newton_iterations():
         """
     first, second = _run_two_threads(code), _run_two_threads(code)
     assert first == second  # increments, Newton iterations and the displacement field, bit for bit
+
+
+def test_the_mkl_library_is_named_to_pypardiso_from_the_environment(monkeypatch):
+    # pypardiso otherwise searches every folder under the environment's lib (0.5 s in each solve job)
+    import deeptissue.fem.linsolve as linsolve
+
+    if "pardiso" not in linsolve.available_backends():
+        pytest.skip("no MKL PARDISO here")
+    monkeypatch.delenv("PYPARDISO_MKL_RT", raising=False)
+    lib = linsolve._mkl_rt.__wrapped__()
+    path = os.environ["PYPARDISO_MKL_RT"]
+    assert os.path.dirname(path) == os.path.join(sys.prefix, "lib") and lib._name == path
