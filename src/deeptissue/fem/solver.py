@@ -168,8 +168,8 @@ class IncrementSettings:
     or over the last stall_wall_s seconds (None: no such window), or three times the slowest converged
     increment's wall time where that is longer. 1e-3 of the indentation step is 3 um of a 3 mm
     travel; 12 attempts is more than the cuts from a full step down to min_increment (8), so a solve stops there
-    only when it alternates tiny accepted increments with failed long ones; 300 s is about five times the
-    longest increment the demo's adaptive passes converge (63 s, docs/solver.md), so a study never spends
+    only when it alternates tiny accepted increments with failed long ones; 300 s is about four times the
+    longest increment the demo's adaptive passes converge (68 s, docs/solver.md), so a study never spends
     more than that on a variant after it stops advancing; on a finer mesh whose converged increments take
     longer the window grows with them."""
 
