@@ -260,9 +260,9 @@ def test_a_newton_step_may_not_crush_an_element_past_a_fraction_of_its_volume():
     u, lam = np.zeros(limb.nodes_mm.size), np.zeros(len(wc.node))
     du = -0.6 * limb.nodes_mm.ravel()  # every length to 0.4: det F = 0.064
     assert np.isfinite(p.merit(u + du, lam))
-    assert p.bound_step(u) == pytest.approx(1.0)
-    assert p.merit(u + du, lam) == np.inf and p.lagrangian(u + du, lam) == np.inf
-    assert np.isfinite(p.merit(u + 0.5 * du, lam))
-    assert _line_search(p.merit, u, lam, du, 0 * lam, np.inf, -1.0, whole=True) == 0.5
-    p.bound_step(None)
+    with p.step_bound(u) as min_det:
+        assert min_det == pytest.approx(1.0)
+        assert p.merit(u + du, lam) == np.inf and p.lagrangian(u + du, lam) == np.inf
+        assert np.isfinite(p.merit(u + 0.5 * du, lam))
+        assert _line_search(p.merit, u, lam, du, 0 * lam, np.inf, -1.0, whole=True) == 0.5
     assert np.isfinite(p.merit(u + du, lam))

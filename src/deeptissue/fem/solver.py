@@ -39,6 +39,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, fields, replace
 
 import numpy as np
@@ -873,17 +874,19 @@ class _Problem:
         self.solver = SymmetricSolver()
         self.timers = dict(assembly=0.0, solve=0.0, contact=0.0)
         self.last = None  # (f, gw, fc) of the last finite merit evaluation
-        self.min_det: np.ndarray | float = 0.0  # the merits' bound on det F (E, Q): bound_step
+        self.min_det: np.ndarray | float = 0.0  # the merits' bound on det F (E, Q): step_bound
 
-    def bound_step(self, u: np.ndarray | None) -> float:
-        """Bound the merits' points to det F above _STEP_DET_FRACTION of its value at u (None: above 0 only);
-        returns the smallest det F at u (1 for None)."""
-        if u is None:
-            self.min_det = 0.0
-            return 1.0
+    @contextmanager
+    def step_bound(self, u: np.ndarray):
+        """Within the block, the merits refuse a point whose det F is at or below _STEP_DET_FRACTION of its
+        value at u at any quadrature point (outside it, only an inverted one); yields the smallest det F at
+        u."""
         det = self.asm.det_f(u)
         self.min_det = _STEP_DET_FRACTION * det
-        return float(det.min())
+        try:
+            yield float(det.min())
+        finally:
+            self.min_det = 0.0
 
     def weighted(self, u, lam, curvature=True):
         tc = time.perf_counter()
@@ -893,7 +896,7 @@ class _Problem:
 
     def merit(self, u, lam):
         """0.5 (|R_free|^2 + |C|^2) at (u, lam), R = f_int - G^T lam, C = min(lam, c gw); inf if det F falls to
-        the step's bound anywhere (:meth:`bound_step`; 0 outside a line search). The internal force, weighted
+        the step's bound anywhere (:meth:`step_bound`; 0 outside a line search). The internal force, weighted
         gaps and contact force of the last finite evaluation are kept in ``last``
         (the line search's last evaluation is the point it accepts: the next iteration's test of convergence
         reads them instead of assembling a tangent it may not need)."""
@@ -965,7 +968,6 @@ def _solve_increment(p: _Problem, u, lam, target_d, rtol, atol, gap_tol):
     residuals, changes, merits = [], 0, []
     act = lam > 0
     p.last = None
-    p.bound_step(None)
     for it in range(s.newton.max_iterations + 1):
         if p.last is None:  # the increment's first iteration: a tangent is needed
             W, f, data, Ke_bc = _tangent(p, u)
@@ -1011,33 +1013,32 @@ def _solve_increment(p: _Problem, u, lam, target_d, rtol, atol, gap_tol):
         # non-monotone Armijo test (Grippo, Lampariello and Lucidi 1986) against the largest of the last few
         # merits: a change of the active set may raise the merit for one step on the way to the solution
         phi_ref = max(merits[-_NONMONOTONE_MEMORY:])
-        min_det = p.bound_step(u)
         # the consistent direction first; where the merit rises within the shortest step or the linear solve
         # fails, the direction without the obstacles' curvature (which can make the tangent indefinite in a pinch)
         step = None
-        for curvature in (1.0, 0.0):
-            du, lam_new = _direction(p, lin, du_d, act, curvature=curvature)
-            if du is None:
-                if curvature and geo:
-                    continue
-                return False, "linear solver failed", it, residuals, changes
-            dlam = lam_new - lam
-            # a step that moves the bone is taken whole wherever no element inverts
-            step = _line_search(p.merit, u, lam, du, dlam, phi_ref, -2.0 * phi0, whole=has_d)
-            if not has_d and (step is None or step < _SHORT_STEP):
-                slope = p.lagrangian_slope(f, gw, G, lam, du, dlam)
-                if slope < 0:
-                    al_step = _line_search(
-                        p.lagrangian, u, lam, du, dlam, p.lagrangian(u, lam), slope
-                    )
-                    if al_step is not None and (step is None or al_step > step):
-                        step = al_step
-                        p.merit(
-                            u + step * du, lam + step * dlam
-                        )  # ``last``: the next iteration's force and gaps
-            if step is not None or not geo:
-                break
-        p.bound_step(None)
+        with p.step_bound(u) as min_det:
+            for curvature in (1.0, 0.0):
+                du, lam_new = _direction(p, lin, du_d, act, curvature=curvature)
+                if du is None:
+                    if curvature and geo:
+                        continue
+                    return False, "linear solver failed", it, residuals, changes
+                dlam = lam_new - lam
+                # a step that moves the bone is taken whole wherever no element inverts
+                step = _line_search(p.merit, u, lam, du, dlam, phi_ref, -2.0 * phi0, whole=has_d)
+                if not has_d and (step is None or step < _SHORT_STEP):
+                    slope = p.lagrangian_slope(f, gw, G, lam, du, dlam)
+                    if slope < 0:
+                        al_step = _line_search(
+                            p.lagrangian, u, lam, du, dlam, p.lagrangian(u, lam), slope
+                        )
+                        if al_step is not None and (step is None or al_step > step):
+                            step = al_step
+                            p.merit(
+                                u + step * du, lam + step * dlam
+                            )  # ``last``: the next iteration's force and gaps
+                if step is not None or not geo:
+                    break
         if step is None:
             return False, "line search failed", it, residuals, changes
         log.debug(
