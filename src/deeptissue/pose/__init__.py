@@ -67,32 +67,4 @@ def __dir__() -> list[str]:
     return sorted({*globals(), *_EXPORTS})
 
 
-__all__ = [
-    "ACCURACY_TOLERANCES",
-    "MAX_SLICE_OBLIQUITY_DEG",
-    "LegGuard",
-    "LegRegistration",
-    "Pose",
-    "PoseFiles",
-    "PoseOptions",
-    "TipSearch",
-    "accuracy_table",
-    "check_axial_slices",
-    "check_depth",
-    "check_tip_in_leg",
-    "estimate_pose",
-    "line_triangle_hits",
-    "load_pose",
-    "plot_axis_qc",
-    "plot_bone_qc",
-    "plot_tip_qc",
-    "pose_errors",
-    "read_override",
-    "register_leg",
-    "run_pose",
-    "run_pose_accuracy",
-    "save_pose",
-    "skin_triangles",
-    "slice_obliquity_deg",
-    "tip_end_mm",
-]
+__all__ = sorted(_EXPORTS)
