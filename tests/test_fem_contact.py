@@ -266,3 +266,40 @@ def test_a_newton_step_may_not_crush_an_element_past_a_fraction_of_its_volume():
         assert np.isfinite(p.merit(u + 0.5 * du, lam))
         assert _line_search(p.merit, u, lam, du, 0 * lam, np.inf, -1.0, whole=True) == 0.5
     assert np.isfinite(p.merit(u + du, lam))
+
+
+def test_an_increment_whose_merit_does_not_fall_is_cut_after_a_few_iterations(monkeypatch):
+    # Newton steps that never bring the merit below the increment's start (here each one stretches the limb
+    # further) give up after _PROGRESS_ITERATIONS iterations with the reason, not at the iteration limit
+    import deeptissue.fem.solver as solver
+    from deeptissue.fem.assembly import Assembler, as_material_law
+
+    limb = cored_cylinder_mesh(length_mm=6.0, radius_mm=3.0, core_radius_mm=0.8, h_mm=1.2)
+    law = as_material_law(LAW)
+    constrained = np.zeros(limb.nodes_mm.size, bool)
+    asm = Assembler(limb, law, constrained=constrained)
+    wc = WeightedContact(
+        limb.nodes_mm,
+        [("indenter", limb.facets["skin"])],
+        np.array([], int),
+        young_mpa=law.young_mpa,
+    )
+    ind = Indenter("sphere", axis=(-1, 0, 0), radius_mm=1.5)
+    wc.gapfns[0] = lambda x, hessian=True: ind.gap(x, np.array([9.0, 0.0, 3.0]), hessian=hessian)
+    settings = solver.SolverSettings()
+    p = solver._Problem(settings, asm, wc, constrained, 1.0)
+    u, lam = 0.02 * limb.nodes_mm.ravel(), np.zeros(len(wc.node))
+
+    def away(p, lin, du_d, act, curvature=1.0):
+        return 0.05 * u, lam.copy()
+
+    def whole(merit, u, lam, du, dlam, ref, slope, whole=False):
+        merit(u + du, lam + dlam)
+        return 1.0
+
+    monkeypatch.setattr(solver, "_direction", away)
+    monkeypatch.setattr(solver, "_line_search", whole)
+    ok, why, it, residuals, _ = solver._solve_increment(p, u, lam, np.zeros(0), 1e-6, 1e-9, 1e-3)
+    assert not ok and it == solver._PROGRESS_ITERATIONS < settings.newton.max_iterations
+    assert why == f"no progress in {solver._PROGRESS_ITERATIONS} iterations"
+    assert residuals[-1] > residuals[0]
