@@ -149,3 +149,19 @@ rule verify:
         "../envs/deeptissue.yaml"
     script:
         "../scripts/verify_check.py"
+
+
+rule linear_solvers:
+    """Benchmark (not part of `verify`): each linear-solver backend's factorisation time on the cored
+    cylinder's tangent at four element sizes, on one thread as every solve job runs."""
+    output:
+        table="results/verification/linear_solvers.csv",
+        figure="results/verification/linear_solvers.png",
+    log:
+        "results/logs/linear_solvers.log",
+    conda:
+        "../envs/deeptissue.yaml"
+    params:
+        material=config["fem"]["material"],
+    script:
+        "../scripts/linear_solvers.py"
