@@ -17,6 +17,7 @@ from collections.abc import Sequence
 
 import numpy as np
 import pandas as pd
+import scipy.sparse as sp
 
 from ..fem.assembly import Assembler, as_material_law
 from ..fem.linsolve import PRECISIONS, SymmetricSolver, available_backends
@@ -65,7 +66,7 @@ def cylinder_tangent(material, h_mm: float):
 
 def _backward_error(U, x, b) -> float:
     """|b - K x|_inf / (|K|_inf |x|_inf + |b|_inf) with K = U + triu(U, 1)^T."""
-    K = U + U.T - type(U)(np.diag(U.diagonal()))
+    K = U + U.T - sp.diags(U.diagonal())
     k_inf = float(abs(K).sum(axis=1).max())
     r = b - K @ x
     return float(np.abs(r).max()) / (k_inf * float(np.abs(x).max()) + float(np.abs(b).max()))
