@@ -237,12 +237,11 @@ def test_the_augmented_lagrangian_slope_is_its_derivative():
         assert p.lagrangian_slope(f, gw, G, lam, a, b) == pytest.approx(fd, rel=1e-5)
 
 
-def test_a_newton_step_may_not_crush_an_element_past_a_fraction_of_its_volume():
-    # the line search's merits refuse a point whose det F falls below _STEP_DET_FRACTION (0.1) of its value at the
-    # step's start: a homogeneous compression to 0.4 of the length (det F 0.064) is refused, to 0.7 (det F 0.34)
-    # taken; outside a line search only an inverted point is refused
+def _limb_beside_a_sphere():
+    """A small cored limb with free nodes, its weighted contact with a sphere clear of the skin, and a solver
+    problem on it: (limb, contact, problem)."""
     from deeptissue.fem.assembly import Assembler, as_material_law
-    from deeptissue.fem.solver import SolverSettings, _line_search, _Problem
+    from deeptissue.fem.solver import SolverSettings, _Problem
 
     limb = cored_cylinder_mesh(length_mm=6.0, radius_mm=3.0, core_radius_mm=0.8, h_mm=1.2)
     law = as_material_law(LAW)
@@ -256,7 +255,16 @@ def test_a_newton_step_may_not_crush_an_element_past_a_fraction_of_its_volume():
     )
     ind = Indenter("sphere", axis=(-1, 0, 0), radius_mm=1.5)
     wc.gapfns[0] = lambda x, hessian=True: ind.gap(x, np.array([9.0, 0.0, 3.0]), hessian=hessian)
-    p = _Problem(SolverSettings(), asm, wc, constrained, 1.0)
+    return limb, wc, _Problem(SolverSettings(), asm, wc, constrained, 1.0)
+
+
+def test_a_newton_step_may_not_crush_an_element_past_a_fraction_of_its_volume():
+    # the line search's merits refuse a point whose det F falls below _STEP_DET_FRACTION (0.1) of its value at the
+    # step's start: a homogeneous compression to 0.4 of the length (det F 0.064) is refused, to 0.7 (det F 0.34)
+    # taken; outside a line search only an inverted point is refused
+    from deeptissue.fem.solver import _line_search
+
+    limb, wc, p = _limb_beside_a_sphere()
     u, lam = np.zeros(limb.nodes_mm.size), np.zeros(len(wc.node))
     du = -0.6 * limb.nodes_mm.ravel()  # every length to 0.4: det F = 0.064
     assert np.isfinite(p.merit(u + du, lam))
@@ -272,22 +280,8 @@ def test_an_increment_whose_merit_does_not_fall_is_cut_after_a_few_iterations(mo
     # Newton steps that never bring the merit below the increment's start (here each one stretches the limb
     # further) give up after _PROGRESS_ITERATIONS iterations with the reason, not at the iteration limit
     import deeptissue.fem.solver as solver
-    from deeptissue.fem.assembly import Assembler, as_material_law
 
-    limb = cored_cylinder_mesh(length_mm=6.0, radius_mm=3.0, core_radius_mm=0.8, h_mm=1.2)
-    law = as_material_law(LAW)
-    constrained = np.zeros(limb.nodes_mm.size, bool)
-    asm = Assembler(limb, law, constrained=constrained)
-    wc = WeightedContact(
-        limb.nodes_mm,
-        [("indenter", limb.facets["skin"])],
-        np.array([], int),
-        young_mpa=law.young_mpa,
-    )
-    ind = Indenter("sphere", axis=(-1, 0, 0), radius_mm=1.5)
-    wc.gapfns[0] = lambda x, hessian=True: ind.gap(x, np.array([9.0, 0.0, 3.0]), hessian=hessian)
-    settings = solver.SolverSettings()
-    p = solver._Problem(settings, asm, wc, constrained, 1.0)
+    limb, wc, p = _limb_beside_a_sphere()
     u, lam = 0.02 * limb.nodes_mm.ravel(), np.zeros(len(wc.node))
 
     def away(p, lin, du_d, act, curvature=1.0):
@@ -300,6 +294,6 @@ def test_an_increment_whose_merit_does_not_fall_is_cut_after_a_few_iterations(mo
     monkeypatch.setattr(solver, "_direction", away)
     monkeypatch.setattr(solver, "_line_search", whole)
     ok, why, it, residuals, _ = solver._solve_increment(p, u, lam, np.zeros(0), 1e-6, 1e-9, 1e-3)
-    assert not ok and it == solver._PROGRESS_ITERATIONS < settings.newton.max_iterations
+    assert not ok and it == solver._PROGRESS_ITERATIONS < p.s.newton.max_iterations
     assert why == f"no progress in {solver._PROGRESS_ITERATIONS} iterations"
     assert residuals[-1] > residuals[0]
