@@ -60,6 +60,7 @@ __all__ = [
     "NotPositiveDefinite",
     "SymmetricSolver",
     "available_backends",
+    "backward_error",
     "linear_backend",
     "pin_reproducible",
 ]
@@ -177,6 +178,26 @@ def _pattern_key(U: sp.csr_matrix) -> tuple:
 def _symmetric_matvec(U: sp.csr_matrix, diag: np.ndarray, v: np.ndarray) -> np.ndarray:
     """K v for K = U + triu(U, 1)^T given by its upper triangle U and diag = U.diagonal()."""
     return U @ v + U.T @ v - diag * v
+
+
+def _inf_norm(U: sp.csr_matrix) -> float:
+    """|K|_inf of K = U + triu(U, 1)^T: its largest absolute row sum."""
+    a = abs(U)
+    ones = np.ones(U.shape[0])
+    return float(np.max(a @ ones + a.T @ ones - np.abs(U.diagonal())))
+
+
+def _backward_error(U, diag, k_inf: float, b: np.ndarray, b_inf: float, x: np.ndarray) -> tuple:
+    """(normwise backward error |b - K x|_inf / (|K|_inf |x|_inf + |b|_inf), residual b - K x); diag, k_inf
+    and b_inf: U.diagonal(), _inf_norm(U) and |b|_inf, computed once per system."""
+    r = b - _symmetric_matvec(U, diag, x)
+    return float(np.max(np.abs(r))) / (k_inf * float(np.max(np.abs(x))) + b_inf or 1.0), r
+
+
+def backward_error(U: sp.csr_matrix, x: np.ndarray, b: np.ndarray) -> float:
+    """The normwise backward error of x as a solution of K x = b, K = U + triu(U, 1)^T given by its upper
+    triangle U: what :class:`SymmetricSolver` refines a single-precision solve to (``refine_eta``)."""
+    return _backward_error(U, U.diagonal(), _inf_norm(U), b, float(np.max(np.abs(b))), x)[0]
 
 
 # ------------------------------------------------------------------------------------------ factors
@@ -408,16 +429,12 @@ class SymmetricSolver:
         """Iterative refinement with K = U + triu(U, 1)^T applied in double, until the normwise backward
         error |b - K x|_inf / (|K|_inf |x|_inf + |b|_inf) is below refine_eta; None if it stalls."""
         x = f.solve(b)
-        diag = U.diagonal()
-        a = abs(U)
-        k_inf = float(np.max(a @ np.ones(U.shape[0]) + a.T @ np.ones(U.shape[0]) - np.abs(diag)))
-        b_inf = float(np.max(np.abs(b)))
+        diag, k_inf, b_inf = U.diagonal(), _inf_norm(U), float(np.max(np.abs(b)))
         eta_prev = np.inf
         for _ in range(self.max_refinements + 1):
             if not np.all(np.isfinite(x)):
                 return None
-            r = b - _symmetric_matvec(U, diag, x)
-            eta = float(np.max(np.abs(r))) / (k_inf * float(np.max(np.abs(x))) + b_inf or 1.0)
+            eta, r = _backward_error(U, diag, k_inf, b, b_inf, x)
             if eta <= self.refine_eta:
                 return x
             if eta > 0.5 * eta_prev:

@@ -17,10 +17,9 @@ from collections.abc import Sequence
 
 import numpy as np
 import pandas as pd
-import scipy.sparse as sp
 
 from ..fem.assembly import Assembler, as_material_law
-from ..fem.linsolve import PRECISIONS, SymmetricSolver, available_backends
+from ..fem.linsolve import PRECISIONS, SymmetricSolver, available_backends, backward_error
 from ..fem.skmesh import straighten_invalid
 from .shapes import cored_cylinder_mesh
 
@@ -53,23 +52,13 @@ def cylinder_tangent(material, h_mm: float):
     core 1.5 mm) at element size ``h_mm``, the core's nodes fixed (curved tets with a non-positive Jacobian
     straightened, as the solver does)."""
     mesh = cored_cylinder_mesh(length_mm=20.0, radius_mm=6.0, core_radius_mm=1.5, h_mm=h_mm)
-    mesh, _ = straighten_invalid(
-        mesh
-    )  # as the solver does: a curved tet with a non-positive Jacobian
+    mesh, _ = straighten_invalid(mesh)
     core = np.unique(mesh.facets["bone"].ravel())
     fixed = np.zeros(mesh.nodes_mm.size, bool)
     fixed[(3 * core[:, None] + np.arange(3)).ravel()] = True
     asm = Assembler(mesh, as_material_law(material), constrained=fixed)
     _, _, data, _ = asm.tangent(np.zeros(mesh.nodes_mm.size))
     return asm.csr(data)
-
-
-def _backward_error(U, x, b) -> float:
-    """|b - K x|_inf / (|K|_inf |x|_inf + |b|_inf) with K = U + triu(U, 1)^T."""
-    K = U + U.T - sp.diags(U.diagonal())
-    k_inf = float(abs(K).sum(axis=1).max())
-    r = b - K @ x
-    return float(np.abs(r).max()) / (k_inf * float(np.abs(x).max()) + float(np.abs(b).max()))
 
 
 def _timed(backend: str, precision: str, U, repeats: int) -> tuple[float, float, float]:
@@ -83,15 +72,14 @@ def _timed(backend: str, precision: str, U, repeats: int) -> tuple[float, float,
         first = time.perf_counter() - t0
         best, err = np.inf, np.nan
         for k in range(repeats):
+            # same pattern, other values: a Newton iteration's case
             V = U.copy()
-            V.data = V.data * (
-                1.0 + 0.01 * (k + 1)
-            )  # same pattern, other values: a Newton iteration's case
+            V.data = V.data * (1.0 + 0.01 * (k + 1))
             t0 = time.perf_counter()
             x = solver.solve(V, b, spd_only=True)
             dt = time.perf_counter() - t0
             if dt < best:
-                best, err = dt, _backward_error(V, x, b)
+                best, err = dt, backward_error(V, x, b)
         return first, best, err
     finally:
         solver.close()
