@@ -1,6 +1,7 @@
 """FE core: the sparse symmetric solvers of the Newton tangent (PARDISO, CHOLMOD or SuperLU; mixed and double
 precision), each checked on every backend this machine has, and the choice of backend."""
 
+import functools
 import os
 import subprocess
 import sys
@@ -52,6 +53,11 @@ def _backward_error(U, x, b):
 @pytest.fixture(scope="module")
 def elasticity():
     """Upper triangle of a P2 block's tangent at rest (bottom fixed: positive definite) and a load."""
+    return _elasticity()
+
+
+@functools.cache
+def _elasticity():
     m = block_mesh((4.0, 3.0, 2.0), h_mm=0.5)
     bottom = np.unique(m.facets["bottom"])
     fixed = np.zeros(3 * len(m.nodes_mm), bool)
@@ -138,10 +144,11 @@ def _constraints(n, m, seed):
     return sp.csr_matrix((rng.standard_normal(6 * m), (rows, cols)), shape=(m, n))
 
 
-@pytest.mark.parametrize("backend", HERE)
-@pytest.mark.parametrize("shift", [0.0, 1.0], ids=["spd", "indefinite-off-the-constraints"])
-def test_solve_constrained_solves_the_saddle_point_system(elasticity, shift, backend):
-    U, b = elasticity
+@functools.cache
+def _saddle_case(shift: float):
+    """A constrained elasticity problem (:func:`elasticity` with 40 random constraints) and its answer by
+    SuperLU on the full saddle-point matrix, computed once for every backend: (Uk, G, rho, A, b, s, ref)."""
+    U, b = _elasticity()
     n, m = U.shape[0], 40
     G = _constraints(n, m, 3)
     rho = 1e3 * np.median(U.diagonal()) / np.asarray(G.multiply(G).sum(axis=1)).ravel()
@@ -157,9 +164,17 @@ def test_solve_constrained_solves_the_saddle_point_system(elasticity, shift, bac
     A = (Uk + sp.triu(G.T @ sp.diags(rho) @ G)).tocsr()
     A.sort_indices()
     s_ = np.random.default_rng(4).standard_normal(m) * 1e-2
+    ref = sp.linalg.spsolve(_saddle(Uk, G), np.concatenate([b, s_]))
+    return Uk, G, rho, A, b, s_, ref
+
+
+@pytest.mark.parametrize("backend", HERE)
+@pytest.mark.parametrize("shift", [0.0, 1.0], ids=["spd", "indefinite-off-the-constraints"])
+def test_solve_constrained_solves_the_saddle_point_system(shift, backend):
+    Uk, G, rho, A, b, s_, ref = _saddle_case(shift)
+    n = Uk.shape[0]
     solver = SymmetricSolver(backend=backend)
     x, lam = solver.solve_constrained(A, G, rho, b, s_)
-    ref = sp.linalg.spsolve(_saddle(Uk, G), np.concatenate([b, s_]))
     assert np.allclose(x, ref[:n], rtol=0, atol=1e-9 * np.abs(ref[:n]).max())
     assert np.allclose(lam, ref[n:], rtol=0, atol=1e-9 * np.abs(ref[n:]).max())
     # one Cholesky factorisation (single precision where the backend has it), a handful of corrections

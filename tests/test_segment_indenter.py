@@ -35,7 +35,10 @@ def depth_for_gap(spec: PhantomSpec, gap_mm: float) -> float:
     g1, g2 = gap(1.0), gap(2.0)
     d = 1.0 + (g1 - gap_mm) / (g1 - g2)
     for _ in range(6):  # the gap falls about 1:1 with the depth along the axis
-        d += gap(d) - gap_mm
+        miss = gap(d) - gap_mm
+        if abs(miss) < 1e-5:  # the tests ask for 1e-3
+            return d
+        d += miss
     return d
 
 
