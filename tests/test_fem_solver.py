@@ -446,6 +446,23 @@ def test_turned_variant_solved_from_the_base_end_state_reaches_the_same_end_stat
         np.allclose(h.tip_mm, end) for h in turned.history
     )
     assert turned.newton_iterations < direct.newton_iterations
+    # the first increment moves the indenter's surface at the pressed skin nodes by at most half their facet
+    # size, and is not cut shorter than that
+    first = turned.history[0]
+    dt0 = first.t_end - first.t_start
+    nodes, lam = back.contact["indenter"]
+    pressed = np.asarray(nodes)[np.asarray(lam) > 0]
+    x = limb.nodes_mm[pressed] + back.displacement_mm.reshape(-1, 3)[pressed]
+    part = rotation_matrix(np.array([0.0, 15.0 * dt0, 0.0])) @ np.array([-1.0, 0.0, 0.0])
+    moved = np.max(
+        np.abs(replace(base_ind, axis=tuple(part)).gap(x, end)[0] - base_ind.gap(x, end)[0])
+    )
+    tri = limb.nodes_mm[limb.facets["patch"][:, :3]]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    h = np.full(len(limb.nodes_mm), np.inf)
+    np.minimum.at(h, limb.facets["patch"].ravel(), np.repeat(np.sqrt(2 * area), 6))
+    h_mm = float(np.median(h[pressed]))
+    assert moved <= 0.55 * h_mm and (dt0 == 1.0 or moved >= 0.45 * h_mm), (dt0, moved, h_mm)
     assert turned.indenter_force_N == pytest.approx(direct.indenter_force_N, rel=5e-3)
     np.testing.assert_allclose(
         turned.force_on_tissue_N,

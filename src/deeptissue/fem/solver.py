@@ -114,6 +114,12 @@ _SHORT_STEP = 0.125
 # window closes: a merit that fell below its start within it may rise above it again on the way to the solution
 # (deep3's sphere_rx-15 of config/bone_at_indenter.yaml: above at iteration 12 of an increment that converges in 18)
 _PROGRESS_ITERATIONS = 8
+# a turn's first increment moves the indenter's surface at the skin nodes it presses on by at most this many facet
+# sizes (:func:`_first_turn`): a 15 deg turn of the 3 mm sphere about its tip moves it up to about 0.3 mm, 0.3 of a
+# facet on the demo's first adaptive pass (whole turns: 5-6 Newton iterations, halves 7-10) and about one facet on
+# the second (rat01 sphere_rx-15, rat02 sphere_rz-15, rat03 sphere_rz-15: 20, 17 and 21 iterations whole, 11 each
+# in halves)
+_TURN_STEP_FACETS = 0.5
 # the augmented Lagrangian's penalty on a weighted gap, in units of the entry's c = E h: the Newton direction of an
 # SPD tangent descends on it (its slope is checked), and it stays below the crushed elements' stiffness
 _LAGRANGIAN_PENALTY = 10.0
@@ -168,8 +174,9 @@ class IncrementSettings:
     max_increments: increments (attempts) per solve; first_touch_mm: the increment where the indenter first
     touches advances it at most this far past the first contact [mm]; start_clearance_mm: an indenter that
     touches the skin at its start is moved back along its axis until this clear [mm]; turn_initial_increment:
-    the first increment of a turn from a base variant's end state (:func:`solve_turned`), a fraction of the
-    turn (1: the whole turn at once, cut back where it fails).
+    the largest first increment of a turn from a base variant's end state (:func:`solve_turned`), a fraction of
+    the turn, shortened where the indenter's surface would move more than half a facet at the pressed skin
+    nodes (:func:`_first_turn`; 1: a turn that moves it less goes whole, cut back where it fails).
 
     A solve that creeps stops by itself with its reason, the load reached and its last converged state: when the
     load (t, 0-4) has advanced by no more than stall_load over the last stall_increments attempted increments,
@@ -1435,6 +1442,8 @@ def _load_step(run: _Run, k: int) -> bool:
             run.sched, run.X[skin], run.u.reshape(-1, 3)[skin], run.t
         )
     dt = inc.max_increment if k < 3 else inc.initial_increment
+    if k == 3 and isinstance(run.sched, _TurnSchedule):
+        dt = min(dt, _first_turn(run))
     run.prev = None
     cut = False  # an increment of this step has been cut back
     while run.t < k + 1 - 1e-12:
@@ -1478,6 +1487,26 @@ def _first_touch(run: _Run, k: int, dt: float) -> float:
     if run.travel * dt > gmin + inc.first_touch_mm:
         dt = max((gmin + inc.first_touch_mm) / run.travel, inc.min_increment)
     return dt
+
+
+def _first_turn(run: _Run) -> float:
+    """The first increment of a turn (a fraction of it): the indenter's surface moves at most _TURN_STEP_FACETS
+    of a facet at the skin nodes it presses on (the largest change of their gap over the whole turn, against the
+    median facet size there); 1 where the turn moves it less, or nothing presses."""
+    contact, inc = run.contact, run.job.settings.increments
+    sel = (contact.obstacle == run.k_ind) & (run.lam > 0)
+    if run.k_ind is None or not np.any(sel):
+        return 1.0
+    moved = []
+    for t in (3.0, 4.0):
+        run.set_time(t)
+        moved.append(contact.node_gaps(run.u, sel)[sel])
+    run.set_time(run.t)
+    shift_mm = float(np.max(np.abs(moved[1] - moved[0])))
+    h_mm = float(np.median(contact.h[sel]))
+    if not shift_mm > _TURN_STEP_FACETS * h_mm:
+        return 1.0
+    return max(_TURN_STEP_FACETS * h_mm / shift_mm, inc.min_increment)
 
 
 def _predicted(run: _Run, k: int, dt: float):
