@@ -1,4 +1,4 @@
-"""Test-session setup shared by every test file."""
+"""What every test file shares: one BLAS, MKL and OpenMP thread per pytest-xdist worker."""
 
 import os
 

@@ -450,15 +450,19 @@ def test_turned_variant_solved_from_the_base_end_state_reaches_the_same_end_stat
     assert turned.newton_iterations < direct.newton_iterations
     # the first increment moves the indenter's surface at the pressed skin nodes by at most half their facet
     # size, and is not cut shorter than that
-    first = turned.history[0]
-    dt0 = first.t_end - first.t_start
     nodes, lam = back.contact["indenter"]
     pressed = np.asarray(nodes)[np.asarray(lam) > 0]
     x = limb.nodes_mm[pressed] + back.displacement_mm.reshape(-1, 3)[pressed]
-    part = rotation_matrix(np.array([0.0, 15.0 * dt0, 0.0])) @ np.array([-1.0, 0.0, 0.0])
-    moved = np.max(
-        np.abs(replace(base_ind, axis=tuple(part)).gap(x, end)[0] - base_ind.gap(x, end)[0])
-    )
+
+    def first_move(result):
+        """The first increment (a fraction of the turn) and the most its turn moves the sphere's surface at
+        the pressed nodes [mm]."""
+        dt = result.history[0].t_end - result.history[0].t_start
+        part = rotation_matrix(np.array([0.0, 15.0 * dt, 0.0])) @ np.array([-1.0, 0.0, 0.0])
+        gaps = replace(base_ind, axis=tuple(part)).gap(x, end)[0]
+        return dt, float(np.max(np.abs(gaps - base_ind.gap(x, end)[0])))
+
+    dt0, moved = first_move(turned)
     tri = limb.nodes_mm[limb.facets["patch"][:, :3]]
     area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     h = np.full(len(limb.nodes_mm), np.inf)
@@ -471,13 +475,7 @@ def test_turned_variant_solved_from_the_base_end_state_reaches_the_same_end_stat
 
     monkeypatch.setattr(solver_module, "_TURN_STEP_FACETS", 0.1)
     short = solve_turned(limb, material=LAW, base=back, indenter=turned_ind, cast=cast)
-    first = short.history[0]
-    part = rotation_matrix(np.array([0.0, 15.0 * (first.t_end - first.t_start), 0.0])) @ np.array(
-        [-1.0, 0.0, 0.0]
-    )
-    moved = np.max(
-        np.abs(replace(base_ind, axis=tuple(part)).gap(x, end)[0] - base_ind.gap(x, end)[0])
-    )
+    _, moved = first_move(short)
     assert 0.09 * h_mm <= moved <= 0.11 * h_mm, (moved, h_mm)
     assert short.converged and short.indenter_force_N == pytest.approx(
         turned.indenter_force_N, rel=1e-3

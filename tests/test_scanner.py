@@ -576,10 +576,8 @@ def test_study_from_scanner_copies_matches_its_nifti_twin(tmp_path):
                 np.testing.assert_array_equal(got[k], want[k], err_msg=f"{animal} {s} {k}")
         pose = json.loads((wd / "results" / animal / "pose.json").read_text())
         assert pose.keys() == twin_pose.keys()
-        for (
-            k,
-            want,
-        ) in twin_pose.items():  # every number of the pose, fits and diagnostics included
+        # every number of the pose, fits and diagnostics included (its strings name the input files)
+        for k, want in twin_pose.items():
             if not isinstance(want, str):
                 np.testing.assert_array_equal(pose[k], want, err_msg=f"{animal} {k}")
 

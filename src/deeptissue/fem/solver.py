@@ -1493,9 +1493,11 @@ def _first_turn(run: _Run) -> float:
     """The first increment of a turn (a fraction of it): the indenter's surface moves at most _TURN_STEP_FACETS
     of a facet at the skin nodes it presses on (the largest change of their gap over the whole turn, against the
     median facet size there); 1 where the turn moves it less, or nothing presses."""
+    if run.k_ind is None:
+        return 1.0
     contact, inc = run.contact, run.job.settings.increments
     sel = (contact.obstacle == run.k_ind) & (run.lam > 0)
-    if run.k_ind is None or not np.any(sel):
+    if not np.any(sel):
         return 1.0
     moved = []
     for t in (3.0, 4.0):
