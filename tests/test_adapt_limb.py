@@ -72,6 +72,12 @@ def test_the_limb_mesher_puts_the_patch_and_the_cast_set_on_every_new_mesh(limb)
     )
     # the first pass: the model's element size everywhere (fewer elements than the default mesh, refined about the travel)
     assert first.n_tets < default.n_tets
+    # ... the preview's fixed mesh (config/preview.yaml: refine_size_mm = element_size_mm), whatever variants it carries
+    preview = build_model(
+        c, p, variants=["sphere", "bar"], settings={**MODEL, "refine_size_mm": 1.6}, cast=cast
+    ).mesh
+    assert np.array_equal(preview.nodes_mm, first.nodes_mm)
+    assert np.array_equal(preview.tets, first.tets)
     assert np.median(h) == pytest.approx(1.6, rel=0.2)
     for mesh in (first, refined):
         assert {"bone", "skin", "proximal", "distal", "patch", "patch_sphere"} <= set(mesh.facets)

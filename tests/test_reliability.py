@@ -215,7 +215,7 @@ def test_the_ranges_check_indenter_states_are_what_the_phantom_renders():
 
 
 def test_a_study_is_named_after_its_first_config_file():
-    assert study_name(["/x/config/paper.yaml", "config/coarse.yaml"]) == "paper"
+    assert study_name(["/x/config/paper.yaml", "config/preview.yaml"]) == "paper"
     assert study_name([]) == "config"
     assert _validate(GOOD, name="config/test.yaml")["study"]["name"] == "test"
     assert _validate(GOOD.replace("study:\n", "study:\n  name: mine\n"))["study"]["name"] == "mine"
