@@ -63,16 +63,14 @@ def test_test_config_and_study_defaults():
         2.5,
         1.25,
     )  # CI's coarse mesh
-    assert (
-        _load("config.yaml")["model"]["element_size_mm"],
-        _load("config.yaml")["model"]["refine_size_mm"],
-    ) == (1.6, 0.8)
+    demo = _load("config.yaml")
+    assert (demo["model"]["element_size_mm"], demo["model"]["refine_size_mm"]) == (1.6, 0.8)
     # the default is the accurate answer: adaptive meshes; the fixed mesh is the preview overlay's (and CI's)
-    assert _load("config.yaml")["study"]["mesh"] == "adaptive"
+    assert demo["study"]["mesh"] == "adaptive"
     # the preview is the default's first adaptive pass: the model's element size everywhere
     preview = yaml.safe_load((ROOT / "config" / "preview.yaml").read_text())
     assert preview == {"study": {"mesh": "fixed"}, "model": {"refine_size_mm": 1.6}}
-    assert preview["model"]["refine_size_mm"] == _load("config.yaml")["model"]["element_size_mm"]
+    assert preview["model"]["refine_size_mm"] == demo["model"]["element_size_mm"]
     assert c["study"]["mesh"] == "fixed"
     for key, value in (("strain_measure", "hencky"), ("gamma_sampling", "nodes")):
         bad = yaml.safe_load((ROOT / "config" / "test.yaml").read_text())
